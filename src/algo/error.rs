@@ -1,0 +1,91 @@
+//! The one error type of the algorithm core.
+//!
+//! Every variant is a mistake in what a caller supplied (a model, a parameter,
+//! an observation) except [`AlgoError::Numerical`], which reports a numerical
+//! breakdown the core could not recover from. Messages name the offending field
+//! so that the server can pass them to clients verbatim.
+
+use thiserror::Error;
+
+/// Errors raised by the pure MCA-PI core.
+#[derive(Debug, Clone, PartialEq, Error)]
+pub enum AlgoError {
+    /// The environment model is malformed; the message says where.
+    #[error("invalid model: {0}")]
+    InvalidModel(String),
+
+    /// A parameter is outside its allowed range.
+    #[error("invalid parameter `{name}`: {reason}")]
+    InvalidParameter {
+        /// The parameter's name as it appears in the agent configuration.
+        name: &'static str,
+        /// Why the value was refused.
+        reason: String,
+    },
+
+    /// The basis cannot be built for this model.
+    #[error("invalid basis: {0}")]
+    InvalidBasis(String),
+
+    /// An observation names a state outside `0..states`.
+    #[error("state {state} is out of range (the model has {states} states)")]
+    StateOutOfRange {
+        /// The state the caller sent.
+        state: usize,
+        /// Number of states in the model.
+        states: usize,
+    },
+
+    /// An observation names an action index outside `0..actions`.
+    #[error("action {action} is out of range (the model has {actions} actions)")]
+    ActionOutOfRange {
+        /// The action index the caller sent.
+        action: usize,
+        /// Number of actions in the model.
+        actions: usize,
+    },
+
+    /// The action reported as taken is not available in the previous state.
+    #[error("action `{action}` is not available in state {state}")]
+    ActionNotAvailable {
+        /// Previous state.
+        state: usize,
+        /// Name of the action.
+        action: String,
+    },
+
+    /// A stimulus vector has the wrong number of components.
+    #[error("stimulus has {got} components, expected {expected}")]
+    StimulusLength {
+        /// Components received.
+        got: usize,
+        /// Stimulus dimensions of the session.
+        expected: usize,
+    },
+
+    /// A number supplied by the caller is NaN or infinite.
+    #[error("`{field}` contains a non-finite number")]
+    NonFinite {
+        /// Which input held the number.
+        field: &'static str,
+    },
+
+    /// The first observation of an agent must carry only a state.
+    #[error("the first observation carries only a state; `{field}` must be omitted")]
+    FirstObservation {
+        /// Field that must not be present.
+        field: &'static str,
+    },
+
+    /// A later observation lacks its stimulus.
+    #[error("`stimulus` is required on every observation after the first")]
+    MissingStimulus,
+
+    /// The numerics broke down (a singular system even after regularisation,
+    /// or a non-finite intermediate). Not a caller's mistake.
+    #[error("numerical failure: {0}")]
+    Numerical(String),
+}
+
+/// Shorthand for results of the core.
+pub type Result<T, E = AlgoError> = std::result::Result<T, E>;

@@ -1,0 +1,22 @@
+//! The pure MCA-PI core: synchronous, no I/O, no async.
+//!
+//! Read in the order of Algorithm 1: [`model`] (the environment), [`basis`]
+//! (features), [`stimulus`] (Ξ and R, line 5 and line 8), [`drive`] (D,
+//! Eqs. 1-3), [`lstdq`] (line 9) and [`agent`] (the loop).
+
+pub mod agent;
+pub mod basis;
+pub mod drive;
+pub mod error;
+pub mod lstdq;
+pub mod model;
+pub mod params;
+pub mod stimulus;
+
+pub use agent::{Agent, Observation, ObserveOutcome, Step};
+pub use basis::{Basis, BasisSpec};
+pub use drive::Drive;
+pub use error::AlgoError;
+pub use lstdq::{PlanOutcome, Planner, PlanningModel};
+pub use model::{EnvModel, GridMap, ModelSpec, Preset, Source};
+pub use params::{AgentParams, StimulusRate, ValidParams};

@@ -1,0 +1,18 @@
+//! # mcapi
+//!
+//! Hosts motivated reinforcement-learning agents: MCA-PI (Kompella,
+//! Kazerounian, Schmidhuber, "An Anti-Hebbian Learning Rule to Represent
+//! Drive Motivations for Reinforcement Learning", SAB 2014).
+//!
+//! An agent receives n kinds of stimulus. Its drive D is a unit vector
+//! updated by Peng's anti-Hebbian Minor Component Analysis rule, so it points
+//! at the stimuli received least recently; the reward of a state-action pair
+//! is how well its learned stimulus function Ξ matches D; with the known
+//! transition model the agent re-plans every tick by model-based LSTDQ.
+//!
+//! Modules:
+//! - [`algo`]: the pure, synchronous algorithm core (Algorithm 1, Eqs. 1-3).
+//! - [`experiments`]: the paper's experiments, metrics and figures.
+
+pub mod algo;
+pub mod experiments;
