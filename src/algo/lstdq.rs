@@ -63,6 +63,8 @@ struct FeatureCache {
     gram: DMatrix<f64>,
     /// Column s' is M[s'] = Σ_(s,a) P(s'|s,a) φ(s,a), K×|S|.
     m: DMatrix<f64>,
+    /// State features column-major (|S|×k): column j is v_j over states.
+    v_cols: Vec<f64>,
     /// Features that are zero on every valid pair (e.g. the block of an
     /// action no state offers): their rows and columns of A are zero.
     unused: Vec<usize>,
@@ -128,7 +130,20 @@ impl FeatureCache {
             }
         }
         let unused = (0..big_k).filter(|&j| gram[(j, j)] == 0.0).collect();
-        Self { k, gram, m, unused }
+        let n = model.states();
+        let mut v_cols = vec![0.0; n * k];
+        for s in 0..n {
+            for (j, &x) in f.row(s).iter().enumerate() {
+                v_cols[j * n + s] = x;
+            }
+        }
+        Self {
+            k,
+            gram,
+            m,
+            v_cols,
+            unused,
+        }
     }
 }
 
@@ -200,6 +215,8 @@ struct FeatureEngine {
     y: DVector<f64>,
     u: DVector<f64>,
     z: DVector<f64>,
+    /// Scratch: Q(s, a) for every state and action, column-major |S|×|A|.
+    q_states: Vec<f64>,
 }
 
 impl Planner {
@@ -231,6 +248,7 @@ impl Planner {
                     y: DVector::zeros(big_k),
                     u: DVector::zeros(big_k),
                     z: DVector::zeros(big_k),
+                    q_states: vec![0.0; model.states() * model.n_actions()],
                 }))
             }
         };
@@ -298,7 +316,7 @@ impl Planner {
                     .state_features()
                     .ok_or_else(|| AlgoError::Numerical("feature engine without features".into()))?;
                 reused = fe.prepare(model, f, cache, &self.policy, gamma, ridge, &mut self.stats)?;
-                fe.evaluate(model, f, r, &mut self.q_next);
+                fe.evaluate(model, f, cache, r, &mut self.q_next);
             }
         }
         // ‖Q_t − Q_{t+1}‖₂; a non-finite Q makes it non-finite too.
@@ -557,26 +575,34 @@ impl FeatureEngine {
     }
 
     /// b = ΦᵀR, w = A⁻¹b, Q = Φw, using the block structure φ(s,a) = e_a ⊗ v(s).
-    fn evaluate(&mut self, model: &EnvModel, f: &StateFeatures, r: &[f64], q: &mut [f64]) {
-        let k = f.k();
+    ///
+    /// Every loop is an axpy (no reductions), so the compiler vectorises it:
+    /// b gains R(s,a) v(s) in block a; Q(·, a) = Σ_j w_(a,j) v_j over states.
+    fn evaluate(&mut self, model: &EnvModel, f: &StateFeatures, cache: &FeatureCache, r: &[f64], q: &mut [f64]) {
+        let k = cache.k;
+        let n = model.states();
         self.b.fill(0.0);
         let b = self.b.as_mut_slice();
         for (p, &rp) in r.iter().enumerate() {
             let (s, a) = (model.pair_state(p), model.pair_action(p));
             let block = &mut b[a * k..(a + 1) * k];
-            for (bi, vi) in block.iter_mut().zip(f.row(s)) {
-                *bi += rp * vi;
+            for (bj, vj) in block.iter_mut().zip(f.row(s)) {
+                *bj += rp * vj;
             }
         }
         self.w.gemv(1.0, &self.a_inv, &self.b, 0.0);
         let w = self.w.as_slice();
+        for (a, col) in self.q_states.chunks_exact_mut(n).enumerate() {
+            col.fill(0.0);
+            for (j, v_j) in cache.v_cols.chunks_exact(n).enumerate() {
+                let c = w[a * k + j];
+                for (qs, vs) in col.iter_mut().zip(v_j) {
+                    *qs += c * vs;
+                }
+            }
+        }
         for (p, qp) in q.iter_mut().enumerate() {
-            let (s, a) = (model.pair_state(p), model.pair_action(p));
-            *qp = w[a * k..(a + 1) * k]
-                .iter()
-                .zip(f.row(s))
-                .map(|(wi, vi)| wi * vi)
-                .sum();
+            *qp = self.q_states[model.pair_action(p) * n + model.pair_state(p)];
         }
     }
 }

@@ -1,0 +1,455 @@
+//! Figures of the experiments (ALGORITHM.md §6), as PNG and SVG, drawn with
+//! plotters and the bundled DejaVu Sans font (no system fonts needed).
+//!
+//! Hallway: Fig. 2(b) cumulative |r| (mean ± sd, MCA-PI vs Brownian),
+//! 2(c) the drive over time, 2(d) the LSTDQ error (one run and the mean),
+//! 2(e) V(10) and V(40). Maze: Fig. 3(b) cumulative stimulus per source,
+//! 3(c) the drive, 3(d) the LSTDQ error, 3(e-g) value function and policy
+//! over the map at three instants, each when a different drive dominates.
+
+use std::path::{Path, PathBuf};
+use std::sync::Once;
+
+use anyhow::{Result, anyhow};
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::colors::colormaps::{ColorMap, ViridisRGB};
+
+use crate::algo::model::GridMap;
+
+use super::paper::{Experiment, ExperimentKind, Snapshot, TrialRecord};
+
+const FONT: &str = "sans-serif";
+const SIZE: (u32, u32) = (900, 520);
+/// Most points drawn per series; longer series are averaged in windows.
+const MAX_POINTS: usize = 1500;
+/// Ticks shown in the time-series panels of single runs.
+const WINDOW: usize = 1000;
+const PALETTE: [RGBColor; 5] = [
+    RGBColor(31, 119, 180),
+    RGBColor(214, 39, 40),
+    RGBColor(44, 160, 44),
+    RGBColor(255, 127, 14),
+    RGBColor(148, 103, 189),
+];
+
+static FONT_ONCE: Once = Once::new();
+
+fn register_font() {
+    FONT_ONCE.call_once(|| {
+        let bytes = include_bytes!("../../assets/fonts/DejaVuSans.ttf");
+        if plotters::style::register_font(FONT, FontStyle::Normal, bytes).is_err() {
+            tracing::error!("bundled font could not be registered; figures will lack text");
+        }
+    });
+}
+
+/// One line, optionally with a shaded band (x, low, high).
+struct Series {
+    label: String,
+    color: RGBColor,
+    width: u32,
+    points: Vec<(f64, f64)>,
+    band: Option<Vec<(f64, f64, f64)>>,
+}
+
+struct LineChart {
+    title: String,
+    x_label: String,
+    y_label: String,
+    series: Vec<Series>,
+}
+
+/// Averages `ys` (values at ticks 1..) into at most MAX_POINTS points.
+fn decimate(ys: &[f64]) -> Vec<(f64, f64)> {
+    let w = ys.len().div_ceil(MAX_POINTS).max(1);
+    ys.chunks(w)
+        .enumerate()
+        .map(|(i, c)| ((i * w + c.len()) as f64, c.iter().sum::<f64>() / c.len() as f64))
+        .collect()
+}
+
+fn cumsum(xs: impl Iterator<Item = f64>) -> Vec<f64> {
+    xs.scan(0.0, |acc, x| {
+        *acc += x;
+        Some(*acc)
+    })
+    .collect()
+}
+
+/// Per-tick mean and sd over trials of a per-trial series.
+fn mean_sd(series: &[Vec<f64>]) -> (Vec<f64>, Vec<f64>) {
+    let n = series.len() as f64;
+    let len = series.iter().map(Vec::len).min().unwrap_or(0);
+    let mut mean = vec![0.0; len];
+    let mut sd = vec![0.0; len];
+    for t in 0..len {
+        let m = series.iter().map(|s| s[t]).sum::<f64>() / n;
+        let var = if series.len() > 1 {
+            series.iter().map(|s| (s[t] - m).powi(2)).sum::<f64>() / (n - 1.0)
+        } else {
+            0.0
+        };
+        mean[t] = m;
+        sd[t] = var.sqrt();
+    }
+    (mean, sd)
+}
+
+fn mean_band(label: &str, color: RGBColor, series: &[Vec<f64>]) -> Series {
+    let (mean, sd) = mean_sd(series);
+    let lo: Vec<f64> = mean.iter().zip(&sd).map(|(m, s)| m - s).collect();
+    let hi: Vec<f64> = mean.iter().zip(&sd).map(|(m, s)| m + s).collect();
+    let band = decimate(&lo)
+        .into_iter()
+        .zip(decimate(&hi))
+        .map(|((x, l), (_, h))| (x, l, h))
+        .collect();
+    Series {
+        label: format!("{label} (mean ± sd)"),
+        color,
+        width: 2,
+        points: decimate(&mean),
+        band: Some(band),
+    }
+}
+
+fn line(label: impl Into<String>, color: RGBColor, width: u32, ys: &[f64]) -> Series {
+    Series {
+        label: label.into(),
+        color,
+        width,
+        points: decimate(ys),
+        band: None,
+    }
+}
+
+/// Something drawable on any plotters backend.
+trait Figure {
+    fn title(&self) -> &str;
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>>;
+}
+
+/// Draws `fig` to `<out>/<stem>.png` and `<out>/<stem>.svg`.
+fn save(fig: &impl Figure, out: &Path, stem: &str, size: (u32, u32)) -> Result<Vec<PathBuf>> {
+    register_font();
+    let png = out.join(format!("{stem}.png"));
+    let svg = out.join(format!("{stem}.svg"));
+    {
+        let root = BitMapBackend::new(&png, size).into_drawing_area();
+        fig.draw(&root)
+            .and_then(|()| root.present())
+            .map_err(|e| anyhow!("drawing {} ({}): {e:?}", fig.title(), png.display()))?;
+    }
+    {
+        let root = SVGBackend::new(&svg, size).into_drawing_area();
+        fig.draw(&root)
+            .and_then(|()| root.present())
+            .map_err(|e| anyhow!("drawing {} ({}): {e:?}", fig.title(), svg.display()))?;
+    }
+    Ok(vec![png, svg])
+}
+
+impl Figure for LineChart {
+    fn title(&self) -> &str {
+        &self.title
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+        root.fill(&WHITE)?;
+        let mut x_max: f64 = 1.0;
+        let (mut y_min, mut y_max) = (f64::INFINITY, f64::NEG_INFINITY);
+        for s in &self.series {
+            for &(x, y) in &s.points {
+                x_max = x_max.max(x);
+                y_min = y_min.min(y);
+                y_max = y_max.max(y);
+            }
+            for &(_, l, h) in s.band.iter().flatten() {
+                y_min = y_min.min(l);
+                y_max = y_max.max(h);
+            }
+        }
+        if !y_min.is_finite() || !y_max.is_finite() {
+            (y_min, y_max) = (0.0, 1.0);
+        }
+        let pad = ((y_max - y_min) * 0.05).max(1e-9);
+        let mut ctx = ChartBuilder::on(root)
+            .caption(&self.title, (FONT, 22))
+            .margin(14)
+            .x_label_area_size(44)
+            .y_label_area_size(72)
+            .build_cartesian_2d(0.0..x_max, (y_min - pad)..(y_max + pad))?;
+        let span = y_max - y_min;
+        let y_fmt = move |y: &f64| {
+            if span >= 20.0 {
+                format!("{y:.0}")
+            } else if span >= 2.0 {
+                format!("{y:.1}")
+            } else {
+                format!("{y:.2}")
+            }
+        };
+        ctx.configure_mesh()
+            .x_label_formatter(&|x| format!("{x:.0}"))
+            .y_label_formatter(&y_fmt)
+            .x_desc(self.x_label.as_str())
+            .y_desc(self.y_label.as_str())
+            .label_style((FONT, 14))
+            .axis_desc_style((FONT, 16))
+            .light_line_style(WHITE.mix(0.0))
+            .draw()?;
+        for s in &self.series {
+            if let Some(band) = &s.band {
+                let mut poly: Vec<(f64, f64)> = band.iter().map(|&(x, _, h)| (x, h)).collect();
+                poly.extend(band.iter().rev().map(|&(x, l, _)| (x, l)));
+                ctx.draw_series(std::iter::once(Polygon::new(poly, s.color.mix(0.18))))?;
+            }
+        }
+        for s in &self.series {
+            let color = s.color;
+            ctx.draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(s.width)))?
+                .label(s.label.as_str())
+                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 22, y)], color.stroke_width(3)));
+        }
+        ctx.configure_series_labels()
+            .position(SeriesLabelPosition::UpperLeft)
+            .background_style(WHITE.mix(0.85))
+            .border_style(BLACK.mix(0.4))
+            .label_font((FONT, 14))
+            .draw()?;
+        Ok(())
+    }
+}
+
+/// Value function and greedy policy over a grid map.
+struct ValueMap<'a> {
+    title: String,
+    grid: &'a GridMap,
+    snapshot: &'a Snapshot,
+    /// (mark, state) of each source.
+    sources: Vec<(char, usize)>,
+}
+
+impl Figure for ValueMap<'_> {
+    fn title(&self) -> &str {
+        &self.title
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+        root.fill(&WHITE)?;
+        let (rows, cols) = (self.grid.rows() as f64, self.grid.cols() as f64);
+        let values = &self.snapshot.values;
+        let lo = values.iter().copied().fold(f64::INFINITY, f64::min);
+        let hi = values.iter().copied().fold(f64::NEG_INFINITY, f64::max);
+        let hi = if hi > lo { hi } else { lo + 1.0 };
+        let mut ctx = ChartBuilder::on(root)
+            .caption(&self.title, (FONT, 20))
+            .margin(12)
+            .build_cartesian_2d(0.0..cols, 0.0..rows)?;
+        // Row r of the map is drawn from y = rows − r (top) to rows − r − 1.
+        let cell = |r: usize, c: usize| [(c as f64, rows - r as f64), (c as f64 + 1.0, rows - r as f64 - 1.0)];
+        let centre = |s: usize| {
+            let (r, c) = self.grid.cell_of(s);
+            (c as f64 + 0.5, rows - r as f64 - 0.5)
+        };
+        let mut cells = Vec::new();
+        for r in 0..self.grid.rows() {
+            for c in 0..self.grid.cols() {
+                let style = match self.grid.state_at(r, c) {
+                    None => RGBColor(40, 40, 40).filled(),
+                    Some(s) => ViridisRGB.get_color_normalized(values[s], lo, hi).filled(),
+                };
+                cells.push(Rectangle::new(cell(r, c), style));
+            }
+        }
+        ctx.draw_series(cells)?;
+        let arrows = (0..values.len()).map(|s| {
+            let (x, y) = centre(s);
+            let (dx, dy) = match self.snapshot.actions[s] {
+                0 => (-0.38, 0.0),
+                1 => (0.38, 0.0),
+                2 => (0.0, 0.38),
+                3 => (0.0, -0.38),
+                _ => (0.0, 0.0),
+            };
+            PathElement::new(vec![(x - dx * 0.3, y - dy * 0.3), (x + dx, y + dy)], WHITE.stroke_width(2))
+        });
+        ctx.draw_series(arrows)?;
+        let stays = (0..values.len())
+            .filter(|&s| self.snapshot.actions[s] == 4)
+            .map(|s| Circle::new(centre(s), 3, WHITE.filled()));
+        ctx.draw_series(stays)?;
+        let labels = self.sources.iter().map(|&(mark, s)| {
+            let (x, y) = centre(s);
+            Text::new(mark.to_string(), (x - 0.25, y + 0.45), (FONT, 20).into_font().color(&RED))
+        });
+        ctx.draw_series(labels)?;
+        ctx.draw_series(std::iter::once(Circle::new(
+            centre(self.snapshot.state),
+            9,
+            RED.stroke_width(3),
+        )))?;
+        Ok(())
+    }
+}
+
+/// Cumulative sums of a per-tick series of every trial.
+fn cumulative_per_trial(recs: &[TrialRecord], f: impl Fn(&TrialRecord) -> Vec<f64>) -> Vec<Vec<f64>> {
+    recs.iter().map(|r| cumsum(f(r).into_iter())).collect()
+}
+
+fn component(rec: &TrialRecord, j: usize, data: &[f64], width: usize) -> Vec<f64> {
+    data.iter().skip(j).step_by(width).take(rec.steps()).copied().collect()
+}
+
+/// Draws every figure of an experiment into `out`; returns the files.
+pub fn draw_experiment(
+    exp: &Experiment,
+    grouped: &[(&'static str, Vec<TrialRecord>)],
+    out: &Path,
+) -> Result<Vec<PathBuf>> {
+    match exp.kind {
+        ExperimentKind::Hallway => draw_hallway(exp, grouped, out),
+        ExperimentKind::ThreeRoom => draw_maze(exp, grouped, out),
+    }
+}
+
+fn records<'a>(grouped: &'a [(&'static str, Vec<TrialRecord>)], name: &str) -> Result<&'a [TrialRecord]> {
+    grouped
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, r)| r.as_slice())
+        .filter(|r| !r.is_empty())
+        .ok_or_else(|| anyhow!("no trials of {name}"))
+}
+
+fn drive_chart(title: String, exp: &Experiment, rec: &TrialRecord) -> LineChart {
+    let n = rec.dims;
+    let window = rec.steps().min(WINDOW);
+    let series = exp
+        .preset
+        .model
+        .stimuli()
+        .iter()
+        .enumerate()
+        .map(|(j, name)| {
+            let d: Vec<f64> = component(rec, j, &rec.drive, n).iter().take(window).map(|x| x.abs()).collect();
+            line(format!("|d_{name}|"), PALETTE[j % PALETTE.len()], 2, &d)
+        })
+        .collect();
+    LineChart {
+        title,
+        x_label: "tick".into(),
+        y_label: "drive component |d_j|".into(),
+        series,
+    }
+}
+
+fn error_chart(title: String, recs: &[TrialRecord]) -> LineChart {
+    let per_trial: Vec<Vec<f64>> = recs.iter().map(|r| r.lstdq_error.clone()).collect();
+    let (mean, _) = mean_sd(&per_trial);
+    LineChart {
+        title,
+        x_label: "tick".into(),
+        y_label: "||Q_t - Q_t+1||".into(),
+        series: vec![
+            line("one run", RGBColor(150, 150, 150), 1, &recs[0].lstdq_error),
+            // Width 1: plotters' thick polylines spike at sharp turns.
+            line(format!("mean of {} runs", recs.len()), PALETTE[0], 1, &mean),
+        ],
+    }
+}
+
+fn draw_hallway(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], out: &Path) -> Result<Vec<PathBuf>> {
+    let mca = records(grouped, "mca_pi")?;
+    let brown = records(grouped, "brownian")?;
+    let mut files = Vec::new();
+    let abs_r = |r: &TrialRecord| r.abs_reward.clone();
+    let fig_b = LineChart {
+        title: "Fig. 2(b) Hallway: cumulative |r|".into(),
+        x_label: "tick".into(),
+        y_label: "cumulative |r|".into(),
+        series: vec![
+            mean_band("MCA-PI", PALETTE[0], &cumulative_per_trial(mca, abs_r)),
+            mean_band("Brownian, 4 states/tick", PALETTE[1], &cumulative_per_trial(brown, abs_r)),
+        ],
+    };
+    files.extend(save(&fig_b, out, "fig2b_cumulative_reward", SIZE)?);
+    let window = mca[0].steps().min(WINDOW);
+    let fig_c = drive_chart(format!("Fig. 2(c) Hallway: drive D, first {window} ticks"), exp, &mca[0]);
+    files.extend(save(&fig_c, out, "fig2c_drive", SIZE)?);
+    let fig_d = error_chart("Fig. 2(d) Hallway: LSTDQ error".into(), mca);
+    files.extend(save(&fig_d, out, "fig2d_lstdq_error", SIZE)?);
+    let n_src = exp.preset.sources.len();
+    let series = exp
+        .preset
+        .sources
+        .iter()
+        .enumerate()
+        .map(|(i, src)| {
+            let v: Vec<f64> = component(&mca[0], i, &mca[0].source_values, n_src).into_iter().take(window).collect();
+            let name = &exp.preset.model.stimuli()[src.dim];
+            line(format!("V({}) ({name})", src.state), PALETTE[i % PALETTE.len()], 2, &v)
+        })
+        .collect();
+    let fig_e = LineChart {
+        title: format!("Fig. 2(e) Hallway: value at the sources, first {window} ticks"),
+        x_label: "tick".into(),
+        y_label: "V(s)".into(),
+        series,
+    };
+    files.extend(save(&fig_e, out, "fig2e_values", SIZE)?);
+    Ok(files)
+}
+
+fn draw_maze(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], out: &Path) -> Result<Vec<PathBuf>> {
+    let ind = records(grouped, "indicator")?;
+    let mut files = Vec::new();
+    let n = exp.dims();
+    let series = exp
+        .preset
+        .sources
+        .iter()
+        .map(|src| {
+            let cum = cumulative_per_trial(ind, |r| component(r, src.dim, &r.stimulus, n));
+            let name = &exp.preset.model.stimuli()[src.dim];
+            mean_band(&format!("source {name}"), PALETTE[src.dim % PALETTE.len()], &cum)
+        })
+        .collect();
+    let fig_b = LineChart {
+        title: "Fig. 3(b) Three-room maze: cumulative stimulus per source".into(),
+        x_label: "tick".into(),
+        y_label: "cumulative stimulus".into(),
+        series,
+    };
+    files.extend(save(&fig_b, out, "fig3b_cumulative_stimulus", SIZE)?);
+    let window = ind[0].steps().min(WINDOW);
+    let fig_c = drive_chart(format!("Fig. 3(c) Three-room maze: drive D, first {window} ticks"), exp, &ind[0]);
+    files.extend(save(&fig_c, out, "fig3c_drive", SIZE)?);
+    let fig_d = error_chart("Fig. 3(d) Three-room maze: LSTDQ error".into(), ind);
+    files.extend(save(&fig_d, out, "fig3d_lstdq_error", SIZE)?);
+    let grid = exp
+        .preset
+        .grid
+        .as_ref()
+        .ok_or_else(|| anyhow!("three-room preset has no map"))?;
+    let mut snaps: Vec<&Snapshot> = ind[0].snapshots.iter().collect();
+    snaps.sort_by_key(|s| s.tick);
+    let sources: Vec<(char, usize)> = grid.marks().to_vec();
+    for (snap, letter) in snaps.iter().take(3).zip(['e', 'f', 'g']) {
+        let name = &exp.preset.model.stimuli()[snap.dominant];
+        let fig = ValueMap {
+            title: format!(
+                "Fig. 3({letter}) V and policy at tick {}: drive for {name} dominates",
+                snap.tick
+            ),
+            grid,
+            snapshot: snap,
+            sources: sources.clone(),
+        };
+        let size = (grid.cols() as u32 * 34 + 24, grid.rows() as u32 * 34 + 60);
+        files.extend(save(&fig, out, &format!("fig3{letter}_values_{name}"), size)?);
+    }
+    Ok(files)
+}

@@ -1,0 +1,209 @@
+//! Running an experiment: trials in parallel, CSV series, `summary.json`,
+//! figures and the printed results table.
+
+use std::collections::BTreeMap;
+use std::fs::{self, File};
+use std::io::{BufWriter, Write};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
+
+use super::metrics::{Stat, TrialMetrics, summarise, trial_metrics};
+use super::paper::{Experiment, TrialRecord, run_trial};
+use super::plots;
+
+/// Options of `mcapi experiment`.
+#[derive(Debug, Clone)]
+pub struct RunOptions {
+    /// Trials per configuration.
+    pub trials: usize,
+    /// Ticks per trial.
+    pub steps: usize,
+    /// Base seed.
+    pub seed: u64,
+    /// Output directory.
+    pub out: PathBuf,
+    /// Write per-trial CSV series.
+    pub csv: bool,
+    /// Draw the figures.
+    pub figures: bool,
+    /// Show a progress bar on stderr.
+    pub progress: bool,
+}
+
+/// `summary.json`, in the shape other tools read.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    /// `hallway` or `three-room`.
+    pub experiment: String,
+    /// Trials per configuration.
+    pub trials: usize,
+    /// Ticks per trial.
+    pub steps: usize,
+    /// Base seed.
+    pub seed: u64,
+    /// `{config: {metric: {mean, sd, min, max}}}`.
+    pub configs: BTreeMap<String, BTreeMap<String, Stat>>,
+}
+
+/// Everything an experiment produced.
+#[derive(Debug)]
+pub struct ExperimentOutput {
+    /// The summary written to `summary.json`.
+    pub summary: Summary,
+    /// Trial records per configuration, in the experiment's config order.
+    pub records: Vec<(&'static str, Vec<TrialRecord>)>,
+    /// Files written.
+    pub files: Vec<PathBuf>,
+}
+
+/// Runs every configuration of `exp` for `opts.trials` trials.
+pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentOutput> {
+    anyhow::ensure!(opts.trials > 0, "--trials must be at least 1");
+    anyhow::ensure!(opts.steps > 0, "--steps must be at least 1");
+    fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
+    let ctxs = exp.planning_models()?;
+    let started = Instant::now();
+
+    let jobs: Vec<(usize, usize)> = (0..exp.configs.len())
+        .flat_map(|c| (0..opts.trials).map(move |t| (c, t)))
+        .collect();
+    let bar = progress_bar(opts, jobs.len() as u64, exp.name());
+    let records: Vec<TrialRecord> = jobs
+        .par_iter()
+        .map(|&(c, t)| {
+            let config = &exp.configs[c];
+            let snapshots = c == 0 && t == 0 && exp.preset.grid.is_some();
+            let rec = run_trial(exp, config, ctxs[c].as_ref(), opts.seed, t, opts.steps, snapshots)
+                .with_context(|| format!("{} trial {t}", config.name))?;
+            if opts.csv {
+                write_csv(exp, config.name, t, &rec, &opts.out)?;
+            }
+            bar.inc(1);
+            Ok(rec)
+        })
+        .collect::<Result<_>>()?;
+    bar.finish_and_clear();
+
+    let sources: Vec<usize> = exp.preset.sources.iter().map(|s| s.state).collect();
+    let mut grouped: Vec<(&'static str, Vec<TrialRecord>)> =
+        exp.configs.iter().map(|c| (c.name, Vec::new())).collect();
+    for (&(c, _), rec) in jobs.iter().zip(records) {
+        grouped[c].1.push(rec);
+    }
+    let mut configs = BTreeMap::new();
+    for (name, recs) in &grouped {
+        let per_trial: Vec<TrialMetrics> = recs.iter().map(|r| trial_metrics(r, &sources)).collect();
+        configs.insert(name.to_string(), summarise(&per_trial));
+    }
+    let summary = Summary {
+        experiment: exp.name().to_string(),
+        trials: opts.trials,
+        steps: opts.steps,
+        seed: opts.seed,
+        configs,
+    };
+    let summary_path = opts.out.join("summary.json");
+    let json = serde_json::to_string_pretty(&summary)?;
+    fs::write(&summary_path, json + "\n").with_context(|| format!("writing {}", summary_path.display()))?;
+    let mut files = vec![summary_path];
+    if opts.figures {
+        files.extend(plots::draw_experiment(exp, &grouped, &opts.out)?);
+    }
+    tracing::info!(
+        experiment = exp.name(),
+        seconds = started.elapsed().as_secs_f64(),
+        "experiment finished"
+    );
+    Ok(ExperimentOutput {
+        summary,
+        records: grouped,
+        files,
+    })
+}
+
+fn progress_bar(opts: &RunOptions, len: u64, name: &str) -> ProgressBar {
+    if !opts.progress {
+        return ProgressBar::hidden();
+    }
+    let bar = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::stderr());
+    if let Ok(style) = ProgressStyle::with_template("{prefix} [{bar:40}] {pos}/{len} trials, {elapsed}") {
+        bar.set_style(style.progress_chars("=> "));
+    }
+    bar.set_prefix(name.to_string());
+    bar
+}
+
+/// Writes `DIR/<config>/trial_<i>.csv`: tick, state, action, drive
+/// components, |r|, cumulative stimulus, LSTDQ error, V at each source.
+fn write_csv(exp: &Experiment, config: &str, trial: usize, rec: &TrialRecord, out: &Path) -> Result<()> {
+    let dir = out.join(config);
+    fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let path = dir.join(format!("trial_{trial:02}.csv"));
+    let file = File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+    let mut w = BufWriter::new(file);
+    let names = exp.preset.model.stimuli();
+    let mut header = String::from("tick,state,action");
+    for n in names {
+        header.push_str(&format!(",d_{n}"));
+    }
+    header.push_str(",abs_reward");
+    for n in names {
+        header.push_str(&format!(",cum_{n}"));
+    }
+    header.push_str(",lstdq_error");
+    for src in &exp.preset.sources {
+        header.push_str(&format!(",v_state_{}", src.state));
+    }
+    writeln!(w, "{header}")?;
+    let n = rec.dims;
+    let n_src = exp.preset.sources.len();
+    let mut cum = vec![0.0; n];
+    for t in 0..rec.steps() {
+        write!(w, "{},{},{}", t + 1, rec.states[t], rec.actions[t])?;
+        for d in rec.drive_at(t) {
+            write!(w, ",{d:.6}")?;
+        }
+        write!(w, ",{:.6}", rec.abs_reward[t])?;
+        for (c, x) in cum.iter_mut().zip(&rec.stimulus[t * n..(t + 1) * n]) {
+            *c += x;
+            write!(w, ",{c:.4}")?;
+        }
+        write!(w, ",{:.6e}", rec.lstdq_error[t])?;
+        for v in &rec.source_values[t * n_src..(t + 1) * n_src] {
+            write!(w, ",{v:.6}")?;
+        }
+        writeln!(w)?;
+    }
+    w.flush().with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
+
+/// The short results table printed after a run (Markdown).
+pub fn results_table(summary: &Summary, order: &[&str]) -> String {
+    let mut out = String::from(
+        "| config | cumulative abs reward | balance | switches | period | all sources found | stuck |\n\
+         |---|---|---|---|---|---|---|\n",
+    );
+    for name in order {
+        let Some(m) = summary.configs.get(*name) else { continue };
+        let get = |k: &str| m.get(k).copied();
+        let fmt = |k: &str, prec: usize| {
+            get(k).map_or("-".to_string(), |s| format!("{:.prec$} ± {:.prec$}", s.mean, s.sd))
+        };
+        out.push_str(&format!(
+            "| {name} | {} | {} | {} | {} | {} | {} |\n",
+            fmt("cumulative_abs_reward", 0),
+            fmt("balance", 3),
+            fmt("switches", 1),
+            fmt("period", 1),
+            fmt("all_sources_found", 0),
+            get("stuck").map_or("-".to_string(), |s| format!("{:.0}/{}", s.mean * summary.trials as f64, summary.trials)),
+        ));
+    }
+    out
+}
