@@ -78,6 +78,11 @@ impl StateFeatures {
         &self.values[s * self.k..(s + 1) * self.k]
     }
 
+    /// The whole table, row-major `states × k`.
+    pub fn as_slice(&self) -> &[f64] {
+        &self.values
+    }
+
     /// Number of states covered.
     pub fn states(&self) -> usize {
         self.values.len() / self.k

@@ -574,36 +574,77 @@ impl FeatureEngine {
         }
     }
 
-    /// b = ΦᵀR, w = A⁻¹b, Q = Φw, using the block structure φ(s,a) = e_a ⊗ v(s).
-    ///
-    /// Every loop is an axpy (no reductions), so the compiler vectorises it:
-    /// b gains R(s,a) v(s) in block a; Q(·, a) = Σ_j w_(a,j) v_j over states.
+    /// b = ΦᵀR, w = A⁻¹b, Q = Φw (see [`feature_kernel`]).
     fn evaluate(&mut self, model: &EnvModel, f: &StateFeatures, cache: &FeatureCache, r: &[f64], q: &mut [f64]) {
-        let k = cache.k;
-        let n = model.states();
-        self.b.fill(0.0);
-        let b = self.b.as_mut_slice();
-        for (p, &rp) in r.iter().enumerate() {
-            let (s, a) = (model.pair_state(p), model.pair_action(p));
-            let block = &mut b[a * k..(a + 1) * k];
-            for (bj, vj) in block.iter_mut().zip(f.row(s)) {
-                *bj += rp * vj;
+        feature_kernel(
+            FeatureKernel {
+                pair_state: model.pair_states(),
+                pair_action: model.pair_actions(),
+                rows: f.as_slice(),
+                v_cols: &cache.v_cols,
+                k: cache.k,
+                a_inv: self.a_inv.as_slice(),
+                r,
+            },
+            self.b.as_mut_slice(),
+            self.w.as_mut_slice(),
+            &mut self.q_states,
+            q,
+        );
+    }
+}
+
+/// Read-only inputs of [`feature_kernel`].
+struct FeatureKernel<'a> {
+    pair_state: &'a [u32],
+    pair_action: &'a [u32],
+    /// v(s) row-major, |S|×k.
+    rows: &'a [f64],
+    /// v_j column-major, |S|×k.
+    v_cols: &'a [f64],
+    k: usize,
+    /// A⁻¹ column-major, K×K.
+    a_inv: &'a [f64],
+    r: &'a [f64],
+}
+
+/// b = ΦᵀR, w = A⁻¹b, Q = Φw with the block structure φ(s,a) = e_a ⊗ v(s).
+///
+/// Every loop is an axpy (no reductions), so the compiler vectorises it;
+/// the function is compiled for AVX2 and NEON as well and picks the best
+/// version at run time. b gains R(s,a) v(s) in block a; w is the sum of
+/// A⁻¹'s columns weighted by b; Q(·, a) = Σ_j w_(a,j) v_j over states.
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx", "aarch64+neon"))]
+fn feature_kernel<'a>(x: FeatureKernel<'a>, b: &mut [f64], w: &mut [f64], q_states: &mut [f64], q: &mut [f64]) {
+    let k = x.k;
+    let n = x.rows.len() / k;
+    b.fill(0.0);
+    for ((&rp, &s), &a) in x.r.iter().zip(x.pair_state).zip(x.pair_action) {
+        let (s, a) = (s as usize, a as usize);
+        let block = &mut b[a * k..(a + 1) * k];
+        for (bj, vj) in block.iter_mut().zip(&x.rows[s * k..(s + 1) * k]) {
+            *bj += rp * vj;
+        }
+    }
+    w.fill(0.0);
+    for (&bj, col) in b.iter().zip(x.a_inv.chunks_exact(w.len())) {
+        if bj != 0.0 {
+            for (wi, ai) in w.iter_mut().zip(col) {
+                *wi += bj * ai;
             }
         }
-        self.w.gemv(1.0, &self.a_inv, &self.b, 0.0);
-        let w = self.w.as_slice();
-        for (a, col) in self.q_states.chunks_exact_mut(n).enumerate() {
-            col.fill(0.0);
-            for (j, v_j) in cache.v_cols.chunks_exact(n).enumerate() {
-                let c = w[a * k + j];
-                for (qs, vs) in col.iter_mut().zip(v_j) {
-                    *qs += c * vs;
-                }
+    }
+    for (a, col) in q_states.chunks_exact_mut(n).enumerate() {
+        col.fill(0.0);
+        for (j, v_j) in x.v_cols.chunks_exact(n).enumerate() {
+            let c = w[a * k + j];
+            for (qs, vs) in col.iter_mut().zip(v_j) {
+                *qs += c * vs;
             }
         }
-        for (p, qp) in q.iter_mut().enumerate() {
-            *qp = self.q_states[model.pair_action(p) * n + model.pair_state(p)];
-        }
+    }
+    for ((qp, &s), &a) in q.iter_mut().zip(x.pair_state).zip(x.pair_action) {
+        *qp = q_states[a as usize * n + s as usize];
     }
 }
 

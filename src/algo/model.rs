@@ -394,6 +394,16 @@ impl EnvModel {
         (p != NONE).then_some(p as usize)
     }
 
+    /// State of every pair, in pair order.
+    pub fn pair_states(&self) -> &[u32] {
+        &self.pair_state
+    }
+
+    /// Action index of every pair, in pair order.
+    pub fn pair_actions(&self) -> &[u32] {
+        &self.pair_action
+    }
+
     /// Successor states and probabilities of pair `p`.
     #[inline]
     pub fn successors(&self, p: usize) -> (&[u32], &[f64]) {
