@@ -95,6 +95,10 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64()
     );
     print!("{}", results_table(&output.summary, &order));
-    println!("\nwrote {} files to {}", output.files.len(), opts.out.display());
+    println!(
+        "\nwrote {} files to {}",
+        output.files.len(),
+        opts.out.display()
+    );
     Ok(())
 }

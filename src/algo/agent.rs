@@ -177,13 +177,18 @@ impl Agent {
                     actions: model.n_actions(),
                 });
             }
-            Some(a) => Some(model.pair(prev, a).ok_or_else(|| AlgoError::ActionNotAvailable {
-                state: prev,
-                action: model.actions()[a].clone(),
-            })?),
+            Some(a) => Some(
+                model
+                    .pair(prev, a)
+                    .ok_or_else(|| AlgoError::ActionNotAvailable {
+                        state: prev,
+                        action: model.actions()[a].clone(),
+                    })?,
+            ),
         };
         // `advised` is always set once `state` is (act follows every observe).
-        pair.map(Some).ok_or(AlgoError::Numerical("no advised action to update".into()))
+        pair.map(Some)
+            .ok_or(AlgoError::Numerical("no advised action to update".into()))
     }
 
     /// Lines 5-7 and Eq. 3: learns Ξ(s_t, a_t) and updates D. Nothing changes on error.
@@ -199,7 +204,11 @@ impl Agent {
         self.advised = None;
         Ok(ObserveOutcome {
             tick: self.tick,
-            reward: if pair.is_some() { self.last_reward } else { 0.0 },
+            reward: if pair.is_some() {
+                self.last_reward
+            } else {
+                0.0
+            },
         })
     }
 
@@ -223,10 +232,16 @@ impl Agent {
 
     /// Recomputes R = |ΞΛD| from the current Ξ and D.
     fn refresh_rewards(&mut self) {
-        for ((s, d), l) in self.scaled_drive.iter_mut().zip(self.drive.vector()).zip(self.drive.inv_rho()) {
+        for ((s, d), l) in self
+            .scaled_drive
+            .iter_mut()
+            .zip(self.drive.vector())
+            .zip(self.drive.inv_rho())
+        {
             *s = d * l;
         }
-        self.stimulus.rewards_into(&self.scaled_drive, &mut self.rewards);
+        self.stimulus
+            .rewards_into(&self.scaled_drive, &mut self.rewards);
     }
 
     /// a_{t+1}: π(s_{t+1}), or with probability ε a uniformly random valid
@@ -337,18 +352,25 @@ mod tests {
         }
         .check(2, 0)
         .expect("params");
-        Agent::new(Arc::new(PlanningModel::new(preset.model, Basis::Indicator)), params)
+        Agent::new(
+            Arc::new(PlanningModel::new(preset.model, Basis::Indicator)),
+            params,
+        )
     }
 
     #[test]
     fn first_observation_carries_only_a_state() {
         let mut agent = hallway_agent(1);
-        let err = agent.step(&Observation::new(3, &[0.0, 0.0])).expect_err("stimulus on first");
+        let err = agent
+            .step(&Observation::new(3, &[0.0, 0.0]))
+            .expect_err("stimulus on first");
         assert_eq!(err, AlgoError::FirstObservation { field: "stimulus" });
         let step = agent.step(&Observation::first(3)).expect("first");
         assert_eq!(step.tick, 0);
         assert!(step.plan.is_none());
-        let err = agent.step(&Observation::first(4)).expect_err("missing stimulus");
+        let err = agent
+            .step(&Observation::first(4))
+            .expect_err("missing stimulus");
         assert_eq!(err, AlgoError::MissingStimulus);
     }
 
@@ -358,8 +380,14 @@ mod tests {
         agent.step(&Observation::first(0)).expect("first");
         let before = agent.drive().vector().to_vec();
         let cases = [
-            (Observation::new(50, &[0.0, 0.0]), "state 50 is out of range"),
-            (Observation::new(1, &[0.0]), "stimulus has 1 components, expected 2"),
+            (
+                Observation::new(50, &[0.0, 0.0]),
+                "state 50 is out of range",
+            ),
+            (
+                Observation::new(1, &[0.0]),
+                "stimulus has 1 components, expected 2",
+            ),
             (Observation::new(1, &[f64::NAN, 0.0]), "non-finite"),
             (
                 Observation {
@@ -414,9 +442,18 @@ mod tests {
                     1 => state + 1,
                     _ => state,
                 };
-                let xi = if state == 10 { [6.0, 0.0] } else if state == 40 { [0.0, 6.0] } else { [0.0, 0.0] };
+                let xi = if state == 10 {
+                    [6.0, 0.0]
+                } else if state == 40 {
+                    [0.0, 6.0]
+                } else {
+                    [0.0, 0.0]
+                };
                 let step = agent.step(&Observation::new(state, &xi)).expect("step");
-                assert!((norm(agent.drive().vector()) - 1.0).abs() < 1e-12, "tick {t}");
+                assert!(
+                    (norm(agent.drive().vector()) - 1.0).abs() < 1e-12,
+                    "tick {t}"
+                );
                 s = step.action;
                 actions.push(s);
             }

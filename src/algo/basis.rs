@@ -141,7 +141,9 @@ fn custom_features(model: &EnvModel, rows: &[Vec<f64>]) -> Result<StateFeatures>
             )));
         }
         if row.iter().any(|x| !x.is_finite()) {
-            return Err(bad(format!("`state_features[{s}]` contains a non-finite number")));
+            return Err(bad(format!(
+                "`state_features[{s}]` contains a non-finite number"
+            )));
         }
         values.extend_from_slice(row);
     }
@@ -189,18 +191,27 @@ pub fn proto_value_functions(model: &EnvModel, k: usize) -> Result<StateFeatures
     }
     let eig = SymmetricEigen::new(lap);
     let mut order: Vec<usize> = (0..n).collect();
-    order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]).then(a.cmp(&b)));
+    order.sort_by(|&a, &b| {
+        eig.eigenvalues[a]
+            .total_cmp(&eig.eigenvalues[b])
+            .then(a.cmp(&b))
+    });
     let mut values = vec![0.0; n * k];
     for (j, &col) in order.iter().take(k).enumerate() {
         let v = eig.eigenvectors.column(col);
-        let pivot = v.iter().copied().fold(0.0f64, |m, x| if x.abs() > m.abs() { x } else { m });
+        let pivot = v
+            .iter()
+            .copied()
+            .fold(0.0f64, |m, x| if x.abs() > m.abs() { x } else { m });
         let sign = if pivot < 0.0 { -1.0 } else { 1.0 };
         for s in 0..n {
             values[s * k + j] = sign * v[s];
         }
     }
     if values.iter().any(|x| !x.is_finite()) {
-        return Err(AlgoError::Numerical("proto-value functions are not finite".into()));
+        return Err(AlgoError::Numerical(
+            "proto-value functions are not finite".into(),
+        ));
     }
     Ok(StateFeatures::new(k, values))
 }
@@ -240,20 +251,44 @@ mod tests {
     fn bad_bases_are_rejected() {
         let m = hallway().model;
         let e = Basis::build(&BasisSpec::ProtoValue { k: 51 }, &m).expect_err("k too big");
-        assert!(e.to_string().contains("between 1 and the number of states (50)"));
+        assert!(
+            e.to_string()
+                .contains("between 1 and the number of states (50)")
+        );
         let rows = vec![vec![1.0, 2.0]; 49];
-        let e = Basis::build(&BasisSpec::Custom { state_features: rows }, &m).expect_err("rows");
+        let e = Basis::build(
+            &BasisSpec::Custom {
+                state_features: rows,
+            },
+            &m,
+        )
+        .expect_err("rows");
         assert!(e.to_string().contains("has 49 rows"), "{e}");
         let mut rows = vec![vec![1.0, 2.0]; 50];
         rows[3] = vec![1.0];
-        let e = Basis::build(&BasisSpec::Custom { state_features: rows }, &m).expect_err("ragged");
-        assert!(e.to_string().contains("`state_features[3]` has 1 features"), "{e}");
+        let e = Basis::build(
+            &BasisSpec::Custom {
+                state_features: rows,
+            },
+            &m,
+        )
+        .expect_err("ragged");
+        assert!(
+            e.to_string().contains("`state_features[3]` has 1 features"),
+            "{e}"
+        );
     }
 
     #[test]
     fn default_basis_depends_on_size() {
-        assert_eq!(BasisSpec::default_for(&hallway().model), BasisSpec::Indicator);
+        assert_eq!(
+            BasisSpec::default_for(&hallway().model),
+            BasisSpec::Indicator
+        );
         let big = EnvModel::chain(1000, vec!["x".into()]).expect("chain");
-        assert_eq!(BasisSpec::default_for(&big), BasisSpec::ProtoValue { k: 30 });
+        assert_eq!(
+            BasisSpec::default_for(&big),
+            BasisSpec::ProtoValue { k: 30 }
+        );
     }
 }

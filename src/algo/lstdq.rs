@@ -200,7 +200,7 @@ struct FunctionalGraph {
 
 #[derive(Debug, Clone)]
 struct FeatureEngine {
-    /// A for the policy A⁻¹ currently represents (ridge included if used).
+    /// Scratch for rebuilding A = ΦᵀΦ − γ MᵀΨ_π (ridge included if used).
     a: DMatrix<f64>,
     a_inv: DMatrix<f64>,
     /// A⁻¹ must be rebuilt before the next solve.
@@ -312,10 +312,11 @@ impl Planner {
                 let cache = ctx.features.as_ref().ok_or_else(|| {
                     AlgoError::Numerical("feature engine without feature cache".into())
                 })?;
-                let f = ctx
-                    .state_features()
-                    .ok_or_else(|| AlgoError::Numerical("feature engine without features".into()))?;
-                reused = fe.prepare(model, f, cache, &self.policy, gamma, ridge, &mut self.stats)?;
+                let f = ctx.state_features().ok_or_else(|| {
+                    AlgoError::Numerical("feature engine without features".into())
+                })?;
+                reused =
+                    fe.prepare(model, f, cache, &self.policy, gamma, ridge, &mut self.stats)?;
                 fe.evaluate(model, f, cache, r, &mut self.q_next);
             }
         }
@@ -357,7 +358,11 @@ impl Planner {
                 continue;
             }
             let tied = qs.iter().filter(|&&q| q >= floor).count();
-            let pick = if tied > 1 { rng.random_range(0..tied) } else { 0 };
+            let pick = if tied > 1 {
+                rng.random_range(0..tied)
+            } else {
+                0
+            };
             let offset = qs
                 .iter()
                 .enumerate()
@@ -433,12 +438,26 @@ impl FunctionalGraph {
 }
 
 /// Exact Q^π for a stochastic model and Φ = I (see module docs).
-fn gauss_seidel(model: &EnvModel, policy: &[u32], r: &[f64], gamma: f64, v: &mut [f64], q: &mut [f64]) {
+fn gauss_seidel(
+    model: &EnvModel,
+    policy: &[u32],
+    r: &[f64],
+    gamma: f64,
+    v: &mut [f64],
+    q: &mut [f64],
+) {
     let expect = |p: usize, v: &[f64]| -> f64 {
         let (next, prob) = model.successors(p);
-        next.iter().zip(prob).map(|(&t, &w)| w * v[t as usize]).sum()
+        next.iter()
+            .zip(prob)
+            .map(|(&t, &w)| w * v[t as usize])
+            .sum()
     };
-    let bound = if gamma > 0.0 { gamma / (1.0 - gamma) } else { 0.0 };
+    let bound = if gamma > 0.0 {
+        gamma / (1.0 - gamma)
+    } else {
+        0.0
+    };
     for _ in 0..MAX_SWEEPS {
         let mut delta: f64 = 0.0;
         let mut scale: f64 = 0.0;
@@ -476,37 +495,40 @@ impl FeatureEngine {
         }
         let big_k = cache.gram.nrows();
         let too_many = self.pending.len() * 8 > big_k;
-        if self.stale || too_many || self.rank_one_since_refresh + self.pending.len() > REFRESH_AFTER {
+        if self.stale
+            || too_many
+            || self.rank_one_since_refresh + self.pending.len() > REFRESH_AFTER
+        {
             self.pending.clear();
-            return self.rebuild(model, f, cache, policy, gamma, ridge, stats).map(|()| false);
+            return self
+                .rebuild(model, f, cache, policy, gamma, ridge, stats)
+                .map(|()| false);
         }
         let k = cache.k;
         let pending = std::mem::take(&mut self.pending);
         for &(s, old, new) in &pending {
             let s = s as usize;
-            let (b_old, b_new) = (model.pair_action(old as usize), model.pair_action(new as usize));
+            let (b_old, b_new) = (
+                model.pair_action(old as usize),
+                model.pair_action(new as usize),
+            );
             let v = f.row(s);
             // A' = A + u zᵀ with u = γ M[s'] and z = (e_old − e_new) ⊗ v(s').
             self.u.copy_from(&cache.m.column(s));
             self.u *= gamma;
             self.z.fill(0.0);
-            for j in 0..k {
-                self.z[b_old * k + j] += v[j];
-                self.z[b_new * k + j] -= v[j];
-            }
-            // Keep A itself in step (two k-column blocks) for later rebuild checks.
-            for j in 0..k {
-                let mut c_old = self.a.column_mut(b_old * k + j);
-                c_old.axpy(v[j], &self.u, 1.0);
-                let mut c_new = self.a.column_mut(b_new * k + j);
-                c_new.axpy(-v[j], &self.u, 1.0);
+            for (j, &vj) in v.iter().enumerate() {
+                self.z[b_old * k + j] += vj;
+                self.z[b_new * k + j] -= vj;
             }
             // Sherman–Morrison: A'⁻¹ = A⁻¹ − (A⁻¹u)(zᵀA⁻¹) / (1 + zᵀA⁻¹u).
             self.x.gemv(1.0, &self.a_inv, &self.u, 0.0);
             self.y.gemv_tr(1.0, &self.a_inv, &self.z, 0.0);
             let denom = 1.0 + self.z.dot(&self.x);
             if !denom.is_finite() || denom.abs() < 1e-8 {
-                return self.rebuild(model, f, cache, policy, gamma, ridge, stats).map(|()| false);
+                return self
+                    .rebuild(model, f, cache, policy, gamma, ridge, stats)
+                    .map(|()| false);
             }
             self.a_inv.ger(-1.0 / denom, &self.x, &self.y, 1.0);
             self.rank_one_since_refresh += 1;
@@ -535,8 +557,8 @@ impl FeatureEngine {
             let b = model.pair_action(p as usize);
             let m_s = cache.m.column(s);
             let v = f.row(s);
-            for j in 0..k {
-                self.a.column_mut(b * k + j).axpy(-gamma * v[j], &m_s, 1.0);
+            for (j, &vj) in v.iter().enumerate() {
+                self.a.column_mut(b * k + j).axpy(-gamma * vj, &m_s, 1.0);
             }
         }
         // An unused feature has a zero row and column in A and b_j = 0, so
@@ -575,7 +597,14 @@ impl FeatureEngine {
     }
 
     /// b = ΦᵀR, w = A⁻¹b, Q = Φw (see [`feature_kernel`]).
-    fn evaluate(&mut self, model: &EnvModel, f: &StateFeatures, cache: &FeatureCache, r: &[f64], q: &mut [f64]) {
+    fn evaluate(
+        &mut self,
+        model: &EnvModel,
+        f: &StateFeatures,
+        cache: &FeatureCache,
+        r: &[f64],
+        q: &mut [f64],
+    ) {
         feature_kernel(
             FeatureKernel {
                 pair_state: model.pair_states(),
@@ -615,7 +644,13 @@ struct FeatureKernel<'a> {
 /// version at run time. b gains R(s,a) v(s) in block a; w is the sum of
 /// A⁻¹'s columns weighted by b; Q(·, a) = Σ_j w_(a,j) v_j over states.
 #[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx", "aarch64+neon"))]
-fn feature_kernel<'a>(x: FeatureKernel<'a>, b: &mut [f64], w: &mut [f64], q_states: &mut [f64], q: &mut [f64]) {
+fn feature_kernel<'a>(
+    x: FeatureKernel<'a>,
+    b: &mut [f64],
+    w: &mut [f64],
+    q_states: &mut [f64],
+    q: &mut [f64],
+) {
     let k = x.k;
     let n = x.rows.len() / k;
     b.fill(0.0);
@@ -659,7 +694,8 @@ fn invert_if_regular(a: &DMatrix<f64>) -> Option<DMatrix<f64>> {
     if !(max.is_finite() && max > 0.0 && min > 1e-12 * max) {
         return None;
     }
-    lu.try_inverse().filter(|inv| inv.iter().all(|x| x.is_finite()))
+    lu.try_inverse()
+        .filter(|inv| inv.iter().all(|x| x.is_finite()))
 }
 
 #[cfg(test)]
@@ -671,7 +707,9 @@ mod tests {
     use rand_chacha::ChaCha8Rng;
 
     fn first_action_policy(model: &EnvModel) -> Vec<u32> {
-        (0..model.states()).map(|s| model.pairs_of(s).start as u32).collect()
+        (0..model.states())
+            .map(|s| model.pairs_of(s).start as u32)
+            .collect()
     }
 
     #[test]
@@ -686,7 +724,9 @@ mod tests {
         let ctx = PlanningModel::new(model, Basis::Indicator);
         let mut planner = Planner::new(&ctx, vec![0, 1]);
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let out = planner.update(&ctx, &[1.0, 0.0], 0.5, 1e-6, &mut rng).expect("plan");
+        let out = planner
+            .update(&ctx, &[1.0, 0.0], 0.5, 1e-6, &mut rng)
+            .expect("plan");
         assert!((planner.q()[0] - 4.0 / 3.0).abs() < 1e-15);
         assert!((planner.q()[1] - 2.0 / 3.0).abs() < 1e-15);
         assert!((out.lstdq_error - (16.0f64 / 9.0 + 4.0 / 9.0).sqrt()).abs() < 1e-12);
@@ -702,7 +742,9 @@ mod tests {
         r[model.pair(10, 2).expect("stay")] = 1.0;
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         for _ in 0..60 {
-            planner.update(&ctx, &r, 0.95, 1e-6, &mut rng).expect("plan");
+            planner
+                .update(&ctx, &r, 0.95, 1e-6, &mut rng)
+                .expect("plan");
         }
         for s in 0..50 {
             let a = model.pair_action(planner.chosen_pair(s));
@@ -738,17 +780,27 @@ mod tests {
         let eye: Vec<Vec<f64>> = (0..50)
             .map(|s| (0..50).map(|j| f64::from(u8::from(s == j))).collect())
             .collect();
-        let basis = Basis::build(&BasisSpec::Custom { state_features: eye }, &model).expect("basis");
+        let basis = Basis::build(
+            &BasisSpec::Custom {
+                state_features: eye,
+            },
+            &model,
+        )
+        .expect("basis");
         let feat = PlanningModel::new(model.clone(), basis);
         let ind = PlanningModel::new(model.clone(), Basis::Indicator);
         let mut rng = ChaCha8Rng::seed_from_u64(9);
-        let r: Vec<f64> = (0..model.n_pairs()).map(|p| ((p * 37) % 11) as f64 / 10.0).collect();
+        let r: Vec<f64> = (0..model.n_pairs())
+            .map(|p| ((p * 37) % 11) as f64 / 10.0)
+            .collect();
         let mut pf = Planner::new(&feat, first_action_policy(&model));
         let mut pi = Planner::new(&ind, first_action_policy(&model));
         for _ in 0..30 {
             let mut rng_f = rng.clone();
-            pf.update(&feat, &r, 0.9, 1e-6, &mut rng_f).expect("feature plan");
-            pi.update(&ind, &r, 0.9, 1e-6, &mut rng).expect("indicator plan");
+            pf.update(&feat, &r, 0.9, 1e-6, &mut rng_f)
+                .expect("feature plan");
+            pi.update(&ind, &r, 0.9, 1e-6, &mut rng)
+                .expect("indicator plan");
             for (a, b) in pf.q().iter().zip(pi.q()) {
                 assert!((a - b).abs() < 1e-8, "{a} vs {b}");
             }

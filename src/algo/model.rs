@@ -451,7 +451,11 @@ impl EnvModel {
                 TransitionSpec {
                     state: self.pair_state(p),
                     action: ActionRef::Index(self.pair_action(p)),
-                    next: next.iter().map(|&t| t as usize).zip(prob.iter().copied()).collect(),
+                    next: next
+                        .iter()
+                        .map(|&t| t as usize)
+                        .zip(prob.iter().copied())
+                        .collect(),
                 }
             })
             .collect();
@@ -506,7 +510,10 @@ impl GridMap {
             .iter()
             .map(|l| l.as_ref().trim_end_matches(['\r', '\n']))
             .collect();
-        let rows = lines.iter().rposition(|l| !l.trim().is_empty()).map_or(0, |i| i + 1);
+        let rows = lines
+            .iter()
+            .rposition(|l| !l.trim().is_empty())
+            .map_or(0, |i| i + 1);
         if rows == 0 {
             return Err(invalid("grid map is empty"));
         }
@@ -788,7 +795,10 @@ mod tests {
         ];
         for (json, expected) in cases {
             let msg = err_of(json);
-            assert!(msg.contains(expected), "{msg:?} should contain {expected:?}");
+            assert!(
+                msg.contains(expected),
+                "{msg:?} should contain {expected:?}"
+            );
         }
     }
 

@@ -112,7 +112,10 @@ impl AgentParams {
         let eta = finite("eta", self.eta.unwrap_or(DEFAULT_ETA))?;
         // Condition (1), first half (ALGORITHM.md §4).
         if !(eta > 0.0 && eta <= 0.5) {
-            return Err(bad("eta", format!("{eta} is not in (0, 0.5] (condition (1))")));
+            return Err(bad(
+                "eta",
+                format!("{eta} is not in (0, 0.5] (condition (1))"),
+            ));
         }
         let gamma = finite("gamma", self.gamma.unwrap_or(DEFAULT_GAMMA))?;
         if !(0.0..1.0).contains(&gamma) {
@@ -124,12 +127,18 @@ impl AgentParams {
                 if rho.len() != n_stimuli {
                     return Err(bad(
                         "priorities",
-                        format!("has {} entries, expected one per stimulus ({n_stimuli})", rho.len()),
+                        format!(
+                            "has {} entries, expected one per stimulus ({n_stimuli})",
+                            rho.len()
+                        ),
                     ));
                 }
                 for (i, &r) in rho.iter().enumerate() {
                     if !(r.is_finite() && r > 0.0 && r <= 1.0) {
-                        return Err(bad("priorities", format!("entry {i} = {r} is not in (0, 1]")));
+                        return Err(bad(
+                            "priorities",
+                            format!("entry {i} = {r} is not in (0, 1]"),
+                        ));
                     }
                 }
                 rho.clone()
@@ -141,7 +150,10 @@ impl AgentParams {
         {
             return Err(bad("stimulus_rate", format!("{c} is not in (0, 1]")));
         }
-        let optimistic_sd = finite("optimistic_sd", self.optimistic_sd.unwrap_or(DEFAULT_OPTIMISTIC_SD))?;
+        let optimistic_sd = finite(
+            "optimistic_sd",
+            self.optimistic_sd.unwrap_or(DEFAULT_OPTIMISTIC_SD),
+        )?;
         if optimistic_sd < 0.0 {
             return Err(bad("optimistic_sd", format!("{optimistic_sd} is negative")));
         }
@@ -200,26 +212,69 @@ mod tests {
     #[test]
     fn out_of_range_values_are_named() {
         let cases: [(AgentParams, &str); 7] = [
-            (AgentParams { eta: Some(0.6), ..Default::default() }, "`eta`"),
-            (AgentParams { eta: Some(f64::NAN), ..Default::default() }, "`eta`: must be a finite"),
-            (AgentParams { gamma: Some(1.0), ..Default::default() }, "`gamma`"),
-            (AgentParams { priorities: Some(vec![1.0]), ..Default::default() }, "has 1 entries"),
-            (AgentParams { priorities: Some(vec![1.0, 0.0]), ..Default::default() }, "entry 1 = 0"),
             (
-                AgentParams { stimulus_rate: Some(StimulusRate::Constant(2.0)), ..Default::default() },
+                AgentParams {
+                    eta: Some(0.6),
+                    ..Default::default()
+                },
+                "`eta`",
+            ),
+            (
+                AgentParams {
+                    eta: Some(f64::NAN),
+                    ..Default::default()
+                },
+                "`eta`: must be a finite",
+            ),
+            (
+                AgentParams {
+                    gamma: Some(1.0),
+                    ..Default::default()
+                },
+                "`gamma`",
+            ),
+            (
+                AgentParams {
+                    priorities: Some(vec![1.0]),
+                    ..Default::default()
+                },
+                "has 1 entries",
+            ),
+            (
+                AgentParams {
+                    priorities: Some(vec![1.0, 0.0]),
+                    ..Default::default()
+                },
+                "entry 1 = 0",
+            ),
+            (
+                AgentParams {
+                    stimulus_rate: Some(StimulusRate::Constant(2.0)),
+                    ..Default::default()
+                },
                 "`stimulus_rate`",
             ),
-            (AgentParams { epsilon: Some(-0.1), ..Default::default() }, "`epsilon`"),
+            (
+                AgentParams {
+                    epsilon: Some(-0.1),
+                    ..Default::default()
+                },
+                "`epsilon`",
+            ),
         ];
         for (params, expected) in cases {
             let msg = params.check(2, 0).expect_err("invalid").to_string();
-            assert!(msg.contains(expected), "{msg:?} should contain {expected:?}");
+            assert!(
+                msg.contains(expected),
+                "{msg:?} should contain {expected:?}"
+            );
         }
     }
 
     #[test]
     fn stimulus_rate_parses_both_forms() {
-        let p: AgentParams = serde_json::from_str(r#"{"stimulus_rate":"sample_mean"}"#).expect("named");
+        let p: AgentParams =
+            serde_json::from_str(r#"{"stimulus_rate":"sample_mean"}"#).expect("named");
         assert_eq!(p.stimulus_rate, Some(StimulusRate::default()));
         let p: AgentParams = serde_json::from_str(r#"{"stimulus_rate":0.1}"#).expect("constant");
         assert_eq!(p.stimulus_rate, Some(StimulusRate::Constant(0.1)));

@@ -90,7 +90,12 @@ impl StimulusFunction {
             }
             _ => {
                 for (out, row) in r.iter_mut().zip(self.xi.chunks_exact(n)) {
-                    *out = row.iter().zip(scaled_drive).map(|(x, d)| x * d).sum::<f64>().abs();
+                    *out = row
+                        .iter()
+                        .zip(scaled_drive)
+                        .map(|(x, d)| x * d)
+                        .sum::<f64>()
+                        .abs();
                 }
             }
         }

@@ -121,7 +121,11 @@ fn median(mut xs: Vec<f64>) -> Option<f64> {
     }
     xs.sort_by(f64::total_cmp);
     let m = xs.len() / 2;
-    Some(if xs.len() % 2 == 1 { xs[m] } else { 0.5 * (xs[m - 1] + xs[m]) })
+    Some(if xs.len() % 2 == 1 {
+        xs[m]
+    } else {
+        0.5 * (xs[m - 1] + xs[m])
+    })
 }
 
 /// Computes every metric of `summary.json` for one trial.
@@ -137,7 +141,10 @@ pub fn trial_metrics(rec: &TrialRecord, sources: &[usize]) -> TrialMetrics {
     let cum = cumulative_stimulus(rec);
     let hi = cum.iter().copied().fold(f64::NEG_INFINITY, f64::max);
     let lo = cum.iter().copied().fold(f64::INFINITY, f64::min);
-    m.insert("balance".into(), if hi > 0.0 { (lo / hi).max(0.0) } else { 0.0 });
+    m.insert(
+        "balance".into(),
+        if hi > 0.0 { (lo / hi).max(0.0) } else { 0.0 },
+    );
     m.insert("total_stimulus".into(), cum.iter().sum());
 
     let mut tracker = DominanceTracker::new(&rec.initial_drive);
@@ -178,7 +185,10 @@ pub fn trial_metrics(rec: &TrialRecord, sources: &[usize]) -> TrialMetrics {
     m.insert("stuck".into(), f64::from(u8::from(is_stuck(&rec.states))));
     for (i, &src) in sources.iter().enumerate() {
         let at = rec.states.iter().filter(|&&s| s as usize == src).count();
-        m.insert(format!("fraction_at_source_{i}"), at as f64 / steps.max(1) as f64);
+        m.insert(
+            format!("fraction_at_source_{i}"),
+            at as f64 / steps.max(1) as f64,
+        );
     }
     let err_mean = rec.lstdq_error.iter().sum::<f64>() / steps.max(1) as f64;
     m.insert("lstdq_error_mean".into(), err_mean);
@@ -210,7 +220,7 @@ pub fn is_stuck(states: &[u32]) -> bool {
         }
     }
     // `earliest` is the 0-based index of tick earliest + 1.
-    earliest + 1 <= steps - STUCK_WINDOW
+    earliest < steps - STUCK_WINDOW
 }
 
 /// Summarises per-trial metrics into `{metric: Stat}`.

@@ -8,7 +8,10 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
 use crate::algo::model::{Preset, hallway, three_room};
-use crate::algo::{Agent, AgentParams, AlgoError, Basis, BasisSpec, Drive, Observation, PlanningModel, Step, ValidParams};
+use crate::algo::{
+    Agent, AgentParams, AlgoError, Basis, BasisSpec, Drive, Observation, PlanningModel, Step,
+    ValidParams,
+};
 
 use super::metrics::DominanceTracker;
 
@@ -28,6 +31,11 @@ pub fn brownian_sigma() -> f64 {
 
 /// Ticks a drive must have dominated before a figure snapshot is taken.
 pub const SNAPSHOT_DELAY: u64 = 25;
+
+/// Snapshots are taken in the last three quarters of a trial, once Ξ has
+/// learned where the sources are (the early value maps show the optimistic
+/// initialisation rather than the drives).
+pub const SNAPSHOT_FROM_FRACTION: f64 = 0.25;
 
 /// Which experiment.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
@@ -325,29 +333,42 @@ pub fn run_trial(
     .check(n, agent_seed)?;
     match &config.controller {
         Controller::McaPi { .. } => {
-            let ctx = ctx.ok_or_else(|| AlgoError::Numerical("MCA-PI needs a planning model".into()))?;
+            let ctx =
+                ctx.ok_or_else(|| AlgoError::Numerical("MCA-PI needs a planning model".into()))?;
             let mut sim = Simulation::with_world(world, start, Arc::clone(ctx), params)?;
             let mut tracker = DominanceTracker::new(sim.agent.drive().vector());
             rec.initial_drive = sim.agent.drive().vector().to_vec();
             for _ in 0..steps {
                 let (action, step) = sim.tick()?;
                 let agent = &sim.agent;
-                rec.push(sim.state, action as i32, agent.drive().vector(), step.reward, &sim.xi);
-                rec.lstdq_error.push(step.plan.map_or(0.0, |p| p.lstdq_error));
+                rec.push(
+                    sim.state,
+                    action as i32,
+                    agent.drive().vector(),
+                    step.reward,
+                    &sim.xi,
+                );
+                rec.lstdq_error
+                    .push(step.plan.map_or(0.0, |p| p.lstdq_error));
                 for src in &exp.preset.sources {
                     rec.source_values.push(agent.planner().value(src.state));
                 }
                 tracker.observe(agent.drive().vector());
                 let dom = tracker.current();
                 if record_snapshots
+                    && step.tick as f64 >= SNAPSHOT_FROM_FRACTION * steps as f64
                     && tracker.held() >= SNAPSHOT_DELAY
                     && !rec.snapshots.iter().any(|s| s.dominant == dom)
                 {
                     rec.snapshots.push(Snapshot {
                         tick: step.tick,
                         dominant: dom,
-                        values: (0..model.states()).map(|s| agent.planner().value(s)).collect(),
-                        actions: (0..model.states()).map(|s| agent.greedy_action(s)).collect(),
+                        values: (0..model.states())
+                            .map(|s| agent.planner().value(s))
+                            .collect(),
+                        actions: (0..model.states())
+                            .map(|s| agent.greedy_action(s))
+                            .collect(),
                         state: sim.state,
                     });
                 }
@@ -359,8 +380,8 @@ pub fn run_trial(
             let mut rng = ChaCha8Rng::seed_from_u64(agent_seed);
             let mut drive = Drive::new(&params.priorities, params.eta, &mut rng);
             rec.initial_drive = drive.vector().to_vec();
-            let step_dist =
-                Normal::new(0.0, *sigma).map_err(|e| AlgoError::Numerical(format!("Brownian step: {e}")))?;
+            let step_dist = Normal::new(0.0, *sigma)
+                .map_err(|e| AlgoError::Numerical(format!("Brownian step: {e}")))?;
             let last = model.states() as i64 - 1;
             let mut state = start as i64;
             for _ in 0..steps {
@@ -422,7 +443,12 @@ impl<'a> Simulation<'a> {
         Self::with_world(world, start, ctx, params)
     }
 
-    fn with_world(world: World<'a>, start: usize, ctx: Arc<PlanningModel>, params: ValidParams) -> Result<Self, AlgoError> {
+    fn with_world(
+        world: World<'a>,
+        start: usize,
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+    ) -> Result<Self, AlgoError> {
         let mut agent = Agent::new(ctx, params);
         let action = agent.step(&Observation::first(start))?.action;
         let n = world.preset.model.n_stimuli();

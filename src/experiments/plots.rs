@@ -14,6 +14,7 @@ use anyhow::{Result, anyhow};
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::colors::colormaps::{ColorMap, ViridisRGB};
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 use crate::algo::model::GridMap;
 
@@ -65,7 +66,12 @@ fn decimate(ys: &[f64]) -> Vec<(f64, f64)> {
     let w = ys.len().div_ceil(MAX_POINTS).max(1);
     ys.chunks(w)
         .enumerate()
-        .map(|(i, c)| ((i * w + c.len()) as f64, c.iter().sum::<f64>() / c.len() as f64))
+        .map(|(i, c)| {
+            (
+                (i * w + c.len()) as f64,
+                c.iter().sum::<f64>() / c.len() as f64,
+            )
+        })
         .collect()
 }
 
@@ -127,7 +133,10 @@ fn line(label: impl Into<String>, color: RGBColor, width: u32, ys: &[f64]) -> Se
 /// Something drawable on any plotters backend.
 trait Figure {
     fn title(&self) -> &str;
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>>;
+    fn draw<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+    ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>>;
 }
 
 /// Draws `fig` to `<out>/<stem>.png` and `<out>/<stem>.svg`.
@@ -155,7 +164,10 @@ impl Figure for LineChart {
         &self.title
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    fn draw<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+    ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
         root.fill(&WHITE)?;
         let mut x_max: f64 = 1.0;
         let (mut y_min, mut y_max) = (f64::INFINITY, f64::NEG_INFINITY);
@@ -208,9 +220,14 @@ impl Figure for LineChart {
         }
         for s in &self.series {
             let color = s.color;
-            ctx.draw_series(LineSeries::new(s.points.iter().copied(), color.stroke_width(s.width)))?
-                .label(s.label.as_str())
-                .legend(move |(x, y)| PathElement::new(vec![(x, y), (x + 22, y)], color.stroke_width(3)));
+            ctx.draw_series(LineSeries::new(
+                s.points.iter().copied(),
+                color.stroke_width(s.width),
+            ))?
+            .label(s.label.as_str())
+            .legend(move |(x, y)| {
+                PathElement::new(vec![(x, y), (x + 22, y)], color.stroke_width(3))
+            });
         }
         ctx.configure_series_labels()
             .position(SeriesLabelPosition::UpperLeft)
@@ -236,7 +253,10 @@ impl Figure for ValueMap<'_> {
         &self.title
     }
 
-    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+    fn draw<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+    ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
         root.fill(&WHITE)?;
         let (rows, cols) = (self.grid.rows() as f64, self.grid.cols() as f64);
         let values = &self.snapshot.values;
@@ -248,7 +268,12 @@ impl Figure for ValueMap<'_> {
             .margin(12)
             .build_cartesian_2d(0.0..cols, 0.0..rows)?;
         // Row r of the map is drawn from y = rows − r (top) to rows − r − 1.
-        let cell = |r: usize, c: usize| [(c as f64, rows - r as f64), (c as f64 + 1.0, rows - r as f64 - 1.0)];
+        let cell = |r: usize, c: usize| {
+            [
+                (c as f64, rows - r as f64),
+                (c as f64 + 1.0, rows - r as f64 - 1.0),
+            ]
+        };
         let centre = |s: usize| {
             let (r, c) = self.grid.cell_of(s);
             (c as f64 + 0.5, rows - r as f64 - 0.5)
@@ -264,25 +289,46 @@ impl Figure for ValueMap<'_> {
             }
         }
         ctx.draw_series(cells)?;
-        let arrows = (0..values.len()).map(|s| {
+        // Greedy action per state: an arrow (shaft and head), a dot for stay.
+        let mut shafts = Vec::new();
+        let mut heads = Vec::new();
+        let mut stays = Vec::new();
+        for s in 0..values.len() {
             let (x, y) = centre(s);
             let (dx, dy) = match self.snapshot.actions[s] {
-                0 => (-0.38, 0.0),
-                1 => (0.38, 0.0),
-                2 => (0.0, 0.38),
-                3 => (0.0, -0.38),
-                _ => (0.0, 0.0),
+                0 => (-1.0, 0.0),
+                1 => (1.0, 0.0),
+                2 => (0.0, 1.0),
+                3 => (0.0, -1.0),
+                _ => {
+                    stays.push(Circle::new((x, y), 3, WHITE.filled()));
+                    continue;
+                }
             };
-            PathElement::new(vec![(x - dx * 0.3, y - dy * 0.3), (x + dx, y + dy)], WHITE.stroke_width(2))
-        });
-        ctx.draw_series(arrows)?;
-        let stays = (0..values.len())
-            .filter(|&s| self.snapshot.actions[s] == 4)
-            .map(|s| Circle::new(centre(s), 3, WHITE.filled()));
+            let tip = (x + 0.38 * dx, y + 0.38 * dy);
+            let base = (x + 0.1 * dx, y + 0.1 * dy);
+            shafts.push(PathElement::new(
+                vec![(x - 0.3 * dx, y - 0.3 * dy), base],
+                WHITE.stroke_width(2),
+            ));
+            // The head: a triangle from `base` to `tip`, 0.36 wide.
+            let (px, py) = (-dy * 0.18, dx * 0.18);
+            heads.push(Polygon::new(
+                vec![tip, (base.0 + px, base.1 + py), (base.0 - px, base.1 - py)],
+                WHITE.filled(),
+            ));
+        }
+        ctx.draw_series(shafts)?;
+        ctx.draw_series(heads)?;
         ctx.draw_series(stays)?;
+        let label_style = (FONT, 22)
+            .into_font()
+            .style(FontStyle::Bold)
+            .color(&RED)
+            .pos(Pos::new(HPos::Center, VPos::Center));
         let labels = self.sources.iter().map(|&(mark, s)| {
             let (x, y) = centre(s);
-            Text::new(mark.to_string(), (x - 0.25, y + 0.45), (FONT, 20).into_font().color(&RED))
+            Text::new(mark.to_string(), (x, y), label_style.clone())
         });
         ctx.draw_series(labels)?;
         ctx.draw_series(std::iter::once(Circle::new(
@@ -295,12 +341,20 @@ impl Figure for ValueMap<'_> {
 }
 
 /// Cumulative sums of a per-tick series of every trial.
-fn cumulative_per_trial(recs: &[TrialRecord], f: impl Fn(&TrialRecord) -> Vec<f64>) -> Vec<Vec<f64>> {
+fn cumulative_per_trial(
+    recs: &[TrialRecord],
+    f: impl Fn(&TrialRecord) -> Vec<f64>,
+) -> Vec<Vec<f64>> {
     recs.iter().map(|r| cumsum(f(r).into_iter())).collect()
 }
 
 fn component(rec: &TrialRecord, j: usize, data: &[f64], width: usize) -> Vec<f64> {
-    data.iter().skip(j).step_by(width).take(rec.steps()).copied().collect()
+    data.iter()
+        .skip(j)
+        .step_by(width)
+        .take(rec.steps())
+        .copied()
+        .collect()
 }
 
 /// Draws every figure of an experiment into `out`; returns the files.
@@ -315,7 +369,10 @@ pub fn draw_experiment(
     }
 }
 
-fn records<'a>(grouped: &'a [(&'static str, Vec<TrialRecord>)], name: &str) -> Result<&'a [TrialRecord]> {
+fn records<'a>(
+    grouped: &'a [(&'static str, Vec<TrialRecord>)],
+    name: &str,
+) -> Result<&'a [TrialRecord]> {
     grouped
         .iter()
         .find(|(n, _)| *n == name)
@@ -334,7 +391,11 @@ fn drive_chart(title: String, exp: &Experiment, rec: &TrialRecord) -> LineChart 
         .iter()
         .enumerate()
         .map(|(j, name)| {
-            let d: Vec<f64> = component(rec, j, &rec.drive, n).iter().take(window).map(|x| x.abs()).collect();
+            let d: Vec<f64> = component(rec, j, &rec.drive, n)
+                .iter()
+                .take(window)
+                .map(|x| x.abs())
+                .collect();
             line(format!("|d_{name}|"), PALETTE[j % PALETTE.len()], 2, &d)
         })
         .collect();
@@ -361,7 +422,11 @@ fn error_chart(title: String, recs: &[TrialRecord]) -> LineChart {
     }
 }
 
-fn draw_hallway(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], out: &Path) -> Result<Vec<PathBuf>> {
+fn draw_hallway(
+    exp: &Experiment,
+    grouped: &[(&'static str, Vec<TrialRecord>)],
+    out: &Path,
+) -> Result<Vec<PathBuf>> {
     let mca = records(grouped, "mca_pi")?;
     let brown = records(grouped, "brownian")?;
     let mut files = Vec::new();
@@ -372,12 +437,20 @@ fn draw_hallway(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], 
         y_label: "cumulative |r|".into(),
         series: vec![
             mean_band("MCA-PI", PALETTE[0], &cumulative_per_trial(mca, abs_r)),
-            mean_band("Brownian, 4 states/tick", PALETTE[1], &cumulative_per_trial(brown, abs_r)),
+            mean_band(
+                "Brownian, 4 states/tick",
+                PALETTE[1],
+                &cumulative_per_trial(brown, abs_r),
+            ),
         ],
     };
     files.extend(save(&fig_b, out, "fig2b_cumulative_reward", SIZE)?);
     let window = mca[0].steps().min(WINDOW);
-    let fig_c = drive_chart(format!("Fig. 2(c) Hallway: drive D, first {window} ticks"), exp, &mca[0]);
+    let fig_c = drive_chart(
+        format!("Fig. 2(c) Hallway: drive D, first {window} ticks"),
+        exp,
+        &mca[0],
+    );
     files.extend(save(&fig_c, out, "fig2c_drive", SIZE)?);
     let fig_d = error_chart("Fig. 2(d) Hallway: LSTDQ error".into(), mca);
     files.extend(save(&fig_d, out, "fig2d_lstdq_error", SIZE)?);
@@ -388,9 +461,17 @@ fn draw_hallway(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], 
         .iter()
         .enumerate()
         .map(|(i, src)| {
-            let v: Vec<f64> = component(&mca[0], i, &mca[0].source_values, n_src).into_iter().take(window).collect();
+            let v: Vec<f64> = component(&mca[0], i, &mca[0].source_values, n_src)
+                .into_iter()
+                .take(window)
+                .collect();
             let name = &exp.preset.model.stimuli()[src.dim];
-            line(format!("V({}) ({name})", src.state), PALETTE[i % PALETTE.len()], 2, &v)
+            line(
+                format!("V({}) ({name})", src.state),
+                PALETTE[i % PALETTE.len()],
+                2,
+                &v,
+            )
         })
         .collect();
     let fig_e = LineChart {
@@ -403,20 +484,23 @@ fn draw_hallway(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], 
     Ok(files)
 }
 
-fn draw_maze(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], out: &Path) -> Result<Vec<PathBuf>> {
+fn draw_maze(
+    exp: &Experiment,
+    grouped: &[(&'static str, Vec<TrialRecord>)],
+    out: &Path,
+) -> Result<Vec<PathBuf>> {
     let ind = records(grouped, "indicator")?;
     let mut files = Vec::new();
     let n = exp.dims();
-    let series = exp
-        .preset
-        .sources
-        .iter()
-        .map(|src| {
-            let cum = cumulative_per_trial(ind, |r| component(r, src.dim, &r.stimulus, n));
-            let name = &exp.preset.model.stimuli()[src.dim];
-            mean_band(&format!("source {name}"), PALETTE[src.dim % PALETTE.len()], &cum)
-        })
-        .collect();
+    let mut series = Vec::new();
+    for src in &exp.preset.sources {
+        let cum = cumulative_per_trial(ind, |r| component(r, src.dim, &r.stimulus, n));
+        let name = &exp.preset.model.stimuli()[src.dim];
+        let color = PALETTE[src.dim % PALETTE.len()];
+        series.push(mean_band(&format!("source {name}"), color, &cum));
+        // One run shows the staircase that the mean smooths away.
+        series.push(line(format!("source {name} (run 1)"), color, 1, &cum[0]));
+    }
     let fig_b = LineChart {
         title: "Fig. 3(b) Three-room maze: cumulative stimulus per source".into(),
         x_label: "tick".into(),
@@ -425,7 +509,11 @@ fn draw_maze(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], out
     };
     files.extend(save(&fig_b, out, "fig3b_cumulative_stimulus", SIZE)?);
     let window = ind[0].steps().min(WINDOW);
-    let fig_c = drive_chart(format!("Fig. 3(c) Three-room maze: drive D, first {window} ticks"), exp, &ind[0]);
+    let fig_c = drive_chart(
+        format!("Fig. 3(c) Three-room maze: drive D, first {window} ticks"),
+        exp,
+        &ind[0],
+    );
     files.extend(save(&fig_c, out, "fig3c_drive", SIZE)?);
     let fig_d = error_chart("Fig. 3(d) Three-room maze: LSTDQ error".into(), ind);
     files.extend(save(&fig_d, out, "fig3d_lstdq_error", SIZE)?);
@@ -449,7 +537,12 @@ fn draw_maze(exp: &Experiment, grouped: &[(&'static str, Vec<TrialRecord>)], out
             sources: sources.clone(),
         };
         let size = (grid.cols() as u32 * 34 + 24, grid.rows() as u32 * 34 + 60);
-        files.extend(save(&fig, out, &format!("fig3{letter}_values_{name}"), size)?);
+        files.extend(save(
+            &fig,
+            out,
+            &format!("fig3{letter}_values_{name}"),
+            size,
+        )?);
     }
     Ok(files)
 }

@@ -78,8 +78,16 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
         .map(|&(c, t)| {
             let config = &exp.configs[c];
             let snapshots = c == 0 && t == 0 && exp.preset.grid.is_some();
-            let rec = run_trial(exp, config, ctxs[c].as_ref(), opts.seed, t, opts.steps, snapshots)
-                .with_context(|| format!("{} trial {t}", config.name))?;
+            let rec = run_trial(
+                exp,
+                config,
+                ctxs[c].as_ref(),
+                opts.seed,
+                t,
+                opts.steps,
+                snapshots,
+            )
+            .with_context(|| format!("{} trial {t}", config.name))?;
             if opts.csv {
                 write_csv(exp, config.name, t, &rec, &opts.out)?;
             }
@@ -97,7 +105,8 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
     }
     let mut configs = BTreeMap::new();
     for (name, recs) in &grouped {
-        let per_trial: Vec<TrialMetrics> = recs.iter().map(|r| trial_metrics(r, &sources)).collect();
+        let per_trial: Vec<TrialMetrics> =
+            recs.iter().map(|r| trial_metrics(r, &sources)).collect();
         configs.insert(name.to_string(), summarise(&per_trial));
     }
     let summary = Summary {
@@ -109,7 +118,8 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
     };
     let summary_path = opts.out.join("summary.json");
     let json = serde_json::to_string_pretty(&summary)?;
-    fs::write(&summary_path, json + "\n").with_context(|| format!("writing {}", summary_path.display()))?;
+    fs::write(&summary_path, json + "\n")
+        .with_context(|| format!("writing {}", summary_path.display()))?;
     let mut files = vec![summary_path];
     if opts.figures {
         files.extend(plots::draw_experiment(exp, &grouped, &opts.out)?);
@@ -131,7 +141,9 @@ fn progress_bar(opts: &RunOptions, len: u64, name: &str) -> ProgressBar {
         return ProgressBar::hidden();
     }
     let bar = ProgressBar::with_draw_target(Some(len), ProgressDrawTarget::stderr());
-    if let Ok(style) = ProgressStyle::with_template("{prefix} [{bar:40}] {pos}/{len} trials, {elapsed}") {
+    if let Ok(style) =
+        ProgressStyle::with_template("{prefix} [{bar:40}] {pos}/{len} trials, {elapsed}")
+    {
         bar.set_style(style.progress_chars("=> "));
     }
     bar.set_prefix(name.to_string());
@@ -140,7 +152,13 @@ fn progress_bar(opts: &RunOptions, len: u64, name: &str) -> ProgressBar {
 
 /// Writes `DIR/<config>/trial_<i>.csv`: tick, state, action, drive
 /// components, |r|, cumulative stimulus, LSTDQ error, V at each source.
-fn write_csv(exp: &Experiment, config: &str, trial: usize, rec: &TrialRecord, out: &Path) -> Result<()> {
+fn write_csv(
+    exp: &Experiment,
+    config: &str,
+    trial: usize,
+    rec: &TrialRecord,
+    out: &Path,
+) -> Result<()> {
     let dir = out.join(config);
     fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
     let path = dir.join(format!("trial_{trial:02}.csv"));
@@ -179,7 +197,8 @@ fn write_csv(exp: &Experiment, config: &str, trial: usize, rec: &TrialRecord, ou
         }
         writeln!(w)?;
     }
-    w.flush().with_context(|| format!("writing {}", path.display()))?;
+    w.flush()
+        .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
 }
 
@@ -190,10 +209,14 @@ pub fn results_table(summary: &Summary, order: &[&str]) -> String {
          |---|---|---|---|---|---|---|\n",
     );
     for name in order {
-        let Some(m) = summary.configs.get(*name) else { continue };
+        let Some(m) = summary.configs.get(*name) else {
+            continue;
+        };
         let get = |k: &str| m.get(k).copied();
         let fmt = |k: &str, prec: usize| {
-            get(k).map_or("-".to_string(), |s| format!("{:.prec$} ± {:.prec$}", s.mean, s.sd))
+            get(k).map_or("-".to_string(), |s| {
+                format!("{:.prec$} ± {:.prec$}", s.mean, s.sd)
+            })
         };
         out.push_str(&format!(
             "| {name} | {} | {} | {} | {} | {} | {} |\n",
@@ -202,7 +225,11 @@ pub fn results_table(summary: &Summary, order: &[&str]) -> String {
             fmt("switches", 1),
             fmt("period", 1),
             fmt("all_sources_found", 0),
-            get("stuck").map_or("-".to_string(), |s| format!("{:.0}/{}", s.mean * summary.trials as f64, summary.trials)),
+            get("stuck").map_or("-".to_string(), |s| format!(
+                "{:.0}/{}",
+                s.mean * summary.trials as f64,
+                summary.trials
+            )),
         ));
     }
     out
