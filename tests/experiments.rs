@@ -52,12 +52,20 @@ fn check_shape(s: &Value, experiment: &str, configs: &[&str], trials: u64, steps
     assert_eq!(s["steps"], steps);
     assert_eq!(s["seed"], seed);
     let got = s["configs"].as_object().expect("configs object");
-    assert_eq!(got.len(), configs.len(), "{:?}", got.keys().collect::<Vec<_>>());
+    assert_eq!(
+        got.len(),
+        configs.len(),
+        "{:?}",
+        got.keys().collect::<Vec<_>>()
+    );
     for config in configs {
         for metric in METRICS {
             let stat = &s["configs"][config][metric];
             for field in ["mean", "sd", "min", "max"] {
-                assert!(stat[field].is_number(), "{config}.{metric}.{field} missing: {stat}");
+                assert!(
+                    stat[field].is_number(),
+                    "{config}.{metric}.{field} missing: {stat}"
+                );
             }
             assert!(stat["min"].as_f64() <= stat["max"].as_f64());
         }
@@ -68,29 +76,53 @@ fn check_shape(s: &Value, experiment: &str, configs: &[&str], trials: u64, steps
 fn hallway_reproduces_the_papers_findings() {
     let dir = tempfile_dir("hallway");
     let stdout = run_cli(&[
-        "experiment", "hallway", "--trials", "4", "--steps", "3000", "--seed", "3", "--out",
+        "experiment",
+        "hallway",
+        "--trials",
+        "4",
+        "--steps",
+        "3000",
+        "--seed",
+        "3",
+        "--out",
         dir.to_str().expect("utf-8 path"),
     ]);
-    assert!(stdout.contains("| mca_pi |"), "results table printed: {stdout}");
+    assert!(
+        stdout.contains("| mca_pi |"),
+        "results table printed: {stdout}"
+    );
     let s = summary(&dir);
     check_shape(&s, "hallway", &["mca_pi", "brownian"], 4, 3000, 3);
     let mca = mean(&s, "mca_pi", "cumulative_abs_reward");
     let brownian = mean(&s, "brownian", "cumulative_abs_reward");
     assert!(mca > 5.0 * brownian, "MCA-PI {mca} vs Brownian {brownian}");
     assert!(mean(&s, "mca_pi", "balance") > 0.85);
-    assert!(mean(&s, "mca_pi", "switches") > 20.0, "drive switches regularly");
+    assert!(
+        mean(&s, "mca_pi", "switches") > 20.0,
+        "drive switches regularly"
+    );
     assert_eq!(mean(&s, "mca_pi", "stuck"), 0.0);
-    for fig in ["fig2b_cumulative_reward", "fig2c_drive", "fig2d_lstdq_error", "fig2e_values"] {
+    for fig in [
+        "fig2b_cumulative_reward",
+        "fig2c_drive",
+        "fig2d_lstdq_error",
+        "fig2e_values",
+    ] {
         let png = fs::read(dir.join(format!("{fig}.png"))).expect("png written");
         assert_eq!(&png[1..4], b"PNG", "{fig}.png is a PNG");
         let svg = fs::read_to_string(dir.join(format!("{fig}.svg"))).expect("svg written");
-        assert!(svg.contains("<svg") && svg.contains("Fig. 2"), "{fig}.svg titled");
+        assert!(
+            svg.contains("<svg") && svg.contains("Fig. 2"),
+            "{fig}.svg titled"
+        );
     }
     let csv = fs::read_to_string(dir.join("mca_pi/trial_00.csv")).expect("csv written");
     let mut lines = csv.lines();
     assert_eq!(
         lines.next(),
-        Some("tick,state,action,d_food,d_rest,abs_reward,cum_food,cum_rest,lstdq_error,v_state_10,v_state_40")
+        Some(
+            "tick,state,action,d_food,d_rest,abs_reward,cum_food,cum_rest,lstdq_error,v_state_10,v_state_40"
+        )
     );
     assert_eq!(lines.count(), 3000);
     fs::remove_dir_all(dir).ok();
@@ -100,20 +132,46 @@ fn hallway_reproduces_the_papers_findings() {
 fn three_room_pvf_greedy_gets_stuck_where_indicator_balances() {
     let dir = tempfile_dir("three-room");
     run_cli(&[
-        "experiment", "three-room", "--trials", "2", "--steps", "2500", "--seed", "5", "--no-csv", "--out",
+        "experiment",
+        "three-room",
+        "--trials",
+        "2",
+        "--steps",
+        "2500",
+        "--seed",
+        "5",
+        "--no-csv",
+        "--out",
         dir.to_str().expect("utf-8 path"),
     ]);
     let s = summary(&dir);
-    check_shape(&s, "three-room", &["indicator", "pvf30", "pvf30_eps0.3", "random_walk"], 2, 2500, 5);
-    assert!(mean(&s, "indicator", "all_sources_found") <= 2500.0, "indicator finds every source");
+    check_shape(
+        &s,
+        "three-room",
+        &["indicator", "pvf30", "pvf30_eps0.3", "random_walk"],
+        2,
+        2500,
+        5,
+    );
+    assert!(
+        mean(&s, "indicator", "all_sources_found") <= 2500.0,
+        "indicator finds every source"
+    );
     assert!(mean(&s, "indicator", "balance") > 0.7);
     assert_eq!(mean(&s, "indicator", "stuck"), 0.0);
-    assert_eq!(mean(&s, "pvf30", "stuck"), 1.0, "the literal configuration stops moving");
-    assert!(mean(&s, "indicator", "cumulative_abs_reward") > 5.0 * mean(&s, "random_walk", "cumulative_abs_reward"));
+    assert_eq!(
+        mean(&s, "pvf30", "stuck"),
+        1.0,
+        "the literal configuration stops moving"
+    );
+    assert!(
+        mean(&s, "indicator", "cumulative_abs_reward")
+            > 5.0 * mean(&s, "random_walk", "cumulative_abs_reward")
+    );
     let maps = fs::read_dir(&dir)
         .expect("out dir")
         .filter_map(|e| e.ok())
-        .filter(|e| e.file_name().to_string_lossy().starts_with("fig3e_values_"))
+        .filter(|e| e.file_name().to_string_lossy().starts_with("fig3e_values."))
         .count();
     assert_eq!(maps, 2, "fig3e as PNG and SVG");
     fs::remove_dir_all(dir).ok();
@@ -125,8 +183,18 @@ fn same_seed_gives_the_same_summary() {
     let b = tempfile_dir("seed-b");
     for dir in [&a, &b] {
         run_cli(&[
-            "experiment", "hallway", "--trials", "2", "--steps", "500", "--seed", "9", "--no-csv", "--no-figures",
-            "--out", dir.to_str().expect("utf-8 path"),
+            "experiment",
+            "hallway",
+            "--trials",
+            "2",
+            "--steps",
+            "500",
+            "--seed",
+            "9",
+            "--no-csv",
+            "--no-figures",
+            "--out",
+            dir.to_str().expect("utf-8 path"),
         ]);
     }
     assert_eq!(summary(&a), summary(&b));
@@ -137,7 +205,14 @@ fn same_seed_gives_the_same_summary() {
 #[test]
 fn bad_arguments_fail_with_a_message() {
     let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
-        .args(["experiment", "hallway", "--trials", "0", "--out", "/tmp/mcapi-never"])
+        .args([
+            "experiment",
+            "hallway",
+            "--trials",
+            "0",
+            "--out",
+            "/tmp/mcapi-never",
+        ])
         .output()
         .expect("mcapi runs");
     assert!(!out.status.success());

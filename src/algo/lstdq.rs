@@ -214,7 +214,6 @@ struct FeatureEngine {
     x: DVector<f64>,
     y: DVector<f64>,
     u: DVector<f64>,
-    z: DVector<f64>,
     /// Scratch: Q(s, a) for every state and action, column-major |S|×|A|.
     q_states: Vec<f64>,
 }
@@ -247,7 +246,6 @@ impl Planner {
                     x: DVector::zeros(big_k),
                     y: DVector::zeros(big_k),
                     u: DVector::zeros(big_k),
-                    z: DVector::zeros(big_k),
                     q_states: vec![0.0; model.states() * model.n_actions()],
                 }))
             }
@@ -494,7 +492,7 @@ impl FeatureEngine {
             return Ok(true);
         }
         let big_k = cache.gram.nrows();
-        let too_many = self.pending.len() * 8 > big_k;
+        let too_many = self.pending.len() * 3 > big_k;
         if self.stale
             || too_many
             || self.rank_one_since_refresh + self.pending.len() > REFRESH_AFTER
@@ -516,21 +514,40 @@ impl FeatureEngine {
             // A' = A + u zᵀ with u = γ M[s'] and z = (e_old − e_new) ⊗ v(s').
             self.u.copy_from(&cache.m.column(s));
             self.u *= gamma;
-            self.z.fill(0.0);
-            for (j, &vj) in v.iter().enumerate() {
-                self.z[b_old * k + j] += vj;
-                self.z[b_new * k + j] -= vj;
-            }
             // Sherman–Morrison: A'⁻¹ = A⁻¹ − (A⁻¹u)(zᵀA⁻¹) / (1 + zᵀA⁻¹u).
-            self.x.gemv(1.0, &self.a_inv, &self.u, 0.0);
-            self.y.gemv_tr(1.0, &self.a_inv, &self.z, 0.0);
-            let denom = 1.0 + self.z.dot(&self.x);
+            // z has only 2k non-zeros (blocks b_old and b_new), so zᵀA⁻¹ and
+            // zᵀx read just those rows.
+            let big_k = self.a_inv.nrows();
+            mat_vec(
+                self.a_inv.as_slice(),
+                self.u.as_slice(),
+                self.x.as_mut_slice(),
+            );
+            let z_dot = |col: &[f64]| -> f64 {
+                v.iter()
+                    .enumerate()
+                    .map(|(t, vt)| vt * (col[b_old * k + t] - col[b_new * k + t]))
+                    .sum()
+            };
+            let denom = 1.0 + z_dot(self.x.as_slice());
             if !denom.is_finite() || denom.abs() < 1e-8 {
                 return self
                     .rebuild(model, f, cache, policy, gamma, ridge, stats)
                     .map(|()| false);
             }
-            self.a_inv.ger(-1.0 / denom, &self.x, &self.y, 1.0);
+            for (yj, col) in self
+                .y
+                .iter_mut()
+                .zip(self.a_inv.as_slice().chunks_exact(big_k))
+            {
+                *yj = z_dot(col);
+            }
+            rank_one_update(
+                self.a_inv.as_mut_slice(),
+                -1.0 / denom,
+                self.x.as_slice(),
+                self.y.as_slice(),
+            );
             self.rank_one_since_refresh += 1;
             stats.rank_one_updates += 1;
         }
@@ -553,13 +570,13 @@ impl FeatureEngine {
     ) -> Result<()> {
         let k = cache.k;
         self.a.copy_from(&cache.gram);
+        let big_k = self.a.nrows();
+        let (a, m) = (self.a.as_mut_slice(), cache.m.as_slice());
         for (s, &p) in policy.iter().enumerate() {
+            // Block column π(s) of A loses γ M[s] v(s)ᵀ.
             let b = model.pair_action(p as usize);
-            let m_s = cache.m.column(s);
-            let v = f.row(s);
-            for (j, &vj) in v.iter().enumerate() {
-                self.a.column_mut(b * k + j).axpy(-gamma * vj, &m_s, 1.0);
-            }
+            let block = &mut a[b * k * big_k..(b + 1) * k * big_k];
+            rank_one_update(block, -gamma, &m[s * big_k..(s + 1) * big_k], f.row(s));
         }
         // An unused feature has a zero row and column in A and b_j = 0, so
         // w_j = 0 whatever A_jj is: set it to 1 to take the feature out of the
@@ -661,14 +678,7 @@ fn feature_kernel<'a>(
             *bj += rp * vj;
         }
     }
-    w.fill(0.0);
-    for (&bj, col) in b.iter().zip(x.a_inv.chunks_exact(w.len())) {
-        if bj != 0.0 {
-            for (wi, ai) in w.iter_mut().zip(col) {
-                *wi += bj * ai;
-            }
-        }
-    }
+    mat_vec(x.a_inv, b, w);
     for (a, col) in q_states.chunks_exact_mut(n).enumerate() {
         col.fill(0.0);
         for (j, v_j) in x.v_cols.chunks_exact(n).enumerate() {
@@ -680,6 +690,34 @@ fn feature_kernel<'a>(
     }
     for ((qp, &s), &a) in q.iter_mut().zip(x.pair_state).zip(x.pair_action) {
         *qp = q_states[a as usize * n + s as usize];
+    }
+}
+
+/// x = M u for a square column-major M, as a sum of M's columns (axpy form,
+/// vectorised; AVX2 and NEON versions picked at run time).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx", "aarch64+neon"))]
+fn mat_vec(m: &[f64], u: &[f64], x: &mut [f64]) {
+    x.fill(0.0);
+    for (&uj, col) in u.iter().zip(m.chunks_exact(x.len())) {
+        if uj != 0.0 {
+            for (xi, mi) in x.iter_mut().zip(col) {
+                *xi += uj * mi;
+            }
+        }
+    }
+}
+
+/// M += alpha x yᵀ for a column-major M with `x.len()` rows and `y.len()`
+/// columns (vectorised like [`mat_vec`]).
+#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx", "aarch64+neon"))]
+fn rank_one_update(m: &mut [f64], alpha: f64, x: &[f64], y: &[f64]) {
+    for (&yj, col) in y.iter().zip(m.chunks_exact_mut(x.len())) {
+        let c = alpha * yj;
+        if c != 0.0 {
+            for (mi, xi) in col.iter_mut().zip(x) {
+                *mi += c * xi;
+            }
+        }
     }
 }
 

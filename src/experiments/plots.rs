@@ -537,12 +537,7 @@ fn draw_maze(
             sources: sources.clone(),
         };
         let size = (grid.cols() as u32 * 34 + 24, grid.rows() as u32 * 34 + 60);
-        files.extend(save(
-            &fig,
-            out,
-            &format!("fig3{letter}_values_{name}"),
-            size,
-        )?);
+        files.extend(save(&fig, out, &format!("fig3{letter}_values"), size)?);
     }
     Ok(files)
 }
