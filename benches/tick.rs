@@ -44,8 +44,18 @@ fn bench_tick(c: &mut Criterion) {
     let setups: [(&str, &Experiment, BasisSpec, f64); 4] = [
         ("hallway_indicator", &hallway, BasisSpec::Indicator, 0.0),
         ("three_room_indicator", &maze, BasisSpec::Indicator, 0.0),
-        ("three_room_pvf30", &maze, BasisSpec::ProtoValue { k: 30 }, 0.0),
-        ("three_room_pvf30_eps0.3", &maze, BasisSpec::ProtoValue { k: 30 }, 0.3),
+        (
+            "three_room_pvf30",
+            &maze,
+            BasisSpec::ProtoValue { k: 30 },
+            0.0,
+        ),
+        (
+            "three_room_pvf30_eps0.3",
+            &maze,
+            BasisSpec::ProtoValue { k: 30 },
+            0.3,
+        ),
     ];
     let mut group = c.benchmark_group("tick");
     for (name, exp, basis, epsilon) in setups {

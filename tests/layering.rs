@@ -20,7 +20,10 @@ fn rust_files(dir: &Path, out: &mut Vec<std::path::PathBuf>) {
 #[test]
 fn algo_core_does_not_mention_network_crates() {
     let mut files = Vec::new();
-    rust_files(&Path::new(env!("CARGO_MANIFEST_DIR")).join("src/algo"), &mut files);
+    rust_files(
+        &Path::new(env!("CARGO_MANIFEST_DIR")).join("src/algo"),
+        &mut files,
+    );
     assert!(files.len() >= 8, "found only {files:?}");
     for file in files {
         let text = fs::read_to_string(&file).expect("readable file");
