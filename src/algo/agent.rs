@@ -15,7 +15,7 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 use super::drive::Drive;
-use super::error::{AlgoError, Result};
+use super::error::{AlgoError, MAX_STIMULUS, Result};
 use super::lstdq::{PlanOutcome, Planner, PlanningModel};
 use super::params::ValidParams;
 use super::stimulus::StimulusFunction;
@@ -168,6 +168,13 @@ impl Agent {
         }
         if xi.iter().any(|x| !x.is_finite()) {
             return Err(AlgoError::NonFinite { field: "stimulus" });
+        }
+        if let Some((index, &value)) = xi.iter().enumerate().find(|(_, x)| x.abs() > MAX_STIMULUS) {
+            return Err(AlgoError::StimulusTooLarge {
+                index,
+                value,
+                limit: MAX_STIMULUS,
+            });
         }
         let pair = match obs.action_taken {
             None => self.advised,
@@ -389,6 +396,10 @@ mod tests {
                 "stimulus has 1 components, expected 2",
             ),
             (Observation::new(1, &[f64::NAN, 0.0]), "non-finite"),
+            (
+                Observation::new(1, &[0.0, -1e200]),
+                "`stimulus[1]` = -1e200 exceeds the limit of ±1e12",
+            ),
             (
                 Observation {
                     state: 1,

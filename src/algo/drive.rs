@@ -37,24 +37,24 @@ impl Drive {
     /// D₀ = |N(0, I)| normalised (ALGORITHM.md §3).
     pub fn new(priorities: &[f64], eta: f64, rng: &mut impl Rng) -> Self {
         let n = priorities.len();
-        let mut d: Vec<f64> = (0..n)
+        let d: Vec<f64> = (0..n)
             .map(|_| StandardNormal.sample(rng))
             .map(|x: f64| x.abs())
             .collect();
+        Self::from_parts(d, priorities, eta)
+    }
+
+    /// A drive with a given direction (normalised here; a zero or
+    /// non-finite vector becomes the uniform direction).
+    pub fn from_parts(mut d: Vec<f64>, priorities: &[f64], eta: f64) -> Self {
+        let n = d.len();
+        assert_eq!(priorities.len(), n, "one priority per drive component");
         let len = norm(&d);
         if len > 0.0 && len.is_finite() {
             d.iter_mut().for_each(|x| *x /= len);
         } else {
             d.iter_mut().for_each(|x| *x = 1.0 / (n as f64).sqrt());
         }
-        Self::from_parts(d, priorities, eta)
-    }
-
-    /// A drive with a given direction (normalised here).
-    pub fn from_parts(mut d: Vec<f64>, priorities: &[f64], eta: f64) -> Self {
-        let n = d.len();
-        let len = norm(&d);
-        d.iter_mut().for_each(|x| *x /= len);
         Self {
             d,
             inv_rho: priorities.iter().map(|r| 1.0 / r).collect(),
@@ -137,28 +137,16 @@ impl Drive {
     }
 
     /// Estimate of λ₁, the largest eigenvalue of C = E[Λξ ξᵀΛ], from the
-    /// running second moment (power iteration on the small n×n matrix).
+    /// running second moment (an exact symmetric eigendecomposition of the
+    /// small n×n matrix).
     pub fn lambda1_estimate(&self) -> f64 {
         let n = self.d.len();
-        let c = &self.second_moment;
-        let mut v = vec![1.0 / (n as f64).sqrt(); n];
-        let mut lambda = 0.0;
-        for _ in 0..200 {
-            let w: Vec<f64> = (0..n)
-                .map(|i| (0..n).map(|j| c[i * n + j] * v[j]).sum())
-                .collect();
-            let len = norm(&w);
-            if len == 0.0 {
-                return 0.0;
-            }
-            let converged = (len - lambda).abs() <= 1e-12 * len;
-            lambda = len;
-            v = w.into_iter().map(|x| x / len).collect();
-            if converged {
-                break;
-            }
-        }
-        lambda
+        let c = nalgebra::DMatrix::from_row_slice(n, n, &self.second_moment);
+        nalgebra::SymmetricEigen::new(c)
+            .eigenvalues
+            .iter()
+            .copied()
+            .fold(0.0, f64::max)
     }
 
     /// Condition (1) of Sec. 3.1: η λ₁ < 0.5, with the running λ₁ estimate.

@@ -70,6 +70,17 @@ pub enum AlgoError {
         field: &'static str,
     },
 
+    /// A stimulus component is beyond [`MAX_STIMULUS`] in magnitude.
+    #[error("`stimulus[{index}]` = {value:e} exceeds the limit of ±{limit:e}")]
+    StimulusTooLarge {
+        /// Component index.
+        index: usize,
+        /// The value sent.
+        value: f64,
+        /// The limit.
+        limit: f64,
+    },
+
     /// The first observation of an agent must carry only a state.
     #[error("the first observation carries only a state; `{field}` must be omitted")]
     FirstObservation {
@@ -86,6 +97,11 @@ pub enum AlgoError {
     #[error("numerical failure: {0}")]
     Numerical(String),
 }
+
+/// Largest accepted magnitude of a stimulus component. Beyond about 1e154
+/// ‖Λξ‖² overflows f64; the limit keeps every downstream quantity (D's
+/// norm, the second moment, Q and its differences) comfortably finite.
+pub const MAX_STIMULUS: f64 = 1e12;
 
 /// Shorthand for results of the core.
 pub type Result<T, E = AlgoError> = std::result::Result<T, E>;

@@ -17,7 +17,9 @@
 //! - **indicator basis, stochastic model**: the same equation is the sparse
 //!   system (I − γ P_π) V = R_π over states, solved by Gauss–Seidel sweeps
 //!   warm-started from the previous V until the a-posteriori error bound
-//!   γ/(1−γ)·‖ΔV‖∞ is below 1e-12 (1 + ‖V‖∞).
+//!   γ/(1−γ)·‖ΔV‖∞ is below 1e-12 (1 + ‖V‖∞); if γ is so close to 1 that
+//!   this takes more than 20 000 sweeps, a dense LU solve takes over (up to
+//!   2048 states; beyond, the update reports an error).
 //! - **state-block features** (PVF, custom): A = ΦᵀΦ − γ MᵀΨ_π with
 //!   M[s'] = Σ_(s,a) P(s'|s,a) φ(s,a) and Ψ_π[s'] = φ(s', π(s')) (§5). ΦᵀΦ and
 //!   M depend only on the model and basis and are shared between sessions
@@ -43,7 +45,11 @@ pub const TIE_TOLERANCE: f64 = 1e-10;
 pub const REFRESH_AFTER: usize = 256;
 
 /// Gauss–Seidel sweep cap for stochastic models.
-const MAX_SWEEPS: usize = 100_000;
+const MAX_SWEEPS: usize = 20_000;
+
+/// Stochastic models up to this many states fall back to a dense solve when
+/// Gauss–Seidel does not converge (γ very close to 1).
+const DENSE_FALLBACK_MAX_STATES: usize = 2048;
 
 /// The immutable parts of planning shared by every session on one model:
 /// the model, the basis and, for feature bases, ΦᵀΦ and M.
@@ -304,7 +310,7 @@ impl Planner {
                 fg.evaluate(model, &self.policy, r, gamma, &mut self.q_next);
             }
             Engine::GaussSeidel { v } => {
-                gauss_seidel(model, &self.policy, r, gamma, v, &mut self.q_next);
+                gauss_seidel(model, &self.policy, r, gamma, v, &mut self.q_next)?;
             }
             Engine::Features(fe) => {
                 let cache = ctx.features.as_ref().ok_or_else(|| {
@@ -443,7 +449,7 @@ fn gauss_seidel(
     gamma: f64,
     v: &mut [f64],
     q: &mut [f64],
-) {
+) -> Result<()> {
     let expect = |p: usize, v: &[f64]| -> f64 {
         let (next, prob) = model.successors(p);
         next.iter()
@@ -456,6 +462,7 @@ fn gauss_seidel(
     } else {
         0.0
     };
+    let mut converged = false;
     for _ in 0..MAX_SWEEPS {
         let mut delta: f64 = 0.0;
         let mut scale: f64 = 0.0;
@@ -467,12 +474,51 @@ fn gauss_seidel(
             v[s] = new;
         }
         if bound * delta <= 1e-12 * (1.0 + scale) {
+            converged = true;
             break;
         }
+    }
+    if !converged {
+        // γ so close to 1 that the sweeps contract too slowly: solve
+        // (I − γ P_π) V = R_π directly when the model is small enough.
+        if model.states() > DENSE_FALLBACK_MAX_STATES {
+            return Err(AlgoError::Numerical(format!(
+                "policy evaluation did not converge in {MAX_SWEEPS} sweeps with gamma = {gamma}; use a smaller `gamma`"
+            )));
+        }
+        dense_policy_values(model, policy, r, gamma, v)?;
     }
     for (p, qp) in q.iter_mut().enumerate() {
         *qp = r[p] + gamma * expect(p, v);
     }
+    Ok(())
+}
+
+/// V = (I − γ P_π)⁻¹ R_π by dense LU (the exact fallback of [`gauss_seidel`]).
+fn dense_policy_values(
+    model: &EnvModel,
+    policy: &[u32],
+    r: &[f64],
+    gamma: f64,
+    v: &mut [f64],
+) -> Result<()> {
+    let n = model.states();
+    let mut m = DMatrix::<f64>::identity(n, n);
+    let mut rhs = DVector::<f64>::zeros(n);
+    for s in 0..n {
+        let p = policy[s] as usize;
+        rhs[s] = r[p];
+        let (next, prob) = model.successors(p);
+        for (&t, &w) in next.iter().zip(prob) {
+            m[(s, t as usize)] -= gamma * w;
+        }
+    }
+    let sol = m
+        .lu()
+        .solve(&rhs)
+        .ok_or_else(|| AlgoError::Numerical("I − γP_π is singular".into()))?;
+    v.copy_from_slice(sol.as_slice());
+    Ok(())
 }
 
 impl FeatureEngine {
