@@ -727,12 +727,7 @@ fn feature_kernel<'a>(
     mat_vec(x.a_inv, b, w);
     for (a, col) in q_states.chunks_exact_mut(n).enumerate() {
         col.fill(0.0);
-        for (j, v_j) in x.v_cols.chunks_exact(n).enumerate() {
-            let c = w[a * k + j];
-            for (qs, vs) in col.iter_mut().zip(v_j) {
-                *qs += c * vs;
-            }
-        }
+        combine_columns(col, x.v_cols, &w[a * k..(a + 1) * k]);
     }
     for ((qp, &s), &a) in q.iter_mut().zip(x.pair_state).zip(x.pair_action) {
         *qp = q_states[a as usize * n + s as usize];
@@ -744,11 +739,30 @@ fn feature_kernel<'a>(
 #[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx", "aarch64+neon"))]
 fn mat_vec(m: &[f64], u: &[f64], x: &mut [f64]) {
     x.fill(0.0);
-    for (&uj, col) in u.iter().zip(m.chunks_exact(x.len())) {
-        if uj != 0.0 {
-            for (xi, mi) in x.iter_mut().zip(col) {
-                *xi += uj * mi;
-            }
+    combine_columns(x, m, u);
+}
+
+/// out += Σ_j c_j · cols_j, where `cols` holds `c.len()` columns of
+/// `out.len()` entries each. Four columns are combined per pass over `out`
+/// (one load and store of `out` per four columns); each entry is summed in
+/// the same order on every CPU, so results do not depend on the vector width.
+#[inline(always)]
+fn combine_columns(out: &mut [f64], cols: &[f64], c: &[f64]) {
+    let n = out.len();
+    let mut quads = cols.chunks_exact(4 * n).zip(c.chunks_exact(4));
+    for (block, c4) in &mut quads {
+        let (v0, rest) = block.split_at(n);
+        let (v1, rest) = rest.split_at(n);
+        let (v2, v3) = rest.split_at(n);
+        let (c0, c1, c2, c3) = (c4[0], c4[1], c4[2], c4[3]);
+        for ((((o, a0), a1), a2), a3) in out.iter_mut().zip(v0).zip(v1).zip(v2).zip(v3) {
+            *o += (c0 * a0 + c1 * a1) + (c2 * a2 + c3 * a3);
+        }
+    }
+    let done = c.len() / 4 * 4;
+    for (&cj, col) in c[done..].iter().zip(cols[done * n..].chunks_exact(n)) {
+        for (o, v) in out.iter_mut().zip(col) {
+            *o += cj * v;
         }
     }
 }
