@@ -422,6 +422,33 @@ fn error_chart(title: String, recs: &[TrialRecord]) -> LineChart {
     }
 }
 
+/// Panels (c) and (d) of both experiments' figures: the drive of one run
+/// and the LSTDQ error (one run and the mean), as `fig<number>c_drive` and
+/// `fig<number>d_lstdq_error`.
+fn drive_and_error(
+    exp: &Experiment,
+    recs: &[TrialRecord],
+    number: &str,
+    world: &str,
+    out: &Path,
+) -> Result<Vec<PathBuf>> {
+    let window = recs[0].steps().min(WINDOW);
+    let fig_c = drive_chart(
+        format!("Fig. {number}(c) {world}: drive D, first {window} ticks"),
+        exp,
+        &recs[0],
+    );
+    let mut files = save(&fig_c, out, &format!("fig{number}c_drive"), SIZE)?;
+    let fig_d = error_chart(format!("Fig. {number}(d) {world}: LSTDQ error"), recs);
+    files.extend(save(
+        &fig_d,
+        out,
+        &format!("fig{number}d_lstdq_error"),
+        SIZE,
+    )?);
+    Ok(files)
+}
+
 fn draw_hallway(
     exp: &Experiment,
     grouped: &[(&'static str, Vec<TrialRecord>)],
@@ -445,15 +472,8 @@ fn draw_hallway(
         ],
     };
     files.extend(save(&fig_b, out, "fig2b_cumulative_reward", SIZE)?);
+    files.extend(drive_and_error(exp, mca, "2", "Hallway", out)?);
     let window = mca[0].steps().min(WINDOW);
-    let fig_c = drive_chart(
-        format!("Fig. 2(c) Hallway: drive D, first {window} ticks"),
-        exp,
-        &mca[0],
-    );
-    files.extend(save(&fig_c, out, "fig2c_drive", SIZE)?);
-    let fig_d = error_chart("Fig. 2(d) Hallway: LSTDQ error".into(), mca);
-    files.extend(save(&fig_d, out, "fig2d_lstdq_error", SIZE)?);
     let n_src = exp.preset.sources.len();
     let series = exp
         .preset
@@ -508,15 +528,7 @@ fn draw_maze(
         series,
     };
     files.extend(save(&fig_b, out, "fig3b_cumulative_stimulus", SIZE)?);
-    let window = ind[0].steps().min(WINDOW);
-    let fig_c = drive_chart(
-        format!("Fig. 3(c) Three-room maze: drive D, first {window} ticks"),
-        exp,
-        &ind[0],
-    );
-    files.extend(save(&fig_c, out, "fig3c_drive", SIZE)?);
-    let fig_d = error_chart("Fig. 3(d) Three-room maze: LSTDQ error".into(), ind);
-    files.extend(save(&fig_d, out, "fig3d_lstdq_error", SIZE)?);
+    files.extend(drive_and_error(exp, ind, "3", "Three-room maze", out)?);
     let grid = exp
         .preset
         .grid
