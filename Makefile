@@ -1,9 +1,13 @@
 # `make test` is what CI runs (.ci/run): formatting, lints, every test.
 CARGO ?= cargo
 
-.PHONY: test fmt-check clippy unit build release bench figures peers clean
+.PHONY: test lint-docker fmt-check clippy unit build release bench figures peers clean
 
-test: fmt-check clippy unit
+test: lint-docker fmt-check clippy unit
+
+# hadolint on the Dockerfile (installs a pinned hadolint into .venv-tools/).
+lint-docker:
+	bash tools/hadolint.sh
 
 fmt-check:
 	$(CARGO) fmt --all -- --check

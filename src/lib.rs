@@ -13,6 +13,9 @@
 //! Modules:
 //! - [`algo`]: the pure, synchronous algorithm core (Algorithm 1, Eqs. 1-3).
 //! - [`experiments`]: the paper's experiments, metrics and figures.
+//! - [`service`]: the session layer both transports call (sessions, tick loop, limits).
 
 pub mod algo;
+pub mod api;
 pub mod experiments;
+pub mod service;

@@ -1,0 +1,90 @@
+//! The one mapping of service errors to HTTP status, gRPC code and stable
+//! snake_case code (STYLE.md, habit 3). Every variant is listed; no `_ =>`.
+
+use axum::Json;
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+
+use crate::algo::AlgoError;
+use crate::service::ServiceError;
+
+/// HTTP status, gRPC code and stable code of an error.
+pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
+    use StatusCode as H;
+    use tonic::Code as G;
+    match e {
+        ServiceError::Algo(a) => match a {
+            AlgoError::InvalidModel(_) => (H::BAD_REQUEST, G::InvalidArgument, "invalid_model"),
+            AlgoError::InvalidParameter { .. } => (H::BAD_REQUEST, G::InvalidArgument, "invalid_parameter"),
+            AlgoError::InvalidBasis(_) => (H::BAD_REQUEST, G::InvalidArgument, "invalid_basis"),
+            AlgoError::StateOutOfRange { .. } => (H::BAD_REQUEST, G::InvalidArgument, "unknown_state"),
+            AlgoError::ActionOutOfRange { .. } => (H::BAD_REQUEST, G::InvalidArgument, "unknown_action"),
+            AlgoError::ActionNotAvailable { .. } => (H::BAD_REQUEST, G::InvalidArgument, "action_not_available"),
+            AlgoError::StimulusLength { .. } => (H::BAD_REQUEST, G::InvalidArgument, "stimulus_length"),
+            AlgoError::NonFinite { .. } => (H::BAD_REQUEST, G::InvalidArgument, "non_finite_number"),
+            AlgoError::StimulusTooLarge { .. } => (H::BAD_REQUEST, G::InvalidArgument, "stimulus_too_large"),
+            AlgoError::FirstObservation { .. } => (H::BAD_REQUEST, G::InvalidArgument, "first_observation"),
+            AlgoError::MissingStimulus => (H::BAD_REQUEST, G::InvalidArgument, "missing_stimulus"),
+            AlgoError::Numerical(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "numerical_failure"),
+        },
+        ServiceError::BadRequest(_) => (H::BAD_REQUEST, G::InvalidArgument, "bad_request"),
+        ServiceError::NotFound(_) => (H::NOT_FOUND, G::NotFound, "not_found"),
+        ServiceError::LimitExceeded(_) => (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "limit_exceeded"),
+        ServiceError::PayloadTooLarge(_) => (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "payload_too_large"),
+        ServiceError::TooManySessions(_) => (H::TOO_MANY_REQUESTS, G::ResourceExhausted, "too_many_sessions"),
+        ServiceError::Unavailable(_) => (H::SERVICE_UNAVAILABLE, G::Unavailable, "unavailable"),
+        ServiceError::Internal(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
+    }
+}
+
+/// The message a client sees: verbatim for its own mistakes, generic for
+/// internal faults (which are logged once here instead).
+pub fn public_message(e: &ServiceError, status: StatusCode) -> String {
+    if status.is_server_error() && status != StatusCode::SERVICE_UNAVAILABLE {
+        tracing::error!(error = ?e, "internal error");
+        return "internal error".to_string();
+    }
+    e.to_string()
+}
+
+/// The JSON error body: `{"code", "message"}`.
+#[derive(Debug, Serialize, serde::Deserialize, utoipa::ToSchema)]
+pub struct ErrorBody {
+    /// Stable snake_case code.
+    pub code: String,
+    /// Human-readable message naming the field.
+    pub message: String,
+}
+
+/// A REST error response.
+#[derive(Debug)]
+pub struct ApiError(pub ServiceError);
+
+impl From<ServiceError> for ApiError {
+    fn from(e: ServiceError) -> Self {
+        Self(e)
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let (status, _, code) = classify(&self.0);
+        let body = ErrorBody {
+            code: code.to_string(),
+            message: public_message(&self.0, status),
+        };
+        (status, Json(body)).into_response()
+    }
+}
+
+/// A gRPC status from a service error.
+pub fn to_status(e: ServiceError) -> tonic::Status {
+    let (http, code, stable) = classify(&e);
+    let message = public_message(&e, http);
+    let mut status = tonic::Status::new(code, message);
+    if let Ok(v) = stable.parse() {
+        status.metadata_mut().insert("x-mcapi-error-code", v);
+    }
+    status
+}

@@ -1,0 +1,4 @@
+//! Thin transport adapters over [`crate::service`]: REST (axum) and gRPC
+//! (tonic), with one error mapping.
+
+pub mod error;

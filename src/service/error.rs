@@ -1,0 +1,42 @@
+//! The service's one error type. Transports map it to HTTP and gRPC in one
+//! table (`api::error`); messages of user errors go to clients verbatim.
+
+use thiserror::Error;
+
+use crate::algo::AlgoError;
+
+/// Everything a service call can fail with.
+#[derive(Debug, Error)]
+pub enum ServiceError {
+    /// The core refused the input (model, parameters, observation).
+    #[error(transparent)]
+    Algo(#[from] AlgoError),
+    /// Malformed request content; the message names the field.
+    #[error("{0}")]
+    BadRequest(String),
+    /// No such session (or not visible to the caller).
+    #[error("session `{0}` not found")]
+    NotFound(String),
+    /// A size limit of the server was exceeded.
+    #[error("{0}")]
+    LimitExceeded(String),
+    /// The request body is larger than the server accepts.
+    #[error("{0}")]
+    PayloadTooLarge(String),
+    /// The session limit is reached.
+    #[error("the server already holds its maximum of {0} sessions")]
+    TooManySessions(usize),
+    /// The tick queue is full or the server is stopping.
+    #[error("{0}")]
+    Unavailable(String),
+    /// A fault of the server, not the client's; details are logged, not sent.
+    #[error("internal error")]
+    Internal(String),
+}
+
+impl ServiceError {
+    /// A malformed field: "`field`: reason".
+    pub fn field(field: &str, reason: impl std::fmt::Display) -> Self {
+        Self::BadRequest(format!("`{field}`: {reason}"))
+    }
+}

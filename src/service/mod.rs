@@ -1,0 +1,474 @@
+//! The one session layer both transports call (DESIGN.md, "Layers"): create,
+//! get, list, delete, observe, values and history of hosted agents, the
+//! limits, and the tick loop that runs policy updates off the request path.
+
+pub mod error;
+pub mod limits;
+pub mod session;
+pub mod spec;
+pub mod tick;
+
+use std::collections::{BTreeMap, HashMap};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Weak};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use parking_lot::{Mutex, RwLock};
+use serde::{Deserialize, Serialize};
+use tokio::sync::oneshot;
+
+use crate::algo::{Agent, Basis, PlanningModel};
+
+pub use error::ServiceError;
+pub use limits::Limits;
+pub use session::{HistoryEntry, ObservationIn, Session, SessionRef, StepOut};
+pub use spec::{CreateSession, EffectiveConfig, ModelInput, ModelSummary, SessionConfig, UpdateMode};
+use tick::{Job, TickPool};
+
+/// Number of virtual shards in session ids (fixed forever, DESIGN.md).
+pub const SHARDS: u64 = 1024;
+
+/// Default and maximum page size of `list`.
+pub const DEFAULT_PAGE: usize = 100;
+/// Largest page `list` returns.
+pub const MAX_PAGE: usize = 1000;
+
+/// A session as `get` returns it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct SessionInfo {
+    /// `s<shard>.<ULID>`.
+    pub id: String,
+    /// Ticks so far.
+    pub tick: u64,
+    /// The drive D.
+    pub drive: Vec<f64>,
+    /// Policy updates applied.
+    pub policy_version: u64,
+    /// The agent's current state, once it has observed one.
+    pub state: Option<usize>,
+    /// The model.
+    pub model: ModelSummary,
+    /// Effective configuration.
+    pub agent: EffectiveConfig,
+    /// Statistics of the learner.
+    pub stats: SessionStats,
+}
+
+/// Learner statistics of a session.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct SessionStats {
+    /// ‖Q_t − Q_{t+1}‖ of the last policy update.
+    pub lstdq_error: f64,
+    /// Running estimate of λ₁ of E[Λξ ξᵀΛ] (condition (1)).
+    pub lambda1_estimate: f64,
+    /// Whether η λ₁ < 0.5 holds for the estimate.
+    pub condition_1_holds: bool,
+    /// Stimulus dimensions whose column of Ξ is constant (condition (3)).
+    pub constant_stimuli: Vec<usize>,
+    /// Policy updates that reused the factorisation.
+    pub factorisation_reuses: u64,
+    /// Full factorisations of A.
+    pub factorisations: u64,
+}
+
+/// One line of `list`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct SessionSummary {
+    /// Session id.
+    pub id: String,
+    /// Ticks so far.
+    pub tick: u64,
+    /// Number of states of its model.
+    pub states: usize,
+    /// Update mode.
+    pub update_mode: UpdateMode,
+}
+
+/// A page of sessions, ordered by id.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct SessionPage {
+    /// The sessions.
+    pub sessions: Vec<SessionSummary>,
+    /// Pass as `after` for the next page; absent on the last page.
+    pub next: Option<String>,
+}
+
+/// Which value tables to return.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ValueSelection {
+    /// V(s).
+    pub v: bool,
+    /// Q(s, a).
+    pub q: bool,
+    /// Greedy action per state.
+    pub policy: bool,
+    /// R(s, a).
+    pub r: bool,
+    /// Ξ(s, a).
+    pub xi: bool,
+}
+
+impl ValueSelection {
+    /// Parses `v,q,policy,r,xi` (any subset); empty means `v,policy`.
+    pub fn parse(include: Option<&str>) -> Result<Self, ServiceError> {
+        let Some(include) = include.filter(|s| !s.trim().is_empty()) else {
+            return Ok(Self {
+                v: true,
+                policy: true,
+                ..Self::default()
+            });
+        };
+        let mut sel = Self::default();
+        for part in include.split(',').map(str::trim) {
+            match part {
+                "v" => sel.v = true,
+                "q" => sel.q = true,
+                "policy" => sel.policy = true,
+                "r" => sel.r = true,
+                "xi" => sel.xi = true,
+                "all" => {
+                    sel = Self {
+                        v: true,
+                        q: true,
+                        policy: true,
+                        r: true,
+                        xi: true,
+                    }
+                }
+                other => {
+                    return Err(ServiceError::field(
+                        "include",
+                        format!("unknown table `{other}` (choose from v, q, policy, r, xi, all)"),
+                    ));
+                }
+            }
+        }
+        Ok(sel)
+    }
+}
+
+/// Value tables of a session; per-pair tables are `[state][action]`, null
+/// where the action is unavailable.
+#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct Values {
+    /// Ticks so far.
+    pub tick: u64,
+    /// Policy updates applied.
+    pub policy_version: u64,
+    /// V(s) = Q(s, π(s)).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub v: Option<Vec<f64>>,
+    /// Q(s, a).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub q: Option<Vec<Vec<Option<f64>>>>,
+    /// Greedy action name per state.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub policy: Option<Vec<String>>,
+    /// R(s, a) = |Ξ Λ D| as of the last update.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub r: Option<Vec<Vec<Option<f64>>>>,
+    /// Ξ(s, a), one vector per pair.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub xi: Option<Vec<Vec<Option<Vec<f64>>>>>,
+}
+
+/// The session manager: owns sessions, shared models and the tick pool.
+pub struct SessionManager {
+    sessions: RwLock<BTreeMap<String, SessionRef>>,
+    models: Mutex<HashMap<String, Weak<PlanningModel>>>,
+    limits: Limits,
+    pool: TickPool,
+    seed_counter: AtomicU64,
+}
+
+/// SplitMix64, for seeds and shards.
+fn splitmix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+impl SessionManager {
+    /// A manager with `workers` tick threads.
+    pub fn new(limits: Limits, workers: usize) -> Result<Self, ServiceError> {
+        let pool = TickPool::start(workers, limits.queue)
+            .map_err(|e| ServiceError::Internal(format!("starting tick workers: {e}")))?;
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        Ok(Self {
+            sessions: RwLock::new(BTreeMap::new()),
+            models: Mutex::new(HashMap::new()),
+            limits,
+            pool,
+            seed_counter: AtomicU64::new(splitmix(now ^ u64::from(std::process::id()))),
+        })
+    }
+
+    /// The limits in force.
+    pub fn limits(&self) -> &Limits {
+        &self.limits
+    }
+
+    /// Number of sessions.
+    pub fn len(&self) -> usize {
+        self.sessions.read().len()
+    }
+
+    /// True when no session exists.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Jobs in the tick queue.
+    pub fn queue_len(&self) -> usize {
+        self.pool.queue_len()
+    }
+
+    fn fresh_u64(&self) -> u64 {
+        splitmix(self.seed_counter.fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed))
+    }
+
+    /// The shared planning model for `input`, built once per distinct model.
+    fn planning_model(&self, input: &ModelInput) -> Result<Arc<PlanningModel>, ServiceError> {
+        let key = input.cache_key();
+        if let Some(ctx) = self.models.lock().get(&key).and_then(Weak::upgrade) {
+            return Ok(ctx);
+        }
+        // Built outside the lock: PVFs cost an eigendecomposition.
+        let (model, basis_spec) = input.build(&self.limits)?;
+        let basis = Basis::build(&basis_spec, &model)?;
+        let ctx = Arc::new(PlanningModel::new(model, basis));
+        let mut models = self.models.lock();
+        models.retain(|_, w| w.strong_count() > 0);
+        let entry = models.entry(key).or_insert_with(Weak::new);
+        if let Some(existing) = entry.upgrade() {
+            return Ok(existing);
+        }
+        *entry = Arc::downgrade(&ctx);
+        Ok(ctx)
+    }
+
+    /// Creates a session. Synchronous and possibly slow (a PVF basis costs
+    /// an eigendecomposition): call it off the async runtime.
+    pub fn create(&self, req: CreateSession) -> Result<SessionInfo, ServiceError> {
+        if self.len() >= self.limits.max_sessions {
+            return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+        }
+        let input = ModelInput::parse(req.model)?;
+        let ctx = self.planning_model(&input)?;
+        let model = ctx.model();
+        let history = req.agent.history.unwrap_or(spec::DEFAULT_HISTORY);
+        if history > self.limits.max_history {
+            return Err(ServiceError::LimitExceeded(format!(
+                "`agent.history` is {history}; the limit is {}",
+                self.limits.max_history
+            )));
+        }
+        let params = req.agent.params().check(model.n_stimuli(), self.fresh_u64())?;
+        let config = EffectiveConfig {
+            eta: params.eta,
+            gamma: params.gamma,
+            priorities: params.priorities.clone(),
+            stimulus_rate: params.stimulus_rate,
+            optimistic_sd: params.optimistic_sd,
+            ridge: params.ridge,
+            epsilon: params.epsilon,
+            seed: params.seed,
+            update_mode: req.agent.update_mode.unwrap_or_default(),
+            history,
+        };
+        let summary = ModelSummary {
+            states: model.states(),
+            actions: model.actions().to_vec(),
+            stimuli: model.stimuli().to_vec(),
+            pairs: model.n_pairs(),
+            transitions: model.n_transitions(),
+            deterministic: model.is_deterministic(),
+            basis: basis_spec_of(&ctx),
+            features: ctx.n_features(),
+        };
+        let id = format!("s{:04x}.{}", self.fresh_u64() % SHARDS, ulid::Ulid::new());
+        let agent = Agent::new(Arc::clone(&ctx), params);
+        let session = Arc::new(Session::new(id.clone(), agent, summary, config));
+        {
+            let mut sessions = self.sessions.write();
+            if sessions.len() >= self.limits.max_sessions {
+                return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+            }
+            sessions.insert(id.clone(), Arc::clone(&session));
+            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        }
+        tracing::info!(session = %id, states = session.model.states, "session created");
+        Ok(info_of(&session))
+    }
+
+    /// The session with this id.
+    pub fn session(&self, id: &str) -> Result<SessionRef, ServiceError> {
+        self.sessions
+            .read()
+            .get(id)
+            .cloned()
+            .ok_or_else(|| ServiceError::NotFound(id.to_string()))
+    }
+
+    /// Details of a session.
+    pub fn get(&self, id: &str) -> Result<SessionInfo, ServiceError> {
+        Ok(info_of(&*self.session(id)?))
+    }
+
+    /// Up to `limit` sessions with ids after `after`, in id order.
+    pub fn list(&self, after: Option<&str>, limit: Option<usize>) -> Result<SessionPage, ServiceError> {
+        let limit = limit.unwrap_or(DEFAULT_PAGE);
+        if limit == 0 || limit > MAX_PAGE {
+            return Err(ServiceError::field("limit", format!("must be between 1 and {MAX_PAGE}")));
+        }
+        let sessions = self.sessions.read();
+        let range = match after {
+            Some(a) => sessions.range::<str, _>((std::ops::Bound::Excluded(a), std::ops::Bound::Unbounded)),
+            None => sessions.range::<str, _>(..),
+        };
+        let page: Vec<SessionRef> = range.take(limit + 1).map(|(_, s)| Arc::clone(s)).collect();
+        drop(sessions);
+        let next = (page.len() > limit).then(|| page[limit - 1].id.clone());
+        let sessions = page
+            .iter()
+            .take(limit)
+            .map(|s| SessionSummary {
+                id: s.id.clone(),
+                tick: s.state.lock().agent.tick(),
+                states: s.model.states,
+                update_mode: s.mode,
+            })
+            .collect();
+        Ok(SessionPage { sessions, next })
+    }
+
+    /// Deletes a session.
+    pub fn delete(&self, id: &str) -> Result<(), ServiceError> {
+        let mut sessions = self.sessions.write();
+        sessions.remove(id).ok_or_else(|| ServiceError::NotFound(id.to_string()))?;
+        metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        tracing::info!(session = %id, "session deleted");
+        Ok(())
+    }
+
+    /// Applies observations in order and returns one reply each (DESIGN.md,
+    /// "Observation protocol"). Lockstep sessions reply after their update
+    /// on the tick pool; async sessions reply at once and queue an update.
+    pub async fn observe(&self, id: &str, batch: Vec<ObservationIn>) -> Result<Vec<StepOut>, ServiceError> {
+        if batch.is_empty() {
+            return Err(ServiceError::field("observations", "must not be empty"));
+        }
+        if batch.len() > self.limits.max_batch {
+            return Err(ServiceError::LimitExceeded(format!(
+                "`observations` has {} entries; the limit is {}",
+                batch.len(),
+                self.limits.max_batch
+            )));
+        }
+        let session = self.session(id)?;
+        let n = batch.len() as u64;
+        let out = match session.mode {
+            UpdateMode::Lockstep => {
+                let (tx, rx) = oneshot::channel();
+                self.pool.submit(Job::Observe {
+                    session,
+                    batch,
+                    reply: tx,
+                })?;
+                rx.await
+                    .map_err(|_| ServiceError::Unavailable("the server is shutting down".into()))??
+            }
+            UpdateMode::Async => {
+                let out = session.observe(&batch, false)?;
+                if session.try_enqueue()
+                    && let Err(e) = self.pool.submit(Job::Plan(Arc::clone(&session)))
+                {
+                    session.dequeued();
+                    tracing::warn!(session = %session.id, error = %e, "policy update not queued");
+                }
+                out
+            }
+        };
+        metrics::counter!("mcapi_observations_total").increment(n);
+        Ok(out)
+    }
+
+    /// Value tables of a session.
+    pub fn values(&self, id: &str, sel: ValueSelection) -> Result<Values, ServiceError> {
+        let session = self.session(id)?;
+        let st = session.state.lock();
+        let agent = &st.agent;
+        let model = agent.planning_model().model();
+        let per_pair = |f: &dyn Fn(usize) -> f64| -> Vec<Vec<Option<f64>>> {
+            (0..model.states())
+                .map(|s| (0..model.n_actions()).map(|a| model.pair(s, a).map(f)).collect())
+                .collect()
+        };
+        let planner = agent.planner();
+        Ok(Values {
+            tick: agent.tick(),
+            policy_version: agent.policy_version(),
+            v: sel.v.then(|| (0..model.states()).map(|s| planner.value(s)).collect()),
+            q: sel.q.then(|| per_pair(&|p| planner.q()[p])),
+            policy: sel.policy.then(|| {
+                (0..model.states())
+                    .map(|s| model.actions()[agent.greedy_action(s)].clone())
+                    .collect()
+            }),
+            r: sel.r.then(|| per_pair(&|p| agent.rewards()[p])),
+            xi: sel.xi.then(|| {
+                (0..model.states())
+                    .map(|s| {
+                        (0..model.n_actions())
+                            .map(|a| model.pair(s, a).map(|p| agent.stimulus().row(p).to_vec()))
+                            .collect()
+                    })
+                    .collect()
+            }),
+        })
+    }
+
+    /// The most recent `limit` ticks of a session's history, oldest first.
+    pub fn history(&self, id: &str, limit: Option<usize>) -> Result<Vec<HistoryEntry>, ServiceError> {
+        let session = self.session(id)?;
+        Ok(session.history(limit.unwrap_or(usize::MAX)))
+    }
+
+    /// Stops the tick loop after draining its queue.
+    pub fn shutdown(&self) {
+        self.pool.shutdown();
+    }
+}
+
+fn basis_spec_of(ctx: &PlanningModel) -> crate::algo::BasisSpec {
+    match ctx.basis() {
+        Basis::Indicator => crate::algo::BasisSpec::Indicator,
+        Basis::StateBlocks(f) => crate::algo::BasisSpec::ProtoValue { k: f.k() },
+    }
+}
+
+fn info_of(session: &Session) -> SessionInfo {
+    let st = session.state.lock();
+    let agent = &st.agent;
+    let stats = agent.planner().stats();
+    SessionInfo {
+        id: session.id.clone(),
+        tick: agent.tick(),
+        drive: agent.drive().vector().to_vec(),
+        policy_version: agent.policy_version(),
+        state: agent.state(),
+        model: session.model.clone(),
+        agent: session.config.clone(),
+        stats: SessionStats {
+            lstdq_error: agent.last_plan().lstdq_error,
+            lambda1_estimate: agent.drive().lambda1_estimate(),
+            condition_1_holds: agent.drive().condition_holds(),
+            constant_stimuli: agent.stimulus().constant_columns(),
+            factorisation_reuses: stats.reuses,
+            factorisations: stats.factorisations,
+        },
+    }
+}
