@@ -17,5 +17,7 @@
 
 pub mod algo;
 pub mod api;
+pub mod config;
 pub mod experiments;
 pub mod service;
+pub mod telemetry;

@@ -2,3 +2,5 @@
 //! (tonic), with one error mapping.
 
 pub mod error;
+pub mod grpc;
+pub mod rest;

@@ -67,11 +67,19 @@ impl Limits {
         if let Some(t) = &spec.transitions {
             let n: usize = t.iter().map(|t| t.next.len()).sum();
             if n > self.max_transitions {
-                return Err(exceeded("`model.transitions` count", n, self.max_transitions));
+                return Err(exceeded(
+                    "`model.transitions` count",
+                    n,
+                    self.max_transitions,
+                ));
             }
         }
         if spec.stimuli.len() > self.max_stimuli {
-            return Err(exceeded("`model.stimuli` length", spec.stimuli.len(), self.max_stimuli));
+            return Err(exceeded(
+                "`model.stimuli` length",
+                spec.stimuli.len(),
+                self.max_stimuli,
+            ));
         }
         Ok(())
     }
@@ -83,10 +91,18 @@ impl Limits {
             return Err(exceeded("`model` states x actions", pairs, self.max_pairs));
         }
         if model.n_transitions() > self.max_transitions {
-            return Err(exceeded("`model` transitions", model.n_transitions(), self.max_transitions));
+            return Err(exceeded(
+                "`model` transitions",
+                model.n_transitions(),
+                self.max_transitions,
+            ));
         }
         if model.n_stimuli() > self.max_stimuli {
-            return Err(exceeded("`model.stimuli` length", model.n_stimuli(), self.max_stimuli));
+            return Err(exceeded(
+                "`model.stimuli` length",
+                model.n_stimuli(),
+                self.max_stimuli,
+            ));
         }
         Ok(())
     }
@@ -109,7 +125,11 @@ impl Limits {
         };
         let features = k.saturating_mul(model.n_actions());
         if features > self.max_features {
-            return Err(exceeded("`model.basis` features (k x actions)", features, self.max_features));
+            return Err(exceeded(
+                "`model.basis` features (k x actions)",
+                features,
+                self.max_features,
+            ));
         }
         Ok(())
     }

@@ -22,7 +22,9 @@ use crate::algo::{Agent, Basis, PlanningModel};
 pub use error::ServiceError;
 pub use limits::Limits;
 pub use session::{HistoryEntry, ObservationIn, Session, SessionRef, StepOut};
-pub use spec::{CreateSession, EffectiveConfig, ModelInput, ModelSummary, SessionConfig, UpdateMode};
+pub use spec::{
+    CreateSession, EffectiveConfig, ModelInput, ModelSummary, SessionConfig, UpdateMode,
+};
 use tick::{Job, TickPool};
 
 /// Number of virtual shards in session ids (fixed forever, DESIGN.md).
@@ -227,7 +229,10 @@ impl SessionManager {
     }
 
     fn fresh_u64(&self) -> u64 {
-        splitmix(self.seed_counter.fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed))
+        splitmix(
+            self.seed_counter
+                .fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed),
+        )
     }
 
     /// The shared planning model for `input`, built once per distinct model.
@@ -266,7 +271,10 @@ impl SessionManager {
                 self.limits.max_history
             )));
         }
-        let params = req.agent.params().check(model.n_stimuli(), self.fresh_u64())?;
+        let params = req
+            .agent
+            .params()
+            .check(model.n_stimuli(), self.fresh_u64())?;
         let config = EffectiveConfig {
             eta: params.eta,
             gamma: params.gamma,
@@ -319,14 +327,23 @@ impl SessionManager {
     }
 
     /// Up to `limit` sessions with ids after `after`, in id order.
-    pub fn list(&self, after: Option<&str>, limit: Option<usize>) -> Result<SessionPage, ServiceError> {
+    pub fn list(
+        &self,
+        after: Option<&str>,
+        limit: Option<usize>,
+    ) -> Result<SessionPage, ServiceError> {
         let limit = limit.unwrap_or(DEFAULT_PAGE);
         if limit == 0 || limit > MAX_PAGE {
-            return Err(ServiceError::field("limit", format!("must be between 1 and {MAX_PAGE}")));
+            return Err(ServiceError::field(
+                "limit",
+                format!("must be between 1 and {MAX_PAGE}"),
+            ));
         }
         let sessions = self.sessions.read();
         let range = match after {
-            Some(a) => sessions.range::<str, _>((std::ops::Bound::Excluded(a), std::ops::Bound::Unbounded)),
+            Some(a) => {
+                sessions.range::<str, _>((std::ops::Bound::Excluded(a), std::ops::Bound::Unbounded))
+            }
             None => sessions.range::<str, _>(..),
         };
         let page: Vec<SessionRef> = range.take(limit + 1).map(|(_, s)| Arc::clone(s)).collect();
@@ -348,7 +365,9 @@ impl SessionManager {
     /// Deletes a session.
     pub fn delete(&self, id: &str) -> Result<(), ServiceError> {
         let mut sessions = self.sessions.write();
-        sessions.remove(id).ok_or_else(|| ServiceError::NotFound(id.to_string()))?;
+        sessions
+            .remove(id)
+            .ok_or_else(|| ServiceError::NotFound(id.to_string()))?;
         metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
         tracing::info!(session = %id, "session deleted");
         Ok(())
@@ -357,7 +376,11 @@ impl SessionManager {
     /// Applies observations in order and returns one reply each (DESIGN.md,
     /// "Observation protocol"). Lockstep sessions reply after their update
     /// on the tick pool; async sessions reply at once and queue an update.
-    pub async fn observe(&self, id: &str, batch: Vec<ObservationIn>) -> Result<Vec<StepOut>, ServiceError> {
+    pub async fn observe(
+        &self,
+        id: &str,
+        batch: Vec<ObservationIn>,
+    ) -> Result<Vec<StepOut>, ServiceError> {
         if batch.is_empty() {
             return Err(ServiceError::field("observations", "must not be empty"));
         }
@@ -378,8 +401,9 @@ impl SessionManager {
                     batch,
                     reply: tx,
                 })?;
-                rx.await
-                    .map_err(|_| ServiceError::Unavailable("the server is shutting down".into()))??
+                rx.await.map_err(|_| {
+                    ServiceError::Unavailable("the server is shutting down".into())
+                })??
             }
             UpdateMode::Async => {
                 let out = session.observe(&batch, false)?;
@@ -404,14 +428,20 @@ impl SessionManager {
         let model = agent.planning_model().model();
         let per_pair = |f: &dyn Fn(usize) -> f64| -> Vec<Vec<Option<f64>>> {
             (0..model.states())
-                .map(|s| (0..model.n_actions()).map(|a| model.pair(s, a).map(f)).collect())
+                .map(|s| {
+                    (0..model.n_actions())
+                        .map(|a| model.pair(s, a).map(f))
+                        .collect()
+                })
                 .collect()
         };
         let planner = agent.planner();
         Ok(Values {
             tick: agent.tick(),
             policy_version: agent.policy_version(),
-            v: sel.v.then(|| (0..model.states()).map(|s| planner.value(s)).collect()),
+            v: sel
+                .v
+                .then(|| (0..model.states()).map(|s| planner.value(s)).collect()),
             q: sel.q.then(|| per_pair(&|p| planner.q()[p])),
             policy: sel.policy.then(|| {
                 (0..model.states())
@@ -432,7 +462,11 @@ impl SessionManager {
     }
 
     /// The most recent `limit` ticks of a session's history, oldest first.
-    pub fn history(&self, id: &str, limit: Option<usize>) -> Result<Vec<HistoryEntry>, ServiceError> {
+    pub fn history(
+        &self,
+        id: &str,
+        limit: Option<usize>,
+    ) -> Result<Vec<HistoryEntry>, ServiceError> {
         let session = self.session(id)?;
         Ok(session.history(limit.unwrap_or(usize::MAX)))
     }

@@ -112,7 +112,11 @@ impl Session {
     ///
     /// On an error at observation i, the i earlier ones stay applied and the
     /// message says so.
-    pub fn observe(&self, batch: &[ObservationIn], plan: bool) -> Result<Vec<StepOut>, ServiceError> {
+    pub fn observe(
+        &self,
+        batch: &[ObservationIn],
+        plan: bool,
+    ) -> Result<Vec<StepOut>, ServiceError> {
         let mut st = self.state.lock();
         let mut out = Vec::with_capacity(batch.len());
         for (i, obs) in batch.iter().enumerate() {
@@ -121,7 +125,9 @@ impl Session {
                 Err(e) if batch.len() == 1 => return Err(e),
                 Err(e) => {
                     return Err(match e {
-                        ServiceError::Algo(AlgoError::Numerical(_)) | ServiceError::Internal(_) => e,
+                        ServiceError::Algo(AlgoError::Numerical(_)) | ServiceError::Internal(_) => {
+                            e
+                        }
                         e => ServiceError::BadRequest(format!(
                             "`observations[{i}]`: {e} (the {i} observations before it were applied)"
                         )),
@@ -162,7 +168,12 @@ impl Session {
 }
 
 impl SessionState {
-    fn apply(&mut self, obs: &ObservationIn, plan: bool, history_cap: usize) -> Result<StepOut, ServiceError> {
+    fn apply(
+        &mut self,
+        obs: &ObservationIn,
+        plan: bool,
+        history_cap: usize,
+    ) -> Result<StepOut, ServiceError> {
         let model = self.agent.planning_model().model();
         let action_taken = match &obs.action_taken {
             None => None,
@@ -175,7 +186,10 @@ impl SessionState {
                     .ok_or_else(|| {
                         ServiceError::field(
                             "action_taken",
-                            format!("unknown action `{name}` (actions: {})", model.actions().join(", ")),
+                            format!(
+                                "unknown action `{name}` (actions: {})",
+                                model.actions().join(", ")
+                            ),
                         )
                     })?,
             ),

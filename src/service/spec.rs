@@ -192,7 +192,10 @@ impl ModelInput {
                 sources,
                 stimuli,
                 basis,
-            } => (grid_model(lines, sources, stimuli.as_deref(), limits)?, basis.clone()),
+            } => (
+                grid_model(lines, sources, stimuli.as_deref(), limits)?,
+                basis.clone(),
+            ),
             Self::Spec(spec) => {
                 limits.check_model_spec(spec)?;
                 (EnvModel::from_spec(spec)?, spec.basis.clone())
@@ -220,27 +223,42 @@ fn grid_model(
     }
     let grid = GridMap::parse(lines)?;
     if sources.is_empty() {
-        return Err(ServiceError::field("model.sources", "map at least one mark to a stimulus dimension"));
+        return Err(ServiceError::field(
+            "model.sources",
+            "map at least one mark to a stimulus dimension",
+        ));
     }
     let n = sources.values().max().map_or(0, |m| m + 1);
     let mut marks: Vec<Option<char>> = vec![None; n];
     for (mark, &dim) in sources {
         let mut chars = mark.chars();
         let (Some(c), None) = (chars.next(), chars.next()) else {
-            return Err(ServiceError::field("model.sources", format!("key `{mark}` must be one character")));
+            return Err(ServiceError::field(
+                "model.sources",
+                format!("key `{mark}` must be one character"),
+            ));
         };
         if grid.mark_state(c).is_none() {
-            return Err(ServiceError::field("model.sources", format!("the map has no cell marked `{c}`")));
+            return Err(ServiceError::field(
+                "model.sources",
+                format!("the map has no cell marked `{c}`"),
+            ));
         }
         if marks[dim].replace(c).is_some() {
-            return Err(ServiceError::field("model.sources", format!("dimension {dim} is given twice")));
+            return Err(ServiceError::field(
+                "model.sources",
+                format!("dimension {dim} is given twice"),
+            ));
         }
     }
     let names: Vec<String> = match stimuli {
         Some(names) if names.len() != n => {
             return Err(ServiceError::field(
                 "model.stimuli",
-                format!("has {} names, but `sources` uses {n} dimensions", names.len()),
+                format!(
+                    "has {} names, but `sources` uses {n} dimensions",
+                    names.len()
+                ),
             ));
         }
         Some(names) => names.to_vec(),

@@ -68,19 +68,24 @@ impl TickPool {
     pub fn submit(&self, job: Job) -> Result<(), ServiceError> {
         let guard = self.tx.lock();
         let Some(tx) = guard.as_ref() else {
-            return Err(ServiceError::Unavailable("the server is shutting down".into()));
+            return Err(ServiceError::Unavailable(
+                "the server is shutting down".into(),
+            ));
         };
+        // Counted before sending: a worker may finish the job before
+        // `try_send` returns.
+        let n = self.pending.fetch_add(1, Ordering::Relaxed) + 1;
         match tx.try_send(job) {
             Ok(()) => {
-                let n = self.pending.fetch_add(1, Ordering::Relaxed) + 1;
                 metrics::gauge!("mcapi_tick_queue_length").set(n as f64);
                 Ok(())
             }
-            Err(TrySendError::Full(_)) => Err(ServiceError::Unavailable(
-                "the tick queue is full; retry shortly".into(),
-            )),
-            Err(TrySendError::Disconnected(_)) => {
-                Err(ServiceError::Unavailable("the server is shutting down".into()))
+            Err(e) => {
+                self.pending.fetch_sub(1, Ordering::Relaxed);
+                Err(ServiceError::Unavailable(match e {
+                    TrySendError::Full(_) => "the tick queue is full; retry shortly".into(),
+                    TrySendError::Disconnected(_) => "the server is shutting down".into(),
+                }))
             }
         }
     }
@@ -126,7 +131,7 @@ fn worker(rx: &Receiver<Job>, pending: &AtomicUsize) {
             }
         }
         metrics::histogram!("mcapi_tick_seconds").record(started.elapsed().as_secs_f64());
-        let n = pending.fetch_sub(1, Ordering::Relaxed).saturating_sub(1);
+        let n = pending.fetch_sub(1, Ordering::Relaxed) - 1;
         metrics::gauge!("mcapi_tick_queue_length").set(n as f64);
     }
 }

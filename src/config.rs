@@ -1,0 +1,125 @@
+//! The server's one configuration struct: CLI flags with `MCAPI_*`
+//! environment overrides and defaults, validated before any port opens.
+
+use std::net::SocketAddr;
+use std::path::PathBuf;
+
+use clap::{Args, ValueEnum};
+use serde::Serialize;
+
+use crate::service::Limits;
+
+/// Log output format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    Text,
+    /// One JSON object per line.
+    Json,
+}
+
+/// Where sessions are kept.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+pub enum StoreKind {
+    /// In memory only: sessions are lost when the server stops.
+    Memory,
+}
+
+/// `mcapi serve` options.
+#[derive(Debug, Clone, Args, Serialize)]
+pub struct ServeConfig {
+    /// REST listen address.
+    #[arg(long, env = "MCAPI_HTTP", default_value = "127.0.0.1:8080")]
+    pub http: SocketAddr,
+    /// gRPC listen address.
+    #[arg(long, env = "MCAPI_GRPC", default_value = "127.0.0.1:50051")]
+    pub grpc: SocketAddr,
+    /// Data directory of the durable store (used once the embedded store lands).
+    #[arg(long, env = "MCAPI_DATA_DIR", default_value = "./data")]
+    pub data_dir: PathBuf,
+    /// Session store. Only `memory` exists so far.
+    #[arg(long, env = "MCAPI_STORE", value_enum, default_value = "memory")]
+    pub store: StoreKind,
+    /// Tick-loop worker threads (default: number of cores).
+    #[arg(long, env = "MCAPI_WORKERS")]
+    pub workers: Option<usize>,
+    /// Log format.
+    #[arg(long, env = "MCAPI_LOG_FORMAT", value_enum, default_value = "text")]
+    pub log_format: LogFormat,
+    /// Maximum number of sessions.
+    #[arg(long, env = "MCAPI_MAX_SESSIONS", default_value_t = Limits::default().max_sessions)]
+    pub max_sessions: usize,
+    /// Maximum states x actions of a model.
+    #[arg(long, env = "MCAPI_MAX_PAIRS", default_value_t = Limits::default().max_pairs)]
+    pub max_pairs: usize,
+    /// Maximum transitions of a model.
+    #[arg(long, env = "MCAPI_MAX_TRANSITIONS", default_value_t = Limits::default().max_transitions)]
+    pub max_transitions: usize,
+    /// Maximum features of a basis (k x actions).
+    #[arg(long, env = "MCAPI_MAX_FEATURES", default_value_t = Limits::default().max_features)]
+    pub max_features: usize,
+    /// Maximum stimulus dimensions.
+    #[arg(long, env = "MCAPI_MAX_STIMULI", default_value_t = Limits::default().max_stimuli)]
+    pub max_stimuli: usize,
+    /// Maximum request body in bytes.
+    #[arg(long, env = "MCAPI_MAX_BODY_BYTES", default_value_t = Limits::default().max_body_bytes)]
+    pub max_body_bytes: usize,
+    /// Maximum observations in one batch.
+    #[arg(long, env = "MCAPI_MAX_BATCH", default_value_t = Limits::default().max_batch)]
+    pub max_batch: usize,
+    /// Buffered messages per gRPC stream.
+    #[arg(long, env = "MCAPI_STREAM_BUFFER", default_value_t = Limits::default().stream_buffer)]
+    pub stream_buffer: usize,
+}
+
+impl ServeConfig {
+    /// The worker count in force.
+    pub fn worker_count(&self) -> usize {
+        self.workers
+            .unwrap_or_else(|| std::thread::available_parallelism().map_or(2, |n| n.get()))
+    }
+
+    /// The limits in force.
+    pub fn limits(&self) -> Limits {
+        Limits {
+            max_sessions: self.max_sessions,
+            max_pairs: self.max_pairs,
+            max_transitions: self.max_transitions,
+            max_features: self.max_features,
+            max_stimuli: self.max_stimuli,
+            max_body_bytes: self.max_body_bytes,
+            max_batch: self.max_batch,
+            stream_buffer: self.stream_buffer,
+            ..Limits::default()
+        }
+    }
+
+    /// Checks the configuration before anything binds.
+    pub fn validate(&self) -> Result<(), String> {
+        if self.http == self.grpc && self.http.port() != 0 {
+            return Err(format!("--http and --grpc both use {}", self.http));
+        }
+        let workers = self.worker_count();
+        if workers == 0 || workers > 1024 {
+            return Err(format!(
+                "--workers must be between 1 and 1024, not {workers}"
+            ));
+        }
+        let positive = [
+            ("--max-sessions", self.max_sessions),
+            ("--max-pairs", self.max_pairs),
+            ("--max-transitions", self.max_transitions),
+            ("--max-features", self.max_features),
+            ("--max-stimuli", self.max_stimuli),
+            ("--max-body-bytes", self.max_body_bytes),
+            ("--max-batch", self.max_batch),
+            ("--stream-buffer", self.stream_buffer),
+        ];
+        for (flag, value) in positive {
+            if value == 0 {
+                return Err(format!("{flag} must be at least 1"));
+            }
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,129 @@
+//! `mcapi serve`: binds both transports over one session manager, serves
+//! until told to stop, then finishes in-flight requests and stops the tick
+//! loop.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+
+use anyhow::{Context, Result};
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+
+use crate::api::rest::{self, AppState};
+use crate::config::ServeConfig;
+use crate::service::SessionManager;
+use crate::telemetry;
+
+/// A running server.
+pub struct Running {
+    /// Bound REST address.
+    pub http_addr: SocketAddr,
+    /// Bound gRPC address.
+    pub grpc_addr: SocketAddr,
+    /// The session layer.
+    pub manager: Arc<SessionManager>,
+    stop: watch::Sender<bool>,
+    tasks: Vec<JoinHandle<Result<()>>>,
+}
+
+async fn stopped(mut rx: watch::Receiver<bool>) {
+    // Either a stop was sent or the sender is gone: both mean stop.
+    let _ = rx.wait_for(|stop| *stop).await;
+}
+
+/// Validates the configuration, binds both ports and starts serving.
+pub async fn start(cfg: &ServeConfig) -> Result<Running> {
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    let manager = Arc::new(SessionManager::new(cfg.limits(), cfg.worker_count())?);
+    let http = TcpListener::bind(cfg.http)
+        .await
+        .with_context(|| format!("binding the REST port {}", cfg.http))?;
+    let grpc = TcpListener::bind(cfg.grpc)
+        .await
+        .with_context(|| format!("binding the gRPC port {}", cfg.grpc))?;
+    let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
+    let (stop, stop_rx) = watch::channel(false);
+    let state = AppState {
+        manager: Arc::clone(&manager),
+        metrics: telemetry::prometheus(),
+        ready: Arc::new(AtomicBool::new(true)),
+    };
+    let app = rest::router(state);
+    let rest_task = tokio::spawn({
+        let rx = stop_rx.clone();
+        async move {
+            axum::serve(http, app)
+                .with_graceful_shutdown(stopped(rx))
+                .await
+                .context("REST server")
+        }
+    });
+    let grpc_task = tokio::spawn({
+        let manager = Arc::clone(&manager);
+        let buffer = cfg.stream_buffer;
+        async move { crate::api::grpc::serve_on(grpc, manager, buffer, stopped(stop_rx)).await }
+    });
+    tracing::info!(%http_addr, %grpc_addr, workers = cfg.worker_count(), "mcapi serving");
+    Ok(Running {
+        http_addr,
+        grpc_addr,
+        manager,
+        stop,
+        tasks: vec![rest_task, grpc_task],
+    })
+}
+
+impl Running {
+    /// Asks both transports to stop accepting and finish in-flight requests.
+    pub fn shutdown(&self) {
+        let _ = self.stop.send(true);
+    }
+
+    /// Waits for both transports to finish, then drains and stops the tick loop.
+    pub async fn wait(self) -> Result<()> {
+        let mut result = Ok(());
+        for task in self.tasks {
+            match task.await {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => result = Err(e),
+                Err(e) => result = Err(anyhow::anyhow!("server task failed: {e}")),
+            }
+        }
+        let manager = Arc::clone(&self.manager);
+        tokio::task::spawn_blocking(move || manager.shutdown())
+            .await
+            .context("stopping the tick loop")?;
+        tracing::info!("mcapi stopped");
+        result
+    }
+}
+
+/// Resolves on SIGINT or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!(error = %e, "cannot listen for Ctrl-C");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for SIGTERM");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {},
+        () = term => {},
+    }
+}

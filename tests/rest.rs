@@ -1,0 +1,516 @@
+//! The REST API over a real socket: a hallway session driven by a
+//! client-side simulation, parity with the core `Agent`, every bad-input
+//! case with its exact status, limits, pagination and concurrency.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::sync::atomic::AtomicBool;
+
+use mcapi::algo::model::hallway;
+use mcapi::algo::{Agent, AgentParams, Basis, Observation, PlanningModel};
+use mcapi::api::rest::{AppState, router};
+use mcapi::service::{Limits, SessionManager};
+use serde_json::{Value, json};
+
+struct Server {
+    base: String,
+    manager: Arc<SessionManager>,
+}
+
+async fn start(limits: Limits) -> Server {
+    let manager = Arc::new(SessionManager::new(limits, 2).expect("manager"));
+    let state = AppState {
+        manager: Arc::clone(&manager),
+        metrics: mcapi::telemetry::prometheus(),
+        ready: Arc::new(AtomicBool::new(true)),
+    };
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let addr: SocketAddr = listener.local_addr().expect("addr");
+    tokio::spawn(async move { axum::serve(listener, router(state)).await.expect("serve") });
+    Server {
+        base: format!("http://{addr}"),
+        manager,
+    }
+}
+
+async fn post(client: &reqwest::Client, url: &str, body: &Value) -> (u16, Value) {
+    let resp = client.post(url).json(body).send().await.expect("request");
+    let status = resp.status().as_u16();
+    (status, resp.json().await.unwrap_or(Value::Null))
+}
+
+async fn get(client: &reqwest::Client, url: &str) -> (u16, Value) {
+    let resp = client.get(url).send().await.expect("request");
+    let status = resp.status().as_u16();
+    (status, resp.json().await.unwrap_or(Value::Null))
+}
+
+fn hallway_stimulus(state: usize) -> [f64; 2] {
+    match state {
+        10 => [6.0, 0.0],
+        40 => [0.0, 6.0],
+        _ => [0.0, 0.0],
+    }
+}
+
+fn hallway_move(state: usize, action: usize) -> usize {
+    match action {
+        0 => state - 1,
+        1 => state + 1,
+        _ => state,
+    }
+}
+
+async fn create_hallway(client: &reqwest::Client, base: &str, agent: Value) -> String {
+    let (status, body) = post(
+        client,
+        &format!("{base}/v1/sessions"),
+        &json!({"model": {"preset": "hallway"}, "agent": agent}),
+    )
+    .await;
+    assert_eq!(status, 201, "{body}");
+    body["id"].as_str().expect("id").to_string()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn hallway_agent_alternates_between_sources_and_matches_the_core() {
+    let server = start(Limits::default()).await;
+    let client = reqwest::Client::new();
+    let id = create_hallway(
+        &client,
+        &server.base,
+        json!({"seed": 42, "update_mode": "lockstep"}),
+    )
+    .await;
+    assert!(
+        id.starts_with('s') && id.as_bytes()[5] == b'.',
+        "id shape s<shard>.<ulid>: {id}"
+    );
+
+    // The same agent in-process, fed the same observations.
+    let params = AgentParams {
+        seed: Some(42),
+        ..Default::default()
+    }
+    .check(2, 0)
+    .expect("params");
+    let mut core = Agent::new(
+        Arc::new(PlanningModel::new(hallway().model, Basis::Indicator)),
+        params,
+    );
+
+    let url = format!("{}/v1/sessions/{id}/observations", server.base);
+    let mut state = 25usize;
+    let (status, step) = post(&client, &url, &json!({"state": state})).await;
+    assert_eq!(status, 200, "{step}");
+    let mut action = step["action_index"].as_u64().expect("action") as usize;
+    assert_eq!(
+        action,
+        core.step(&Observation::first(state)).expect("core").action
+    );
+    let (mut visits_food, mut visits_rest, mut alternations, mut last) = (0, 0, 0, None);
+    for t in 0..3000 {
+        state = hallway_move(state, action);
+        let xi = hallway_stimulus(state);
+        let (status, step) = post(&client, &url, &json!({"state": state, "stimulus": xi})).await;
+        assert_eq!(status, 200, "tick {t}: {step}");
+        let expected = core.step(&Observation::new(state, &xi)).expect("core step");
+        action = step["action_index"].as_u64().expect("action") as usize;
+        assert_eq!(action, expected.action, "tick {t}: REST and core disagree");
+        let drive: Vec<f64> = serde_json::from_value(step["drive"].clone()).expect("drive");
+        assert_eq!(drive, core.drive().vector(), "tick {t}: drives differ");
+        assert_eq!(step["tick"], t + 1);
+        if state == 10 || state == 40 {
+            if state == 10 {
+                visits_food += 1
+            } else {
+                visits_rest += 1
+            }
+            if last.is_some_and(|l| l != state) {
+                alternations += 1;
+            }
+            last = Some(state);
+        }
+    }
+    assert!(
+        visits_food > 100 && visits_rest > 100,
+        "food {visits_food}, rest {visits_rest}"
+    );
+    assert!(
+        alternations >= 10,
+        "only {alternations} alternations between the sources"
+    );
+
+    let (status, info) = get(&client, &format!("{}/v1/sessions/{id}", server.base)).await;
+    assert_eq!(status, 200);
+    assert_eq!(info["tick"], 3000);
+    assert_eq!(info["agent"]["seed"], 42);
+    assert_eq!(info["model"]["states"], 50);
+    let (status, values) = get(
+        &client,
+        &format!(
+            "{}/v1/sessions/{id}/values?include=v,q,policy,r,xi",
+            server.base
+        ),
+    )
+    .await;
+    assert_eq!(status, 200);
+    assert_eq!(values["v"].as_array().expect("v").len(), 50);
+    assert!(values["q"][0][0].is_null(), "state 0 has no left");
+    assert_eq!(values["xi"][10][2].as_array().expect("xi row").len(), 2);
+    let (status, hist) = get(
+        &client,
+        &format!("{}/v1/sessions/{id}/history?limit=10", server.base),
+    )
+    .await;
+    assert_eq!(status, 200);
+    assert_eq!(hist.as_array().expect("history").len(), 10);
+    assert_eq!(hist[9]["tick"], 3000);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn async_mode_replies_and_plans_in_the_background() {
+    let server = start(Limits::default()).await;
+    let client = reqwest::Client::new();
+    let id = create_hallway(
+        &client,
+        &server.base,
+        json!({"seed": 1, "update_mode": "async"}),
+    )
+    .await;
+    let url = format!("{}/v1/sessions/{id}/observations", server.base);
+    let batch: Vec<Value> = std::iter::once(json!({"state": 5}))
+        .chain((0..200).map(|i| json!({"state": 5 + (i % 3), "stimulus": [0.0, 0.0]})))
+        .collect();
+    let (status, body) = post(&client, &url, &json!({"observations": batch})).await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(body["steps"].as_array().expect("steps").len(), 201);
+    // The tick loop catches up: the policy version eventually moves.
+    let mut version = 0;
+    for _ in 0..200 {
+        let (_, info) = get(&client, &format!("{}/v1/sessions/{id}", server.base)).await;
+        version = info["policy_version"].as_u64().expect("version");
+        if version > 0 {
+            break;
+        }
+        tokio::time::sleep(std::time::Duration::from_millis(5)).await;
+    }
+    assert!(version > 0, "the tick loop never updated the policy");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn bad_inputs_get_precise_errors() {
+    let server = start(Limits {
+        max_batch: 5,
+        max_body_bytes: 4096,
+        ..Limits::default()
+    })
+    .await;
+    let client = reqwest::Client::new();
+    let base = &server.base;
+    let id = create_hallway(&client, base, json!({"seed": 3})).await;
+    let obs_url = format!("{base}/v1/sessions/{id}/observations");
+    let (status, _) = post(&client, &obs_url, &json!({"state": 3})).await;
+    assert_eq!(status, 200);
+
+    let cases: Vec<(&str, Value, u16, &str, &str)> = vec![
+        (
+            "sessions",
+            json!({"model": {"preset": "maze"}}),
+            400,
+            "bad_request",
+            "unknown preset `maze`",
+        ),
+        (
+            "sessions",
+            json!({"model": {"states": 2, "actions": ["a"], "stimuli": ["x"], "next": [[1], [5]]}}),
+            400,
+            "invalid_model",
+            "`next[1][0]` = 5 is out of range",
+        ),
+        (
+            "sessions",
+            json!({"model": {"preset": "hallway"}, "agent": {"eta": 0.9}}),
+            400,
+            "invalid_parameter",
+            "`eta`",
+        ),
+        (
+            "sessions",
+            json!({"model": {"preset": "hallway"}, "agent": {"colour": 1}}),
+            400,
+            "bad_request",
+            "unknown field `colour`",
+        ),
+        (
+            "sessions",
+            json!({"model": {"grid": ["###", "#a#", "###"], "sources": {"z": 0}}}),
+            400,
+            "bad_request",
+            "no cell marked `z`",
+        ),
+        (
+            "obs",
+            json!({"state": 4, "stimulus": [1.0]}),
+            400,
+            "stimulus_length",
+            "stimulus has 1 components, expected 2",
+        ),
+        (
+            "obs",
+            json!({"state": 99, "stimulus": [0.0, 0.0]}),
+            400,
+            "unknown_state",
+            "state 99 is out of range",
+        ),
+        (
+            "obs",
+            json!({"state": 4, "stimulus": [0.0, 0.0], "action_taken": "jump"}),
+            400,
+            "bad_request",
+            "unknown action `jump`",
+        ),
+        (
+            "obs",
+            json!({"state": 4}),
+            400,
+            "missing_stimulus",
+            "`stimulus` is required",
+        ),
+        (
+            "obs",
+            json!({"state": 4, "stimulus": [1e300, 0.0]}),
+            400,
+            "stimulus_too_large",
+            "exceeds the limit",
+        ),
+        (
+            "obs",
+            json!({"state": "four", "stimulus": [0.0, 0.0]}),
+            400,
+            "bad_request",
+            "invalid type",
+        ),
+        (
+            "obs",
+            json!({"observations": vec![json!({"state": 4, "stimulus": [0.0, 0.0]}); 6]}),
+            413,
+            "limit_exceeded",
+            "the limit is 5",
+        ),
+    ];
+    for (target, body, status, code, message) in cases {
+        let url = if target == "obs" {
+            obs_url.clone()
+        } else {
+            format!("{base}/v1/sessions")
+        };
+        let (got, err) = post(&client, &url, &body).await;
+        assert_eq!(got, status, "{body} -> {err}");
+        assert_eq!(err["code"], code, "{body} -> {err}");
+        let msg = err["message"].as_str().expect("message");
+        assert!(msg.contains(message), "{msg:?} should contain {message:?}");
+    }
+
+    // Malformed JSON and NaN (JSON cannot carry NaN; a client sending it sends invalid JSON).
+    for raw in ["{\"state\": 4,", "{\"state\": 4, \"stimulus\": [NaN, 0]}"] {
+        let resp = client
+            .post(&obs_url)
+            .header("content-type", "application/json")
+            .body(raw)
+            .send()
+            .await
+            .expect("send");
+        assert_eq!(resp.status().as_u16(), 400, "{raw}");
+        let err: Value = resp.json().await.expect("json error");
+        assert_eq!(err["code"], "bad_request");
+        assert!(
+            err["message"]
+                .as_str()
+                .expect("msg")
+                .contains("malformed JSON"),
+            "{err}"
+        );
+    }
+    // Oversized body.
+    let big = json!({"model": {"preset": "hallway"}, "agent": {"priorities": vec![1.0; 2000]}});
+    let (status, err) = post(&client, &format!("{base}/v1/sessions"), &big).await;
+    assert_eq!(status, 413, "{err}");
+    assert_eq!(err["code"], "payload_too_large");
+    // Unknown session, unknown route, bad query.
+    let (status, err) = get(&client, &format!("{base}/v1/sessions/s0000.NOPE")).await;
+    assert_eq!((status, err["code"].as_str()), (404, Some("not_found")));
+    let resp = client
+        .delete(format!("{base}/v1/sessions/s0000.NOPE"))
+        .send()
+        .await
+        .expect("delete");
+    assert_eq!(resp.status().as_u16(), 404);
+    let (status, err) = get(
+        &client,
+        &format!("{base}/v1/sessions/{id}/values?include=w"),
+    )
+    .await;
+    assert_eq!(status, 400);
+    assert!(
+        err["message"]
+            .as_str()
+            .expect("msg")
+            .contains("unknown table `w`"),
+        "{err}"
+    );
+    let (status, _) = get(&client, &format!("{base}/v1/sessions?limit=0")).await;
+    assert_eq!(status, 400);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn session_limit_pagination_and_delete() {
+    let server = start(Limits {
+        max_sessions: 5,
+        ..Limits::default()
+    })
+    .await;
+    let client = reqwest::Client::new();
+    let mut ids = Vec::new();
+    for _ in 0..5 {
+        ids.push(create_hallway(&client, &server.base, json!({})).await);
+    }
+    let (status, err) = post(
+        &client,
+        &format!("{}/v1/sessions", server.base),
+        &json!({"model": {"preset": "hallway"}}),
+    )
+    .await;
+    assert_eq!(
+        (status, err["code"].as_str()),
+        (429, Some("too_many_sessions"))
+    );
+    ids.sort();
+    let (_, page) = get(&client, &format!("{}/v1/sessions?limit=2", server.base)).await;
+    let first: Vec<&str> = page["sessions"]
+        .as_array()
+        .expect("sessions")
+        .iter()
+        .map(|s| s["id"].as_str().expect("id"))
+        .collect();
+    assert_eq!(first, vec![ids[0].as_str(), ids[1].as_str()]);
+    let next = page["next"].as_str().expect("next page");
+    let (_, page) = get(
+        &client,
+        &format!("{}/v1/sessions?limit=10&after={next}", server.base),
+    )
+    .await;
+    assert_eq!(page["sessions"].as_array().expect("sessions").len(), 3);
+    assert!(page["next"].is_null());
+    let resp = client
+        .delete(format!("{}/v1/sessions/{}", server.base, ids[0]))
+        .send()
+        .await
+        .expect("delete");
+    assert_eq!(resp.status().as_u16(), 204);
+    assert_eq!(server.manager.len(), 4);
+    // Two sessions of the same preset share one planning model.
+    let a = server.manager.session(&ids[1]).expect("a");
+    let b = server.manager.session(&ids[2]).expect("b");
+    assert!(Arc::ptr_eq(
+        a.state.lock().agent.planning_model(),
+        b.state.lock().agent.planning_model()
+    ));
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn many_concurrent_sessions() {
+    let server = start(Limits::default()).await;
+    let client = reqwest::Client::new();
+    let mut tasks = Vec::new();
+    for i in 0..32u64 {
+        let client = client.clone();
+        let base = server.base.clone();
+        tasks.push(tokio::spawn(async move {
+            let mode = if i % 2 == 0 { "lockstep" } else { "async" };
+            let id = create_hallway(&client, &base, json!({"seed": i, "update_mode": mode})).await;
+            let url = format!("{base}/v1/sessions/{id}/observations");
+            let mut state = 20usize;
+            let (_, step) = post(&client, &url, &json!({"state": state})).await;
+            let mut action = step["action_index"].as_u64().expect("action") as usize;
+            for _ in 0..100 {
+                state = hallway_move(state, action);
+                let (status, step) = post(
+                    &client,
+                    &url,
+                    &json!({"state": state, "stimulus": hallway_stimulus(state)}),
+                )
+                .await;
+                assert_eq!(status, 200, "{step}");
+                action = step["action_index"].as_u64().expect("action") as usize;
+            }
+            id
+        }));
+    }
+    for t in tasks {
+        let id = t.await.expect("task");
+        assert_eq!(server.manager.get(&id).expect("session").tick, 100);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn health_metrics_and_openapi() {
+    let server = start(Limits::default()).await;
+    let client = reqwest::Client::new();
+    let resp = client
+        .get(format!("{}/healthz", server.base))
+        .send()
+        .await
+        .expect("healthz");
+    assert_eq!(resp.status().as_u16(), 200);
+    let resp = client
+        .get(format!("{}/readyz", server.base))
+        .send()
+        .await
+        .expect("readyz");
+    assert_eq!(resp.status().as_u16(), 200);
+    let id = create_hallway(&client, &server.base, json!({})).await;
+    post(
+        &client,
+        &format!("{}/v1/sessions/{id}/observations", server.base),
+        &json!({"state": 1}),
+    )
+    .await;
+    let text = client
+        .get(format!("{}/metrics", server.base))
+        .send()
+        .await
+        .expect("metrics")
+        .text()
+        .await
+        .expect("text");
+    for metric in [
+        "mcapi_sessions",
+        "mcapi_observations_total",
+        "mcapi_tick_seconds",
+        "mcapi_http_request_duration_seconds",
+        "mcapi_tick_queue_length",
+    ] {
+        assert!(text.contains(metric), "{metric} missing from /metrics");
+    }
+    let (status, doc) = get(&client, &format!("{}/v1/openapi.json", server.base)).await;
+    assert_eq!(status, 200);
+    assert!(
+        doc["openapi"].as_str().expect("version").starts_with("3.1"),
+        "{}",
+        doc["openapi"]
+    );
+    assert!(doc["paths"]["/v1/sessions/{id}/observations"]["post"].is_object());
+    let resp = client
+        .get(format!("{}/docs/", server.base))
+        .send()
+        .await
+        .expect("docs");
+    assert_eq!(resp.status().as_u16(), 200);
+    assert!(
+        resp.text().await.expect("html").contains("swagger"),
+        "docs page served offline"
+    );
+}
