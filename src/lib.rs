@@ -19,5 +19,6 @@ pub mod algo;
 pub mod api;
 pub mod config;
 pub mod experiments;
+pub mod server;
 pub mod service;
 pub mod telemetry;

@@ -6,7 +6,9 @@ use std::process::ExitCode;
 use std::time::Instant;
 
 use clap::{Args, Parser, Subcommand};
+use mcapi::config::{LogFormat, ServeConfig};
 use mcapi::experiments::run::results_table;
+use mcapi::{server, telemetry};
 use mcapi::experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
 
 /// Motivated reinforcement-learning agents (MCA-PI, Kompella et al. 2014).
@@ -19,8 +21,22 @@ struct Cli {
 
 #[derive(Debug, Subcommand)]
 enum Command {
+    /// Run the agent server: REST and gRPC sessions with a tick loop.
+    Serve(ServeConfig),
     /// Reproduce one of the paper's experiments: summary.json, per-trial CSV and figures.
     Experiment(ExperimentArgs),
+    /// Exit 0 if the server's health endpoint answers 200 (for container health checks).
+    Healthcheck(HealthcheckArgs),
+}
+
+#[derive(Debug, Args)]
+struct HealthcheckArgs {
+    /// The URL to probe (plain HTTP).
+    #[arg(long, env = "MCAPI_HEALTHCHECK_URL", default_value = "http://127.0.0.1:8080/healthz")]
+    url: String,
+    /// Give up after this many milliseconds.
+    #[arg(long, default_value_t = 3000)]
+    timeout_ms: u64,
 }
 
 #[derive(Debug, Args)]
@@ -52,16 +68,14 @@ struct ExperimentArgs {
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Experiment(args) => experiment(args),
+        Command::Serve(cfg) => serve(cfg),
+        Command::Experiment(args) => {
+            telemetry::init_logging(LogFormat::Text, "warn");
+            experiment(args)
+        }
+        Command::Healthcheck(args) => healthcheck(&args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -99,6 +113,51 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
         "\nwrote {} files to {}",
         output.files.len(),
         opts.out.display()
+    );
+    Ok(())
+}
+
+fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
+    telemetry::init_logging(cfg.log_format, "info");
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    tracing::info!(config = ?cfg, "starting");
+    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    runtime.block_on(async {
+        let running = server::start(&cfg).await?;
+        server::shutdown_signal().await;
+        tracing::info!("shutdown requested: finishing in-flight requests");
+        running.shutdown();
+        running.wait().await
+    })
+}
+
+/// A plain HTTP/1.1 GET; success means a `200` status line.
+fn healthcheck(args: &HealthcheckArgs) -> anyhow::Result<()> {
+    use std::io::{Read, Write};
+    use std::net::{TcpStream, ToSocketAddrs};
+    use std::time::Duration;
+
+    let rest = args
+        .url
+        .strip_prefix("http://")
+        .ok_or_else(|| anyhow::anyhow!("--url must start with http://"))?;
+    let (host, path) = rest.split_once('/').map_or((rest, "/".to_string()), |(h, p)| (h, format!("/{p}")));
+    let timeout = Duration::from_millis(args.timeout_ms);
+    let addr = host
+        .to_socket_addrs()?
+        .next()
+        .ok_or_else(|| anyhow::anyhow!("cannot resolve {host}"))?;
+    let mut stream = TcpStream::connect_timeout(&addr, timeout)?;
+    stream.set_read_timeout(Some(timeout))?;
+    stream.set_write_timeout(Some(timeout))?;
+    write!(stream, "GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n")?;
+    let mut head = [0u8; 64];
+    let n = stream.read(&mut head)?;
+    let line = String::from_utf8_lossy(&head[..n]);
+    anyhow::ensure!(
+        line.starts_with("HTTP/1.1 200") || line.starts_with("HTTP/1.0 200"),
+        "unhealthy: {}",
+        line.lines().next().unwrap_or("no answer")
     );
     Ok(())
 }

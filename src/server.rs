@@ -63,7 +63,11 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     let grpc_task = tokio::spawn({
         let manager = Arc::clone(&manager);
         let buffer = cfg.stream_buffer;
-        async move { crate::api::grpc::serve_on(grpc, manager, buffer, stopped(stop_rx)).await }
+        async move {
+            crate::api::grpc::serve_on(grpc, manager, buffer, stopped(stop_rx))
+                .await
+                .context("gRPC server")
+        }
     });
     tracing::info!(%http_addr, %grpc_addr, workers = cfg.worker_count(), "mcapi serving");
     Ok(Running {
