@@ -16,23 +16,49 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
     match e {
         ServiceError::Algo(a) => match a {
             AlgoError::InvalidModel(_) => (H::BAD_REQUEST, G::InvalidArgument, "invalid_model"),
-            AlgoError::InvalidParameter { .. } => (H::BAD_REQUEST, G::InvalidArgument, "invalid_parameter"),
+            AlgoError::InvalidParameter { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "invalid_parameter")
+            }
             AlgoError::InvalidBasis(_) => (H::BAD_REQUEST, G::InvalidArgument, "invalid_basis"),
-            AlgoError::StateOutOfRange { .. } => (H::BAD_REQUEST, G::InvalidArgument, "unknown_state"),
-            AlgoError::ActionOutOfRange { .. } => (H::BAD_REQUEST, G::InvalidArgument, "unknown_action"),
-            AlgoError::ActionNotAvailable { .. } => (H::BAD_REQUEST, G::InvalidArgument, "action_not_available"),
-            AlgoError::StimulusLength { .. } => (H::BAD_REQUEST, G::InvalidArgument, "stimulus_length"),
-            AlgoError::NonFinite { .. } => (H::BAD_REQUEST, G::InvalidArgument, "non_finite_number"),
-            AlgoError::StimulusTooLarge { .. } => (H::BAD_REQUEST, G::InvalidArgument, "stimulus_too_large"),
-            AlgoError::FirstObservation { .. } => (H::BAD_REQUEST, G::InvalidArgument, "first_observation"),
+            AlgoError::StateOutOfRange { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "unknown_state")
+            }
+            AlgoError::ActionOutOfRange { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "unknown_action")
+            }
+            AlgoError::ActionNotAvailable { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "action_not_available")
+            }
+            AlgoError::StimulusLength { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "stimulus_length")
+            }
+            AlgoError::NonFinite { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "non_finite_number")
+            }
+            AlgoError::StimulusTooLarge { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "stimulus_too_large")
+            }
+            AlgoError::FirstObservation { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "first_observation")
+            }
             AlgoError::MissingStimulus => (H::BAD_REQUEST, G::InvalidArgument, "missing_stimulus"),
             AlgoError::Numerical(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "numerical_failure"),
         },
         ServiceError::BadRequest(_) => (H::BAD_REQUEST, G::InvalidArgument, "bad_request"),
         ServiceError::NotFound(_) => (H::NOT_FOUND, G::NotFound, "not_found"),
-        ServiceError::LimitExceeded(_) => (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "limit_exceeded"),
-        ServiceError::PayloadTooLarge(_) => (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "payload_too_large"),
-        ServiceError::TooManySessions(_) => (H::TOO_MANY_REQUESTS, G::ResourceExhausted, "too_many_sessions"),
+        ServiceError::LimitExceeded(_) => {
+            (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "limit_exceeded")
+        }
+        ServiceError::PayloadTooLarge(_) => (
+            H::PAYLOAD_TOO_LARGE,
+            G::ResourceExhausted,
+            "payload_too_large",
+        ),
+        ServiceError::TooManySessions(_) => (
+            H::TOO_MANY_REQUESTS,
+            G::ResourceExhausted,
+            "too_many_sessions",
+        ),
         ServiceError::Unavailable(_) => (H::SERVICE_UNAVAILABLE, G::Unavailable, "unavailable"),
         ServiceError::Internal(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
     }

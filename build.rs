@@ -1,0 +1,28 @@
+//! Compiles `proto/` into Rust (prost messages, tonic client and server) in
+//! `OUT_DIR`, with `protox` as a pure-Rust protobuf compiler: no system
+//! `protoc` is needed. The encoded descriptor set goes to `OUT_DIR` too, for
+//! the reflection service.
+
+use std::env;
+use std::fs;
+use std::path::PathBuf;
+
+const PROTOS: [&str; 1] = ["proto/mcapi/v1/agents.proto"];
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    println!("cargo:rerun-if-changed=proto");
+    let out_dir = PathBuf::from(env::var("OUT_DIR")?);
+
+    let mut compiler = protox::Compiler::new(["proto"])?;
+    compiler.include_source_info(true).include_imports(true);
+    compiler.open_files(PROTOS)?;
+    fs::write(
+        out_dir.join("mcapi_descriptor.bin"),
+        compiler.encode_file_descriptor_set(),
+    )?;
+
+    tonic_prost_build::configure()
+        .out_dir(&out_dir)
+        .compile_fds(compiler.file_descriptor_set())?;
+    Ok(())
+}
