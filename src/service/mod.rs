@@ -247,7 +247,7 @@ impl SessionManager {
         let ctx = Arc::new(PlanningModel::new(model, basis));
         let mut models = self.models.lock();
         models.retain(|_, w| w.strong_count() > 0);
-        let entry = models.entry(key).or_insert_with(Weak::new);
+        let entry = models.entry(key).or_default();
         if let Some(existing) = entry.upgrade() {
             return Ok(existing);
         }
