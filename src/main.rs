@@ -8,8 +8,8 @@ use std::time::Instant;
 use clap::{Args, Parser, Subcommand};
 use mcapi::config::{LogFormat, ServeConfig};
 use mcapi::experiments::run::results_table;
-use mcapi::{server, telemetry};
 use mcapi::experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
+use mcapi::{server, telemetry};
 
 /// Motivated reinforcement-learning agents (MCA-PI, Kompella et al. 2014).
 #[derive(Debug, Parser)]
@@ -32,7 +32,11 @@ enum Command {
 #[derive(Debug, Args)]
 struct HealthcheckArgs {
     /// The URL to probe (plain HTTP).
-    #[arg(long, env = "MCAPI_HEALTHCHECK_URL", default_value = "http://127.0.0.1:8080/healthz")]
+    #[arg(
+        long,
+        env = "MCAPI_HEALTHCHECK_URL",
+        default_value = "http://127.0.0.1:8080/healthz"
+    )]
     url: String,
     /// Give up after this many milliseconds.
     #[arg(long, default_value_t = 3000)]
@@ -121,7 +125,9 @@ fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
     telemetry::init_logging(cfg.log_format, "info");
     cfg.validate().map_err(anyhow::Error::msg)?;
     tracing::info!(config = ?cfg, "starting");
-    let runtime = tokio::runtime::Builder::new_multi_thread().enable_all().build()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
     runtime.block_on(async {
         let running = server::start(&cfg).await?;
         server::shutdown_signal().await;
@@ -141,7 +147,9 @@ fn healthcheck(args: &HealthcheckArgs) -> anyhow::Result<()> {
         .url
         .strip_prefix("http://")
         .ok_or_else(|| anyhow::anyhow!("--url must start with http://"))?;
-    let (host, path) = rest.split_once('/').map_or((rest, "/".to_string()), |(h, p)| (h, format!("/{p}")));
+    let (host, path) = rest
+        .split_once('/')
+        .map_or((rest, "/".to_string()), |(h, p)| (h, format!("/{p}")));
     let timeout = Duration::from_millis(args.timeout_ms);
     let addr = host
         .to_socket_addrs()?
@@ -150,7 +158,10 @@ fn healthcheck(args: &HealthcheckArgs) -> anyhow::Result<()> {
     let mut stream = TcpStream::connect_timeout(&addr, timeout)?;
     stream.set_read_timeout(Some(timeout))?;
     stream.set_write_timeout(Some(timeout))?;
-    write!(stream, "GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n")?;
+    write!(
+        stream,
+        "GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n"
+    )?;
     let mut head = [0u8; 64];
     let n = stream.read(&mut head)?;
     let line = String::from_utf8_lossy(&head[..n]);

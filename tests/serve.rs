@@ -26,7 +26,13 @@ fn healthcheck(url: &str) -> bool {
 fn serve_answers_and_stops_on_sigterm() {
     let (http, grpc) = (free_port(), free_port());
     let mut child = Command::new(env!("CARGO_BIN_EXE_mcapi"))
-        .args(["serve", "--http", &format!("127.0.0.1:{http}"), "--grpc", &format!("127.0.0.1:{grpc}")])
+        .args([
+            "serve",
+            "--http",
+            &format!("127.0.0.1:{http}"),
+            "--grpc",
+            &format!("127.0.0.1:{grpc}"),
+        ])
         .args(["--workers", "2", "--log-format", "json"])
         .stderr(Stdio::piped())
         .spawn()
@@ -34,7 +40,10 @@ fn serve_answers_and_stops_on_sigterm() {
     let url = format!("http://127.0.0.1:{http}/healthz");
     let started = Instant::now();
     while !healthcheck(&url) {
-        assert!(started.elapsed() < Duration::from_secs(20), "server never became healthy");
+        assert!(
+            started.elapsed() < Duration::from_secs(20),
+            "server never became healthy"
+        );
         std::thread::sleep(Duration::from_millis(50));
     }
     let status = Command::new("kill")
@@ -47,25 +56,47 @@ fn serve_answers_and_stops_on_sigterm() {
         if let Some(exit) = child.try_wait().expect("wait") {
             break exit;
         }
-        assert!(Instant::now() < deadline, "server did not stop after SIGTERM");
+        assert!(
+            Instant::now() < deadline,
+            "server did not stop after SIGTERM"
+        );
         std::thread::sleep(Duration::from_millis(20));
     };
     assert!(exit.success(), "clean exit after SIGTERM: {exit:?}");
     let mut log = String::new();
-    child.stderr.take().expect("stderr").read_to_string(&mut log).expect("log");
-    assert!(log.contains("\"mcapi stopped\""), "JSON log with the stop line: {log}");
+    child
+        .stderr
+        .take()
+        .expect("stderr")
+        .read_to_string(&mut log)
+        .expect("log");
+    assert!(
+        log.contains("\"mcapi stopped\""),
+        "JSON log with the stop line: {log}"
+    );
     assert!(!healthcheck(&url), "port closed after shutdown");
 }
 
 #[test]
 fn bad_configuration_is_refused_before_binding() {
     let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
-        .args(["serve", "--workers", "0", "--http", "127.0.0.1:1", "--grpc", "127.0.0.1:2"])
+        .args([
+            "serve",
+            "--workers",
+            "0",
+            "--http",
+            "127.0.0.1:1",
+            "--grpc",
+            "127.0.0.1:2",
+        ])
         .output()
         .expect("mcapi runs");
     assert!(!out.status.success());
     let err = String::from_utf8_lossy(&out.stderr);
-    assert!(err.contains("--workers must be between 1 and 1024"), "{err}");
+    assert!(
+        err.contains("--workers must be between 1 and 1024"),
+        "{err}"
+    );
     let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
         .args(["serve", "--http", "127.0.0.1:9", "--grpc", "127.0.0.1:9"])
         .output()
