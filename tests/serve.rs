@@ -104,3 +104,37 @@ fn bad_configuration_is_refused_before_binding() {
     assert!(!out.status.success());
     assert!(String::from_utf8_lossy(&out.stderr).contains("both use 127.0.0.1:9"));
 }
+
+#[test]
+fn dockerfile_uses_only_flags_the_binary_knows() {
+    let dockerfile = std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/Dockerfile"))
+        .expect("Dockerfile");
+    let help = Command::new(env!("CARGO_BIN_EXE_mcapi"))
+        .args(["serve", "--help"])
+        .output()
+        .expect("mcapi runs");
+    let help = String::from_utf8_lossy(&help.stdout);
+    let vars: Vec<&str> = dockerfile
+        .split(|c: char| !(c.is_ascii_alphanumeric() || c == '_'))
+        .filter(|w| w.starts_with("MCAPI_"))
+        .collect();
+    assert!(
+        vars.len() >= 3,
+        "the Dockerfile configures the server by env: {vars:?}"
+    );
+    for var in vars {
+        assert!(
+            help.contains(&format!("env: {var}=")),
+            "{var} is not an env var of `mcapi serve`"
+        );
+    }
+    assert!(
+        dockerfile.contains("\"healthcheck\""),
+        "HEALTHCHECK uses `mcapi healthcheck`"
+    );
+    let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
+        .args(["healthcheck", "--help"])
+        .output()
+        .expect("mcapi runs");
+    assert!(out.status.success());
+}

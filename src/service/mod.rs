@@ -322,6 +322,7 @@ impl SessionManager {
     }
 
     /// Details of a session.
+    #[tracing::instrument(level = "debug", skip(self))]
     pub fn get(&self, id: &str) -> Result<SessionInfo, ServiceError> {
         Ok(info_of(&*self.session(id)?))
     }
@@ -363,6 +364,7 @@ impl SessionManager {
     }
 
     /// Deletes a session.
+    #[tracing::instrument(level = "debug", skip(self))]
     pub fn delete(&self, id: &str) -> Result<(), ServiceError> {
         let mut sessions = self.sessions.write();
         sessions
@@ -421,6 +423,7 @@ impl SessionManager {
     }
 
     /// Value tables of a session.
+    #[tracing::instrument(level = "debug", skip(self))]
     pub fn values(&self, id: &str, sel: ValueSelection) -> Result<Values, ServiceError> {
         let session = self.session(id)?;
         let st = session.state.lock();
