@@ -34,7 +34,7 @@ use crate::service::{ServiceError, SessionManager};
 use pb::agents_server::{Agents, AgentsServer};
 
 /// Generated messages, client and server of `proto/mcapi/v1/agents.proto`.
-#[allow(missing_docs, clippy::all)]
+#[allow(missing_docs)]
 pub mod pb {
     tonic::include_proto!("mcapi.v1");
 
