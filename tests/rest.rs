@@ -514,3 +514,28 @@ async fn health_metrics_and_openapi() {
         "docs page served offline"
     );
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn posted_and_grid_models_report_their_basis() {
+    let server = start(Limits::default()).await;
+    let client = reqwest::Client::new();
+    let url = format!("{}/v1/sessions", server.base);
+    let custom = json!({"model": {
+        "states": 2, "actions": ["go", "stay"], "stimuli": ["x"],
+        "transitions": [
+            {"state": 0, "action": "go", "next": [[1, 0.5], [0, 0.5]]},
+            {"state": 0, "action": "stay", "next": [[0, 1.0]]},
+            {"state": 1, "action": 0, "next": [[0, 1.0]]}
+        ],
+        "basis": {"kind": "custom", "state_features": [[1.0, 0.0], [0.0, 1.0]]}
+    }});
+    let (status, info) = post(&client, &url, &custom).await;
+    assert_eq!(status, 201, "{info}");
+    assert_eq!(info["model"]["basis"], json!({"kind": "custom", "k": 2}));
+    assert_eq!(info["model"]["deterministic"], false);
+    let grid = json!({"model": {"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}}});
+    let (status, info) = post(&client, &url, &grid).await;
+    assert_eq!(status, 201, "{info}");
+    assert_eq!(info["model"]["stimuli"], json!(["a", "b"]));
+    assert_eq!(info["model"]["basis"], json!({"kind": "indicator", "k": 0}));
+}

@@ -23,7 +23,8 @@ pub use error::ServiceError;
 pub use limits::Limits;
 pub use session::{HistoryEntry, ObservationIn, Session, SessionRef, StepOut};
 pub use spec::{
-    CreateSession, EffectiveConfig, ModelInput, ModelSummary, SessionConfig, UpdateMode,
+    BasisSummary, CreateSession, EffectiveConfig, ModelInput, ModelSummary, SessionConfig,
+    UpdateMode,
 };
 use tick::{Job, TickPool};
 
@@ -177,7 +178,7 @@ pub struct Values {
 /// The session manager: owns sessions, shared models and the tick pool.
 pub struct SessionManager {
     sessions: RwLock<BTreeMap<String, SessionRef>>,
-    models: Mutex<HashMap<String, Weak<PlanningModel>>>,
+    models: Mutex<HashMap<String, (Weak<PlanningModel>, BasisSummary)>>,
     limits: Limits,
     pool: TickPool,
     seed_counter: AtomicU64,
@@ -236,23 +237,30 @@ impl SessionManager {
     }
 
     /// The shared planning model for `input`, built once per distinct model.
-    fn planning_model(&self, input: &ModelInput) -> Result<Arc<PlanningModel>, ServiceError> {
+    fn planning_model(
+        &self,
+        input: &ModelInput,
+    ) -> Result<(Arc<PlanningModel>, BasisSummary), ServiceError> {
         let key = input.cache_key();
-        if let Some(ctx) = self.models.lock().get(&key).and_then(Weak::upgrade) {
-            return Ok(ctx);
+        if let Some((weak, basis)) = self.models.lock().get(&key)
+            && let Some(ctx) = weak.upgrade()
+        {
+            return Ok((ctx, basis.clone()));
         }
         // Built outside the lock: PVFs cost an eigendecomposition.
         let (model, basis_spec) = input.build(&self.limits)?;
         let basis = Basis::build(&basis_spec, &model)?;
+        let summary = BasisSummary::of(&basis_spec);
         let ctx = Arc::new(PlanningModel::new(model, basis));
         let mut models = self.models.lock();
-        models.retain(|_, w| w.strong_count() > 0);
-        let entry = models.entry(key).or_default();
-        if let Some(existing) = entry.upgrade() {
-            return Ok(existing);
+        models.retain(|_, (w, _)| w.strong_count() > 0);
+        if let Some((weak, basis)) = models.get(&key)
+            && let Some(existing) = weak.upgrade()
+        {
+            return Ok((existing, basis.clone()));
         }
-        *entry = Arc::downgrade(&ctx);
-        Ok(ctx)
+        models.insert(key, (Arc::downgrade(&ctx), summary.clone()));
+        Ok((ctx, summary))
     }
 
     /// Creates a session. Synchronous and possibly slow (a PVF basis costs
@@ -262,7 +270,7 @@ impl SessionManager {
             return Err(ServiceError::TooManySessions(self.limits.max_sessions));
         }
         let input = ModelInput::parse(req.model)?;
-        let ctx = self.planning_model(&input)?;
+        let (ctx, basis) = self.planning_model(&input)?;
         let model = ctx.model();
         let history = req.agent.history.unwrap_or(spec::DEFAULT_HISTORY);
         if history > self.limits.max_history {
@@ -294,7 +302,7 @@ impl SessionManager {
             pairs: model.n_pairs(),
             transitions: model.n_transitions(),
             deterministic: model.is_deterministic(),
-            basis: basis_spec_of(&ctx),
+            basis,
             features: ctx.n_features(),
         };
         let id = format!("s{:04x}.{}", self.fresh_u64() % SHARDS, ulid::Ulid::new());
@@ -477,13 +485,6 @@ impl SessionManager {
     /// Stops the tick loop after draining its queue.
     pub fn shutdown(&self) {
         self.pool.shutdown();
-    }
-}
-
-fn basis_spec_of(ctx: &PlanningModel) -> crate::algo::BasisSpec {
-    match ctx.basis() {
-        Basis::Indicator => crate::algo::BasisSpec::Indicator,
-        Basis::StateBlocks(f) => crate::algo::BasisSpec::ProtoValue { k: f.k() },
     }
 }
 

@@ -282,6 +282,32 @@ fn grid_model(
     Ok(grid.model(names)?)
 }
 
+/// The basis of a session: its kind and, for feature bases, k per action.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct BasisSummary {
+    /// `indicator`, `proto_value` or `custom`.
+    pub kind: String,
+    /// State features per action block (0 for `indicator`).
+    pub k: usize,
+}
+
+impl BasisSummary {
+    /// Summarises a basis choice.
+    pub fn of(spec: &BasisSpec) -> Self {
+        let (kind, k) = match spec {
+            BasisSpec::Indicator => ("indicator", 0),
+            BasisSpec::ProtoValue { k } => ("proto_value", *k),
+            BasisSpec::Custom { state_features } => {
+                ("custom", state_features.first().map_or(0, Vec::len))
+            }
+        };
+        Self {
+            kind: kind.into(),
+            k,
+        }
+    }
+}
+
 /// What a session's model looks like, returned at creation and by `get`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct ModelSummary {
@@ -298,8 +324,7 @@ pub struct ModelSummary {
     /// Whether every pair has one successor.
     pub deterministic: bool,
     /// The basis in use.
-    #[schema(value_type = Object)]
-    pub basis: BasisSpec,
+    pub basis: BasisSummary,
     /// Number of features.
     pub features: usize,
 }

@@ -7,13 +7,13 @@
 
 use std::time::Duration;
 
+use crate::algo::StimulusRate;
 use crate::algo::model::ActionRef;
 use crate::algo::params::StimulusRateName;
-use crate::algo::{BasisSpec, StimulusRate};
 use crate::service::{
-    CreateSession, EffectiveConfig, ModelSummary, ObservationIn, ServiceError, SessionConfig,
-    SessionInfo, SessionPage, SessionStats, SessionSummary, StepOut, UpdateMode, ValueSelection,
-    Values,
+    BasisSummary, CreateSession, EffectiveConfig, ModelSummary, ObservationIn, ServiceError,
+    SessionConfig, SessionInfo, SessionPage, SessionStats, SessionSummary, StepOut, UpdateMode,
+    ValueSelection, Values,
 };
 
 use super::pb;
@@ -248,18 +248,9 @@ fn update_mode(mode: UpdateMode) -> pb::UpdateMode {
     }
 }
 
-fn basis(spec: BasisSpec) -> pb::BasisSummary {
-    let (kind, k) = match spec {
-        BasisSpec::Indicator => ("indicator", 0),
-        BasisSpec::ProtoValue { k } => ("proto_value", k),
-        BasisSpec::Custom { state_features } => {
-            ("custom", state_features.first().map_or(0, Vec::len))
-        }
-    };
-    pb::BasisSummary {
-        kind: kind.to_string(),
-        k: k as u64,
-    }
+fn basis(summary: BasisSummary) -> pb::BasisSummary {
+    let BasisSummary { kind, k } = summary;
+    pb::BasisSummary { kind, k: k as u64 }
 }
 
 fn model_summary(m: ModelSummary) -> pb::ModelSummary {
