@@ -363,6 +363,8 @@ async fn bad_inputs_get_precise_errors() {
     );
     let (status, _) = get(&client, &format!("{base}/v1/sessions?limit=0")).await;
     assert_eq!(status, 400);
+    let (status, err) = get(&client, &format!("{base}/v2/nothing")).await;
+    assert_eq!((status, err["code"].as_str()), (404, Some("unknown_route")));
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -46,6 +46,7 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
         },
         ServiceError::BadRequest(_) => (H::BAD_REQUEST, G::InvalidArgument, "bad_request"),
         ServiceError::NotFound(_) => (H::NOT_FOUND, G::NotFound, "not_found"),
+        ServiceError::UnknownRoute(_) => (H::NOT_FOUND, G::Unimplemented, "unknown_route"),
         ServiceError::LimitExceeded(_) => {
             (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "limit_exceeded")
         }

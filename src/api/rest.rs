@@ -124,8 +124,11 @@ pub fn router(state: AppState) -> Router {
         .with_state(state)
 }
 
-async fn not_found() -> ApiError {
-    ApiError(ServiceError::BadRequest("no such route".into()))
+async fn not_found(method: axum::http::Method, uri: axum::http::Uri) -> ApiError {
+    ApiError(ServiceError::UnknownRoute(format!(
+        "{method} {}",
+        uri.path()
+    )))
 }
 
 /// Request latency by route and status.

@@ -17,6 +17,9 @@ pub enum ServiceError {
     /// No such session (or not visible to the caller).
     #[error("session `{0}` not found")]
     NotFound(String),
+    /// No such route or method (REST).
+    #[error("no route for {0}")]
+    UnknownRoute(String),
     /// A size limit of the server was exceeded.
     #[error("{0}")]
     LimitExceeded(String),
