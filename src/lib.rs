@@ -19,6 +19,7 @@ pub mod algo;
 pub mod api;
 pub mod config;
 pub mod experiments;
+pub mod loadgen;
 pub mod server;
 pub mod service;
 pub mod telemetry;

@@ -27,6 +27,8 @@ enum Command {
     Experiment(ExperimentArgs),
     /// Exit 0 if the server's health endpoint answers 200 (for container health checks).
     Healthcheck(HealthcheckArgs),
+    /// Load-test a running server over real sockets (REST, gRPC, memory) and print the results.
+    Loadgen(mcapi::loadgen::LoadgenArgs),
 }
 
 #[derive(Debug, Args)]
@@ -80,6 +82,7 @@ fn main() -> ExitCode {
             experiment(args)
         }
         Command::Healthcheck(args) => healthcheck(&args),
+        Command::Loadgen(args) => mcapi::loadgen::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
