@@ -986,13 +986,14 @@ fn print_rest(rows: &[RestRow], args: &LoadgenArgs) {
     println!(
         "| sessions | mode | conns | /healthz req/s | /healthz p50 / p99 | observe req/s | \
          observe / healthz | observe p50 / p99 / max | observe handler p50 / p99 | \
-         CPU: server / loadgen / other | errors |"
+         server CPU µs/req: healthz / observe | CPU (observe): server / loadgen / other | \
+         errors |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for r in rows {
-        let ((h, _), (o, ow)) = (&r.healthz, &r.observe);
+        let ((h, hw), (o, ow)) = (&r.healthz, &r.observe);
         println!(
-            "| {} | {} | {} | {} | {} / {} | {} | {:.0}% | {} / {} / {} | {} | {} | {} |",
+            "| {} | {} | {} | {} | {} / {} | {} | {:.0}% | {} / {} / {} | {} | {} / {} | {} | {} |",
             thousands(r.sessions as f64),
             r.mode.as_str(),
             r.connections,
@@ -1005,6 +1006,8 @@ fn print_rest(rows: &[RestRow], args: &LoadgenArgs) {
             latency(o.p99),
             latency(o.max),
             handler(ow.handler),
+            per_request(hw.cpu, h.rate),
+            per_request(ow.cpu, o.rate),
             cores(ow.cpu),
             h.errors + o.errors,
         );
@@ -1025,13 +1028,14 @@ fn print_rest(rows: &[RestRow], args: &LoadgenArgs) {
         );
         println!(
             "| sessions | mode | target req/s | achieved req/s | p50 | p99 | max | \
-             handler p50 / p99 | pacer lag p99 / max | CPU: server / loadgen / other | errors |"
+             handler p50 / p99 | pacer lag p99 / max | server CPU µs/req | \
+             CPU: server / loadgen / other | errors |"
         );
-        println!("|---|---|---|---|---|---|---|---|---|---|---|");
+        println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
         for r in rows {
             if let Some((target, s, w)) = &r.paced {
                 println!(
-                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
+                    "| {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} | {} |",
                     thousands(r.sessions as f64),
                     r.mode.as_str(),
                     thousands(*target),
@@ -1044,6 +1048,7 @@ fn print_rest(rows: &[RestRow], args: &LoadgenArgs) {
                         || "—".to_string(),
                         |(p99, max)| format!("{} / {}", latency(p99), latency(max))
                     ),
+                    per_request(w.cpu, s.rate),
                     cores(w.cpu),
                     s.errors
                 );
@@ -1156,16 +1161,20 @@ async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<()> {
          each stream waits for its step before sending the next observation.\n",
         args.grpc_streams, args.grpc_connections
     );
-    println!("| mode | observations/s | p50 / p99 / max | CPU: server / loadgen / other |");
-    println!("|---|---|---|---|");
+    println!(
+        "| mode | observations/s | p50 / p99 / max | server CPU µs/obs | \
+         CPU: server / loadgen / other |"
+    );
+    println!("|---|---|---|---|---|");
     for (mode, s, cpu) in rows {
         println!(
-            "| {} | {} | {} / {} / {} | {} |",
+            "| {} | {} | {} / {} / {} | {} | {} |",
             mode.as_str(),
             thousands(s.rate),
             latency(s.p50),
             latency(s.p99),
             latency(s.max),
+            per_request(cpu, s.rate),
             cores(cpu),
         );
     }
@@ -1309,6 +1318,14 @@ fn latency(d: Duration) -> String {
 fn cores(c: CpuUse) -> String {
     let one = |c: Option<f64>| c.map_or_else(|| "—".to_string(), |c| format!("{c:.2}"));
     format!("{} / {} / {}", one(c.server), one(c.loadgen), one(c.other))
+}
+
+/// Server CPU time per request, in µs.
+fn per_request(cpu: CpuUse, rate: f64) -> String {
+    match cpu.server {
+        Some(cores) if rate > 0.0 => format!("{:.0}", cores / rate * 1e6),
+        _ => "—".to_string(),
+    }
 }
 
 /// `≤ p50 / ≤ p99` from histogram bucket bounds.
