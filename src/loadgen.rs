@@ -12,9 +12,10 @@
 //!   request at a time; beyond `--max-connections` sessions the connections
 //!   cycle over their share of the sessions, so at most that many requests
 //!   are in flight. In the same run and with the same connections, `GET
-//!   /healthz` is measured as the baseline. Then the observations are
-//!   replayed open-loop at half the measured peak rate, to give the latency
-//!   of a server that is not saturated.
+//!   /healthz` is measured as the baseline. Then the observations go on
+//!   open-loop at a fraction (`--paced-fraction`, default one half) of the
+//!   measured peak rate: a pacing thread releases requests evenly spaced,
+//!   and latency counts from the release (no coordinated omission).
 //! - **grpc**: `Interact` over `--grpc-streams` bidirectional streams, one
 //!   hallway session each, spread over `--grpc-connections` HTTP/2
 //!   connections; one observation in flight per stream.
@@ -25,9 +26,12 @@
 //!
 //! Every closed-loop measurement runs for `--warmup-secs`, then counts the
 //! requests completed during the next `--duration-secs`; latencies are exact
-//! percentiles of every request of that window (nearest rank). The server
-//! and the load generator share the machine's cores, so the CPU each used
-//! during a measurement is reported with it. Results go to stdout as
+//! percentiles of every request of that window (nearest rank). Beside the
+//! client's view, each REST row gives the server's own handler latency
+//! (bucket bounds of its `/metrics` histogram over the window) and the CPU
+//! used by the server, the load generator and everything else on the
+//! machine during the window (`/proc`): the two share the machine's cores,
+//! so neither number means much without the other. Results go to stdout as
 //! Markdown tables; progress goes to stderr.
 
 use std::collections::HashSet;
