@@ -1,0 +1,320 @@
+from google.protobuf.internal import containers as _containers
+from google.protobuf.internal import enum_type_wrapper as _enum_type_wrapper
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class UpdateMode(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    UPDATE_MODE_UNSPECIFIED: _ClassVar[UpdateMode]
+    UPDATE_MODE_LOCKSTEP: _ClassVar[UpdateMode]
+    UPDATE_MODE_ASYNC: _ClassVar[UpdateMode]
+
+class StimulusRateRule(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    STIMULUS_RATE_RULE_UNSPECIFIED: _ClassVar[StimulusRateRule]
+    STIMULUS_RATE_RULE_SAMPLE_MEAN: _ClassVar[StimulusRateRule]
+UPDATE_MODE_UNSPECIFIED: UpdateMode
+UPDATE_MODE_LOCKSTEP: UpdateMode
+UPDATE_MODE_ASYNC: UpdateMode
+STIMULUS_RATE_RULE_UNSPECIFIED: StimulusRateRule
+STIMULUS_RATE_RULE_SAMPLE_MEAN: StimulusRateRule
+
+class CreateSessionRequest(_message.Message):
+    __slots__ = ("model_json", "agent")
+    MODEL_JSON_FIELD_NUMBER: _ClassVar[int]
+    AGENT_FIELD_NUMBER: _ClassVar[int]
+    model_json: str
+    agent: SessionConfig
+    def __init__(self, model_json: _Optional[str] = ..., agent: _Optional[_Union[SessionConfig, _Mapping]] = ...) -> None: ...
+
+class SessionConfig(_message.Message):
+    __slots__ = ("eta", "gamma", "priorities", "stimulus_rate_rule", "stimulus_rate_constant", "optimistic_sd", "ridge", "epsilon", "seed", "update_mode", "history")
+    ETA_FIELD_NUMBER: _ClassVar[int]
+    GAMMA_FIELD_NUMBER: _ClassVar[int]
+    PRIORITIES_FIELD_NUMBER: _ClassVar[int]
+    STIMULUS_RATE_RULE_FIELD_NUMBER: _ClassVar[int]
+    STIMULUS_RATE_CONSTANT_FIELD_NUMBER: _ClassVar[int]
+    OPTIMISTIC_SD_FIELD_NUMBER: _ClassVar[int]
+    RIDGE_FIELD_NUMBER: _ClassVar[int]
+    EPSILON_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    UPDATE_MODE_FIELD_NUMBER: _ClassVar[int]
+    HISTORY_FIELD_NUMBER: _ClassVar[int]
+    eta: float
+    gamma: float
+    priorities: _containers.RepeatedScalarFieldContainer[float]
+    stimulus_rate_rule: StimulusRateRule
+    stimulus_rate_constant: float
+    optimistic_sd: float
+    ridge: float
+    epsilon: float
+    seed: int
+    update_mode: UpdateMode
+    history: int
+    def __init__(self, eta: _Optional[float] = ..., gamma: _Optional[float] = ..., priorities: _Optional[_Iterable[float]] = ..., stimulus_rate_rule: _Optional[_Union[StimulusRateRule, str]] = ..., stimulus_rate_constant: _Optional[float] = ..., optimistic_sd: _Optional[float] = ..., ridge: _Optional[float] = ..., epsilon: _Optional[float] = ..., seed: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ..., history: _Optional[int] = ...) -> None: ...
+
+class EffectiveConfig(_message.Message):
+    __slots__ = ("eta", "gamma", "priorities", "stimulus_rate_rule", "stimulus_rate_constant", "optimistic_sd", "ridge", "epsilon", "seed", "update_mode", "history")
+    ETA_FIELD_NUMBER: _ClassVar[int]
+    GAMMA_FIELD_NUMBER: _ClassVar[int]
+    PRIORITIES_FIELD_NUMBER: _ClassVar[int]
+    STIMULUS_RATE_RULE_FIELD_NUMBER: _ClassVar[int]
+    STIMULUS_RATE_CONSTANT_FIELD_NUMBER: _ClassVar[int]
+    OPTIMISTIC_SD_FIELD_NUMBER: _ClassVar[int]
+    RIDGE_FIELD_NUMBER: _ClassVar[int]
+    EPSILON_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    UPDATE_MODE_FIELD_NUMBER: _ClassVar[int]
+    HISTORY_FIELD_NUMBER: _ClassVar[int]
+    eta: float
+    gamma: float
+    priorities: _containers.RepeatedScalarFieldContainer[float]
+    stimulus_rate_rule: StimulusRateRule
+    stimulus_rate_constant: float
+    optimistic_sd: float
+    ridge: float
+    epsilon: float
+    seed: int
+    update_mode: UpdateMode
+    history: int
+    def __init__(self, eta: _Optional[float] = ..., gamma: _Optional[float] = ..., priorities: _Optional[_Iterable[float]] = ..., stimulus_rate_rule: _Optional[_Union[StimulusRateRule, str]] = ..., stimulus_rate_constant: _Optional[float] = ..., optimistic_sd: _Optional[float] = ..., ridge: _Optional[float] = ..., epsilon: _Optional[float] = ..., seed: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ..., history: _Optional[int] = ...) -> None: ...
+
+class BasisSummary(_message.Message):
+    __slots__ = ("kind", "k")
+    KIND_FIELD_NUMBER: _ClassVar[int]
+    K_FIELD_NUMBER: _ClassVar[int]
+    kind: str
+    k: int
+    def __init__(self, kind: _Optional[str] = ..., k: _Optional[int] = ...) -> None: ...
+
+class ModelSummary(_message.Message):
+    __slots__ = ("states", "actions", "stimuli", "pairs", "transitions", "deterministic", "basis", "features")
+    STATES_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    STIMULI_FIELD_NUMBER: _ClassVar[int]
+    PAIRS_FIELD_NUMBER: _ClassVar[int]
+    TRANSITIONS_FIELD_NUMBER: _ClassVar[int]
+    DETERMINISTIC_FIELD_NUMBER: _ClassVar[int]
+    BASIS_FIELD_NUMBER: _ClassVar[int]
+    FEATURES_FIELD_NUMBER: _ClassVar[int]
+    states: int
+    actions: _containers.RepeatedScalarFieldContainer[str]
+    stimuli: _containers.RepeatedScalarFieldContainer[str]
+    pairs: int
+    transitions: int
+    deterministic: bool
+    basis: BasisSummary
+    features: int
+    def __init__(self, states: _Optional[int] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., pairs: _Optional[int] = ..., transitions: _Optional[int] = ..., deterministic: _Optional[bool] = ..., basis: _Optional[_Union[BasisSummary, _Mapping]] = ..., features: _Optional[int] = ...) -> None: ...
+
+class SessionStats(_message.Message):
+    __slots__ = ("lstdq_error", "lambda1_estimate", "condition_1_holds", "constant_stimuli", "factorisation_reuses", "factorisations")
+    LSTDQ_ERROR_FIELD_NUMBER: _ClassVar[int]
+    LAMBDA1_ESTIMATE_FIELD_NUMBER: _ClassVar[int]
+    CONDITION_1_HOLDS_FIELD_NUMBER: _ClassVar[int]
+    CONSTANT_STIMULI_FIELD_NUMBER: _ClassVar[int]
+    FACTORISATION_REUSES_FIELD_NUMBER: _ClassVar[int]
+    FACTORISATIONS_FIELD_NUMBER: _ClassVar[int]
+    lstdq_error: float
+    lambda1_estimate: float
+    condition_1_holds: bool
+    constant_stimuli: _containers.RepeatedScalarFieldContainer[int]
+    factorisation_reuses: int
+    factorisations: int
+    def __init__(self, lstdq_error: _Optional[float] = ..., lambda1_estimate: _Optional[float] = ..., condition_1_holds: _Optional[bool] = ..., constant_stimuli: _Optional[_Iterable[int]] = ..., factorisation_reuses: _Optional[int] = ..., factorisations: _Optional[int] = ...) -> None: ...
+
+class SessionInfo(_message.Message):
+    __slots__ = ("id", "tick", "drive", "policy_version", "state", "model", "agent", "stats")
+    ID_FIELD_NUMBER: _ClassVar[int]
+    TICK_FIELD_NUMBER: _ClassVar[int]
+    DRIVE_FIELD_NUMBER: _ClassVar[int]
+    POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
+    AGENT_FIELD_NUMBER: _ClassVar[int]
+    STATS_FIELD_NUMBER: _ClassVar[int]
+    id: str
+    tick: int
+    drive: _containers.RepeatedScalarFieldContainer[float]
+    policy_version: int
+    state: int
+    model: ModelSummary
+    agent: EffectiveConfig
+    stats: SessionStats
+    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., policy_version: _Optional[int] = ..., state: _Optional[int] = ..., model: _Optional[_Union[ModelSummary, _Mapping]] = ..., agent: _Optional[_Union[EffectiveConfig, _Mapping]] = ..., stats: _Optional[_Union[SessionStats, _Mapping]] = ...) -> None: ...
+
+class GetSessionRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class ListSessionsRequest(_message.Message):
+    __slots__ = ("after", "limit")
+    AFTER_FIELD_NUMBER: _ClassVar[int]
+    LIMIT_FIELD_NUMBER: _ClassVar[int]
+    after: str
+    limit: int
+    def __init__(self, after: _Optional[str] = ..., limit: _Optional[int] = ...) -> None: ...
+
+class SessionSummary(_message.Message):
+    __slots__ = ("id", "tick", "states", "update_mode")
+    ID_FIELD_NUMBER: _ClassVar[int]
+    TICK_FIELD_NUMBER: _ClassVar[int]
+    STATES_FIELD_NUMBER: _ClassVar[int]
+    UPDATE_MODE_FIELD_NUMBER: _ClassVar[int]
+    id: str
+    tick: int
+    states: int
+    update_mode: UpdateMode
+    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., states: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ...) -> None: ...
+
+class ListSessionsResponse(_message.Message):
+    __slots__ = ("sessions", "next")
+    SESSIONS_FIELD_NUMBER: _ClassVar[int]
+    NEXT_FIELD_NUMBER: _ClassVar[int]
+    sessions: _containers.RepeatedCompositeFieldContainer[SessionSummary]
+    next: str
+    def __init__(self, sessions: _Optional[_Iterable[_Union[SessionSummary, _Mapping]]] = ..., next: _Optional[str] = ...) -> None: ...
+
+class DeleteSessionRequest(_message.Message):
+    __slots__ = ("session_id",)
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    def __init__(self, session_id: _Optional[str] = ...) -> None: ...
+
+class DeleteSessionResponse(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class Stimulus(_message.Message):
+    __slots__ = ("values",)
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    values: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, values: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class Observation(_message.Message):
+    __slots__ = ("session_id", "state", "stimulus", "action_name", "action_index")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    STIMULUS_FIELD_NUMBER: _ClassVar[int]
+    ACTION_NAME_FIELD_NUMBER: _ClassVar[int]
+    ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    state: int
+    stimulus: Stimulus
+    action_name: str
+    action_index: int
+    def __init__(self, session_id: _Optional[str] = ..., state: _Optional[int] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., action_name: _Optional[str] = ..., action_index: _Optional[int] = ...) -> None: ...
+
+class Step(_message.Message):
+    __slots__ = ("tick", "action", "action_index", "drive", "reward", "policy_version")
+    TICK_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
+    DRIVE_FIELD_NUMBER: _ClassVar[int]
+    REWARD_FIELD_NUMBER: _ClassVar[int]
+    POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
+    tick: int
+    action: str
+    action_index: int
+    drive: _containers.RepeatedScalarFieldContainer[float]
+    reward: float
+    policy_version: int
+    def __init__(self, tick: _Optional[int] = ..., action: _Optional[str] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., policy_version: _Optional[int] = ...) -> None: ...
+
+class ObserveRequest(_message.Message):
+    __slots__ = ("session_id", "observations")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    OBSERVATIONS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    observations: _containers.RepeatedCompositeFieldContainer[Observation]
+    def __init__(self, session_id: _Optional[str] = ..., observations: _Optional[_Iterable[_Union[Observation, _Mapping]]] = ...) -> None: ...
+
+class ObserveResponse(_message.Message):
+    __slots__ = ("steps",)
+    STEPS_FIELD_NUMBER: _ClassVar[int]
+    steps: _containers.RepeatedCompositeFieldContainer[Step]
+    def __init__(self, steps: _Optional[_Iterable[_Union[Step, _Mapping]]] = ...) -> None: ...
+
+class WatchRequest(_message.Message):
+    __slots__ = ("session_id", "interval_ms")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    INTERVAL_MS_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    interval_ms: int
+    def __init__(self, session_id: _Optional[str] = ..., interval_ms: _Optional[int] = ...) -> None: ...
+
+class GetValuesRequest(_message.Message):
+    __slots__ = ("session_id", "include")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    INCLUDE_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    include: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, session_id: _Optional[str] = ..., include: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class StateValues(_message.Message):
+    __slots__ = ("values",)
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    values: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, values: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class Policy(_message.Message):
+    __slots__ = ("actions",)
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    actions: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, actions: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class PairValue(_message.Message):
+    __slots__ = ("state", "action", "value")
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    VALUE_FIELD_NUMBER: _ClassVar[int]
+    state: int
+    action: int
+    value: float
+    def __init__(self, state: _Optional[int] = ..., action: _Optional[int] = ..., value: _Optional[float] = ...) -> None: ...
+
+class PairValues(_message.Message):
+    __slots__ = ("pairs",)
+    PAIRS_FIELD_NUMBER: _ClassVar[int]
+    pairs: _containers.RepeatedCompositeFieldContainer[PairValue]
+    def __init__(self, pairs: _Optional[_Iterable[_Union[PairValue, _Mapping]]] = ...) -> None: ...
+
+class PairVector(_message.Message):
+    __slots__ = ("state", "action", "values")
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    ACTION_FIELD_NUMBER: _ClassVar[int]
+    VALUES_FIELD_NUMBER: _ClassVar[int]
+    state: int
+    action: int
+    values: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, state: _Optional[int] = ..., action: _Optional[int] = ..., values: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class PairVectors(_message.Message):
+    __slots__ = ("pairs",)
+    PAIRS_FIELD_NUMBER: _ClassVar[int]
+    pairs: _containers.RepeatedCompositeFieldContainer[PairVector]
+    def __init__(self, pairs: _Optional[_Iterable[_Union[PairVector, _Mapping]]] = ...) -> None: ...
+
+class Values(_message.Message):
+    __slots__ = ("tick", "policy_version", "v", "q", "policy", "r", "xi")
+    TICK_FIELD_NUMBER: _ClassVar[int]
+    POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
+    V_FIELD_NUMBER: _ClassVar[int]
+    Q_FIELD_NUMBER: _ClassVar[int]
+    POLICY_FIELD_NUMBER: _ClassVar[int]
+    R_FIELD_NUMBER: _ClassVar[int]
+    XI_FIELD_NUMBER: _ClassVar[int]
+    tick: int
+    policy_version: int
+    v: StateValues
+    q: PairValues
+    policy: Policy
+    r: PairValues
+    xi: PairVectors
+    def __init__(self, tick: _Optional[int] = ..., policy_version: _Optional[int] = ..., v: _Optional[_Union[StateValues, _Mapping]] = ..., q: _Optional[_Union[PairValues, _Mapping]] = ..., policy: _Optional[_Union[Policy, _Mapping]] = ..., r: _Optional[_Union[PairValues, _Mapping]] = ..., xi: _Optional[_Union[PairVectors, _Mapping]] = ...) -> None: ...

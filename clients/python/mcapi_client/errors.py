@@ -1,0 +1,227 @@
+"""Errors raised by the clients.
+
+Every error the server reports carries a stable snake_case ``code`` (the table
+in the server's ``src/api/error.rs``); REST sends it in the JSON body
+``{"code", "message"}``, gRPC in the ``x-mcapi-error-code`` trailer. Both
+clients raise the same :class:`McapiError` subclass for the same code, with the
+same ``code``, the HTTP ``status`` the code maps to and the server's
+``message``, so code written against one transport handles the other's errors
+unchanged.
+
+    try:
+        client.observe(session_id, state=3, stimulus=[0.0])
+    except InvalidObservation as e:
+        print(e.code, e.status, e.message)   # stimulus_length 400 ...
+"""
+
+from __future__ import annotations
+
+from typing import Final
+
+__all__ = [
+    "McapiError",
+    "BadRequest",
+    "InvalidModel",
+    "InvalidParameter",
+    "InvalidObservation",
+    "Unauthenticated",
+    "NotFound",
+    "UnknownRoute",
+    "LimitExceeded",
+    "PayloadTooLarge",
+    "TooManySessions",
+    "Unavailable",
+    "TransportError",
+    "Timeout",
+    "InternalError",
+    "ERROR_CODES",
+    "error_for",
+]
+
+
+class McapiError(Exception):
+    """An error reported by an mcapi server, or a failure to reach it.
+
+    Attributes:
+        code: The stable snake_case error code (``not_found``,
+            ``stimulus_length``, ...), or a client-side code for failures
+            that never reached the server (``transport_error``, ``timeout``).
+        status: The HTTP status of the code (404, 400, ...), the same over
+            REST and gRPC; ``None`` when no status applies.
+        message: The server's message, naming the offending field.
+        grpc_code: The name of the gRPC status code (``"NOT_FOUND"``) when the
+            error came over gRPC, else ``None``.
+    """
+
+    def __init__(
+        self,
+        message: str,
+        *,
+        code: str,
+        status: int | None = None,
+        grpc_code: str | None = None,
+    ) -> None:
+        super().__init__(message)
+        self.code = code
+        self.status = status
+        self.message = message
+        self.grpc_code = grpc_code
+
+    def __str__(self) -> str:
+        where = f"HTTP {self.status}" if self.status is not None else "no status"
+        if self.grpc_code is not None:
+            where += f", gRPC {self.grpc_code}"
+        return f"{self.code} ({where}): {self.message}"
+
+    def __repr__(self) -> str:
+        return (
+            f"{type(self).__name__}(code={self.code!r}, status={self.status!r}, "
+            f"message={self.message!r})"
+        )
+
+
+class BadRequest(McapiError):
+    """The request was malformed (HTTP 400, gRPC INVALID_ARGUMENT)."""
+
+
+class InvalidModel(BadRequest):
+    """The environment model or its basis was refused (``invalid_model``, ``invalid_basis``)."""
+
+
+class InvalidParameter(BadRequest):
+    """An agent parameter was out of range (``invalid_parameter``)."""
+
+
+class InvalidObservation(BadRequest):
+    """An observation was refused: unknown state or action, an unavailable
+    action, a stimulus of the wrong length, too large or not finite, or a
+    stimulus missing on (or sent with) a session's first observation."""
+
+
+class Unauthenticated(McapiError):
+    """The API key is missing or wrong (HTTP 401, gRPC UNAUTHENTICATED)."""
+
+
+class NotFound(McapiError):
+    """No such session, or not one the caller's key may see (HTTP 404, gRPC NOT_FOUND)."""
+
+
+class UnknownRoute(NotFound):
+    """No such route (REST only; ``unknown_route``)."""
+
+
+class LimitExceeded(McapiError):
+    """A size limit of the server was exceeded (HTTP 413, gRPC RESOURCE_EXHAUSTED)."""
+
+
+class PayloadTooLarge(LimitExceeded):
+    """The request body is larger than the server accepts (``payload_too_large``)."""
+
+
+class TooManySessions(LimitExceeded):
+    """The server holds its maximum number of sessions (HTTP 429, ``too_many_sessions``)."""
+
+
+class Unavailable(McapiError):
+    """The server cannot serve now: stopping, or its queue is full (HTTP 503,
+    gRPC UNAVAILABLE). Worth retrying later."""
+
+
+class TransportError(Unavailable):
+    """The server could not be reached, or the connection broke (client-side
+    code ``transport_error``; no status)."""
+
+
+class Timeout(McapiError):
+    """The call did not finish within the client's timeout (client-side code
+    ``timeout``; gRPC DEADLINE_EXCEEDED)."""
+
+
+class InternalError(McapiError):
+    """A fault of the server, not the caller's (HTTP 500, gRPC INTERNAL)."""
+
+
+# The server's stable codes (src/api/error.rs) with their class and HTTP status.
+ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
+    "bad_request": (BadRequest, 400),
+    "invalid_model": (InvalidModel, 400),
+    "invalid_basis": (InvalidModel, 400),
+    "invalid_parameter": (InvalidParameter, 400),
+    "unknown_state": (InvalidObservation, 400),
+    "unknown_action": (InvalidObservation, 400),
+    "action_not_available": (InvalidObservation, 400),
+    "stimulus_length": (InvalidObservation, 400),
+    "non_finite_number": (InvalidObservation, 400),
+    "stimulus_too_large": (InvalidObservation, 400),
+    "first_observation": (InvalidObservation, 400),
+    "missing_stimulus": (InvalidObservation, 400),
+    "unauthenticated": (Unauthenticated, 401),
+    "not_found": (NotFound, 404),
+    "unknown_route": (UnknownRoute, 404),
+    "limit_exceeded": (LimitExceeded, 413),
+    "payload_too_large": (PayloadTooLarge, 413),
+    "too_many_sessions": (TooManySessions, 429),
+    "unavailable": (Unavailable, 503),
+    "numerical_failure": (InternalError, 500),
+    "internal": (InternalError, 500),
+}
+"""Each stable error code of the server: the exception class raised for it
+and the HTTP status it comes with."""
+
+# Fallbacks for codes this client does not know (a newer server).
+_BY_STATUS: Final[dict[int, type[McapiError]]] = {
+    400: BadRequest,
+    401: Unauthenticated,
+    404: NotFound,
+    413: LimitExceeded,
+    429: TooManySessions,
+    503: Unavailable,
+}
+
+_BY_GRPC: Final[dict[str, tuple[type[McapiError], int | None]]] = {
+    "INVALID_ARGUMENT": (BadRequest, 400),
+    "UNAUTHENTICATED": (Unauthenticated, 401),
+    "NOT_FOUND": (NotFound, 404),
+    "RESOURCE_EXHAUSTED": (LimitExceeded, 413),
+    "UNAVAILABLE": (Unavailable, 503),
+    "DEADLINE_EXCEEDED": (Timeout, None),
+    "INTERNAL": (InternalError, 500),
+    "UNKNOWN": (InternalError, 500),
+}
+
+
+def error_for(
+    code: str | None,
+    message: str,
+    *,
+    status: int | None = None,
+    grpc_code: str | None = None,
+) -> McapiError:
+    """The exception for a server error.
+
+    A known ``code`` decides the class and the HTTP status. An unknown or
+    missing code falls back on the HTTP ``status`` (REST) or the gRPC status
+    name ``grpc_code``, and the code becomes ``http_<status>`` or the
+    lower-cased gRPC name.
+
+    Args:
+        code: The stable code the server sent, if any.
+        message: The server's message.
+        status: The HTTP status of a REST reply.
+        grpc_code: The gRPC status name (``"NOT_FOUND"``) of a gRPC reply.
+    """
+    if code is not None and code in ERROR_CODES:
+        cls, known_status = ERROR_CODES[code]
+        return cls(message, code=code, status=known_status, grpc_code=grpc_code)
+    if grpc_code is not None:
+        cls, grpc_status = _BY_GRPC.get(grpc_code, (McapiError, None))
+        return cls(
+            message,
+            code=code or grpc_code.lower(),
+            status=status if status is not None else grpc_status,
+            grpc_code=grpc_code,
+        )
+    if status is not None:
+        cls = _BY_STATUS.get(status, InternalError if status >= 500 else McapiError)
+        return cls(message, code=code or f"http_{status}", status=status)
+    return McapiError(message, code=code or "unknown")
