@@ -3,11 +3,12 @@
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
+use std::time::Duration;
 
 use clap::{Args, ValueEnum};
 use serde::Serialize;
 
-use crate::service::Limits;
+use crate::service::{Limits, ManagerOptions};
 
 /// Log output format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
@@ -43,6 +44,10 @@ pub struct ServeConfig {
     /// Tick-loop worker threads (default: number of cores).
     #[arg(long, env = "MCAPI_WORKERS")]
     pub workers: Option<usize>,
+    /// Policy updates measured to cost at most this many microseconds run
+    /// on the requesting task instead of the tick pool (0: always the pool).
+    #[arg(long, env = "MCAPI_INLINE_PLAN_US", default_value_t = 20)]
+    pub inline_plan_us: u64,
     /// Log format.
     #[arg(long, env = "MCAPI_LOG_FORMAT", value_enum, default_value = "text")]
     pub log_format: LogFormat,
@@ -94,12 +99,26 @@ impl ServeConfig {
         }
     }
 
+    /// The session manager's options.
+    pub fn manager_options(&self) -> ManagerOptions {
+        ManagerOptions {
+            inline_plan: Duration::from_micros(self.inline_plan_us),
+            ..ManagerOptions::new(self.limits(), self.worker_count())
+        }
+    }
+
     /// Checks the configuration before anything binds.
     pub fn validate(&self) -> Result<(), String> {
         if self.http == self.grpc && self.http.port() != 0 {
             return Err(format!("--http and --grpc both use {}", self.http));
         }
         let workers = self.worker_count();
+        if self.inline_plan_us > 10_000 {
+            return Err(format!(
+                "--inline-plan-us must be at most 10000 (10 ms), not {}; longer updates belong on the tick pool",
+                self.inline_plan_us
+            ));
+        }
         if workers == 0 || workers > 1024 {
             return Err(format!(
                 "--workers must be between 1 and 1024, not {workers}"

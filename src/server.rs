@@ -36,7 +36,7 @@ async fn stopped(mut rx: watch::Receiver<bool>) {
 /// Validates the configuration, binds both ports and starts serving.
 pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     cfg.validate().map_err(anyhow::Error::msg)?;
-    let manager = Arc::new(SessionManager::new(cfg.limits(), cfg.worker_count())?);
+    let manager = Arc::new(SessionManager::with_options(cfg.manager_options())?);
     let http = TcpListener::bind(cfg.http)
         .await
         .with_context(|| format!("binding the REST port {}", cfg.http))?;

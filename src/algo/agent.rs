@@ -13,10 +13,11 @@ use std::sync::Arc;
 
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
 
 use super::drive::Drive;
 use super::error::{AlgoError, MAX_STIMULUS, Result};
-use super::lstdq::{PlanOutcome, Planner, PlanningModel};
+use super::lstdq::{PlanOutcome, Planner, PlannerStats, PlanningModel};
 use super::params::ValidParams;
 use super::stimulus::StimulusFunction;
 
@@ -71,6 +72,70 @@ pub struct Step {
     pub reward: f64,
     /// The planning step this tick ran (None on the first observation).
     pub plan: Option<PlanOutcome>,
+}
+
+/// Position of a ChaCha8 stream: enough to resume it exactly.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RngState {
+    /// The 32-byte key.
+    pub seed: [u8; 32],
+    /// Stream number.
+    pub stream: u64,
+    /// Words consumed so far.
+    pub word_pos: u128,
+}
+
+impl RngState {
+    fn of(rng: &ChaCha8Rng) -> Self {
+        Self {
+            seed: rng.get_seed(),
+            stream: rng.get_stream(),
+            word_pos: rng.get_word_pos(),
+        }
+    }
+
+    fn resume(&self) -> ChaCha8Rng {
+        let mut rng = ChaCha8Rng::from_seed(self.seed);
+        rng.set_stream(self.stream);
+        rng.set_word_pos(self.word_pos);
+        rng
+    }
+}
+
+/// Everything of an [`Agent`] that is not a function of its model and
+/// parameters: what a durable store keeps to resume it (DESIGN.md,
+/// "Durability"). Ξ, the visit counts, D and its λ₁ statistics, the tick
+/// and the RNG position come back bit for bit; so do π and Q.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AgentSnapshot {
+    /// The RNG's position.
+    pub rng: RngState,
+    /// D and its running statistics (Eqs. 1-2, §4).
+    pub drive: Drive,
+    /// Ξ and n(s, a).
+    pub stimulus: StimulusFunction,
+    /// Chosen pair per state.
+    pub policy: Vec<u32>,
+    /// Q over valid pairs.
+    pub q: Vec<f64>,
+    /// R as of the last plan.
+    pub rewards: Vec<f64>,
+    /// Planner work counters.
+    pub planner_stats: PlannerStats,
+    /// s_t.
+    pub state: Option<usize>,
+    /// The pair advised by the last `act`.
+    pub advised: Option<usize>,
+    /// Ticks so far.
+    pub tick: u64,
+    /// |r| of the last tick.
+    pub last_reward: f64,
+    /// The last planning step.
+    pub last_plan: PlanOutcome,
+    /// Policy updates applied.
+    pub policy_version: u64,
+    /// R changed since the last plan.
+    pub dirty: bool,
 }
 
 /// One MCA-PI agent: its drive, stimulus function, policy and RNG.
@@ -341,6 +406,108 @@ impl Agent {
     pub fn greedy_action(&self, s: usize) -> usize {
         self.ctx.model().pair_action(self.planner.chosen_pair(s))
     }
+
+    /// The action advised by the last `act`: the one the next observation
+    /// updates unless it reports another.
+    pub fn advised_action(&self) -> Option<usize> {
+        self.advised.map(|p| self.ctx.model().pair_action(p))
+    }
+
+    /// Sets the advised action of the current state, as a reply already
+    /// sent to a client named it (used when replaying a log).
+    pub fn set_advised_action(&mut self, action: usize) -> Result<()> {
+        let state = self.state.ok_or_else(|| {
+            AlgoError::InvalidSnapshot("an advised action before any state".into())
+        })?;
+        let pair = self.ctx.model().pair(state, action).ok_or_else(|| {
+            AlgoError::InvalidSnapshot(format!("action {action} is not available in state {state}"))
+        })?;
+        self.advised = Some(pair);
+        Ok(())
+    }
+
+    /// The agent's resumable state.
+    pub fn snapshot(&self) -> AgentSnapshot {
+        AgentSnapshot {
+            rng: RngState::of(&self.rng),
+            drive: self.drive.without_scratch(),
+            stimulus: self.stimulus.clone(),
+            policy: self.planner.policy().to_vec(),
+            q: self.planner.q().to_vec(),
+            rewards: self.rewards.clone(),
+            planner_stats: self.planner.stats(),
+            state: self.state,
+            advised: self.advised,
+            tick: self.tick,
+            last_reward: self.last_reward,
+            last_plan: self.last_plan,
+            policy_version: self.policy_version,
+            dirty: self.dirty,
+        }
+    }
+
+    /// An agent resumed from a snapshot taken of an agent with the same
+    /// model and parameters; refuses a snapshot that does not fit them.
+    pub fn restore(
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+        snap: AgentSnapshot,
+    ) -> Result<Self> {
+        let model = ctx.model();
+        let (pairs, n) = (model.n_pairs(), model.n_stimuli());
+        let bad = |what: String| Err(AlgoError::InvalidSnapshot(what));
+        if snap.drive.vector().len() != n || snap.drive.inv_rho().len() != n {
+            return bad(format!(
+                "D has {} components; the model has {n} stimuli",
+                snap.drive.vector().len()
+            ));
+        }
+        if snap.drive.vector().iter().any(|x| !x.is_finite())
+            || (super::drive::norm(snap.drive.vector()) - 1.0).abs() > 1e-6
+        {
+            return bad("D is not a finite unit vector".into());
+        }
+        if snap.stimulus.dims() != n
+            || snap.stimulus.table().len() != pairs * n
+            || snap.stimulus.visits().len() != pairs
+        {
+            return bad(format!("Ξ does not have {pairs} pairs x {n} stimuli"));
+        }
+        if snap.rewards.len() != pairs {
+            return bad(format!(
+                "R has {} pairs; the model has {pairs}",
+                snap.rewards.len()
+            ));
+        }
+        if snap.state.is_some_and(|s| s >= model.states()) {
+            return bad("the current state is outside the model".into());
+        }
+        match (snap.state, snap.advised) {
+            (None, Some(_)) => return bad("an advised pair without a state".into()),
+            (Some(s), Some(p)) if !model.pairs_of(s).contains(&p) => {
+                return bad(format!("advised pair {p} does not belong to state {s}"));
+            }
+            _ => {}
+        }
+        let planner = Planner::restore(&ctx, snap.policy, snap.q, snap.planner_stats)?;
+        Ok(Self {
+            rng: snap.rng.resume(),
+            drive: snap.drive,
+            stimulus: snap.stimulus,
+            planner,
+            rewards: snap.rewards,
+            scaled_drive: vec![0.0; n],
+            state: snap.state,
+            advised: snap.advised,
+            tick: snap.tick,
+            last_reward: snap.last_reward,
+            last_plan: snap.last_plan,
+            policy_version: snap.policy_version,
+            dirty: snap.dirty,
+            ctx,
+            params,
+        })
+    }
 }
 
 #[cfg(test)]
@@ -363,6 +530,53 @@ mod tests {
             Arc::new(PlanningModel::new(preset.model, Basis::Indicator)),
             params,
         )
+    }
+
+    #[test]
+    fn a_restored_agent_continues_exactly() {
+        let mut a = hallway_agent(9);
+        let mut state = 25;
+        a.step(&Observation::first(state)).expect("first");
+        let walk = |agent: &mut Agent, state: &mut usize, ticks: usize| {
+            let mut out = Vec::new();
+            for _ in 0..ticks {
+                let action = agent.advised_action().expect("advised");
+                *state = match action {
+                    0 => state.saturating_sub(1),
+                    1 => (*state + 1).min(49),
+                    _ => *state,
+                };
+                let xi = [f64::from(*state == 10) * 6.0, f64::from(*state == 40) * 6.0];
+                let step = agent.step(&Observation::new(*state, &xi)).expect("step");
+                out.push((step.action, agent.drive().vector().to_vec()));
+            }
+            out
+        };
+        walk(&mut a, &mut state, 300);
+        let snap = a.snapshot();
+        let bytes = serde_json::to_vec(&snap).expect("encode");
+        let back: AgentSnapshot = serde_json::from_slice(&bytes).expect("decode");
+        assert_eq!(back, snap);
+        let mut b = Agent::restore(Arc::clone(a.planning_model()), a.params().clone(), back)
+            .expect("restore");
+        let mut state_b = state;
+        let ta = walk(&mut a, &mut state, 500);
+        let tb = walk(&mut b, &mut state_b, 500);
+        assert_eq!(ta, tb, "the restored agent must follow the same trajectory");
+        assert!(a.snapshot() == b.snapshot(), "identical state after 500 ticks");
+    }
+
+    #[test]
+    fn a_snapshot_of_another_model_is_refused() {
+        let a = hallway_agent(1);
+        let mut snap = a.snapshot();
+        snap.rewards.pop();
+        let err = Agent::restore(Arc::clone(a.planning_model()), a.params().clone(), snap)
+            .expect_err("short R");
+        assert!(matches!(err, AlgoError::InvalidSnapshot(_)), "{err}");
+        let mut snap = a.snapshot();
+        snap.policy[0] = 9999;
+        assert!(Agent::restore(Arc::clone(a.planning_model()), a.params().clone(), snap).is_err());
     }
 
     #[test]

@@ -67,6 +67,15 @@ impl Drive {
         }
     }
 
+    /// A copy without the scratch buffers (what a snapshot keeps).
+    pub fn without_scratch(&self) -> Self {
+        Self {
+            scaled: Vec::new(),
+            next: Vec::new(),
+            ..self.clone()
+        }
+    }
+
     /// The unit drive vector D.
     #[inline]
     pub fn vector(&self) -> &[f64] {

@@ -14,6 +14,10 @@ pub enum AlgoError {
     #[error("invalid model: {0}")]
     InvalidModel(String),
 
+    /// A stored agent state does not fit its model and parameters.
+    #[error("invalid agent snapshot: {0}")]
+    InvalidSnapshot(String),
+
     /// A parameter is outside its allowed range.
     #[error("invalid parameter `{name}`: {reason}")]
     InvalidParameter {

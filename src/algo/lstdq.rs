@@ -154,7 +154,7 @@ impl FeatureCache {
 }
 
 /// What one planning step did.
-#[derive(Debug, Clone, Copy, PartialEq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Default, serde::Serialize, serde::Deserialize)]
 pub struct PlanOutcome {
     /// ‖Q_t − Q_{t+1}‖₂ over valid pairs (Fig. 2d).
     pub lstdq_error: f64,
@@ -165,7 +165,7 @@ pub struct PlanOutcome {
 }
 
 /// Counters of the planner's work.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize, serde::Deserialize)]
 pub struct PlannerStats {
     /// LSTDQ evaluations.
     pub updates: u64,
@@ -263,6 +263,48 @@ impl Planner {
             engine,
             stats: PlannerStats::default(),
         }
+    }
+
+    /// A planner resumed from a stored policy, Q and counters. The engine's
+    /// caches start cold (a feature basis refactorises A on the next
+    /// update); a warm-started iterative solve starts from V(s) = Q(s, π(s)).
+    pub fn restore(
+        ctx: &PlanningModel,
+        policy: Vec<u32>,
+        q: Vec<f64>,
+        stats: PlannerStats,
+    ) -> Result<Self> {
+        let model = &ctx.model;
+        if policy.len() != model.states() {
+            return Err(AlgoError::InvalidSnapshot(format!(
+                "policy has {} states; the model has {}",
+                policy.len(),
+                model.states()
+            )));
+        }
+        if let Some(s) =
+            (0..model.states()).find(|&s| !model.pairs_of(s).contains(&(policy[s] as usize)))
+        {
+            return Err(AlgoError::InvalidSnapshot(format!(
+                "policy of state {s} is pair {}, not one of its own",
+                policy[s]
+            )));
+        }
+        if q.len() != model.n_pairs() || q.iter().any(|x| !x.is_finite()) {
+            return Err(AlgoError::InvalidSnapshot(format!(
+                "Q must have {} finite entries",
+                model.n_pairs()
+            )));
+        }
+        let mut planner = Self::new(ctx, policy);
+        if let Engine::GaussSeidel { v } = &mut planner.engine {
+            for (s, v) in v.iter_mut().enumerate() {
+                *v = q[planner.policy[s] as usize];
+            }
+        }
+        planner.q = q;
+        planner.stats = stats;
+        Ok(planner)
     }
 
     /// Q over valid pairs.

@@ -13,7 +13,7 @@ pub mod model;
 pub mod params;
 pub mod stimulus;
 
-pub use agent::{Agent, Observation, ObserveOutcome, Step};
+pub use agent::{Agent, AgentSnapshot, Observation, ObserveOutcome, RngState, Step};
 pub use basis::{Basis, BasisSpec};
 pub use drive::Drive;
 pub use error::AlgoError;

@@ -16,6 +16,7 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
     match e {
         ServiceError::Algo(a) => match a {
             AlgoError::InvalidModel(_) => (H::BAD_REQUEST, G::InvalidArgument, "invalid_model"),
+            AlgoError::InvalidSnapshot(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
             AlgoError::InvalidParameter { .. } => {
                 (H::BAD_REQUEST, G::InvalidArgument, "invalid_parameter")
             }
@@ -61,6 +62,14 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
             "too_many_sessions",
         ),
         ServiceError::Unavailable(_) => (H::SERVICE_UNAVAILABLE, G::Unavailable, "unavailable"),
+        ServiceError::Unauthenticated(_) => {
+            (H::UNAUTHORIZED, G::Unauthenticated, "unauthenticated")
+        }
+        ServiceError::Storage(_) => (
+            H::SERVICE_UNAVAILABLE,
+            G::Unavailable,
+            "storage_unavailable",
+        ),
         ServiceError::Internal(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
     }
 }
@@ -68,6 +77,11 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
 /// The message a client sees: verbatim for its own mistakes, generic for
 /// internal faults (which are logged once here instead).
 pub fn public_message(e: &ServiceError, status: StatusCode) -> String {
+    if let ServiceError::Storage(detail) = e {
+        tracing::error!(error = %detail, "storage failure");
+        return "the session store failed; the observation was not recorded (see the server log)"
+            .to_string();
+    }
     if status.is_server_error() && status != StatusCode::SERVICE_UNAVAILABLE {
         tracing::error!(error = ?e, "internal error");
         return "internal error".to_string();
@@ -101,7 +115,14 @@ impl IntoResponse for ApiError {
             code: code.to_string(),
             message: public_message(&self.0, status),
         };
-        (status, Json(body)).into_response()
+        let mut response = (status, Json(body)).into_response();
+        if status == StatusCode::UNAUTHORIZED {
+            response.headers_mut().insert(
+                axum::http::header::WWW_AUTHENTICATE,
+                axum::http::HeaderValue::from_static("Bearer realm=\"mcapi\""),
+            );
+        }
+        response
     }
 }
 

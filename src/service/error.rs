@@ -32,6 +32,13 @@ pub enum ServiceError {
     /// The tick queue is full or the server is stopping.
     #[error("{0}")]
     Unavailable(String),
+    /// No valid API key: the header is missing, malformed or unknown. The
+    /// message says which, never the key.
+    #[error("{0}")]
+    Unauthenticated(String),
+    /// The durable store failed; the request's effect was not made durable.
+    #[error("storage failure: {0}")]
+    Storage(String),
     /// A fault of the server, not the client's; details are logged, not sent.
     #[error("internal error")]
     Internal(String),

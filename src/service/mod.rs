@@ -11,7 +11,7 @@ pub mod tick;
 use std::collections::{BTreeMap, HashMap};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Weak};
-use std::time::{SystemTime, UNIX_EPOCH};
+use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
 use parking_lot::{Mutex, RwLock};
 use serde::{Deserialize, Serialize};
@@ -175,6 +175,34 @@ pub struct Values {
     pub xi: Option<Vec<Vec<Option<Vec<f64>>>>>,
 }
 
+/// Default of [`ManagerOptions::inline_plan`].
+pub const DEFAULT_INLINE_PLAN: Duration = Duration::from_micros(20);
+
+/// How a [`SessionManager`] runs.
+#[derive(Debug, Clone)]
+pub struct ManagerOptions {
+    /// The limits in force.
+    pub limits: Limits,
+    /// Tick-loop worker threads.
+    pub workers: usize,
+    /// Policy updates measured to cost at most this much run on the
+    /// requesting task instead of the tick pool: handing a 1 µs update to
+    /// another thread costs several µs of wake-ups and context switches.
+    /// Zero sends every update to the pool.
+    pub inline_plan: Duration,
+}
+
+impl ManagerOptions {
+    /// Defaults with these limits and workers.
+    pub fn new(limits: Limits, workers: usize) -> Self {
+        Self {
+            limits,
+            workers,
+            inline_plan: DEFAULT_INLINE_PLAN,
+        }
+    }
+}
+
 /// The session manager: owns sessions, shared models and the tick pool.
 pub struct SessionManager {
     sessions: RwLock<BTreeMap<String, SessionRef>>,
@@ -182,6 +210,7 @@ pub struct SessionManager {
     limits: Limits,
     pool: TickPool,
     seed_counter: AtomicU64,
+    inline_plan_ns: u64,
 }
 
 /// SplitMix64, for seeds and shards.
@@ -193,8 +222,18 @@ fn splitmix(mut z: u64) -> u64 {
 }
 
 impl SessionManager {
-    /// A manager with `workers` tick threads.
+    /// A manager with `workers` tick threads and default options.
     pub fn new(limits: Limits, workers: usize) -> Result<Self, ServiceError> {
+        Self::with_options(ManagerOptions::new(limits, workers))
+    }
+
+    /// A manager with these options.
+    pub fn with_options(opts: ManagerOptions) -> Result<Self, ServiceError> {
+        let ManagerOptions {
+            limits,
+            workers,
+            inline_plan,
+        } = opts;
         let pool = TickPool::start(workers, limits.queue)
             .map_err(|e| ServiceError::Internal(format!("starting tick workers: {e}")))?;
         let now = SystemTime::now()
@@ -206,6 +245,7 @@ impl SessionManager {
             limits,
             pool,
             seed_counter: AtomicU64::new(splitmix(now ^ u64::from(std::process::id()))),
+            inline_plan_ns: u64::try_from(inline_plan.as_nanos()).unwrap_or(u64::MAX),
         })
     }
 
@@ -403,7 +443,19 @@ impl SessionManager {
         }
         let session = self.session(id)?;
         let n = batch.len() as u64;
+        // Updates measured to be cheap run here: a hand-off to the pool
+        // would cost more than the update itself.
+        let inline = session.plan_cost_ns().saturating_mul(n) <= self.inline_plan_ns;
         let out = match session.mode {
+            UpdateMode::Lockstep if inline => {
+                let started = Instant::now();
+                let out = session.observe(&batch, true);
+                metrics::histogram!("mcapi_tick_seconds").record(started.elapsed().as_secs_f64());
+                if let Err(e @ ServiceError::Algo(crate::algo::AlgoError::Numerical(_))) = &out {
+                    tick::log_plan_error(&session, e);
+                }
+                out?
+            }
             UpdateMode::Lockstep => {
                 let (tx, rx) = oneshot::channel();
                 self.pool.submit(Job::Observe {
@@ -417,7 +469,15 @@ impl SessionManager {
             }
             UpdateMode::Async => {
                 let out = session.observe(&batch, false)?;
-                if session.try_enqueue()
+                if inline {
+                    let started = Instant::now();
+                    match session.plan_if_needed() {
+                        Ok(true) => metrics::histogram!("mcapi_tick_seconds")
+                            .record(started.elapsed().as_secs_f64()),
+                        Ok(false) => {}
+                        Err(e) => tick::log_plan_error(&session, &e),
+                    }
+                } else if session.try_enqueue()
                     && let Err(e) = self.pool.submit(Job::Plan(Arc::clone(&session)))
                 {
                     session.dequeued();

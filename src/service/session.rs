@@ -3,7 +3,8 @@
 
 use std::collections::VecDeque;
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Instant;
 
 use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
@@ -86,6 +87,9 @@ pub struct Session {
     pub state: Mutex<SessionState>,
     /// True while a plan job for this session waits in the tick queue.
     pub queued: AtomicBool,
+    /// Moving average of one policy update's cost in nanoseconds;
+    /// `u64::MAX` until the first update is measured.
+    plan_cost_ns: AtomicU64,
     history_cap: usize,
 }
 
@@ -103,7 +107,30 @@ impl Session {
                 history: VecDeque::new(),
             }),
             queued: AtomicBool::new(false),
+            plan_cost_ns: AtomicU64::new(u64::MAX),
         }
+    }
+
+    /// The measured cost of one policy update (a moving average over recent
+    /// updates), or `u64::MAX` before the first.
+    pub fn plan_cost_ns(&self) -> u64 {
+        self.plan_cost_ns.load(Ordering::Relaxed)
+    }
+
+    fn record_plan_cost(&self, started: Instant, updates: usize) {
+        if updates == 0 {
+            return;
+        }
+        let x =
+            u64::try_from(started.elapsed().as_nanos() / updates as u128).unwrap_or(u64::MAX - 1);
+        let old = self.plan_cost_ns.load(Ordering::Relaxed);
+        let new = if old == u64::MAX {
+            x
+        } else {
+            (old.saturating_mul(3).saturating_add(x)) / 4
+        };
+        self.plan_cost_ns
+            .store(new.min(u64::MAX - 1), Ordering::Relaxed);
     }
 
     /// Applies observations in order. With `plan` (lockstep) each is followed
@@ -118,24 +145,14 @@ impl Session {
         plan: bool,
     ) -> Result<Vec<StepOut>, ServiceError> {
         let mut st = self.state.lock();
+        let started = Instant::now();
         let mut out = Vec::with_capacity(batch.len());
-        for (i, obs) in batch.iter().enumerate() {
-            match st.apply(obs, plan, self.history_cap) {
-                Ok(step) => out.push(step),
-                Err(e) if batch.len() == 1 => return Err(e),
-                Err(e) => {
-                    return Err(match e {
-                        ServiceError::Algo(AlgoError::Numerical(_)) | ServiceError::Internal(_) => {
-                            e
-                        }
-                        e => ServiceError::BadRequest(format!(
-                            "`observations[{i}]`: {e} (the {i} observations before it were applied)"
-                        )),
-                    });
-                }
-            }
+        let result = st.apply_all(batch, plan, self.history_cap, &mut out);
+        drop(st);
+        if plan {
+            self.record_plan_cost(started, out.len());
         }
-        Ok(out)
+        result.map(|()| out)
     }
 
     /// One policy update if the reward changed since the last one (the tick
@@ -145,7 +162,10 @@ impl Session {
         if !st.agent.needs_plan() {
             return Ok(false);
         }
+        let started = Instant::now();
         st.agent.plan()?;
+        drop(st);
+        self.record_plan_cost(started, 1);
         Ok(true)
     }
 
@@ -168,6 +188,32 @@ impl Session {
 }
 
 impl SessionState {
+    fn apply_all(
+        &mut self,
+        batch: &[ObservationIn],
+        plan: bool,
+        history_cap: usize,
+        out: &mut Vec<StepOut>,
+    ) -> Result<(), ServiceError> {
+        for (i, obs) in batch.iter().enumerate() {
+            match self.apply(obs, plan, history_cap) {
+                Ok(step) => out.push(step),
+                Err(e) if batch.len() == 1 => return Err(e),
+                Err(e) => {
+                    return Err(match e {
+                        ServiceError::Algo(AlgoError::Numerical(_)) | ServiceError::Internal(_) => {
+                            e
+                        }
+                        e => ServiceError::BadRequest(format!(
+                            "`observations[{i}]`: {e} (the {i} observations before it were applied)"
+                        )),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
     fn apply(
         &mut self,
         obs: &ObservationIn,
