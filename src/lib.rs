@@ -22,4 +22,5 @@ pub mod experiments;
 pub mod loadgen;
 pub mod server;
 pub mod service;
+pub mod store;
 pub mod telemetry;

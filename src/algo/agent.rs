@@ -563,7 +563,10 @@ mod tests {
         let ta = walk(&mut a, &mut state, 500);
         let tb = walk(&mut b, &mut state_b, 500);
         assert_eq!(ta, tb, "the restored agent must follow the same trajectory");
-        assert!(a.snapshot() == b.snapshot(), "identical state after 500 ticks");
+        assert!(
+            a.snapshot() == b.snapshot(),
+            "identical state after 500 ticks"
+        );
     }
 
     #[test]

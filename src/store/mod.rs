@@ -1,0 +1,549 @@
+//! The durable session store (DESIGN.md, "Durability"): one redb file in the
+//! data directory holding, per session, its creation record, its newest
+//! snapshot and the log of observations since that snapshot.
+//!
+//! The store knows keys, sequence numbers and bytes, not what they mean: the
+//! service encodes its records (`service::durable`). Writes go through one
+//! writer thread that commits everything queued since its last commit in a
+//! single transaction (group commit), so many concurrent observations share
+//! one disk sync. A caller learns that its write is durable by awaiting the
+//! [`Commit`] it got back.
+//!
+//! Layout (format version [`FORMAT_VERSION`]):
+//! - `meta`: `"format_version"` → u64;
+//! - `sessions`: id → creation record;
+//! - `snapshots`: id → (sequence number, snapshot);
+//! - `log`: (id, sequence number) → observation record. A snapshot at
+//!   sequence number n trims the entries up to n.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::Instant;
+
+use crossbeam_channel::{Receiver, Sender, unbounded};
+use parking_lot::Mutex;
+use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
+use thiserror::Error;
+use tokio::sync::oneshot;
+
+/// Version of the on-disk layout; a file of another version is refused.
+pub const FORMAT_VERSION: u64 = 1;
+
+/// Name of the store file inside the data directory.
+pub const FILE_NAME: &str = "mcapi.redb";
+
+const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
+const SESSIONS: TableDefinition<&str, &[u8]> = TableDefinition::new("sessions");
+const SNAPSHOTS: TableDefinition<&str, (u64, &[u8])> = TableDefinition::new("snapshots");
+const LOG: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("log");
+
+/// Most writes folded into one transaction.
+const MAX_GROUP: usize = 8192;
+
+/// What can go wrong with the store.
+#[derive(Debug, Clone, Error)]
+pub enum StoreError {
+    /// The data directory or file cannot be used.
+    #[error("{path}: {reason}")]
+    Io {
+        /// The path concerned.
+        path: PathBuf,
+        /// What failed.
+        reason: String,
+    },
+    /// The file is damaged: truncated, overwritten, or a record that does
+    /// not decode.
+    #[error("the store {path} is corrupt: {reason}")]
+    Corrupt {
+        /// The store file.
+        path: PathBuf,
+        /// What is wrong.
+        reason: String,
+    },
+    /// The file was written by an incompatible version of mcapi.
+    #[error(
+        "the store {path} has format version {found}; this mcapi reads version {FORMAT_VERSION}"
+    )]
+    Version {
+        /// The store file.
+        path: PathBuf,
+        /// The version found.
+        found: u64,
+    },
+    /// A read or write failed while running.
+    #[error("store failure: {0}")]
+    Failed(String),
+    /// The store was closed.
+    #[error("the store is closed")]
+    Closed,
+}
+
+fn failed(e: impl std::fmt::Display) -> StoreError {
+    StoreError::Failed(e.to_string())
+}
+
+/// One write.
+#[derive(Debug, Clone)]
+pub enum Write {
+    /// Creates (or replaces) a session's creation record.
+    Session {
+        /// Session id.
+        id: Arc<str>,
+        /// The encoded record.
+        record: Vec<u8>,
+    },
+    /// Appends one observation record to a session's log.
+    Append {
+        /// Session id.
+        id: Arc<str>,
+        /// Sequence number (strictly increasing per session).
+        seq: u64,
+        /// The encoded observation.
+        entry: Vec<u8>,
+    },
+    /// Replaces a session's snapshot and trims its log up to `seq`.
+    Snapshot {
+        /// Session id.
+        id: Arc<str>,
+        /// Sequence number of the last observation the snapshot covers.
+        seq: u64,
+        /// The encoded snapshot.
+        snapshot: Vec<u8>,
+    },
+    /// Deletes a session's record, snapshot and log.
+    Delete {
+        /// Session id.
+        id: Arc<str>,
+    },
+}
+
+struct Pending {
+    writes: Vec<Write>,
+    done: Option<oneshot::Sender<Result<(), StoreError>>>,
+}
+
+/// Resolves when the writes it was returned for are durable.
+#[derive(Debug)]
+pub struct Commit(oneshot::Receiver<Result<(), StoreError>>);
+
+impl Commit {
+    /// Waits for the commit.
+    pub async fn wait(self) -> Result<(), StoreError> {
+        self.0.await.unwrap_or(Err(StoreError::Closed))
+    }
+
+    /// Waits for the commit, blocking the thread (not for async code).
+    pub fn wait_blocking(self) -> Result<(), StoreError> {
+        self.0.blocking_recv().unwrap_or(Err(StoreError::Closed))
+    }
+}
+
+/// A stored session as found at start.
+#[derive(Debug, Clone)]
+pub struct StoredSession {
+    /// Session id.
+    pub id: String,
+    /// The creation record.
+    pub record: Vec<u8>,
+    /// The newest snapshot and the sequence number it covers.
+    pub snapshot: Option<(u64, Vec<u8>)>,
+}
+
+/// The store: a redb database and its writer thread.
+pub struct Store {
+    db: Arc<Database>,
+    path: PathBuf,
+    tx: Mutex<Option<Sender<Pending>>>,
+    writer: Mutex<Option<JoinHandle<()>>>,
+}
+
+impl std::fmt::Debug for Store {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Store").field("path", &self.path).finish()
+    }
+}
+
+impl Store {
+    /// Opens (or creates) the store in `dir`, checking the file's integrity
+    /// and format version.
+    pub fn open(dir: &Path) -> Result<Self, StoreError> {
+        std::fs::create_dir_all(dir).map_err(|e| StoreError::Io {
+            path: dir.to_path_buf(),
+            reason: format!("cannot create the data directory: {e}"),
+        })?;
+        let path = dir.join(FILE_NAME);
+        let corrupt = |reason: String| StoreError::Corrupt {
+            path: path.clone(),
+            reason,
+        };
+        let existed = path.metadata().map(|m| m.len() > 0).unwrap_or(false);
+        let db = Database::builder()
+            .set_check_integrity_on_open(true)
+            .create(&path)
+            .map_err(|e| match e {
+                redb::DatabaseError::DatabaseAlreadyOpen => StoreError::Io {
+                    path: path.clone(),
+                    reason: "already open in another process (is another mcapi running on this data directory?)".into(),
+                },
+                redb::DatabaseError::Storage(redb::StorageError::Io(io))
+                    if io.kind() != std::io::ErrorKind::InvalidData =>
+                {
+                    StoreError::Io {
+                    path: path.clone(),
+                        reason: io.to_string(),
+                    }
+                }
+                other => corrupt(other.to_string()),
+            })?;
+        let write = db.begin_write().map_err(|e| corrupt(e.to_string()))?;
+        {
+            let mut meta = write.open_table(META).map_err(|e| corrupt(e.to_string()))?;
+            let found = meta
+                .get("format_version")
+                .map_err(|e| corrupt(e.to_string()))?
+                .map(|v| v.value());
+            match found {
+                Some(FORMAT_VERSION) => {}
+                Some(found) => {
+                    return Err(StoreError::Version {
+                        path: path.clone(),
+                        found,
+                    });
+                }
+                None if existed => {
+                    return Err(corrupt("the format version record is missing".into()));
+                }
+                None => {
+                    meta.insert("format_version", FORMAT_VERSION)
+                        .map_err(|e| corrupt(e.to_string()))?;
+                }
+            }
+            write
+                .open_table(SESSIONS)
+                .map_err(|e| corrupt(e.to_string()))?;
+            write
+                .open_table(SNAPSHOTS)
+                .map_err(|e| corrupt(e.to_string()))?;
+            write.open_table(LOG).map_err(|e| corrupt(e.to_string()))?;
+        }
+        write.commit().map_err(|e| corrupt(e.to_string()))?;
+
+        let db = Arc::new(db);
+        let (tx, rx) = unbounded::<Pending>();
+        let writer_db = Arc::clone(&db);
+        let writer = std::thread::Builder::new()
+            .name("mcapi-store".into())
+            .spawn(move || writer(&writer_db, &rx))
+            .map_err(|e| StoreError::Io {
+                path: path.clone(),
+                reason: format!("starting the writer thread: {e}"),
+            })?;
+        Ok(Self {
+            db,
+            path,
+            tx: Mutex::new(Some(tx)),
+            writer: Mutex::new(Some(writer)),
+        })
+    }
+
+    /// The store file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+
+    /// Queues writes for the next group commit. They become durable together
+    /// and in order; writes submitted later never commit before them.
+    pub fn submit(&self, writes: Vec<Write>) -> Commit {
+        let (done, rx) = oneshot::channel();
+        let pending = Pending {
+            writes,
+            done: Some(done),
+        };
+        if let Some(tx) = self.tx.lock().as_ref()
+            && tx.send(pending).is_ok()
+        {
+            return Commit(rx);
+        }
+        let (done, rx) = oneshot::channel();
+        let _ = done.send(Err(StoreError::Closed));
+        Commit(rx)
+    }
+
+    /// Every stored session: its record and newest snapshot.
+    pub fn sessions(&self) -> Result<Vec<StoredSession>, StoreError> {
+        let read = self.db.begin_read().map_err(failed)?;
+        let sessions = read.open_table(SESSIONS).map_err(failed)?;
+        let snapshots = read.open_table(SNAPSHOTS).map_err(failed)?;
+        let mut out = Vec::new();
+        for row in sessions.iter().map_err(failed)? {
+            let (id, record) = row.map_err(failed)?;
+            let id = id.value().to_string();
+            let snapshot = snapshots.get(id.as_str()).map_err(failed)?.map(|v| {
+                let (seq, bytes) = v.value();
+                (seq, bytes.to_vec())
+            });
+            out.push(StoredSession {
+                id,
+                record: record.value().to_vec(),
+                snapshot,
+            });
+        }
+        Ok(out)
+    }
+
+    /// Calls `f(seq, entry)` for each log entry of session `id` after
+    /// sequence number `after`, in order.
+    pub fn for_each_entry(
+        &self,
+        id: &str,
+        after: Option<u64>,
+        mut f: impl FnMut(u64, &[u8]) -> Result<(), StoreError>,
+    ) -> Result<(), StoreError> {
+        let read = self.db.begin_read().map_err(failed)?;
+        let log = read.open_table(LOG).map_err(failed)?;
+        let start = after.map_or(0, |a| a.saturating_add(1));
+        if after == Some(u64::MAX) {
+            return Ok(());
+        }
+        for row in log.range((id, start)..=(id, u64::MAX)).map_err(failed)? {
+            let (key, value) = row.map_err(failed)?;
+            f(key.value().1, value.value())?;
+        }
+        Ok(())
+    }
+
+    /// Stops the writer after it has committed everything queued.
+    pub fn close(&self) {
+        self.tx.lock().take();
+        if let Some(h) = self.writer.lock().take()
+            && h.join().is_err()
+        {
+            tracing::error!("the store writer panicked");
+        }
+    }
+}
+
+impl Drop for Store {
+    fn drop(&mut self) {
+        self.close();
+    }
+}
+
+fn writer(db: &Database, rx: &Receiver<Pending>) {
+    while let Ok(first) = rx.recv() {
+        let mut group = vec![first];
+        let mut writes = group[0].writes.len();
+        while writes < MAX_GROUP
+            && let Ok(next) = rx.try_recv()
+        {
+            writes += next.writes.len();
+            group.push(next);
+        }
+        let started = Instant::now();
+        let result = commit(db, &group);
+        metrics::histogram!("mcapi_store_commit_seconds").record(started.elapsed().as_secs_f64());
+        metrics::histogram!("mcapi_store_commit_writes").record(writes as f64);
+        if let Err(e) = &result {
+            tracing::error!(error = %e, writes, "store commit failed");
+        }
+        for mut p in group {
+            if let Some(done) = p.done.take() {
+                let _ = done.send(result.clone());
+            }
+        }
+    }
+}
+
+fn commit(db: &Database, group: &[Pending]) -> Result<(), StoreError> {
+    let mut txn = db.begin_write().map_err(failed)?;
+    txn.set_durability(Durability::Immediate).map_err(failed)?;
+    {
+        let mut sessions = txn.open_table(SESSIONS).map_err(failed)?;
+        let mut snapshots = txn.open_table(SNAPSHOTS).map_err(failed)?;
+        let mut log = txn.open_table(LOG).map_err(failed)?;
+        for write in group.iter().flat_map(|p| &p.writes) {
+            match write {
+                Write::Session { id, record } => {
+                    sessions.insert(&**id, record.as_slice()).map_err(failed)?;
+                }
+                Write::Append { id, seq, entry } => {
+                    log.insert((&**id, *seq), entry.as_slice())
+                        .map_err(failed)?;
+                }
+                Write::Snapshot { id, seq, snapshot } => {
+                    snapshots
+                        .insert(&**id, (*seq, snapshot.as_slice()))
+                        .map_err(failed)?;
+                    log.retain_in((&**id, 0)..=(&**id, *seq), |_, _| false)
+                        .map_err(failed)?;
+                }
+                Write::Delete { id } => {
+                    sessions.remove(&**id).map_err(failed)?;
+                    snapshots.remove(&**id).map_err(failed)?;
+                    log.retain_in((&**id, 0)..=(&**id, u64::MAX), |_, _| false)
+                        .map_err(failed)?;
+                }
+            }
+        }
+    }
+    txn.commit().map_err(failed)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn id(s: &str) -> Arc<str> {
+        Arc::from(s)
+    }
+
+    fn entries(store: &Store, s: &str, after: Option<u64>) -> Vec<(u64, Vec<u8>)> {
+        let mut out = Vec::new();
+        store
+            .for_each_entry(s, after, |seq, e| {
+                out.push((seq, e.to_vec()));
+                Ok(())
+            })
+            .expect("read log");
+        out
+    }
+
+    #[test]
+    fn writes_survive_reopening_and_snapshots_trim_the_log() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        {
+            let store = Store::open(dir.path()).expect("open");
+            let mut writes = vec![Write::Session {
+                id: id("a"),
+                record: b"ra".to_vec(),
+            }];
+            writes.extend((0..5).map(|seq| Write::Append {
+                id: id("a"),
+                seq,
+                entry: vec![seq as u8],
+            }));
+            writes.push(Write::Session {
+                id: id("ab"),
+                record: b"rab".to_vec(),
+            });
+            writes.push(Write::Append {
+                id: id("ab"),
+                seq: 0,
+                entry: vec![9],
+            });
+            store.submit(writes).wait_blocking().expect("commit");
+            store
+                .submit(vec![Write::Snapshot {
+                    id: id("a"),
+                    seq: 2,
+                    snapshot: b"snap".to_vec(),
+                }])
+                .wait_blocking()
+                .expect("snapshot");
+            store.close();
+        }
+        let store = Store::open(dir.path()).expect("reopen");
+        let sessions = store.sessions().expect("sessions");
+        assert_eq!(sessions.len(), 2);
+        assert_eq!(sessions[0].id, "a");
+        assert_eq!(sessions[0].record, b"ra");
+        assert_eq!(sessions[0].snapshot, Some((2, b"snap".to_vec())));
+        assert_eq!(sessions[1].snapshot, None);
+        // Entries up to the snapshot are gone; "ab" is not mixed into "a".
+        assert_eq!(entries(&store, "a", None), vec![(3, vec![3]), (4, vec![4])]);
+        assert_eq!(entries(&store, "a", Some(3)), vec![(4, vec![4])]);
+        assert_eq!(entries(&store, "ab", None), vec![(0, vec![9])]);
+        store
+            .submit(vec![Write::Delete { id: id("a") }])
+            .wait_blocking()
+            .expect("delete");
+        assert_eq!(store.sessions().expect("sessions").len(), 1);
+        assert!(entries(&store, "a", None).is_empty());
+    }
+
+    #[test]
+    fn concurrent_submissions_share_commits_and_all_land() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Arc::new(Store::open(dir.path()).expect("open"));
+        let threads: Vec<_> = (0..8)
+            .map(|t| {
+                let store = Arc::clone(&store);
+                std::thread::spawn(move || {
+                    let sid = id(&format!("s{t}"));
+                    for seq in 0..50 {
+                        store
+                            .submit(vec![Write::Append {
+                                id: Arc::clone(&sid),
+                                seq,
+                                entry: vec![t as u8],
+                            }])
+                            .wait_blocking()
+                            .expect("commit");
+                    }
+                })
+            })
+            .collect();
+        for t in threads {
+            t.join().expect("thread");
+        }
+        for t in 0..8 {
+            let got = entries(&store, &format!("s{t}"), None);
+            assert_eq!(got.len(), 50);
+            assert!(got.iter().enumerate().all(|(i, (seq, _))| *seq == i as u64));
+        }
+    }
+
+    #[test]
+    fn a_damaged_file_is_refused() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        {
+            let store = Store::open(dir.path()).expect("open");
+            let writes = (0..2000)
+                .map(|seq| Write::Append {
+                    id: id("a"),
+                    seq,
+                    entry: vec![7; 64],
+                })
+                .collect();
+            store.submit(writes).wait_blocking().expect("commit");
+        }
+        let path = dir.path().join(FILE_NAME);
+        let len = std::fs::metadata(&path).expect("meta").len();
+        let file = std::fs::OpenOptions::new()
+            .write(true)
+            .open(&path)
+            .expect("open file");
+        file.set_len(len / 2).expect("truncate");
+        drop(file);
+        let err = Store::open(dir.path()).expect_err("a truncated store must not open");
+        assert!(matches!(err, StoreError::Corrupt { .. }), "{err}");
+    }
+
+    #[test]
+    fn garbage_is_refused() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::write(dir.path().join(FILE_NAME), vec![0x5a; 1 << 16]).expect("write");
+        let err = Store::open(dir.path()).expect_err("garbage must not open");
+        assert!(matches!(err, StoreError::Corrupt { .. }), "{err}");
+    }
+
+    #[test]
+    fn another_format_version_is_refused() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        {
+            let db = Database::create(dir.path().join(FILE_NAME)).expect("db");
+            let w = db.begin_write().expect("write");
+            w.open_table(META)
+                .expect("meta")
+                .insert("format_version", FORMAT_VERSION + 1)
+                .expect("insert");
+            w.commit().expect("commit");
+        }
+        let err = Store::open(dir.path()).expect_err("version");
+        assert!(
+            matches!(err, StoreError::Version { found, .. } if found == FORMAT_VERSION + 1),
+            "{err}"
+        );
+    }
+}
