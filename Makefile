@@ -1,9 +1,9 @@
 # `make test` is what CI runs (.ci/run): formatting, lints, every test.
 CARGO ?= cargo
 
-.PHONY: test lint-docker fmt-check clippy unit build release bench figures peers clean
+.PHONY: test lint-docker fmt-check clippy unit build release bench figures peers clean python-test
 
-test: lint-docker fmt-check clippy unit
+test: lint-docker fmt-check clippy unit python-test
 
 # hadolint on the Dockerfile (installs a pinned hadolint into .venv-tools/).
 lint-docker:
@@ -20,6 +20,17 @@ unit:
 
 release:
 	$(CARGO) build --release --locked
+
+# The Python client (clients/python) against the release binary: a venv in
+# clients/python/.venv, the package installed (not editable) with its test
+# extras at the pinned versions of constraints.txt, then pytest.
+PYTHON ?= python3
+PY_CLIENT := clients/python
+python-test: release
+	test -x $(PY_CLIENT)/.venv/bin/python || $(PYTHON) -m venv $(PY_CLIENT)/.venv
+	$(PY_CLIENT)/.venv/bin/python -m pip install --quiet --disable-pip-version-check \
+	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[test,gymnasium,plot]'
+	cd $(PY_CLIENT) && .venv/bin/pytest
 
 # Criterion benches of the core tick.
 bench:

@@ -162,6 +162,7 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "payload_too_large": (PayloadTooLarge, 413),
     "too_many_sessions": (TooManySessions, 429),
     "unavailable": (Unavailable, 503),
+    "storage_unavailable": (Unavailable, 503),
     "numerical_failure": (InternalError, 500),
     "internal": (InternalError, 500),
 }
@@ -183,6 +184,8 @@ _BY_GRPC: Final[dict[str, tuple[type[McapiError], int | None]]] = {
     "UNAUTHENTICATED": (Unauthenticated, 401),
     "NOT_FOUND": (NotFound, 404),
     "RESOURCE_EXHAUSTED": (LimitExceeded, 413),
+    # gRPC's own message-size limit (tonic refuses an oversized message so).
+    "OUT_OF_RANGE": (LimitExceeded, 413),
     "UNAVAILABLE": (Unavailable, 503),
     "DEADLINE_EXCEEDED": (Timeout, None),
     "INTERNAL": (InternalError, 500),

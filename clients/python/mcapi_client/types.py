@@ -8,9 +8,12 @@ in the order of the model's ``stimuli``; actions come with their names.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Literal, Union
+
+from .errors import error_for
 
 __all__ = [
     "UpdateMode",
@@ -329,7 +332,14 @@ class Observation:
         """The observation as the REST API takes it."""
         out: dict[str, object] = {"state": self.state}
         if self.stimulus is not None:
-            out["stimulus"] = [float(x) for x in self.stimulus]
+            stimulus = [float(x) for x in self.stimulus]
+            for i, x in enumerate(stimulus):
+                if not math.isfinite(x):
+                    # JSON has no NaN or infinity: refused here as the server would.
+                    raise error_for(
+                        "non_finite_number", f"`stimulus[{i}]` is {x}, not a finite number"
+                    )
+            out["stimulus"] = stimulus
         if self.action_taken is not None:
             out["action_taken"] = self.action_taken
         return out

@@ -1,0 +1,171 @@
+"""Fixtures: the real ``mcapi serve`` binary on free ports, and clients of it.
+
+The binary is ``target/release/mcapi`` at the repository root (``make
+python-test`` builds it), or the path in ``MCAPI_BIN``. Each server gets a
+temporary data directory; flags the binary does not know yet (``--store
+redb``, ``--api-key``) are detected from ``mcapi serve --help``.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+
+import httpx
+import pytest
+
+from mcapi_client import Client, GrpcClient
+
+REPO_ROOT = Path(__file__).resolve().parents[3]
+PACKAGE_ROOT = Path(__file__).resolve().parents[1]
+BINARY = Path(os.environ.get("MCAPI_BIN", REPO_ROOT / "target" / "release" / "mcapi"))
+STARTUP_TIMEOUT = 30.0
+
+
+@cache
+def serve_help() -> str:
+    """The binary's ``serve --help`` text."""
+    if not BINARY.exists():
+        pytest.fail(
+            f"the server binary {BINARY} does not exist: build it with "
+            "`cargo build --release --locked` (or set MCAPI_BIN)",
+            pytrace=False,
+        )
+    out = subprocess.run(
+        [str(BINARY), "serve", "--help"], capture_output=True, text=True, timeout=30, check=True
+    )
+    return out.stdout
+
+
+def supports_api_keys() -> bool:
+    """Whether ``mcapi serve`` takes ``--api-key``."""
+    return "--api-key" in serve_help()
+
+
+def _store_args(data_dir: Path) -> list[str]:
+    args = ["--data-dir", str(data_dir)]
+    if "redb" in serve_help():
+        args += ["--store", "redb"]
+    return args
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return int(s.getsockname()[1])
+
+
+@dataclass
+class Server:
+    """A running ``mcapi serve``."""
+
+    http_url: str
+    grpc_target: str
+    process: subprocess.Popen[bytes]
+    log: Path
+
+    def log_tail(self, lines: int = 40) -> str:
+        """The last lines of the server's log."""
+        return "\n".join(self.log.read_text(errors="replace").splitlines()[-lines:])
+
+    def stop(self) -> None:
+        """SIGTERM, then SIGKILL if it does not stop within 10 s."""
+        if self.process.poll() is None:
+            self.process.send_signal(signal.SIGTERM)
+            try:
+                self.process.wait(timeout=10)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                self.process.wait()
+
+
+def start_server(workdir: Path, extra: Sequence[str] = (), env: dict[str, str] | None = None) -> Server:
+    """Starts the binary on free ports and waits until REST answers ``/readyz``
+    and the gRPC port accepts connections."""
+    workdir.mkdir(parents=True, exist_ok=True)
+    # Nothing from the caller's environment configures the server under test.
+    base_env = {k: v for k, v in os.environ.items() if not k.startswith("MCAPI_")}
+    base_env.update(env or {})
+    last_error = ""
+    for attempt in range(5):
+        http_port, grpc_port = _free_port(), _free_port()
+        if http_port == grpc_port:
+            continue
+        log = workdir / f"server-{attempt}.log"
+        args = [
+            str(BINARY),
+            "serve",
+            "--http",
+            f"127.0.0.1:{http_port}",
+            "--grpc",
+            f"127.0.0.1:{grpc_port}",
+            "--workers",
+            "2",
+            *_store_args(workdir / "data"),
+            *extra,
+        ]
+        with log.open("wb") as out:
+            process = subprocess.Popen(args, stdout=out, stderr=subprocess.STDOUT, env=base_env)
+        server = Server(f"http://127.0.0.1:{http_port}", f"127.0.0.1:{grpc_port}", process, log)
+        deadline = time.monotonic() + STARTUP_TIMEOUT
+        while time.monotonic() < deadline and process.poll() is None:
+            try:
+                if httpx.get(f"{server.http_url}/readyz", timeout=1.0).status_code == 200:
+                    with socket.create_connection(("127.0.0.1", grpc_port), timeout=1.0):
+                        return server
+            except (httpx.HTTPError, OSError):
+                pass
+            time.sleep(0.05)
+        server.stop()
+        last_error = server.log_tail()
+        if "bind" not in last_error.lower() and "in use" not in last_error.lower():
+            break  # not a port race: retrying will not help
+    pytest.fail(f"mcapi serve did not become ready:\n{last_error}", pytrace=False)
+
+
+@pytest.fixture(scope="session")
+def server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+    """One server for the whole run, without API keys."""
+    srv = start_server(tmp_path_factory.mktemp("mcapi"))
+    yield srv
+    srv.stop()
+    assert srv.process.returncode == 0, f"server exited with {srv.process.returncode}:\n{srv.log_tail()}"
+
+
+@pytest.fixture
+def client(server: Server) -> Iterator[Client]:
+    """A REST client of the shared server."""
+    with Client(server.http_url, timeout=30.0) as c:
+        yield c
+
+
+@pytest.fixture
+def grpc_client(server: Server) -> Iterator[GrpcClient]:
+    """A gRPC client of the shared server."""
+    with GrpcClient(server.grpc_target, timeout=30.0) as c:
+        yield c
+
+
+@pytest.fixture
+def anyio_backend() -> str:
+    """AsyncClient tests run on asyncio."""
+    return "asyncio"
+
+
+@pytest.fixture
+def examples_path() -> Iterator[Path]:
+    """The examples folder, importable for the duration of a test."""
+    path = PACKAGE_ROOT / "examples"
+    sys.path.insert(0, str(path))
+    try:
+        yield path
+    finally:
+        sys.path.remove(str(path))

@@ -1,0 +1,73 @@
+"""The examples' main functions on short runs against the real server."""
+
+from __future__ import annotations
+
+import importlib
+import re
+from pathlib import Path
+
+import pytest
+
+from conftest import Server
+
+
+def _run(module: str, argv: list[str], capsys: pytest.CaptureFixture[str]) -> str:
+    example = importlib.import_module(module)
+    assert example.main(argv) == 0
+    return capsys.readouterr().out
+
+
+def test_hallway_rest(
+    server: Server, examples_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    plot = tmp_path / "drive.png"
+    out = _run("hallway_rest", ["--url", server.http_url, "--steps", "400", "--plot", str(plot)], capsys)
+    switches = re.findall(r"tick +\d+: seeking (food|rest)", out)
+    assert len(switches) >= 3, out  # the start, then at least two switches
+    visits = dict(re.findall(r"(food|rest) (\d+)", out.splitlines()[-2 if "plot" in out else -1]))
+    assert int(visits["food"]) > 0 and int(visits["rest"]) > 0, out
+    try:
+        import matplotlib  # noqa: F401
+    except ImportError:
+        assert "matplotlib is not installed" in out
+    else:
+        assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", "a PNG was saved"
+        assert f"saved the plot of D over time to {plot}" in out
+
+
+def test_hallway_stream(server: Server, examples_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = _run(
+        "hallway_stream",
+        ["--target", server.grpc_target, "--steps", "2000", "--report-every", "0.2"],
+        capsys,
+    )
+    final = re.search(r"2000 ticks in [\d.]+ s: (\d+) ticks/s; (\d+) drive switches; visits: food (\d+), rest (\d+)", out)
+    assert final, out
+    rate, switches, food, rest = map(int, final.groups())
+    assert rate > 0 and switches >= 10 and food > 0 and rest > 0, out
+    assert re.search(r"^ +\d+ ticks/s$", out, re.MULTILINE), "rate lines while running"
+
+
+def test_frozenlake(server: Server, examples_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("gymnasium", reason="the gymnasium extra is not installed")
+    out = _run("frozenlake", ["--url", server.http_url, "--steps", "1500", "--window", "500"], capsys)
+    assert "FrozenLake 4x4, slippery: 16 states" in out
+    assert len(re.findall(r"^ticks +\d+: visits", out, re.MULTILINE)) == 3
+    total = re.search(r"total visits: food (\d+), water (\d+)", out)
+    assert total, out
+    food, water = map(int, total.groups())
+    assert food > 0 and water > 0, "the agent reaches both sources"
+    assert min(food, water) >= 0.3 * max(food, water), f"balanced: food {food}, water {water}"
+
+
+def test_examples_delete_their_sessions(
+    server: Server, examples_path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    from mcapi_client import Client
+
+    with Client(server.http_url) as c:
+        before = {s.id for s in c.iter_sessions()}
+        _run("hallway_rest", ["--url", server.http_url, "--steps", "5", "--no-plot"], capsys)
+        _run("hallway_rest", ["--url", server.http_url, "--steps", "5", "--no-plot", "--keep"], capsys)
+        after = {s.id for s in c.iter_sessions()}
+    assert len(after - before) == 1, "only the --keep run left its session"
