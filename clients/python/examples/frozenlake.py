@@ -26,9 +26,9 @@ import argparse
 import random
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from mcapi_client import Client, models
-
 
 # Source cells per map (FrozenLake numbers cells row by row): food in the top
 # row's far corner, water on the left edge; both are free cells ("F").
@@ -68,7 +68,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 2
 
     env = gymnasium.make("FrozenLake-v1", map_name=args.map, is_slippery=True)
-    lake = env.unwrapped  # stepped directly: an agent's life has no time limit
+    lake: Any = env.unwrapped  # stepped directly: an agent's life has no time limit
     sources = SOURCES[args.map]
     model = models.from_gymnasium(env, sources=sources)
     print(f"FrozenLake {args.map}, slippery: {model.states} states, {model.transitions} transitions")

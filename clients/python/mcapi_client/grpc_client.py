@@ -274,7 +274,7 @@ class GrpcClient:
             if credentials is not None
             else grpc.insecure_channel(target, options=opts)
         )
-        self._stub = pb_grpc.AgentsStub(self._channel)
+        self._stub = pb_grpc.AgentsStub(self._channel)  # type: ignore[no-untyped-call]
         self._timeout = timeout
         self._auth: _Metadata = (
             (("authorization", f"Bearer {api_key}"),) if api_key is not None else ()

@@ -283,7 +283,7 @@ class GridModel(Model):
     def render(self, marks: Mapping[int, str] | None = None) -> list[str]:
         """The map's rows, walls as ``#``, with ``marks[state]`` drawn over cells."""
         out = [["#"] * self.cols for _ in range(self.rows)]
-        for s, (r, c) in enumerate(self.cells):
+        for r, c in self.cells:
             out[r][c] = "."
         for mark, s in self.marks:
             r, c = self.cells[s]

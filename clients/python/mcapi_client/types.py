@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Literal, Union
+from typing import Any, Literal, Union
 
 from .errors import error_for
 
@@ -345,7 +345,7 @@ class Observation:
         return out
 
 
-ObservationLike = Union[Observation, Mapping[str, object], tuple]
+ObservationLike = Union[Observation, Mapping[str, object], tuple[Any, ...]]
 """What batch methods accept per observation: an :class:`Observation`, a
 mapping with ``state``/``stimulus``/``action_taken`` keys, or a tuple
 ``(state, stimulus[, action_taken])``."""

@@ -9,6 +9,7 @@ redb``, ``--api-key``) are detected from ``mcapi serve --help``.
 from __future__ import annotations
 
 import os
+import re
 import signal
 import socket
 import subprocess
@@ -52,7 +53,8 @@ def supports_api_keys() -> bool:
 
 def _store_args(data_dir: Path) -> list[str]:
     args = ["--data-dir", str(data_dir)]
-    if "redb" in serve_help():
+    # clap lists the values of --store as "- redb: ..." lines.
+    if re.search(r"^\s*-\s*redb\b", serve_help(), re.MULTILINE):
         args += ["--store", "redb"]
     return args
 

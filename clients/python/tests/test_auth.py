@@ -7,8 +7,8 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-
 from conftest import Server, start_server, supports_api_keys
+
 from mcapi_client import Client, GrpcClient, NotFound, Unauthenticated
 
 KEY_A, KEY_B = "test-key-a", "test-key-b"

@@ -9,8 +9,8 @@ from http import HTTPStatus
 from typing import Any
 
 import pytest
-
 from conftest import REPO_ROOT, Server, start_server
+
 from mcapi_client import (
     BadRequest,
     Client,
@@ -147,10 +147,10 @@ def test_limits(tmp_path_factory: pytest.TempPathFactory) -> None:
         with Client(small.http_url) as rest, GrpcClient(small.grpc_target) as grpc:
             sid = rest.create_session("hallway").id
             grpc.create_session("hallway")
+            four = [(0,), (1, [0, 0]), (2, [0, 0]), (3, [0, 0])]
             for c in (rest, grpc):
-                _raises(TooManySessions, "too_many_sessions", 429, lambda: c.create_session("hallway"))
-                _raises(LimitExceeded, "limit_exceeded", 413,
-                        lambda: c.observe_batch(sid, [(0,), (1, [0, 0]), (2, [0, 0]), (3, [0, 0])]))
+                _raises(TooManySessions, "too_many_sessions", 429, lambda c=c: c.create_session("hallway"))
+                _raises(LimitExceeded, "limit_exceeded", 413, lambda c=c: c.observe_batch(sid, four))
             big = [(i % 50, [0.0, 0.0]) for i in range(300)]
             _raises(LimitExceeded, "payload_too_large", 413, lambda: rest.observe_batch(sid, big))
             with pytest.raises(LimitExceeded) as e:

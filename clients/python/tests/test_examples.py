@@ -7,7 +7,6 @@ import re
 from pathlib import Path
 
 import pytest
-
 from conftest import Server
 
 
@@ -41,7 +40,10 @@ def test_hallway_stream(server: Server, examples_path: Path, capsys: pytest.Capt
         ["--target", server.grpc_target, "--steps", "2000", "--report-every", "0.2"],
         capsys,
     )
-    final = re.search(r"2000 ticks in [\d.]+ s: (\d+) ticks/s; (\d+) drive switches; visits: food (\d+), rest (\d+)", out)
+    final = re.search(
+        r"2000 ticks in [\d.]+ s: (\d+) ticks/s; (\d+) drive switches; visits: food (\d+), rest (\d+)",
+        out,
+    )
     assert final, out
     rate, switches, food, rest = map(int, final.groups())
     assert rate > 0 and switches >= 10 and food > 0 and rest > 0, out

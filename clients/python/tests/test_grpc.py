@@ -80,7 +80,11 @@ def test_same_answers_as_rest(client: Client, grpc_client: GrpcClient) -> None:
     batch = [Observation(state, [0.0, 0.0], "stay"), Observation(state, [0.0, 0.0], 2)]
     assert client.observe_batch(rest_id, batch) == grpc_client.observe_batch(grpc_id, batch)
     rest_info, grpc_info = client.get_session(rest_id), grpc_client.get_session(grpc_id)
-    assert (rest_info.tick, rest_info.drive, rest_info.state) == (grpc_info.tick, grpc_info.drive, grpc_info.state)
+    assert (rest_info.tick, rest_info.drive, rest_info.state) == (
+        grpc_info.tick,
+        grpc_info.drive,
+        grpc_info.state,
+    )
     assert rest_info.stats == grpc_info.stats
     assert rest_info.model == grpc_info.model
     rest_values = client.values(rest_id, "all")
