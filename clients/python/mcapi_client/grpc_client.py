@@ -335,8 +335,9 @@ class GrpcClient:
     ) -> SessionInfo:
         """Creates a session; arguments as :meth:`mcapi_client.Client.create_session`."""
         agent = AgentOptions(
-            eta, gamma, priorities, stimulus_rate, optimistic_sd, ridge, epsilon, seed,
-            update_mode, history,
+            eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
+            optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
+            update_mode=update_mode, history=history,
         )
         request = _pb.create_request(model_json(model), agent)
         return self._remember(_pb.session_info(self._unary(self._stub.CreateSession, request)))

@@ -225,8 +225,9 @@ class Client:
             The new session, with its effective configuration (seed included).
         """
         agent = AgentOptions(
-            eta, gamma, priorities, stimulus_rate, optimistic_sd, ridge, epsilon, seed,
-            update_mode, history,
+            eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
+            optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
+            update_mode=update_mode, history=history,
         )
         body = {"model": model_json(model), "agent": agent.to_json()}
         return self._remember(_json.session_info(self._request("POST", "/v1/sessions", json=body)))
@@ -408,8 +409,9 @@ class AsyncClient:
     ) -> SessionInfo:
         """Creates a session; see :meth:`Client.create_session`."""
         agent = AgentOptions(
-            eta, gamma, priorities, stimulus_rate, optimistic_sd, ridge, epsilon, seed,
-            update_mode, history,
+            eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
+            optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
+            update_mode=update_mode, history=history,
         )
         body = {"model": model_json(model), "agent": agent.to_json()}
         return self._remember(
