@@ -8,7 +8,7 @@ use std::time::Duration;
 use clap::{Args, ValueEnum};
 use serde::Serialize;
 
-use crate::service::{Limits, ManagerOptions};
+use crate::service::{ApiKeys, Limits, ManagerOptions};
 
 /// Log output format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
@@ -22,6 +22,9 @@ pub enum LogFormat {
 /// Where sessions are kept.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
 pub enum StoreKind {
+    /// The embedded store (redb) in `--data-dir`: sessions survive restarts
+    /// and crashes.
+    Redb,
     /// In memory only: sessions are lost when the server stops.
     Memory,
 }
@@ -35,12 +38,27 @@ pub struct ServeConfig {
     /// gRPC listen address.
     #[arg(long, env = "MCAPI_GRPC", default_value = "127.0.0.1:50051")]
     pub grpc: SocketAddr,
-    /// Data directory of the durable store (used once the embedded store lands).
+    /// Data directory of the embedded store (created if missing).
     #[arg(long, env = "MCAPI_DATA_DIR", default_value = "./data")]
     pub data_dir: PathBuf,
-    /// Session store. Only `memory` exists so far.
-    #[arg(long, env = "MCAPI_STORE", value_enum, default_value = "memory")]
+    /// Session store: `redb` (durable, in --data-dir) or `memory`.
+    #[arg(long, env = "MCAPI_STORE", value_enum, default_value = "redb")]
     pub store: StoreKind,
+    /// Logged observations between two snapshots of a session (the log
+    /// before a snapshot is trimmed).
+    #[arg(long, env = "MCAPI_SNAPSHOT_EVERY", default_value_t = crate::service::DEFAULT_SNAPSHOT_EVERY)]
+    pub snapshot_every: u64,
+    /// API key clients must send as `Authorization: Bearer <key>`; repeat
+    /// for several keys (env: comma-separated). Each key sees only the
+    /// sessions it created. Without keys, no authentication.
+    #[arg(
+        long = "api-key",
+        env = "MCAPI_API_KEYS",
+        value_delimiter = ',',
+        hide_env_values = true
+    )]
+    #[serde(skip)]
+    pub api_keys: Vec<String>,
     /// Tick-loop worker threads (default: number of cores).
     #[arg(long, env = "MCAPI_WORKERS")]
     pub workers: Option<usize>,
@@ -103,6 +121,8 @@ impl ServeConfig {
     pub fn manager_options(&self) -> ManagerOptions {
         ManagerOptions {
             inline_plan: Duration::from_micros(self.inline_plan_us),
+            snapshot_every: self.snapshot_every,
+            keys: ApiKeys::new(&self.api_keys),
             ..ManagerOptions::new(self.limits(), self.worker_count())
         }
     }
@@ -113,6 +133,18 @@ impl ServeConfig {
             return Err(format!("--http and --grpc both use {}", self.http));
         }
         let workers = self.worker_count();
+        if self.snapshot_every == 0 {
+            return Err("--snapshot-every must be at least 1".into());
+        }
+        if self.api_keys.iter().any(|k| k.trim().is_empty()) {
+            return Err("--api-key / MCAPI_API_KEYS: a key is empty".into());
+        }
+        if let Some(k) = self.api_keys.iter().find(|k| k.trim().len() < 16) {
+            return Err(format!(
+                "--api-key / MCAPI_API_KEYS: keys must have at least 16 characters (one has {})",
+                k.trim().len()
+            ));
+        }
         if self.inline_plan_us > 10_000 {
             return Err(format!(
                 "--inline-plan-us must be at most 10000 (10 ms), not {}; longer updates belong on the tick pool",

@@ -127,7 +127,9 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
 fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
     telemetry::init_logging(cfg.log_format, "info");
     cfg.validate().map_err(anyhow::Error::msg)?;
-    tracing::info!(config = ?cfg, "starting");
+    // The JSON form leaves the API keys out; they are never logged.
+    let shown = serde_json::to_string(&cfg).unwrap_or_default();
+    tracing::info!(config = %shown, api_keys = cfg.api_keys.len(), "starting");
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;

@@ -4,7 +4,6 @@
 
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
 
 use anyhow::{Context, Result};
 use tokio::net::TcpListener;
@@ -12,8 +11,9 @@ use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
 use crate::api::rest::{self, AppState};
-use crate::config::ServeConfig;
+use crate::config::{ServeConfig, StoreKind};
 use crate::service::SessionManager;
+use crate::store::Store;
 use crate::telemetry;
 
 /// A running server.
@@ -36,7 +36,13 @@ async fn stopped(mut rx: watch::Receiver<bool>) {
 /// Validates the configuration, binds both ports and starts serving.
 pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     cfg.validate().map_err(anyhow::Error::msg)?;
-    let manager = Arc::new(SessionManager::with_options(cfg.manager_options())?);
+    let mut options = cfg.manager_options();
+    if cfg.store == StoreKind::Redb {
+        let store = Store::open(&cfg.data_dir).context("opening the session store")?;
+        tracing::info!(path = %store.path().display(), "session store open");
+        options.store = Some(Arc::new(store));
+    }
+    let manager = Arc::new(SessionManager::with_options(options)?);
     let http = TcpListener::bind(cfg.http)
         .await
         .with_context(|| format!("binding the REST port {}", cfg.http))?;
@@ -48,7 +54,6 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     let state = AppState {
         manager: Arc::clone(&manager),
         metrics: telemetry::prometheus(),
-        ready: Arc::new(AtomicBool::new(true)),
     };
     let app = rest::router(state);
     let rest_task = tokio::spawn({
@@ -70,13 +75,36 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
         }
     });
     tracing::info!(%http_addr, %grpc_addr, workers = cfg.worker_count(), "mcapi serving");
-    Ok(Running {
+    let running = Running {
         http_addr,
         grpc_addr,
         manager,
         stop,
         tasks: vec![rest_task, grpc_task],
-    })
+    };
+    // Health answers during recovery; readiness and the API wait for it.
+    let recovering = Arc::clone(&running.manager);
+    match tokio::task::spawn_blocking(move || recovering.recover()).await {
+        Ok(Ok(report)) => {
+            if report.sessions > 0 {
+                tracing::info!(
+                    sessions = report.sessions,
+                    replayed = report.replayed,
+                    seconds = report.seconds,
+                    "sessions recovered"
+                );
+            }
+            Ok(running)
+        }
+        Ok(Err(e)) => {
+            running.shutdown();
+            Err(anyhow::anyhow!("recovering stored sessions: {e}"))
+        }
+        Err(e) => {
+            running.shutdown();
+            Err(anyhow::anyhow!("recovery task failed: {e}"))
+        }
+    }
 }
 
 impl Running {

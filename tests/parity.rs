@@ -26,6 +26,8 @@ fn stimulus(state: usize) -> Vec<f64> {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn rest_and_grpc_give_identical_trajectories() {
+    // On the durable store: parity must hold with group commit in the path.
+    let data = tempfile::tempdir().expect("data dir");
     let cfg = Cli::parse_from([
         "mcapi",
         "--http",
@@ -34,6 +36,8 @@ async fn rest_and_grpc_give_identical_trajectories() {
         "127.0.0.1:0",
         "--workers",
         "2",
+        "--data-dir",
+        data.path().to_str().expect("utf-8 path"),
     ])
     .serve;
     let running = mcapi::server::start(&cfg).await.expect("server starts");

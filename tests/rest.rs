@@ -4,7 +4,6 @@
 
 use std::net::SocketAddr;
 use std::sync::Arc;
-use std::sync::atomic::AtomicBool;
 
 use mcapi::algo::model::hallway;
 use mcapi::algo::{Agent, AgentParams, Basis, Observation, PlanningModel};
@@ -22,7 +21,6 @@ async fn start(limits: Limits) -> Server {
     let state = AppState {
         manager: Arc::clone(&manager),
         metrics: mcapi::telemetry::prometheus(),
-        ready: Arc::new(AtomicBool::new(true)),
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
         .await
@@ -453,7 +451,7 @@ async fn many_concurrent_sessions() {
     }
     for t in tasks {
         let id = t.await.expect("task");
-        assert_eq!(server.manager.get(&id).expect("session").tick, 100);
+        assert_eq!(server.manager.get(mcapi::service::Caller::Anyone, &id).expect("session").tick, 100);
     }
 }
 

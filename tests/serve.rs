@@ -25,6 +25,7 @@ fn healthcheck(url: &str) -> bool {
 #[test]
 fn serve_answers_and_stops_on_sigterm() {
     let (http, grpc) = (free_port(), free_port());
+    let data = tempfile::tempdir().expect("data dir");
     let mut child = Command::new(env!("CARGO_BIN_EXE_mcapi"))
         .args([
             "serve",
@@ -34,6 +35,12 @@ fn serve_answers_and_stops_on_sigterm() {
             &format!("127.0.0.1:{grpc}"),
         ])
         .args(["--workers", "2", "--log-format", "json"])
+        .arg("--data-dir")
+        .arg(data.path())
+        .env(
+            "MCAPI_API_KEYS",
+            "a-secret-key-0123456789,another-key-abcdefghij",
+        )
         .stderr(Stdio::piped())
         .spawn()
         .expect("mcapi serve starts");
@@ -73,6 +80,18 @@ fn serve_answers_and_stops_on_sigterm() {
     assert!(
         log.contains("\"mcapi stopped\""),
         "JSON log with the stop line: {log}"
+    );
+    assert!(
+        log.contains("\"api_keys\":2"),
+        "the key count is logged: {log}"
+    );
+    assert!(
+        !log.contains("a-secret-key") && !log.contains("another-key"),
+        "API keys must never be logged: {log}"
+    );
+    assert!(
+        data.path().join("mcapi.redb").exists(),
+        "the store file is in --data-dir"
     );
     assert!(!healthcheck(&url), "port closed after shutdown");
 }

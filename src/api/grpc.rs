@@ -29,7 +29,7 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::Instrument;
 
 use crate::api::error::to_status;
-use crate::service::{ServiceError, SessionManager};
+use crate::service::{Caller, ServiceError, SessionManager};
 
 use pb::agents_server::{Agents, AgentsServer};
 
@@ -97,6 +97,19 @@ fn shutting_down() -> Status {
     ))
 }
 
+/// The caller, from the `authorization` metadata (`Bearer <key>`).
+fn caller(manager: &SessionManager, metadata: &MetadataMap) -> Result<Caller, Status> {
+    let header = match metadata.get("authorization") {
+        None => None,
+        Some(v) => Some(v.to_str().map_err(|_| {
+            to_status(ServiceError::Unauthenticated(
+                "the `authorization` metadata must be `Bearer <key>`".into(),
+            ))
+        })?),
+    };
+    manager.authenticate(header).map_err(to_status)
+}
+
 /// The `x-mcapi-session` metadata, if sent.
 fn metadata_session(metadata: &MetadataMap) -> Result<Option<String>, Status> {
     metadata
@@ -118,10 +131,11 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::CreateSessionRequest>,
     ) -> Result<Response<pb::SessionInfo>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
         let req = convert::create_session(request.into_inner()).map_err(to_status)?;
         let manager = Arc::clone(&self.manager);
         // Building a model (PVFs: an eigendecomposition) must not block the runtime.
-        let info = tokio::task::spawn_blocking(move || manager.create(req))
+        let info = tokio::task::spawn_blocking(move || manager.create(caller, req))
             .await
             .map_err(|e| to_status(ServiceError::Internal(format!("create task: {e}"))))?
             .map_err(to_status)?;
@@ -132,10 +146,11 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::GetSessionRequest>,
     ) -> Result<Response<pb::SessionInfo>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
         let meta = metadata_session(request.metadata())?;
         let pb::GetSessionRequest { session_id } = request.into_inner();
         let id = convert::session_id(session_id, meta.as_deref()).map_err(to_status)?;
-        let info = self.manager.get(&id).map_err(to_status)?;
+        let info = self.manager.get(caller, &id).map_err(to_status)?;
         Ok(Response::new(convert::session_info(info)))
     }
 
@@ -143,10 +158,11 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::ListSessionsRequest>,
     ) -> Result<Response<pb::ListSessionsResponse>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
         let (after, limit) = convert::list_request(request.into_inner());
         let page = self
             .manager
-            .list(after.as_deref(), limit)
+            .list(caller, after.as_deref(), limit)
             .map_err(to_status)?;
         Ok(Response::new(convert::session_page(page)))
     }
@@ -155,10 +171,11 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::DeleteSessionRequest>,
     ) -> Result<Response<pb::DeleteSessionResponse>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
         let meta = metadata_session(request.metadata())?;
         let pb::DeleteSessionRequest { session_id } = request.into_inner();
         let id = convert::session_id(session_id, meta.as_deref()).map_err(to_status)?;
-        self.manager.delete(&id).map_err(to_status)?;
+        self.manager.delete(caller, &id).await.map_err(to_status)?;
         Ok(Response::new(pb::DeleteSessionResponse {}))
     }
 
@@ -166,10 +183,15 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::ObserveRequest>,
     ) -> Result<Response<pb::ObserveResponse>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
         let meta = metadata_session(request.metadata())?;
         let (id, batch) =
             convert::observe_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
-        let steps = self.manager.observe(&id, batch).await.map_err(to_status)?;
+        let steps = self
+            .manager
+            .observe(caller, &id, batch)
+            .await
+            .map_err(to_status)?;
         Ok(Response::new(pb::ObserveResponse {
             steps: steps.into_iter().map(convert::step).collect(),
         }))
@@ -181,6 +203,7 @@ impl Agents for AgentsService {
         &self,
         request: Request<Streaming<pb::Observation>>,
     ) -> Result<Response<Self::InteractStream>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
         let meta = metadata_session(request.metadata())?;
         let span = tracing::info_span!("interact", session = meta.as_deref().unwrap_or(""));
         let inbound = request.into_inner();
@@ -190,7 +213,7 @@ impl Agents for AgentsService {
         tokio::spawn(
             async move {
                 tokio::select! {
-                    () = interact_loop(&manager, inbound, meta.as_deref(), &tx) => {}
+                    () = interact_loop(&manager, caller, inbound, meta.as_deref(), &tx) => {}
                     () = tx.closed() => tracing::debug!("client went away"),
                     () = stopped(stopping) => {
                         let _ = tx.send(Err(shutting_down())).await;
@@ -208,11 +231,12 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::WatchRequest>,
     ) -> Result<Response<Self::WatchStream>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
         let meta = metadata_session(request.metadata())?;
         let (id, interval) =
             convert::watch_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
         // An unknown session fails the call itself, before any stream.
-        let first = self.manager.get(&id).map_err(to_status)?;
+        let first = self.manager.get(caller, &id).map_err(to_status)?;
         // One slot: a slow reader gets fresh snapshots, not a backlog of old ones.
         let (tx, rx) = mpsc::channel(1);
         let manager = Arc::clone(&self.manager);
@@ -221,7 +245,7 @@ impl Agents for AgentsService {
         tokio::spawn(
             async move {
                 tokio::select! {
-                    () = watch_loop(&manager, &id, interval, first, &tx) => {}
+                    () = watch_loop(&manager, caller, &id, interval, first, &tx) => {}
                     () = tx.closed() => tracing::debug!("client went away"),
                     () = stopped(stopping) => {
                         let _ = tx.send(Err(shutting_down())).await;
@@ -237,10 +261,11 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::GetValuesRequest>,
     ) -> Result<Response<pb::Values>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
         let meta = metadata_session(request.metadata())?;
         let (id, sel) =
             convert::values_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
-        let values = self.manager.values(&id, sel).map_err(to_status)?;
+        let values = self.manager.values(caller, &id, sel).map_err(to_status)?;
         Ok(Response::new(convert::values(values)))
     }
 }
@@ -250,6 +275,7 @@ impl Agents for AgentsService {
 /// Ends when the client closes its side, or after sending an error.
 async fn interact_loop(
     manager: &SessionManager,
+    caller: Caller,
     mut inbound: Streaming<pb::Observation>,
     meta: Option<&str>,
     tx: &mpsc::Sender<Result<pb::Step, Status>>,
@@ -265,7 +291,7 @@ async fn interact_loop(
             }
         };
         let reply = match convert::observation(obs, meta) {
-            Ok((id, obs)) => manager.observe(&id, vec![obs]).await,
+            Ok((id, obs)) => manager.observe(caller, &id, vec![obs]).await,
             Err(e) => Err(e),
         };
         let reply = reply.and_then(|steps| {
@@ -292,6 +318,7 @@ async fn interact_loop(
 /// (ends with NOT_FOUND) or the client goes away.
 async fn watch_loop(
     manager: &SessionManager,
+    caller: Caller,
     id: &str,
     interval: Duration,
     first: crate::service::SessionInfo,
@@ -305,7 +332,7 @@ async fn watch_loop(
     }
     loop {
         ticker.tick().await;
-        match manager.get(id) {
+        match manager.get(caller, id) {
             Ok(info) => {
                 if tx.send(Ok(convert::session_info(info))).await.is_err() {
                     return;

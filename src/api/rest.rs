@@ -4,12 +4,14 @@
 //! docs page (`/docs`, vendored Swagger UI).
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::Instant;
 
 use axum::extract::rejection::{JsonRejection, QueryRejection};
-use axum::extract::{DefaultBodyLimit, FromRequest, MatchedPath, Path, Query, Request, State};
+use axum::extract::{
+    DefaultBodyLimit, FromRequest, FromRequestParts, MatchedPath, Path, Query, Request, State,
+};
 use axum::http::StatusCode;
+use axum::http::request::Parts;
 use axum::middleware::{self, Next};
 use axum::response::{IntoResponse, Response};
 use axum::routing::get;
@@ -22,7 +24,7 @@ use utoipa_swagger_ui::SwaggerUi;
 
 use crate::api::error::{ApiError, ErrorBody};
 use crate::service::{
-    CreateSession, HistoryEntry, ObservationIn, ServiceError, SessionInfo, SessionManager,
+    Caller, CreateSession, HistoryEntry, ObservationIn, ServiceError, SessionInfo, SessionManager,
     SessionPage, StepOut, ValueSelection, Values,
 };
 
@@ -33,8 +35,26 @@ pub struct AppState {
     pub manager: Arc<SessionManager>,
     /// Renders `/metrics`.
     pub metrics: Option<PrometheusHandle>,
-    /// Set once the server is ready to serve (after recovery).
-    pub ready: Arc<AtomicBool>,
+}
+
+/// The caller of a request, from its `Authorization` header (see
+/// `service::auth`); every `/v1` handler takes one.
+pub struct Auth(pub Caller);
+
+impl FromRequestParts<AppState> for Auth {
+    type Rejection = ApiError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &AppState) -> Result<Self, ApiError> {
+        let header = match parts.headers.get(axum::http::header::AUTHORIZATION) {
+            None => None,
+            Some(v) => Some(v.to_str().map_err(|_| {
+                ServiceError::Unauthenticated(
+                    "the `Authorization` header must be `Bearer <key>`".into(),
+                )
+            })?),
+        };
+        Ok(Self(state.manager.authenticate(header)?))
+    }
 }
 
 /// A JSON body whose rejections become `{"code","message"}` errors.
@@ -156,7 +176,7 @@ async fn healthz() -> &'static str {
 }
 
 async fn readyz(State(state): State<AppState>) -> Response {
-    if state.ready.load(Ordering::Acquire) {
+    if state.manager.is_ready() {
         "ready".into_response()
     } else {
         (StatusCode::SERVICE_UNAVAILABLE, "recovering").into_response()
@@ -184,10 +204,11 @@ async fn metrics_text(State(state): State<AppState>) -> Response {
     responses((status = 201, body = SessionInfo), (status = 400, body = ErrorBody), (status = 429, body = ErrorBody)))]
 async fn create_session(
     State(state): State<AppState>,
+    Auth(caller): Auth,
     JsonBody(req): JsonBody<CreateSession>,
 ) -> Result<(StatusCode, Json<SessionInfo>), ApiError> {
     let manager = Arc::clone(&state.manager);
-    let info = tokio::task::spawn_blocking(move || manager.create(req))
+    let info = tokio::task::spawn_blocking(move || manager.create(caller, req))
         .await
         .map_err(|e| ServiceError::Internal(format!("create task: {e}")))??;
     Ok((StatusCode::CREATED, Json(info)))
@@ -206,28 +227,35 @@ struct ListQuery {
 #[utoipa::path(get, path = "/v1/sessions", params(ListQuery), responses((status = 200, body = SessionPage)))]
 async fn list_sessions(
     State(state): State<AppState>,
+    Auth(caller): Auth,
     q: Result<Query<ListQuery>, QueryRejection>,
 ) -> Result<Json<SessionPage>, ApiError> {
     let q = query(q)?;
-    Ok(Json(state.manager.list(q.after.as_deref(), q.limit)?))
+    Ok(Json(state.manager.list(
+        caller,
+        q.after.as_deref(),
+        q.limit,
+    )?))
 }
 
 /// A session's drive, tick, policy version, model, configuration and statistics.
 #[utoipa::path(get, path = "/v1/sessions/{id}", responses((status = 200, body = SessionInfo), (status = 404, body = ErrorBody)))]
 async fn get_session(
     State(state): State<AppState>,
+    Auth(caller): Auth,
     Path(id): Path<String>,
 ) -> Result<Json<SessionInfo>, ApiError> {
-    Ok(Json(state.manager.get(&id)?))
+    Ok(Json(state.manager.get(caller, &id)?))
 }
 
 /// Delete a session.
 #[utoipa::path(delete, path = "/v1/sessions/{id}", responses((status = 204), (status = 404, body = ErrorBody)))]
 async fn delete_session(
     State(state): State<AppState>,
+    Auth(caller): Auth,
     Path(id): Path<String>,
 ) -> Result<StatusCode, ApiError> {
-    state.manager.delete(&id)?;
+    state.manager.delete(caller, &id).await?;
     Ok(StatusCode::NO_CONTENT)
 }
 
@@ -249,6 +277,7 @@ struct ObserveBatchReply {
     responses((status = 200, body = StepOut), (status = 400, body = ErrorBody), (status = 404, body = ErrorBody)))]
 async fn observe(
     State(state): State<AppState>,
+    Auth(caller): Auth,
     Path(id): Path<String>,
     JsonBody(body): JsonBody<Value>,
 ) -> Result<Response, ApiError> {
@@ -260,11 +289,11 @@ async fn observe(
     };
     if batch {
         let ObserveBatch { observations } = serde_json::from_value(body).map_err(parse_err)?;
-        let steps = state.manager.observe(&id, observations).await?;
+        let steps = state.manager.observe(caller, &id, observations).await?;
         Ok(Json(ObserveBatchReply { steps }).into_response())
     } else {
         let obs: ObservationIn = serde_json::from_value(body).map_err(parse_err)?;
-        let mut steps = state.manager.observe(&id, vec![obs]).await?;
+        let mut steps = state.manager.observe(caller, &id, vec![obs]).await?;
         let step = steps
             .pop()
             .ok_or_else(|| ServiceError::Internal("no step for an observation".into()))?;
@@ -284,11 +313,12 @@ struct ValuesQuery {
     responses((status = 200, body = Values), (status = 404, body = ErrorBody)))]
 async fn values(
     State(state): State<AppState>,
+    Auth(caller): Auth,
     Path(id): Path<String>,
     q: Result<Query<ValuesQuery>, QueryRejection>,
 ) -> Result<Json<Values>, ApiError> {
     let sel = ValueSelection::parse(query(q)?.include.as_deref())?;
-    Ok(Json(state.manager.values(&id, sel)?))
+    Ok(Json(state.manager.values(caller, &id, sel)?))
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -303,9 +333,10 @@ struct HistoryQuery {
     responses((status = 200, body = [HistoryEntry]), (status = 404, body = ErrorBody)))]
 async fn history(
     State(state): State<AppState>,
+    Auth(caller): Auth,
     Path(id): Path<String>,
     q: Result<Query<HistoryQuery>, QueryRejection>,
 ) -> Result<Json<Vec<HistoryEntry>>, ApiError> {
     let q = query(q)?;
-    Ok(Json(state.manager.history(&id, q.limit)?))
+    Ok(Json(state.manager.history(caller, &id, q.limit)?))
 }

@@ -2,6 +2,8 @@
 //! get, list, delete, observe, values and history of hosted agents, the
 //! limits, and the tick loop that runs policy updates off the request path.
 
+pub mod auth;
+pub mod durable;
 pub mod error;
 pub mod limits;
 pub mod session;
@@ -9,7 +11,7 @@ pub mod spec;
 pub mod tick;
 
 use std::collections::{BTreeMap, HashMap};
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
 
@@ -18,10 +20,12 @@ use serde::{Deserialize, Serialize};
 use tokio::sync::oneshot;
 
 use crate::algo::{Agent, Basis, PlanningModel};
+use crate::store::Store;
 
+pub use auth::{ApiKeys, Caller};
 pub use error::ServiceError;
 pub use limits::Limits;
-pub use session::{HistoryEntry, ObservationIn, Session, SessionRef, StepOut};
+pub use session::{Durability, HistoryEntry, ObservationIn, Session, SessionRef, StepOut};
 pub use spec::{
     BasisSummary, CreateSession, EffectiveConfig, ModelInput, ModelSummary, SessionConfig,
     UpdateMode,
@@ -190,15 +194,27 @@ pub struct ManagerOptions {
     /// another thread costs several µs of wake-ups and context switches.
     /// Zero sends every update to the pool.
     pub inline_plan: Duration,
+    /// The durable store, if any.
+    pub store: Option<Arc<Store>>,
+    /// Logged observations between snapshots of a session.
+    pub snapshot_every: u64,
+    /// API keys; none means no authentication.
+    pub keys: ApiKeys,
 }
 
+/// Default of [`ManagerOptions::snapshot_every`].
+pub const DEFAULT_SNAPSHOT_EVERY: u64 = 1000;
+
 impl ManagerOptions {
-    /// Defaults with these limits and workers.
+    /// Defaults with these limits and workers: in memory, no keys.
     pub fn new(limits: Limits, workers: usize) -> Self {
         Self {
             limits,
             workers,
             inline_plan: DEFAULT_INLINE_PLAN,
+            store: None,
+            snapshot_every: DEFAULT_SNAPSHOT_EVERY,
+            keys: ApiKeys::default(),
         }
     }
 }
@@ -211,6 +227,10 @@ pub struct SessionManager {
     pool: TickPool,
     seed_counter: AtomicU64,
     inline_plan_ns: u64,
+    durability: Option<Durability>,
+    keys: ApiKeys,
+    /// False while stored sessions are being recovered.
+    ready: AtomicBool,
 }
 
 /// SplitMix64, for seeds and shards.
@@ -233,7 +253,15 @@ impl SessionManager {
             limits,
             workers,
             inline_plan,
+            store,
+            snapshot_every,
+            keys,
         } = opts;
+        let ready = AtomicBool::new(store.is_none());
+        let durability = store.map(|store| Durability {
+            store,
+            snapshot_every: snapshot_every.max(1),
+        });
         let pool = TickPool::start(workers, limits.queue)
             .map_err(|e| ServiceError::Internal(format!("starting tick workers: {e}")))?;
         let now = SystemTime::now()
@@ -246,6 +274,9 @@ impl SessionManager {
             pool,
             seed_counter: AtomicU64::new(splitmix(now ^ u64::from(std::process::id()))),
             inline_plan_ns: u64::try_from(inline_plan.as_nanos()).unwrap_or(u64::MAX),
+            durability,
+            keys,
+            ready,
         })
     }
 
@@ -303,26 +334,38 @@ impl SessionManager {
         Ok((ctx, summary))
     }
 
-    /// Creates a session. Synchronous and possibly slow (a PVF basis costs
-    /// an eigendecomposition): call it off the async runtime.
-    pub fn create(&self, req: CreateSession) -> Result<SessionInfo, ServiceError> {
-        if self.len() >= self.limits.max_sessions {
-            return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+    /// The caller of a request with this `Authorization` header value;
+    /// refused while stored sessions are still being recovered.
+    pub fn authenticate(&self, authorization: Option<&str>) -> Result<Caller, ServiceError> {
+        if !self.is_ready() {
+            return Err(ServiceError::Unavailable(
+                "the server is recovering its stored sessions; retry shortly".into(),
+            ));
         }
-        let input = ModelInput::parse(req.model)?;
-        let (ctx, basis) = self.planning_model(&input)?;
+        self.keys.authenticate(authorization)
+    }
+
+    /// True once stored sessions are recovered (at once without a store).
+    pub fn is_ready(&self) -> bool {
+        self.ready.load(Ordering::Acquire)
+    }
+
+    /// Builds the agent of a session (fresh, or the base of a recovery).
+    fn build(
+        &self,
+        input: &ModelInput,
+        agent: &SessionConfig,
+    ) -> Result<(Agent, ModelSummary, EffectiveConfig), ServiceError> {
+        let (ctx, basis) = self.planning_model(input)?;
         let model = ctx.model();
-        let history = req.agent.history.unwrap_or(spec::DEFAULT_HISTORY);
+        let history = agent.history.unwrap_or(spec::DEFAULT_HISTORY);
         if history > self.limits.max_history {
             return Err(ServiceError::LimitExceeded(format!(
                 "`agent.history` is {history}; the limit is {}",
                 self.limits.max_history
             )));
         }
-        let params = req
-            .agent
-            .params()
-            .check(model.n_stimuli(), self.fresh_u64())?;
+        let params = agent.params().check(model.n_stimuli(), self.fresh_u64())?;
         let config = EffectiveConfig {
             eta: params.eta,
             gamma: params.gamma,
@@ -332,7 +375,7 @@ impl SessionManager {
             ridge: params.ridge,
             epsilon: params.epsilon,
             seed: params.seed,
-            update_mode: req.agent.update_mode.unwrap_or_default(),
+            update_mode: agent.update_mode.unwrap_or_default(),
             history,
         };
         let summary = ModelSummary {
@@ -345,12 +388,55 @@ impl SessionManager {
             basis,
             features: ctx.n_features(),
         };
+        Ok((Agent::new(ctx, params), summary, config))
+    }
+
+    /// Creates a session. Synchronous and possibly slow (a PVF basis costs
+    /// an eigendecomposition; with a store, the creation is committed before
+    /// this returns): call it off the async runtime.
+    pub fn create(&self, caller: Caller, req: CreateSession) -> Result<SessionInfo, ServiceError> {
+        if self.len() >= self.limits.max_sessions {
+            return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+        }
+        let model_text = self.durability.as_ref().map(|_| req.model.to_string());
+        let input = ModelInput::parse(req.model)?;
+        let (agent, summary, config) = self.build(&input, &req.agent)?;
         let id = format!("s{:04x}.{}", self.fresh_u64() % SHARDS, ulid::Ulid::new());
-        let agent = Agent::new(Arc::clone(&ctx), params);
-        let session = Arc::new(Session::new(id.clone(), agent, summary, config));
+        if let (Some(d), Some(model)) = (&self.durability, model_text) {
+            let record = durable::SessionRecord {
+                model,
+                config: config.clone(),
+                owner: caller.owner(),
+            };
+            let bytes = serde_json::to_vec(&record)
+                .map_err(|e| ServiceError::Internal(format!("encoding a session record: {e}")))?;
+            d.store
+                .submit(vec![crate::store::Write::Session {
+                    id: Arc::from(id.as_str()),
+                    record: bytes,
+                }])
+                .wait_blocking()
+                .map_err(|e| ServiceError::Storage(e.to_string()))?;
+        }
+        let session = Arc::new(Session::resume(
+            id.clone(),
+            agent,
+            summary,
+            config,
+            self.durability.clone(),
+            session::Resumed {
+                owner: caller.owner(),
+                ..session::Resumed::default()
+            },
+        ));
         {
             let mut sessions = self.sessions.write();
             if sessions.len() >= self.limits.max_sessions {
+                drop(sessions);
+                // Undo the stored record; the client sees the limit.
+                if let Some(commit) = session.delete() {
+                    let _ = commit.wait_blocking();
+                }
                 return Err(ServiceError::TooManySessions(self.limits.max_sessions));
             }
             sessions.insert(id.clone(), Arc::clone(&session));
@@ -360,7 +446,123 @@ impl SessionManager {
         Ok(info_of(&session))
     }
 
-    /// The session with this id.
+    /// Loads every stored session: snapshot, then the log after it, then
+    /// one policy update; sessions are rebuilt in parallel. Marks the
+    /// manager ready when done. Any record that does not decode or fit its
+    /// model fails the whole recovery: the server must not start on
+    /// silently wrong state.
+    pub fn recover(&self) -> Result<RecoveryReport, ServiceError> {
+        use rayon::prelude::*;
+        let Some(d) = &self.durability else {
+            self.ready.store(true, Ordering::Release);
+            return Ok(RecoveryReport::default());
+        };
+        let started = std::time::Instant::now();
+        let stored = d
+            .store
+            .sessions()
+            .map_err(|e| ServiceError::Storage(e.to_string()))?;
+        let recovered: Vec<Result<(SessionRef, u64), String>> = stored
+            .into_par_iter()
+            .map(|s| self.recover_one(d, s))
+            .collect();
+        let mut report = RecoveryReport::default();
+        let mut sessions = self.sessions.write();
+        for r in recovered {
+            let (session, replayed) = r.map_err(ServiceError::Storage)?;
+            report.sessions += 1;
+            report.replayed += replayed;
+            sessions.insert(session.id.clone(), session);
+        }
+        metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        drop(sessions);
+        report.seconds = started.elapsed().as_secs_f64();
+        self.ready.store(true, Ordering::Release);
+        Ok(report)
+    }
+
+    fn recover_one(
+        &self,
+        d: &Durability,
+        stored: crate::store::StoredSession,
+    ) -> Result<(SessionRef, u64), String> {
+        let id = stored.id;
+        let ctx = |e: String| format!("session `{id}`: {e}");
+        let record: durable::SessionRecord = serde_json::from_slice(&stored.record)
+            .map_err(|e| ctx(format!("its record does not decode: {e}")))?;
+        let model: serde_json::Value = serde_json::from_str(&record.model)
+            .map_err(|e| ctx(format!("its model does not decode: {e}")))?;
+        let input = ModelInput::parse(model).map_err(|e| ctx(e.to_string()))?;
+        let c = &record.config;
+        let agent_cfg = SessionConfig {
+            eta: Some(c.eta),
+            gamma: Some(c.gamma),
+            priorities: Some(c.priorities.clone()),
+            stimulus_rate: Some(c.stimulus_rate),
+            optimistic_sd: Some(c.optimistic_sd),
+            ridge: Some(c.ridge),
+            epsilon: Some(c.epsilon),
+            seed: Some(c.seed),
+            update_mode: Some(c.update_mode),
+            history: Some(c.history),
+        };
+        let (mut agent, summary, config) = self
+            .build(&input, &agent_cfg)
+            .map_err(|e| ctx(e.to_string()))?;
+        let mut history = std::collections::VecDeque::new();
+        let mut after = None;
+        if let Some((seq, bytes)) = &stored.snapshot {
+            let snap: durable::SnapshotRecord =
+                durable::decode(bytes, "its snapshot").map_err(&ctx)?;
+            agent = Agent::restore(
+                Arc::clone(agent.planning_model()),
+                agent.params().clone(),
+                snap.agent,
+            )
+            .map_err(|e| ctx(e.to_string()))?;
+            history = snap.history.into();
+            after = Some(*seq);
+        }
+        let mut next_seq = after.map_or(0, |s| s + 1);
+        let mut replayed = 0u64;
+        d.store
+            .for_each_entry(&id, after, |seq, bytes| {
+                if seq != next_seq {
+                    return Err(crate::store::StoreError::Failed(ctx(format!(
+                        "log entry {next_seq} is missing (found {seq})"
+                    ))));
+                }
+                let entry: durable::LogEntry = durable::decode(bytes, &format!("log entry {seq}"))
+                    .map_err(|e| crate::store::StoreError::Failed(ctx(e)))?;
+                durable::replay(&mut agent, &mut history, config.history, &entry).map_err(|e| {
+                    crate::store::StoreError::Failed(ctx(format!("log entry {seq}: {e}")))
+                })?;
+                next_seq += 1;
+                replayed += 1;
+                Ok(())
+            })
+            .map_err(|e| e.to_string())?;
+        if agent.needs_plan() {
+            agent.plan().map_err(|e| ctx(e.to_string()))?;
+        }
+        let since_snapshot = next_seq - after.map_or(0, |s| s + 1);
+        let session = Session::resume(
+            id.clone(),
+            agent,
+            summary,
+            config,
+            Some(d.clone()),
+            session::Resumed {
+                owner: record.owner,
+                history: history.into(),
+                seq: next_seq,
+                since_snapshot,
+            },
+        );
+        Ok((Arc::new(session), replayed))
+    }
+
+    /// The session with this id, whoever owns it (for tests and tools).
     pub fn session(&self, id: &str) -> Result<SessionRef, ServiceError> {
         self.sessions
             .read()
@@ -369,15 +571,27 @@ impl SessionManager {
             .ok_or_else(|| ServiceError::NotFound(id.to_string()))
     }
 
+    /// The session with this id if `caller` may see it; another key's
+    /// session is `NotFound`, exactly like a missing one.
+    pub fn session_for(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
+        let session = self.session(id)?;
+        if caller.may_see(session.owner.as_ref()) {
+            Ok(session)
+        } else {
+            Err(ServiceError::NotFound(id.to_string()))
+        }
+    }
+
     /// Details of a session.
     #[tracing::instrument(level = "debug", skip(self))]
-    pub fn get(&self, id: &str) -> Result<SessionInfo, ServiceError> {
-        Ok(info_of(&*self.session(id)?))
+    pub fn get(&self, caller: Caller, id: &str) -> Result<SessionInfo, ServiceError> {
+        Ok(info_of(&*self.session_for(caller, id)?))
     }
 
     /// Up to `limit` sessions with ids after `after`, in id order.
     pub fn list(
         &self,
+        caller: Caller,
         after: Option<&str>,
         limit: Option<usize>,
     ) -> Result<SessionPage, ServiceError> {
@@ -395,7 +609,11 @@ impl SessionManager {
             }
             None => sessions.range::<str, _>(..),
         };
-        let page: Vec<SessionRef> = range.take(limit + 1).map(|(_, s)| Arc::clone(s)).collect();
+        let page: Vec<SessionRef> = range
+            .filter(|(_, s)| caller.may_see(s.owner.as_ref()))
+            .take(limit + 1)
+            .map(|(_, s)| Arc::clone(s))
+            .collect();
         drop(sessions);
         let next = (page.len() > limit).then(|| page[limit - 1].id.clone());
         let sessions = page
@@ -411,14 +629,25 @@ impl SessionManager {
         Ok(SessionPage { sessions, next })
     }
 
-    /// Deletes a session.
+    /// Deletes a session and, with a store, its stored data (durably,
+    /// before this returns).
     #[tracing::instrument(level = "debug", skip(self))]
-    pub fn delete(&self, id: &str) -> Result<(), ServiceError> {
-        let mut sessions = self.sessions.write();
-        sessions
-            .remove(id)
-            .ok_or_else(|| ServiceError::NotFound(id.to_string()))?;
-        metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+    pub async fn delete(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
+        self.session_for(caller, id)?;
+        let session = {
+            let mut sessions = self.sessions.write();
+            let session = sessions
+                .remove(id)
+                .ok_or_else(|| ServiceError::NotFound(id.to_string()))?;
+            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+            session
+        };
+        if let Some(commit) = session.delete() {
+            commit
+                .wait()
+                .await
+                .map_err(|e| ServiceError::Storage(e.to_string()))?;
+        }
         tracing::info!(session = %id, "session deleted");
         Ok(())
     }
@@ -428,6 +657,7 @@ impl SessionManager {
     /// on the tick pool; async sessions reply at once and queue an update.
     pub async fn observe(
         &self,
+        caller: Caller,
         id: &str,
         batch: Vec<ObservationIn>,
     ) -> Result<Vec<StepOut>, ServiceError> {
@@ -441,7 +671,7 @@ impl SessionManager {
                 self.limits.max_batch
             )));
         }
-        let session = self.session(id)?;
+        let session = self.session_for(caller, id)?;
         let n = batch.len() as u64;
         // Updates measured to be cheap run here: a hand-off to the pool
         // would cost more than the update itself.
@@ -449,12 +679,14 @@ impl SessionManager {
         let out = match session.mode {
             UpdateMode::Lockstep if inline => {
                 let started = Instant::now();
-                let out = session.observe(&batch, true);
+                let observed = session.observe(&batch, true);
                 metrics::histogram!("mcapi_tick_seconds").record(started.elapsed().as_secs_f64());
-                if let Err(e @ ServiceError::Algo(crate::algo::AlgoError::Numerical(_))) = &out {
+                if let Err(e @ ServiceError::Algo(crate::algo::AlgoError::Numerical(_))) =
+                    &observed.result
+                {
                     tick::log_plan_error(&session, e);
                 }
-                out?
+                observed.durable().await?
             }
             UpdateMode::Lockstep => {
                 let (tx, rx) = oneshot::channel();
@@ -463,13 +695,14 @@ impl SessionManager {
                     batch,
                     reply: tx,
                 })?;
-                rx.await.map_err(|_| {
-                    ServiceError::Unavailable("the server is shutting down".into())
-                })??
+                rx.await
+                    .map_err(|_| ServiceError::Unavailable("the server is shutting down".into()))?
+                    .durable()
+                    .await?
             }
             UpdateMode::Async => {
-                let out = session.observe(&batch, false)?;
-                if inline {
+                let observed = session.observe(&batch, false);
+                if inline && observed.result.is_ok() {
                     let started = Instant::now();
                     match session.plan_if_needed() {
                         Ok(true) => metrics::histogram!("mcapi_tick_seconds")
@@ -483,7 +716,7 @@ impl SessionManager {
                     session.dequeued();
                     tracing::warn!(session = %session.id, error = %e, "policy update not queued");
                 }
-                out
+                observed.durable().await?
             }
         };
         metrics::counter!("mcapi_observations_total").increment(n);
@@ -492,8 +725,13 @@ impl SessionManager {
 
     /// Value tables of a session.
     #[tracing::instrument(level = "debug", skip(self))]
-    pub fn values(&self, id: &str, sel: ValueSelection) -> Result<Values, ServiceError> {
-        let session = self.session(id)?;
+    pub fn values(
+        &self,
+        caller: Caller,
+        id: &str,
+        sel: ValueSelection,
+    ) -> Result<Values, ServiceError> {
+        let session = self.session_for(caller, id)?;
         let st = session.state.lock();
         let agent = &st.agent;
         let model = agent.planning_model().model();
@@ -535,17 +773,44 @@ impl SessionManager {
     /// The most recent `limit` ticks of a session's history, oldest first.
     pub fn history(
         &self,
+        caller: Caller,
         id: &str,
         limit: Option<usize>,
     ) -> Result<Vec<HistoryEntry>, ServiceError> {
-        let session = self.session(id)?;
+        let session = self.session_for(caller, id)?;
         Ok(session.history(limit.unwrap_or(usize::MAX)))
     }
 
-    /// Stops the tick loop after draining its queue.
+    /// Stops the tick loop after draining its queue; with a store, writes
+    /// a snapshot of every session changed since its last one and closes
+    /// the store.
     pub fn shutdown(&self) {
         self.pool.shutdown();
+        let Some(d) = &self.durability else {
+            return;
+        };
+        let sessions: Vec<SessionRef> = self.sessions.read().values().cloned().collect();
+        let commits: Vec<_> = sessions.iter().filter_map(|s| s.snapshot()).collect();
+        let n = commits.len();
+        let failed = commits
+            .into_iter()
+            .map(crate::store::Commit::wait_blocking)
+            .filter(Result::is_err)
+            .count();
+        tracing::info!(snapshots = n, failed, "snapshots written at shutdown");
+        d.store.close();
     }
+}
+
+/// What `recover` did.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct RecoveryReport {
+    /// Sessions recovered.
+    pub sessions: u64,
+    /// Log entries replayed.
+    pub replayed: u64,
+    /// Wall time.
+    pub seconds: f64,
 }
 
 fn info_of(session: &Session) -> SessionInfo {

@@ -11,7 +11,9 @@ use serde::{Deserialize, Serialize};
 
 use crate::algo::model::ActionRef;
 use crate::algo::{Agent, AlgoError, Observation};
+use crate::store::{Commit, Store, Write};
 
+use super::durable::{LogEntry, SnapshotRecord, encode};
 use super::error::ServiceError;
 use super::spec::{EffectiveConfig, ModelSummary, UpdateMode};
 
@@ -70,6 +72,45 @@ pub struct SessionState {
     /// The MCA-PI agent.
     pub agent: Agent,
     history: VecDeque<HistoryEntry>,
+    /// Sequence number of the next log entry.
+    seq: u64,
+    /// Log entries since the last snapshot.
+    since_snapshot: u64,
+    /// Set by `delete`: the session takes no more observations.
+    deleted: bool,
+}
+
+/// Where a session's observations are made durable.
+#[derive(Debug, Clone)]
+pub struct Durability {
+    /// The store.
+    pub store: Arc<Store>,
+    /// A snapshot is written after this many logged observations.
+    pub snapshot_every: u64,
+}
+
+/// What `Session::observe` did: the replies (or the error that stopped the
+/// batch) and, with a store, the commit that makes the applied observations
+/// durable. Await the commit before replying, error or not.
+#[derive(Debug)]
+pub struct Observed {
+    /// One reply per observation, or the error that stopped the batch.
+    pub result: Result<Vec<StepOut>, ServiceError>,
+    /// Resolves once the applied observations are durable.
+    pub commit: Option<Commit>,
+}
+
+impl Observed {
+    /// Waits for durability, then hands back the replies.
+    pub async fn durable(self) -> Result<Vec<StepOut>, ServiceError> {
+        if let Some(commit) = self.commit {
+            commit
+                .wait()
+                .await
+                .map_err(|e| ServiceError::Storage(e.to_string()))?;
+        }
+        self.result
+    }
 }
 
 /// A hosted session. Immutable parts live outside the lock.
@@ -83,8 +124,11 @@ pub struct Session {
     pub model: ModelSummary,
     /// Effective configuration.
     pub config: EffectiveConfig,
+    /// SHA-256 of the API key that created it, if keys were in force.
+    pub owner: Option<[u8; 32]>,
     /// Mutable state.
     pub state: Mutex<SessionState>,
+    durability: Option<Durability>,
     /// True while a plan job for this session waits in the tick queue.
     pub queued: AtomicBool,
     /// Moving average of one policy update's cost in nanoseconds;
@@ -96,15 +140,32 @@ pub struct Session {
 impl Session {
     /// Wraps a fresh agent.
     pub fn new(id: String, agent: Agent, model: ModelSummary, config: EffectiveConfig) -> Self {
+        Self::resume(id, agent, model, config, None, Resumed::default())
+    }
+
+    /// Wraps an agent with its owner, store and recovered log position.
+    pub fn resume(
+        id: String,
+        agent: Agent,
+        model: ModelSummary,
+        config: EffectiveConfig,
+        durability: Option<Durability>,
+        resumed: Resumed,
+    ) -> Self {
         Self {
             id,
             mode: config.update_mode,
             history_cap: config.history,
             model,
             config,
+            owner: resumed.owner,
+            durability,
             state: Mutex::new(SessionState {
                 agent,
-                history: VecDeque::new(),
+                history: resumed.history.into(),
+                seq: resumed.seq,
+                since_snapshot: resumed.since_snapshot,
+                deleted: false,
             }),
             queued: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
@@ -139,20 +200,64 @@ impl Session {
     ///
     /// On an error at observation i, the i earlier ones stay applied and the
     /// message says so.
-    pub fn observe(
-        &self,
-        batch: &[ObservationIn],
-        plan: bool,
-    ) -> Result<Vec<StepOut>, ServiceError> {
+    ///
+    /// With a store, the applied observations are queued for the next group
+    /// commit while the lock is held, so the log keeps their order.
+    pub fn observe(&self, batch: &[ObservationIn], plan: bool) -> Observed {
         let mut st = self.state.lock();
+        if st.deleted {
+            return Observed {
+                result: Err(ServiceError::NotFound(self.id.clone())),
+                commit: None,
+            };
+        }
         let started = Instant::now();
         let mut out = Vec::with_capacity(batch.len());
-        let result = st.apply_all(batch, plan, self.history_cap, &mut out);
+        let mut log = Vec::new();
+        let log_to = self.durability.as_ref().map(|_| &mut log);
+        let result = st.apply_all(batch, plan, self.history_cap, &mut out, log_to);
+        let elapsed_from = started;
+        let commit = match &self.durability {
+            Some(d) if !log.is_empty() => Some(st.log(&self.id, d, log)),
+            _ => None,
+        };
         drop(st);
         if plan {
-            self.record_plan_cost(started, out.len());
+            self.record_plan_cost(elapsed_from, out.len());
         }
-        result.map(|()| out)
+        Observed {
+            result: result.map(|()| out),
+            commit,
+        }
+    }
+
+    /// Marks the session deleted (no observation is applied after this) and
+    /// deletes its stored data; the commit resolves once that is durable.
+    pub fn delete(&self) -> Option<Commit> {
+        let mut st = self.state.lock();
+        st.deleted = true;
+        self.durability.as_ref().map(|d| {
+            d.store.submit(vec![Write::Delete {
+                id: Arc::from(self.id.as_str()),
+            }])
+        })
+    }
+
+    /// Writes a snapshot now (at clean shutdown), unless nothing changed
+    /// since the last one.
+    pub fn snapshot(&self) -> Option<Commit> {
+        let d = self.durability.as_ref()?;
+        let mut st = self.state.lock();
+        if st.deleted || st.since_snapshot == 0 {
+            return None;
+        }
+        match st.snapshot_write(&self.id) {
+            Ok(w) => Some(d.store.submit(vec![w])),
+            Err(e) => {
+                tracing::error!(session = %self.id, error = %e, "snapshot not written");
+                None
+            }
+        }
     }
 
     /// One policy update if the reward changed since the last one (the tick
@@ -187,17 +292,90 @@ impl Session {
     }
 }
 
+/// What a recovered session resumes from.
+#[derive(Debug, Default)]
+pub struct Resumed {
+    /// Owner digest.
+    pub owner: Option<[u8; 32]>,
+    /// History ring, oldest first.
+    pub history: Vec<HistoryEntry>,
+    /// Sequence number of the next log entry.
+    pub seq: u64,
+    /// Log entries since the last snapshot.
+    pub since_snapshot: u64,
+}
+
 impl SessionState {
+    /// The history ring, oldest first.
+    pub fn history(&self) -> impl Iterator<Item = &HistoryEntry> {
+        self.history.iter()
+    }
+
+    fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
+        let record = SnapshotRecord {
+            agent: self.agent.snapshot(),
+            history: self.history.iter().cloned().collect(),
+        };
+        self.since_snapshot = 0;
+        Ok(Write::Snapshot {
+            id: Arc::from(id),
+            seq: self.seq.saturating_sub(1),
+            snapshot: encode(&record)?,
+        })
+    }
+
+    /// Queues log entries (and a snapshot when one is due) for commit.
+    fn log(&mut self, id: &str, d: &Durability, entries: Vec<LogEntry>) -> Commit {
+        let id: Arc<str> = Arc::from(id);
+        let mut writes = Vec::with_capacity(entries.len() + 1);
+        for entry in &entries {
+            match encode(entry) {
+                Ok(bytes) => writes.push(Write::Append {
+                    id: Arc::clone(&id),
+                    seq: self.seq,
+                    entry: bytes,
+                }),
+                Err(e) => tracing::error!(session = %id, error = %e, "log entry not encoded"),
+            }
+            self.seq += 1;
+            self.since_snapshot += 1;
+        }
+        if self.since_snapshot >= d.snapshot_every {
+            match self.snapshot_write(&id) {
+                Ok(w) => writes.push(w),
+                Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
+            }
+        }
+        d.store.submit(writes)
+    }
+
     fn apply_all(
         &mut self,
         batch: &[ObservationIn],
         plan: bool,
         history_cap: usize,
         out: &mut Vec<StepOut>,
+        mut log: Option<&mut Vec<LogEntry>>,
     ) -> Result<(), ServiceError> {
         for (i, obs) in batch.iter().enumerate() {
+            // The action whose pair this observation updates, resolved now.
+            let advised_before = self.agent.advised_action();
             match self.apply(obs, plan, history_cap) {
-                Ok(step) => out.push(step),
+                Ok((step, taken)) => {
+                    if let Some(log) = log.as_deref_mut() {
+                        log.push(LogEntry {
+                            state: obs.state as u32,
+                            stimulus: obs.stimulus.clone(),
+                            taken: obs
+                                .stimulus
+                                .as_ref()
+                                .and(taken.or(advised_before))
+                                .map(|a| a as u32),
+                            advised: step.action_index as u32,
+                        });
+                    }
+                    out.push(step);
+                }
                 Err(e) if batch.len() == 1 => return Err(e),
                 Err(e) => {
                     return Err(match e {
@@ -219,7 +397,7 @@ impl SessionState {
         obs: &ObservationIn,
         plan: bool,
         history_cap: usize,
-    ) -> Result<StepOut, ServiceError> {
+    ) -> Result<(StepOut, Option<usize>), ServiceError> {
         let model = self.agent.planning_model().model();
         let action_taken = match &obs.action_taken {
             None => None,
@@ -275,14 +453,17 @@ impl SessionState {
                 lstdq_error: agent.last_plan().lstdq_error,
             });
         }
-        Ok(StepOut {
-            tick: step.tick,
-            action: agent.planning_model().model().actions()[step.action].clone(),
-            action_index: step.action,
-            drive,
-            reward: step.reward,
-            policy_version: agent.policy_version(),
-        })
+        Ok((
+            StepOut {
+                tick: step.tick,
+                action: agent.planning_model().model().actions()[step.action].clone(),
+                action_index: step.action,
+                drive,
+                reward: step.reward,
+                policy_version: agent.policy_version(),
+            },
+            action_taken,
+        ))
     }
 }
 

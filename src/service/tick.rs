@@ -21,7 +21,7 @@ use parking_lot::{Condvar, Mutex};
 use tokio::sync::oneshot;
 
 use super::error::ServiceError;
-use super::session::{ObservationIn, Session, SessionRef, StepOut};
+use super::session::{ObservationIn, Observed, Session, SessionRef};
 
 /// Work for the pool.
 pub enum Job {
@@ -33,8 +33,8 @@ pub enum Job {
         session: SessionRef,
         /// Observations, in order.
         batch: Vec<ObservationIn>,
-        /// Where the reply goes.
-        reply: oneshot::Sender<Result<Vec<StepOut>, ServiceError>>,
+        /// Where the reply goes (the requester awaits its durability).
+        reply: oneshot::Sender<Observed>,
     },
 }
 
@@ -165,7 +165,9 @@ fn run(job: Job) {
             reply,
         } => {
             let result = session.observe(&batch, true);
-            if let Err(e @ ServiceError::Algo(crate::algo::AlgoError::Numerical(_))) = &result {
+            if let Err(e @ ServiceError::Algo(crate::algo::AlgoError::Numerical(_))) =
+                &result.result
+            {
                 log_plan_error(&session, e);
             }
             // The requester may have gone away; nothing to do then.
