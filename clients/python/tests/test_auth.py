@@ -11,7 +11,8 @@ from conftest import Server, start_server, supports_api_keys
 
 from mcapi_client import Client, GrpcClient, NotFound, Unauthenticated
 
-KEY_A, KEY_B = "test-key-a", "test-key-b"
+# The server refuses keys shorter than 16 characters.
+KEY_A, KEY_B = "test-key-a-0123456789", "test-key-b-0123456789"
 
 
 @pytest.fixture(scope="module")
