@@ -28,6 +28,7 @@ PYTHON ?= python3
 PY_CLIENT := clients/python
 python-test: release
 	test -x $(PY_CLIENT)/.venv/bin/python || $(PYTHON) -m venv $(PY_CLIENT)/.venv
+	rm -rf $(PY_CLIENT)/build  # setuptools would pack stale files left there
 	$(PY_CLIENT)/.venv/bin/python -m pip install --quiet --disable-pip-version-check \
 	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[test,gymnasium,plot]'
 	cd $(PY_CLIENT) && .venv/bin/pytest
