@@ -13,8 +13,15 @@
 //! - `meta`: `"format_version"` → u64;
 //! - `sessions`: id → creation record;
 //! - `snapshots`: id → (sequence number, snapshot);
-//! - `log`: (id, sequence number) → observation record. A snapshot at
-//!   sequence number n trims the entries up to n.
+//! - `log`: (session key, chunk number) → a chunk of up to [`CHUNK`]
+//!   observation records (chunk c holds sequence numbers c·CHUNK to
+//!   c·CHUNK + CHUNK − 1, each framed as sequence number, length, bytes).
+//!   The session key is the 128-bit ULID of the session id. A snapshot at
+//!   sequence number n drops the chunks that end at or before n.
+//!
+//! Chunks, not one record per observation: a B-tree entry per 20-byte
+//! observation cost about 140 bytes of file, and the file's size is what
+//! opening it (integrity check) and recovery cost.
 
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
@@ -23,7 +30,9 @@ use std::time::Instant;
 
 use crossbeam_channel::{Receiver, Sender, unbounded};
 use parking_lot::Mutex;
-use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
+use redb::{
+    Database, Durability, ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition,
+};
 use thiserror::Error;
 use tokio::sync::oneshot;
 
@@ -36,7 +45,27 @@ pub const FILE_NAME: &str = "mcapi.redb";
 const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
 const SESSIONS: TableDefinition<&str, &[u8]> = TableDefinition::new("sessions");
 const SNAPSHOTS: TableDefinition<&str, (u64, &[u8])> = TableDefinition::new("snapshots");
-const LOG: TableDefinition<(&str, u64), &[u8]> = TableDefinition::new("log");
+const LOG: TableDefinition<(u128, u64), &[u8]> = TableDefinition::new("log");
+
+/// The log's key of a session: the 128 bits of the ULID in its id
+/// (`s<shard>.<ULID>`), or a 128-bit hash of the id for other ids. A number
+/// instead of the string keeps the log, which holds most of the file, small:
+/// the store's size is what opening (integrity check) and recovery cost.
+fn log_key(id: &str) -> u128 {
+    if let Some((_, ulid)) = id.split_once('.')
+        && let Ok(u) = ulid::Ulid::from_string(ulid)
+    {
+        return u.0;
+    }
+    use sha2::Digest;
+    let d = sha2::Sha256::digest(id.as_bytes());
+    let mut b = [0u8; 16];
+    b.copy_from_slice(&d[..16]);
+    u128::from_be_bytes(b)
+}
+
+/// Observation records per log chunk.
+pub const CHUNK: u64 = 64;
 
 /// Most writes folded into one transaction.
 const MAX_GROUP: usize = 8192;
@@ -306,9 +335,22 @@ impl Store {
         if after == Some(u64::MAX) {
             return Ok(());
         }
-        for row in log.range((id, start)..=(id, u64::MAX)).map_err(failed)? {
-            let (key, value) = row.map_err(failed)?;
-            f(key.value().1, value.value())?;
+        let key = log_key(id);
+        for row in log
+            .range((key, start / CHUNK)..=(key, u64::MAX))
+            .map_err(failed)?
+        {
+            let (_, chunk) = row.map_err(failed)?;
+            let mut rest = chunk.value();
+            while !rest.is_empty() {
+                let (seq, entry, tail) = split_entry(rest).ok_or_else(|| {
+                    StoreError::Failed(format!("a log chunk of session `{id}` is malformed"))
+                })?;
+                rest = tail;
+                if seq >= start {
+                    f(seq, entry)?;
+                }
+            }
         }
         Ok(())
     }
@@ -355,6 +397,21 @@ fn writer(db: &Database, rx: &Receiver<Pending>) {
     }
 }
 
+/// Frames one record of a chunk: sequence number, length, bytes.
+fn push_entry(chunk: &mut Vec<u8>, seq: u64, entry: &[u8]) {
+    chunk.extend_from_slice(&seq.to_le_bytes());
+    chunk.extend_from_slice(&(entry.len() as u32).to_le_bytes());
+    chunk.extend_from_slice(entry);
+}
+
+/// The first record of a chunk and the rest.
+fn split_entry(chunk: &[u8]) -> Option<(u64, &[u8], &[u8])> {
+    let (seq, rest) = chunk.split_first_chunk::<8>()?;
+    let (len, rest) = rest.split_first_chunk::<4>()?;
+    let len = u32::from_le_bytes(*len) as usize;
+    (rest.len() >= len).then(|| (u64::from_le_bytes(*seq), &rest[..len], &rest[len..]))
+}
+
 fn commit(db: &Database, group: &[Pending]) -> Result<(), StoreError> {
     let mut txn = db.begin_write().map_err(failed)?;
     txn.set_durability(Durability::Immediate).map_err(failed)?;
@@ -368,20 +425,31 @@ fn commit(db: &Database, group: &[Pending]) -> Result<(), StoreError> {
                     sessions.insert(&**id, record.as_slice()).map_err(failed)?;
                 }
                 Write::Append { id, seq, entry } => {
-                    log.insert((&**id, *seq), entry.as_slice())
-                        .map_err(failed)?;
+                    let at = (log_key(id), seq / CHUNK);
+                    let mut chunk = log
+                        .get(at)
+                        .map_err(failed)?
+                        .map(|v| v.value().to_vec())
+                        .unwrap_or_default();
+                    push_entry(&mut chunk, *seq, entry);
+                    log.insert(at, chunk.as_slice()).map_err(failed)?;
                 }
                 Write::Snapshot { id, seq, snapshot } => {
                     snapshots
                         .insert(&**id, (*seq, snapshot.as_slice()))
                         .map_err(failed)?;
-                    log.retain_in((&**id, 0)..=(&**id, *seq), |_, _| false)
+                    // Chunks wholly at or before `seq`; a partial chunk
+                    // stays, and reads skip its covered records.
+                    let key = log_key(id);
+                    let whole = (seq.saturating_add(1)) / CHUNK;
+                    log.retain_in((key, 0)..(key, whole), |_, _| false)
                         .map_err(failed)?;
                 }
                 Write::Delete { id } => {
                     sessions.remove(&**id).map_err(failed)?;
                     snapshots.remove(&**id).map_err(failed)?;
-                    log.retain_in((&**id, 0)..=(&**id, u64::MAX), |_, _| false)
+                    let key = log_key(id);
+                    log.retain_in((key, 0)..=(key, u64::MAX), |_, _| false)
                         .map_err(failed)?;
                 }
             }
@@ -450,8 +518,8 @@ mod tests {
         assert_eq!(sessions[0].record, b"ra");
         assert_eq!(sessions[0].snapshot, Some((2, b"snap".to_vec())));
         assert_eq!(sessions[1].snapshot, None);
-        // Entries up to the snapshot are gone; "ab" is not mixed into "a".
-        assert_eq!(entries(&store, "a", None), vec![(3, vec![3]), (4, vec![4])]);
+        // Reads after the snapshot skip what it covers; "ab" is not mixed into "a".
+        assert_eq!(entries(&store, "a", Some(2)), vec![(3, vec![3]), (4, vec![4])]);
         assert_eq!(entries(&store, "a", Some(3)), vec![(4, vec![4])]);
         assert_eq!(entries(&store, "ab", None), vec![(0, vec![9])]);
         store
@@ -460,6 +528,42 @@ mod tests {
             .expect("delete");
         assert_eq!(store.sessions().expect("sessions").len(), 1);
         assert!(entries(&store, "a", None).is_empty());
+    }
+
+    #[test]
+    fn chunks_are_trimmed_only_when_wholly_covered() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Store::open(dir.path()).expect("open");
+        let n = 3 * CHUNK + 5;
+        for seq in 0..n {
+            store
+                .submit(vec![Write::Append {
+                    id: id("s0001.01ARZ3NDEKTSV4RRFFQ69G5FAV"),
+                    seq,
+                    entry: seq.to_le_bytes().to_vec(),
+                }])
+                .wait_blocking()
+                .expect("append");
+        }
+        let all = entries(&store, "s0001.01ARZ3NDEKTSV4RRFFQ69G5FAV", None);
+        assert_eq!(all.len() as u64, n);
+        assert!(all.iter().all(|(seq, e)| e == &seq.to_le_bytes().to_vec()));
+        let cut = CHUNK + 3;
+        store
+            .submit(vec![Write::Snapshot {
+                id: id("s0001.01ARZ3NDEKTSV4RRFFQ69G5FAV"),
+                seq: cut,
+                snapshot: vec![1],
+            }])
+            .wait_blocking()
+            .expect("snapshot");
+        let after = entries(&store, "s0001.01ARZ3NDEKTSV4RRFFQ69G5FAV", Some(cut));
+        assert_eq!(after.first().map(|e| e.0), Some(cut + 1));
+        assert_eq!(after.len() as u64, n - cut - 1);
+        // The first chunk is gone; the second (partly covered) is kept.
+        let read = store.db.begin_read().expect("read");
+        let log = read.open_table(LOG).expect("log");
+        assert_eq!(log.len().expect("len"), 3);
     }
 
     #[test]
