@@ -451,7 +451,14 @@ async fn many_concurrent_sessions() {
     }
     for t in tasks {
         let id = t.await.expect("task");
-        assert_eq!(server.manager.get(mcapi::service::Caller::Anyone, &id).expect("session").tick, 100);
+        assert_eq!(
+            server
+                .manager
+                .get(mcapi::service::Caller::Anyone, &id)
+                .expect("session")
+                .tick,
+            100
+        );
     }
 }
 
@@ -503,6 +510,10 @@ async fn health_metrics_and_openapi() {
         doc["openapi"]
     );
     assert!(doc["paths"]["/v1/sessions/{id}/observations"]["post"].is_object());
+    assert_eq!(
+        doc["components"]["securitySchemes"]["api_key"]["scheme"], "bearer",
+        "the API-key scheme is documented"
+    );
     let resp = client
         .get(format!("{}/docs/", server.base))
         .send()

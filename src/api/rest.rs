@@ -113,9 +113,33 @@ fn query<T>(q: Result<Query<T>, QueryRejection>) -> Result<T, ApiError> {
         values,
         history
     ),
-    components(schemas(ErrorBody, ObserveBatch, ObserveBatchReply))
+    components(schemas(ErrorBody, ObserveBatch, ObserveBatchReply)),
+    modifiers(&BearerAuth),
+    security(("api_key" = []), ())
 )]
 struct ApiDoc;
+
+/// Declares the `Authorization: Bearer <key>` scheme (required when the
+/// server runs with API keys; the empty requirement covers servers without).
+struct BearerAuth;
+
+impl utoipa::Modify for BearerAuth {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "api_key",
+            SecurityScheme::Http(
+                HttpBuilder::new()
+                    .scheme(HttpAuthScheme::Bearer)
+                    .description(Some(
+                        "An API key given to the server with --api-key / MCAPI_API_KEYS",
+                    ))
+                    .build(),
+            ),
+        );
+    }
+}
 
 /// The OpenAPI document.
 pub fn openapi() -> utoipa::openapi::OpenApi {

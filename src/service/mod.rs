@@ -97,6 +97,7 @@ pub struct SessionPage {
     /// The sessions.
     pub sessions: Vec<SessionSummary>,
     /// Pass as `after` for the next page; absent on the last page.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub next: Option<String>,
 }
 

@@ -30,9 +30,7 @@ use std::time::Instant;
 
 use crossbeam_channel::{Receiver, Sender, unbounded};
 use parking_lot::Mutex;
-use redb::{
-    Database, Durability, ReadableDatabase, ReadableTable, ReadableTableMetadata, TableDefinition,
-};
+use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
 use thiserror::Error;
 use tokio::sync::oneshot;
 
@@ -461,6 +459,7 @@ fn commit(db: &Database, group: &[Pending]) -> Result<(), StoreError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+    use redb::ReadableTableMetadata;
 
     fn id(s: &str) -> Arc<str> {
         Arc::from(s)
@@ -519,7 +518,10 @@ mod tests {
         assert_eq!(sessions[0].snapshot, Some((2, b"snap".to_vec())));
         assert_eq!(sessions[1].snapshot, None);
         // Reads after the snapshot skip what it covers; "ab" is not mixed into "a".
-        assert_eq!(entries(&store, "a", Some(2)), vec![(3, vec![3]), (4, vec![4])]);
+        assert_eq!(
+            entries(&store, "a", Some(2)),
+            vec![(3, vec![3]), (4, vec![4])]
+        );
         assert_eq!(entries(&store, "a", Some(3)), vec![(4, vec![4])]);
         assert_eq!(entries(&store, "ab", None), vec![(0, vec![9])]);
         store
