@@ -65,7 +65,8 @@ RUN groupadd --system --gid 10001 mcapi \
 COPY --from=builder /out/mcapi /usr/local/bin/mcapi
 
 # Inside a container the server listens on all interfaces and logs JSON.
-ENV MCAPI_DATA_DIR=/data \
+ENV MCAPI_STORE=redb \
+    MCAPI_DATA_DIR=/data \
     MCAPI_HTTP=0.0.0.0:8080 \
     MCAPI_GRPC=0.0.0.0:50051 \
     MCAPI_LOG_FORMAT=json
