@@ -346,18 +346,41 @@ async fn watch_loop(
     }
 }
 
-/// `Agents` (with the body-size limit of the manager), health (reporting
-/// `mcapi.v1.Agents` SERVING) and reflection v1, ready for a tonic server.
+/// `Agents` (with the body-size limit of the manager), health and
+/// reflection v1, ready for a tonic server. Health reports `mcapi.v1.Agents`
+/// NOT_SERVING while stored sessions are recovered and after shutdown
+/// begins, SERVING in between.
 pub async fn router(
     manager: Arc<SessionManager>,
     stream_buffer: usize,
     stopping: watch::Receiver<bool>,
 ) -> Result<Routes, ServeError> {
     let max_message = manager.limits().max_body_bytes;
+    let (health, health_service) = tonic_health::server::health_reporter();
+    let ready = manager.is_ready();
+    if ready {
+        health.set_serving::<AgentsServer<AgentsService>>().await;
+    } else {
+        health.set_not_serving::<AgentsServer<AgentsService>>().await;
+    }
+    tokio::spawn({
+        let manager = Arc::clone(&manager);
+        let mut stopping = stopping.clone();
+        async move {
+            if !ready {
+                while !manager.is_ready() && !*stopping.borrow() {
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                if !*stopping.borrow() {
+                    health.set_serving::<AgentsServer<AgentsService>>().await;
+                }
+            }
+            let _ = stopping.wait_for(|stop| *stop).await;
+            health.set_not_serving::<AgentsServer<AgentsService>>().await;
+        }
+    });
     let agents = AgentsServer::new(AgentsService::new(manager, stream_buffer, stopping))
         .max_decoding_message_size(max_message);
-    let (health, health_service) = tonic_health::server::health_reporter();
-    health.set_serving::<AgentsServer<AgentsService>>().await;
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
