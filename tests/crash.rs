@@ -21,8 +21,8 @@ use std::time::{Duration, Instant};
 
 use common::{
     ACTIONS, Launch, Obs, Reply, STATES, Server, assert_float_roundtrip, available, check_session,
-    grpc_create, grpc_request, http_client, log_events, params, rest, rest_create, rest_get,
-    rest_list_all, step_state, stimulus,
+    free_port, grpc_create, grpc_request, http_client, log_events, params, rest, rest_create,
+    rest_get, rest_list_all, step_state, stimulus,
 };
 use mcapi::algo::AgentParams;
 use mcapi::api::grpc::pb;
@@ -37,8 +37,37 @@ const KEY_A: &str = "crash-test-key-alpha-0123456789";
 const KEY_B: &str = "crash-test-key-bravo-9876543210";
 /// Small, so that snapshots and log trimming happen many times per run.
 const SNAPSHOT_EVERY: u64 = 50;
-/// When to kill, in ms after the drivers start, per crash-and-recover round.
-const ROUNDS: [std::ops::Range<u64>; 3] = [200..1500, 200..1500, 200..1500];
+/// How a round ends.
+#[derive(Debug, Clone, Copy, PartialEq)]
+enum Stop {
+    /// `kill -9`.
+    Kill,
+    /// SIGTERM under load: in-flight requests finish or fail, every session
+    /// is snapshotted.
+    Term,
+}
+
+/// One round: drive, stop the server this way after a random time in `when`
+/// (ms), restart, check.
+struct Round {
+    when: std::ops::Range<u64>,
+    stop: Stop,
+}
+
+const ROUNDS: [Round; 3] = [
+    Round {
+        when: 200..1500,
+        stop: Stop::Kill,
+    },
+    Round {
+        when: 200..1500,
+        stop: Stop::Term,
+    },
+    Round {
+        when: 200..1500,
+        stop: Stop::Kill,
+    },
+];
 /// Ticks per session after the last recovery.
 const AFTER: usize = 8;
 
@@ -447,7 +476,7 @@ async fn create_sessions(server: &Server, seed: u64) -> Vec<Tracked> {
     out
 }
 
-async fn crash_run(seed: u64, rounds: &[std::ops::Range<u64>]) {
+async fn crash_run(seed: u64, rounds: &[Round]) {
     let started = Instant::now();
     assert_float_roundtrip();
     let data = tempfile::tempdir().expect("data dir");
@@ -468,18 +497,40 @@ async fn crash_run(seed: u64, rounds: &[std::ops::Range<u64>]) {
     let mut server = Server::start(&launch, logs.path().join("run-0.log")).await;
     let mut tracked = create_sessions(&server, seed).await;
 
-    for (round, when) in (1..).zip(rounds) {
+    for (round, Round { when, stop }) in (1..).zip(rounds) {
         let killed = Arc::new(AtomicBool::new(false));
         let handles = drive_all(tracked, &server, &killed, None).await;
         let delay = rng.random_range(when.clone());
         tokio::time::sleep(Duration::from_millis(delay)).await;
         killed.store(true, Ordering::SeqCst);
-        server.kill9();
+        match stop {
+            Stop::Kill => server.kill9(),
+            Stop::Term => {
+                let status = tokio::task::block_in_place(|| server.terminate());
+                assert!(
+                    status.success(),
+                    "seed {seed}: clean exit on SIGTERM under load: {status}; log:\n{}",
+                    server.log_text()
+                );
+            }
+        }
         tracked = join_all(handles).await;
         let in_flight: usize = tracked.iter().map(|t| t.in_flight.len()).sum();
 
+        // A crash during recovery (the store's integrity check and repair,
+        // or the replay) changes nothing either.
+        let mut interrupted = common::spawn(
+            &launch,
+            free_port(),
+            free_port(),
+            &logs.path().join(format!("run-{round}-interrupted.log")),
+        );
+        tokio::time::sleep(Duration::from_millis(rng.random_range(0..40))).await;
+        interrupted.kill().expect("SIGKILL");
+        interrupted.wait().expect("wait");
+
         server = Server::start(&launch, logs.path().join(format!("run-{round}.log"))).await;
-        let label = format!("seed {seed}, crash {round} at {delay} ms");
+        let label = format!("seed {seed}, {stop:?} {round} at {delay} ms");
         verify(&server, &mut tracked, &label).await;
 
         // The log is trimmed at every snapshot: at most SNAPSHOT_EVERY - 1
@@ -494,6 +545,12 @@ async fn crash_run(seed: u64, rounds: &[std::ops::Range<u64>]) {
             replayed <= SPECS.len() as u64 * (SNAPSHOT_EVERY - 1),
             "{label}: {replayed} log entries replayed: the log is not trimmed at snapshots"
         );
+        if *stop == Stop::Term {
+            assert_eq!(
+                replayed, 0,
+                "{label}: a clean stop snapshots every session; nothing is left to replay"
+            );
+        }
         eprintln!(
             "{label}: {total} observations applied so far, {in_flight} in flight at the kill, \
              {replayed} replayed at recovery"
@@ -547,5 +604,9 @@ async fn kill_9_loses_no_acknowledged_observation_seed_3() {
 /// observations (a state, no tick) are in flight.
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn kill_9_during_the_first_observations() {
-    crash_run(4, &[0..3, 0..30]).await;
+    let round = |when| Round {
+        when,
+        stop: Stop::Kill,
+    };
+    crash_run(4, &[round(0..3), round(0..30)]).await;
 }

@@ -1,10 +1,22 @@
-//! Durability and access control on the real binary (issue 4): a clean
-//! restart (SIGTERM) keeps every session exactly and trims the log with the
-//! shutdown snapshot; a deleted session stays deleted; a damaged store is
-//! refused at start with a clear message, before any port is bound; API
-//! keys over REST and gRPC (missing or wrong key: 401 / UNAUTHENTICATED;
-//! another key's session: 404 / NOT_FOUND, indistinguishable from a missing
-//! one); `--store memory` with keys from the environment.
+//! Durability and access control on the real binary (issue 4):
+//! - a clean restart (SIGTERM) keeps every session exactly (Ξ, D, Q,
+//!   policy, statistics, history) and the shutdown snapshot trims the log
+//!   (nothing replayed); lockstep sessions then go on exactly as a core
+//!   agent that never restarted;
+//! - a deleted session stays deleted, after kill -9 and after a clean stop,
+//!   and leaves no record in the store;
+//! - after kill -9 the history ring comes back as it was served;
+//! - a damaged store (truncated, garbage, overwritten, a changed record, a
+//!   damaged last commit) or one of another format version is refused at
+//!   start with a message naming the file, before any port is bound; a
+//!   record mcapi cannot decode fails the start naming the session; a
+//!   second server on the same data directory is refused;
+//! - API keys over REST and gRPC: a missing, wrong or malformed key gets
+//!   401 / UNAUTHENTICATED (`unauthenticated`, `WWW-Authenticate`) on every
+//!   call; another key's session is 404 / NOT_FOUND on every call,
+//!   indistinguishable from a missing one, and is never listed; health,
+//!   readiness and metrics need no key; keys are never logged or echoed;
+//! - `--store memory` with keys from `MCAPI_API_KEYS` touches no disk.
 
 mod common;
 
@@ -24,7 +36,7 @@ use mcapi::api::grpc::pb;
 use mcapi::api::grpc::pb::agents_client::AgentsClient;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use redb::{ReadableDatabase, ReadableTableMetadata, TableHandle};
+use redb::{ReadableDatabase, ReadableTable, ReadableTableMetadata, TableHandle};
 use reqwest::Method;
 use serde_json::{Value, json};
 use tokio::sync::mpsc;
@@ -319,10 +331,11 @@ async fn clean_restart_keeps_every_session_exactly_and_trims_the_log() {
     let rows = table_rows(&data.path().join(STORE_FILE));
     assert_eq!(rows.get("sessions"), Some(&4), "{rows:?}");
     assert_eq!(rows.get("snapshots"), Some(&4), "{rows:?}");
-    assert_eq!(
-        rows.get("log"),
-        Some(&0),
-        "the shutdown snapshot trims every log: {rows:?}"
+    // 150 observations each were logged; the shutdown snapshot trims what
+    // it covers, leaving at most a partly covered chunk per session.
+    assert!(
+        rows.get("log").is_some_and(|&n| n <= 4),
+        "the shutdown snapshot trims the logs: {rows:?}"
     );
 
     let mut server = Server::start(&launch, log_path(&logs, "second")).await;
@@ -476,7 +489,10 @@ async fn a_deleted_session_stays_deleted() {
         "deleted sessions leave no record: {rows:?}"
     );
     assert_eq!(rows.get("snapshots"), Some(&1), "{rows:?}");
-    assert_eq!(rows.get("log"), Some(&0), "{rows:?}");
+    assert!(
+        rows.get("log").is_some_and(|&n| n <= 1),
+        "deleted sessions leave no log: {rows:?}"
+    );
 
     let mut server = Server::start(&launch, log_path(&logs, "third")).await;
     let base = server.base();
@@ -582,7 +598,7 @@ async fn populated_store(dir: &Path, logs: &tempfile::TempDir) -> Vec<u8> {
 
 /// Starts `mcapi serve` on `dir` with both its ports held by this test, so
 /// a server that got as far as binding would fail with a bind error, not
-/// with the store's; returns the exit status and stderr.
+/// with the store's; returns the exit status and log.
 fn start_refused(dir: &Path) -> (std::process::ExitStatus, String) {
     let http = TcpListener::bind("127.0.0.1:0").expect("bind");
     let grpc = TcpListener::bind("127.0.0.1:0").expect("bind");
@@ -590,8 +606,15 @@ fn start_refused(dir: &Path) -> (std::process::ExitStatus, String) {
         http.local_addr().expect("addr").port(),
         grpc.local_addr().expect("addr").port(),
     );
-    let log = dir.with_extension("log");
-    let mut child = common::spawn(&Launch::new(dir, &[]), hp, gp, &log);
+    let out = run_until_exit(dir, hp, gp);
+    drop((http, grpc));
+    out
+}
+
+/// Runs `mcapi serve` on `dir` until it exits (at most 20 s).
+fn run_until_exit(dir: &Path, http: u16, grpc: u16) -> (std::process::ExitStatus, String) {
+    let log = dir.join("serve.log");
+    let mut child = common::spawn(&Launch::new(dir, &[]), http, grpc, &log);
     let deadline = Instant::now() + Duration::from_secs(20);
     let status = loop {
         if let Some(status) = child.try_wait().expect("try_wait") {
@@ -607,7 +630,6 @@ fn start_refused(dir: &Path) -> (std::process::ExitStatus, String) {
         }
         std::thread::sleep(Duration::from_millis(10));
     };
-    drop((http, grpc));
     (status, std::fs::read_to_string(&log).unwrap_or_default())
 }
 
@@ -732,6 +754,60 @@ async fn a_store_of_another_format_version_is_refused() {
         "{err}"
     );
     assert!(!err.contains("binding"), "{err}");
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_record_that_does_not_decode_fails_the_start() {
+    // A store redb finds sound, holding a session record or a snapshot
+    // mcapi cannot read: the start fails, naming the session; the server is
+    // never ready on the sessions it could read.
+    let root = tempfile::tempdir().expect("root");
+    let logs = logs();
+    let good = populated_store(&root.path().join("good"), &logs).await;
+    const SESSIONS: redb::TableDefinition<&str, &[u8]> = redb::TableDefinition::new("sessions");
+    const SNAPSHOTS: redb::TableDefinition<&str, (u64, &[u8])> =
+        redb::TableDefinition::new("snapshots");
+    for what in ["record", "snapshot"] {
+        let dir = write_store(root.path(), what, &good);
+        let victim = {
+            let db = redb::Database::open(dir.join(STORE_FILE)).expect("open");
+            let w = db.begin_write().expect("write");
+            let victim = {
+                let sessions = w.open_table(SESSIONS).expect("sessions");
+                let first = sessions.first().expect("read").expect("a session");
+                first.0.value().to_string()
+            };
+            if what == "record" {
+                w.open_table(SESSIONS)
+                    .expect("sessions")
+                    .insert(victim.as_str(), &b"{not a record"[..])
+                    .expect("insert");
+            } else {
+                let mut snapshots = w.open_table(SNAPSHOTS).expect("snapshots");
+                let seq = snapshots
+                    .get(victim.as_str())
+                    .expect("read")
+                    .expect("every session has a snapshot")
+                    .value()
+                    .0;
+                snapshots
+                    .insert(victim.as_str(), (seq, &[0xffu8; 7][..]))
+                    .expect("insert");
+            }
+            w.commit().expect("commit");
+            victim
+        };
+        let (status, log) = run_until_exit(&dir, free_port(), free_port());
+        assert!(!status.success(), "{what}: {log}");
+        assert!(
+            log.contains(&victim),
+            "{what}: the message names the session {victim}:\n{log}"
+        );
+        assert!(
+            !log.contains("sessions recovered"),
+            "{what}: never ready:\n{log}"
+        );
+    }
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
@@ -884,6 +960,20 @@ async fn api_keys_over_rest() {
     a.rest_ticks(&client, &base, 5).await;
     let b_id = rest_create(&client, &base, Some(KEY_B), json!({"seed": 502})).await;
 
+    // Metrics need no key, so they must not name sessions.
+    let metrics = client
+        .get(format!("{base}/metrics"))
+        .send()
+        .await
+        .expect("metrics")
+        .text()
+        .await
+        .expect("text");
+    assert!(
+        !metrics.contains(&a_id) && !metrics.contains(&b_id),
+        "metrics name no session"
+    );
+
     let observation = json!({"state": 3, "stimulus": [0.0, 0.0]});
     let create = json!({"model": {"preset": "hallway"}});
     let calls = |id: &str| {
@@ -1035,8 +1125,10 @@ async fn api_keys_over_rest() {
     assert_eq!(rest_list_all(&client, &base, Some(KEY_B)).await, vec![b_id]);
     assert!(server.terminate().success());
     assert!(
-        !server.log_text().contains(KEY_A) && !server.log_text().contains(KEY_B),
-        "keys are never logged"
+        [KEY_A, KEY_B, KEY_WRONG]
+            .iter()
+            .all(|k| !server.log_text().contains(k)),
+        "keys, right or wrong, are never logged"
     );
 }
 
@@ -1298,8 +1390,10 @@ async fn api_keys_over_grpc() {
     assert_eq!(grpc_list(&client, KEY_B).await, vec![b_id]);
     assert!(server.terminate().success());
     assert!(
-        !server.log_text().contains(KEY_A) && !server.log_text().contains(KEY_B),
-        "keys are never logged"
+        [KEY_A, KEY_B, KEY_WRONG]
+            .iter()
+            .all(|k| !server.log_text().contains(k)),
+        "keys, right or wrong, are never logged"
     );
 }
 
