@@ -426,6 +426,13 @@ impl Agent {
         Ok(())
     }
 
+    /// Raises the policy-version counter to at least `v` (a log replay
+    /// restores the count the client was last told; the policy itself is
+    /// recomputed once at the end of the replay).
+    pub fn resume_policy_version(&mut self, v: u64) {
+        self.policy_version = self.policy_version.max(v);
+    }
+
     /// The agent's resumable state.
     pub fn snapshot(&self) -> AgentSnapshot {
         AgentSnapshot {

@@ -361,7 +361,9 @@ pub async fn router(
     if ready {
         health.set_serving::<AgentsServer<AgentsService>>().await;
     } else {
-        health.set_not_serving::<AgentsServer<AgentsService>>().await;
+        health
+            .set_not_serving::<AgentsServer<AgentsService>>()
+            .await;
     }
     tokio::spawn({
         let manager = Arc::clone(&manager);
@@ -376,7 +378,9 @@ pub async fn router(
                 }
             }
             let _ = stopping.wait_for(|stop| *stop).await;
-            health.set_not_serving::<AgentsServer<AgentsService>>().await;
+            health
+                .set_not_serving::<AgentsServer<AgentsService>>()
+                .await;
         }
     });
     let agents = AgentsServer::new(AgentsService::new(manager, stream_buffer, stopping))

@@ -39,6 +39,10 @@ pub struct LogEntry {
     pub taken: Option<u32>,
     /// The action the reply advised.
     pub advised: u32,
+    /// The LSTDQ error the reply's history entry recorded.
+    pub lstdq_error: f64,
+    /// The policy version the reply reported.
+    pub policy_version: u64,
 }
 
 /// A session snapshot.
@@ -72,9 +76,11 @@ mod tests {
             stimulus: Some(vec![0.1 + 0.2, -1e-300, 6.0]),
             taken: Some(2),
             advised: 1,
+            lstdq_error: 0.25,
+            policy_version: 9,
         };
         let bytes = encode(&e).expect("encode");
-        assert!(bytes.len() < 40, "{} bytes", bytes.len());
+        assert!(bytes.len() < 48, "{} bytes", bytes.len());
         assert_eq!(decode::<LogEntry>(&bytes, "entry").expect("decode"), e);
         assert!(decode::<LogEntry>(&bytes[..bytes.len() - 3], "entry").is_err());
     }
@@ -107,8 +113,9 @@ pub fn replay(
             action: entry.advised as usize,
             drive: agent.drive().vector().to_vec(),
             reward: out.reward,
-            lstdq_error: agent.last_plan().lstdq_error,
+            lstdq_error: entry.lstdq_error,
         });
     }
+    agent.resume_policy_version(entry.policy_version);
     Ok(())
 }

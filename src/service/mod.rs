@@ -470,7 +470,12 @@ impl SessionManager {
         let mut report = RecoveryReport::default();
         let mut sessions = self.sessions.write();
         for r in recovered {
-            let (session, replayed) = r.map_err(ServiceError::Storage)?;
+            let (session, replayed) = r.map_err(|e| {
+                ServiceError::Storage(format!(
+                    "the store {} holds a session that cannot be recovered (corrupt, or written by an incompatible mcapi): {e}",
+                    d.store.path().display()
+                ))
+            })?;
             report.sessions += 1;
             report.replayed += replayed;
             sessions.insert(session.id.clone(), session);

@@ -372,6 +372,8 @@ impl SessionState {
                                 .and(taken.or(advised_before))
                                 .map(|a| a as u32),
                             advised: step.action_index as u32,
+                            lstdq_error: self.agent.last_plan().lstdq_error,
+                            policy_version: step.policy_version,
                         });
                     }
                     out.push(step);

@@ -35,7 +35,7 @@ use thiserror::Error;
 use tokio::sync::oneshot;
 
 /// Version of the on-disk layout; a file of another version is refused.
-pub const FORMAT_VERSION: u64 = 1;
+pub const FORMAT_VERSION: u64 = 2;
 
 /// Name of the store file inside the data directory.
 pub const FILE_NAME: &str = "mcapi.redb";
@@ -223,7 +223,8 @@ impl Store {
                 }
                 other => corrupt(other.to_string()),
             })?;
-        let write = db.begin_write().map_err(|e| corrupt(e.to_string()))?;
+        let mut write = db.begin_write().map_err(|e| corrupt(e.to_string()))?;
+        write.set_two_phase_commit(true);
         {
             let mut meta = write.open_table(META).map_err(|e| corrupt(e.to_string()))?;
             let found = meta
@@ -413,6 +414,10 @@ fn split_entry(chunk: &[u8]) -> Option<(u64, &[u8], &[u8])> {
 fn commit(db: &Database, group: &[Pending]) -> Result<(), StoreError> {
     let mut txn = db.begin_write().map_err(failed)?;
     txn.set_durability(Durability::Immediate).map_err(failed)?;
+    // Two-phase: a damaged newest commit is then reported as corruption
+    // instead of being taken for a torn write and silently rolled back
+    // (which would lose acknowledged observations). Costs a second sync.
+    txn.set_two_phase_commit(true);
     {
         let mut sessions = txn.open_table(SESSIONS).map_err(failed)?;
         let mut snapshots = txn.open_table(SNAPSHOTS).map_err(failed)?;
