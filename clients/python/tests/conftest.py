@@ -1,7 +1,7 @@
 """Fixtures: the real ``mcapi serve`` binary on free ports, and clients of it.
 
-The binary is ``target/release/mcapi`` at the repository root (``make
-python-test`` builds it), or the path in ``MCAPI_BIN``. Each server gets a
+The binary is the path in ``MCAPI_BIN`` (``make python-test`` passes the
+debug build), else ``target/release/mcapi`` at the repository root. Each server gets a
 temporary data directory; flags the binary does not know yet (``--store
 redb``, ``--api-key``) are detected from ``mcapi serve --help``.
 """
