@@ -6,7 +6,6 @@
 
 pub mod agent;
 pub mod basis;
-pub mod curiosity;
 pub mod drive;
 pub mod error;
 pub mod lstdq;

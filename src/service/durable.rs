@@ -65,27 +65,6 @@ pub fn decode<'a, T: Deserialize<'a>>(bytes: &'a [u8], what: &str) -> Result<T, 
     postcard::from_bytes(bytes).map_err(|e| format!("{what} does not decode: {e}"))
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn log_entries_round_trip_exactly() {
-        let e = LogEntry {
-            state: 7,
-            stimulus: Some(vec![0.1 + 0.2, -1e-300, 6.0]),
-            taken: Some(2),
-            advised: 1,
-            lstdq_error: 0.25,
-            policy_version: 9,
-        };
-        let bytes = encode(&e).expect("encode");
-        assert!(bytes.len() < 48, "{} bytes", bytes.len());
-        assert_eq!(decode::<LogEntry>(&bytes, "entry").expect("decode"), e);
-        assert!(decode::<LogEntry>(&bytes[..bytes.len() - 3], "entry").is_err());
-    }
-}
-
 /// Applies one logged observation to a recovering agent and its history
 /// ring: Ξ, visits, D and the tick change exactly as they did live.
 pub fn replay(
@@ -118,4 +97,25 @@ pub fn replay(
     }
     agent.resume_policy_version(entry.policy_version);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn log_entries_round_trip_exactly() {
+        let e = LogEntry {
+            state: 7,
+            stimulus: Some(vec![0.1 + 0.2, -1e-300, 6.0]),
+            taken: Some(2),
+            advised: 1,
+            lstdq_error: 0.25,
+            policy_version: 9,
+        };
+        let bytes = encode(&e).expect("encode");
+        assert!(bytes.len() < 48, "{} bytes", bytes.len());
+        assert_eq!(decode::<LogEntry>(&bytes, "entry").expect("decode"), e);
+        assert!(decode::<LogEntry>(&bytes[..bytes.len() - 3], "entry").is_err());
+    }
 }
