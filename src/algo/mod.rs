@@ -6,6 +6,7 @@
 
 pub mod agent;
 pub mod basis;
+pub mod curiosity;
 pub mod drive;
 pub mod error;
 pub mod lstdq;
@@ -15,6 +16,9 @@ pub mod stimulus;
 
 pub use agent::{Agent, AgentSnapshot, Observation, ObserveOutcome, RngState, Step};
 pub use basis::{Basis, BasisSpec};
+pub use curiosity::{
+    CuriosityChannel, CuriosityParams, CuriosityStep, Eq6Source, Signals, ValidCuriosityParams,
+};
 pub use drive::Drive;
 pub use error::AlgoError;
 pub use lstdq::{PlanOutcome, Planner, PlanningModel};
