@@ -21,9 +21,11 @@ unit:
 release:
 	$(CARGO) build --release --locked
 
-# The debug binary (what `unit` already built; quick to link otherwise).
+# The debug binary with the features `unit` builds it with (dev-dependencies
+# unify features, so a plain `cargo build` would rebuild much of the tree):
+# after `unit` this is a no-op.
 build:
-	$(CARGO) build --locked
+	$(CARGO) test --all-targets --locked --no-run
 
 # The Python client (clients/python) against the debug binary (the one `unit`
 # already built, so `make test` compiles no release build): a venv in
