@@ -433,6 +433,55 @@ impl Agent {
         self.policy_version = self.policy_version.max(v);
     }
 
+    /// Gives stimulus column `dim` visit counts of its own (§7: the
+    /// curiosity column's rate is 1/n_cur); see
+    /// [`StimulusFunction::count_column_separately`].
+    pub fn count_stimulus_column_separately(&mut self, dim: usize) -> Result<()> {
+        self.check_dim(dim)?;
+        self.stimulus.count_column_separately(dim);
+        Ok(())
+    }
+
+    /// Re-initialises stimulus column `dim` optimistically, Ξ(·, dim) ~
+    /// N(0, sd²) with the agent's RNG, and restarts its own visit counts (§7:
+    /// at each module freeze). R is recomputed at the next plan.
+    pub fn reset_stimulus_column(&mut self, dim: usize, sd: f64) -> Result<()> {
+        self.check_dim(dim)?;
+        if !(sd.is_finite() && sd >= 0.0) {
+            return Err(AlgoError::NonFinite { field: "sd" });
+        }
+        self.stimulus.reset_column(dim, sd, &mut self.rng);
+        self.dirty = true;
+        Ok(())
+    }
+
+    /// Sets drive component `dim` to `value` and renormalises (§7, condition
+    /// (3)); see [`Drive::set_component`]. Returns whether D changed.
+    pub fn set_drive_component(&mut self, dim: usize, value: f64) -> Result<bool> {
+        self.check_dim(dim)?;
+        if !value.is_finite() {
+            return Err(AlgoError::NonFinite { field: "drive" });
+        }
+        let before = self.drive.vector()[dim];
+        if before == value {
+            return Ok(false);
+        }
+        let changed = self.drive.set_component(dim, value);
+        self.dirty |= changed;
+        Ok(changed)
+    }
+
+    fn check_dim(&self, dim: usize) -> Result<()> {
+        let n = self.ctx.model().n_stimuli();
+        if dim >= n {
+            return Err(AlgoError::StimulusLength {
+                got: dim + 1,
+                expected: n,
+            });
+        }
+        Ok(())
+    }
+
     /// The agent's resumable state.
     pub fn snapshot(&self) -> AgentSnapshot {
         AgentSnapshot {
@@ -479,6 +528,15 @@ impl Agent {
             || snap.stimulus.visits().len() != pairs
         {
             return bad(format!("Ξ does not have {pairs} pairs x {n} stimuli"));
+        }
+        if snap
+            .stimulus
+            .own_column()
+            .is_some_and(|c| c.dim >= n || c.visits.len() != pairs)
+        {
+            return bad(format!(
+                "Ξ's own column does not fit {pairs} pairs x {n} stimuli"
+            ));
         }
         if snap.rewards.len() != pairs {
             return bad(format!(

@@ -119,6 +119,30 @@ impl Drive {
         self.d.iter().zip(&self.scaled).map(|(d, u)| d * u).sum()
     }
 
+    /// Sets component `dim` of D to `value` and renormalises, |D| = 1
+    /// (ALGORITHM.md §7, condition (3): D[cur] = 0 while every known signal
+    /// source is explained, 1/√n when one becomes unexplained again). Sets
+    /// nothing and returns false if the result would not be a finite
+    /// non-zero vector; a component already equal to `value` is left as it
+    /// is, bit for bit.
+    pub fn set_component(&mut self, dim: usize, value: f64) -> bool {
+        let Some(&old) = self.d.get(dim) else {
+            return false;
+        };
+        if old == value {
+            return true;
+        }
+        self.d[dim] = value;
+        let len = norm(&self.d);
+        if len > f64::MIN_POSITIVE && len.is_finite() {
+            self.d.iter_mut().for_each(|x| *x /= len);
+            true
+        } else {
+            self.d[dim] = old;
+            false
+        }
+    }
+
     /// Updates the running second moment of Λξ and max ‖Λξ‖².
     fn track(&mut self, n: usize) {
         self.samples += 1;
@@ -222,5 +246,21 @@ mod tests {
         assert!((drive.lambda1_estimate() - 2.0).abs() < 1e-9);
         assert_eq!(drive.max_sq_norm(), 4.0);
         assert!(drive.condition_holds());
+    }
+
+    #[test]
+    fn set_component_renormalises() {
+        let mut drive = Drive::from_parts(vec![0.6, 0.0, 0.8], &[1.0; 3], 0.01);
+        assert!(drive.set_component(2, 0.0));
+        assert_eq!(drive.vector(), &[1.0, 0.0, 0.0]);
+        let s = 1.0 / 3f64.sqrt();
+        assert!(drive.set_component(2, s));
+        let len = (1.0 + s * s).sqrt();
+        assert!((drive.vector()[0] - 1.0 / len).abs() < 1e-15);
+        assert!((drive.vector()[2] - s / len).abs() < 1e-15);
+        let mut lone = Drive::from_parts(vec![0.0, 1.0], &[1.0; 2], 0.01);
+        assert!(!lone.set_component(1, 0.0), "a zero drive is refused");
+        assert_eq!(lone.vector(), &[0.0, 1.0]);
+        assert!(!lone.set_component(5, 0.0));
     }
 }

@@ -7,6 +7,7 @@
 pub mod agent;
 pub mod basis;
 pub mod curiosity;
+pub mod curious;
 pub mod drive;
 pub mod error;
 pub mod lstdq;
@@ -19,6 +20,7 @@ pub use basis::{Basis, BasisSpec};
 pub use curiosity::{
     CuriosityChannel, CuriosityParams, CuriosityStep, Eq6Source, Signals, ValidCuriosityParams,
 };
+pub use curious::{CuriousAgent, CuriousObservation, CuriousStep};
 pub use drive::Drive;
 pub use error::AlgoError;
 pub use lstdq::{PlanOutcome, Planner, PlanningModel};

@@ -18,6 +18,20 @@ pub struct StimulusFunction {
     /// Row-major `pairs × n`.
     xi: Vec<f64>,
     visits: Vec<u32>,
+    /// A column with visit counts of its own (the curiosity column, §7):
+    /// absent for agents without one, so their snapshots are unchanged.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    own_column: Option<OwnColumn>,
+}
+
+/// A column of Ξ learned at its own rate 1/n_col(s, a) (ALGORITHM.md §7:
+/// the curiosity column restarts its counts at every module freeze).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct OwnColumn {
+    /// The stimulus dimension.
+    pub dim: usize,
+    /// n_col(p) since the column was last reset.
+    pub visits: Vec<u32>,
 }
 
 impl StimulusFunction {
@@ -32,7 +46,36 @@ impl StimulusFunction {
             n,
             xi,
             visits: vec![0; pairs],
+            own_column: None,
         }
+    }
+
+    /// Gives column `dim` visit counts of its own, starting at 0 (ALGORITHM.md
+    /// §7: the curiosity column's rate is 1/n_cur). Ξ is unchanged.
+    pub fn count_column_separately(&mut self, dim: usize) {
+        debug_assert!(dim < self.n);
+        self.own_column = Some(OwnColumn {
+            dim,
+            visits: vec![0; self.visits.len()],
+        });
+    }
+
+    /// Re-initialises column `dim` optimistically, Ξ(·, dim) ~ N(0, sd²), and
+    /// restarts its own visit counts at 0 (§7: at each module freeze the
+    /// curiosity column is "initialised with optimistic values" again). The
+    /// other columns and the pair counts n(s, a) are untouched.
+    pub fn reset_column(&mut self, dim: usize, sd: f64, rng: &mut impl Rng) {
+        debug_assert!(dim < self.n);
+        let normal = Normal::new(0.0, sd).ok();
+        for x in self.xi.iter_mut().skip(dim).step_by(self.n) {
+            *x = normal.map_or(0.0, |d| d.sample(rng));
+        }
+        self.count_column_separately(dim);
+    }
+
+    /// The column with its own visit counts, if any.
+    pub fn own_column(&self) -> Option<&OwnColumn> {
+        self.own_column.as_ref()
     }
 
     /// Number of stimulus dimensions.
@@ -64,8 +107,21 @@ impl StimulusFunction {
             StimulusRate::Named(_) => 1.0 / f64::from(self.visits[p]),
         };
         let row = &mut self.xi[p * self.n..(p + 1) * self.n];
-        for (x, &obs) in row.iter_mut().zip(xi) {
-            *x += eta * (obs - *x);
+        let Some(own) = &mut self.own_column else {
+            for (x, &obs) in row.iter_mut().zip(xi) {
+                *x += eta * (obs - *x);
+            }
+            return;
+        };
+        // Column `own.dim` learns at its own rate 1/n_col(p).
+        own.visits[p] = own.visits[p].saturating_add(1);
+        let eta_own = match rate {
+            StimulusRate::Constant(c) => c,
+            StimulusRate::Named(_) => 1.0 / f64::from(own.visits[p]),
+        };
+        for (j, (x, &obs)) in row.iter_mut().zip(xi).enumerate() {
+            let rate = if j == own.dim { eta_own } else { eta };
+            *x += rate * (obs - *x);
         }
     }
 
@@ -150,6 +206,7 @@ mod tests {
             n: 3,
             xi: vec![1.0, 0.0, 0.0, 0.0, -2.0, 1.0],
             visits: vec![0, 0],
+            own_column: None,
         };
         let mut r = [0.0; 2];
         // Λ D = (0.5, 1, 2)
@@ -159,11 +216,39 @@ mod tests {
             n: 4,
             xi: vec![1.0, 1.0, 1.0, -1.0],
             visits: vec![0],
+            own_column: None,
         };
         let mut r = [0.0; 1];
         g.rewards_into(&[1.0, 1.0, 1.0, 4.0], &mut r);
         assert_eq!(r, [1.0]);
         assert_eq!(g.constant_columns(), vec![0, 1, 2, 3]);
         assert_eq!(f.constant_columns(), Vec::<usize>::new());
+    }
+
+    #[test]
+    fn an_own_column_restarts_its_mean_at_a_reset() {
+        let mut rng = ChaCha8Rng::seed_from_u64(2);
+        let mut f = StimulusFunction::new(2, 3, 0.3, &mut rng);
+        let rate = StimulusRate::Named(StimulusRateName::SampleMean);
+        f.count_column_separately(2);
+        f.update(0, &[2.0, 0.0, 4.0], rate);
+        f.update(0, &[4.0, 0.0, 8.0], rate);
+        assert_eq!(f.row(0), &[3.0, 0.0, 6.0]);
+        let before: Vec<f64> = f.table().to_vec();
+        f.reset_column(2, 0.3, &mut rng);
+        // Only column 2 is redrawn; the pair counts stay.
+        for (i, (a, b)) in before.iter().zip(f.table()).enumerate() {
+            assert_eq!(a == b, i % 3 != 2, "entry {i}");
+        }
+        assert_eq!(f.visits(), &[2, 0]);
+        assert_eq!(f.own_column().map(|c| c.visits.clone()), Some(vec![0, 0]));
+        // The first visit after the reset forgets the optimistic value
+        // (n_cur = 1) while the other columns keep averaging (n = 3).
+        f.update(0, &[6.0, 3.0, 1.0], rate);
+        assert_eq!(f.row(0), &[4.0, 1.0, 1.0]);
+        // Without an own column the snapshot shape is unchanged.
+        let plain = StimulusFunction::new(1, 1, 0.0, &mut rng);
+        let json = serde_json::to_string(&plain).expect("encode");
+        assert!(!json.contains("own_column"), "{json}");
     }
 }
