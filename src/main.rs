@@ -7,6 +7,7 @@ use std::time::Instant;
 
 use clap::{Args, Parser, Subcommand};
 use mcapi::config::{LogFormat, ServeConfig};
+use mcapi::experiments::curiosity;
 use mcapi::experiments::run::results_table;
 use mcapi::experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
 use mcapi::{server, telemetry};
@@ -45,15 +46,26 @@ struct HealthcheckArgs {
     timeout_ms: u64,
 }
 
+/// The experiments `mcapi experiment` runs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum Which {
+    /// Experiment 1: the 50-state hallway with food and rest.
+    Hallway,
+    /// Experiment 2: the three-room maze with sources a, b, c.
+    ThreeRoom,
+    /// Experiment 3: the curiosity room, EM+IM against EM-only.
+    Curiosity,
+}
+
 #[derive(Debug, Args)]
 struct ExperimentArgs {
     /// Which experiment.
     #[arg(value_enum)]
-    kind: ExperimentKind,
+    kind: Which,
     /// Trials per configuration.
     #[arg(long, default_value_t = 20)]
     trials: usize,
-    /// Ticks per trial (default: 5000 for the hallway, 10000 for the maze).
+    /// Ticks per trial (default: 5000 for the hallway, 10000 for the maze and the curiosity room).
     #[arg(long)]
     steps: Option<usize>,
     /// Base seed; trial i of every configuration shares its seeds.
@@ -95,7 +107,12 @@ fn main() -> ExitCode {
 
 fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
     let started = Instant::now();
-    let exp = Experiment::new(args.kind);
+    let kind = match args.kind {
+        Which::Hallway => ExperimentKind::Hallway,
+        Which::ThreeRoom => ExperimentKind::ThreeRoom,
+        Which::Curiosity => return curiosity_experiment(args),
+    };
+    let exp = Experiment::new(kind);
     let opts = RunOptions {
         trials: args.trials,
         steps: args.steps.unwrap_or(exp.default_steps),
@@ -116,6 +133,36 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64()
     );
     print!("{}", results_table(&output.summary, &order));
+    println!(
+        "\nwrote {} files to {}",
+        output.files.len(),
+        opts.out.display()
+    );
+    Ok(())
+}
+
+/// `mcapi experiment curiosity` (Experiment 3, ALGORITHM.md §7).
+fn curiosity_experiment(args: ExperimentArgs) -> anyhow::Result<()> {
+    let started = Instant::now();
+    let opts = RunOptions {
+        trials: args.trials,
+        steps: args.steps.unwrap_or(curiosity::DEFAULT_STEPS),
+        seed: args.seed,
+        out: args.out,
+        csv: !args.no_csv,
+        figures: !args.no_figures,
+        progress: !args.quiet && std::io::stderr().is_terminal(),
+    };
+    let (output, _) = curiosity::run_curiosity(&opts)?;
+    println!(
+        "{}: {} trials x {} ticks, seed {} ({:.2} s)\n",
+        curiosity::NAME,
+        opts.trials,
+        opts.steps,
+        opts.seed,
+        started.elapsed().as_secs_f64()
+    );
+    print!("{}", curiosity::results_table(&output.summary));
     println!(
         "\nwrote {} files to {}",
         output.files.len(),

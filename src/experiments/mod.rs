@@ -1,6 +1,7 @@
 //! The paper's experiments (ALGORITHM.md §6) over the pure core: the
-//! hallway (Exp. 1) and the three-room maze (Exp. 2), with their baselines,
-//! metrics, per-trial CSV series, `summary.json` and figures.
+//! hallway (Exp. 1), the three-room maze (Exp. 2) and the curiosity room
+//! (Exp. 3, §7), with their baselines, metrics, per-trial CSV series,
+//! `summary.json` and figures.
 //!
 //! An experiment is a list of configurations run for the same trials: trial
 //! `i` of every configuration uses the same world seed (the same start state
@@ -8,6 +9,7 @@
 //! compared on common random numbers. Trials run in parallel (rayon) with a
 //! progress bar on stderr.
 
+pub mod curiosity;
 pub mod metrics;
 pub mod paper;
 pub mod plots;

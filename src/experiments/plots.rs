@@ -6,6 +6,9 @@
 //! 2(e) V(10) and V(40). Maze: Fig. 3(b) cumulative stimulus per source,
 //! 3(c) the drive, 3(d) the LSTDQ error, 3(e-g) value function and policy
 //! over the map at three instants, each when a different drive dominates.
+//! Curiosity room: Fig. 4(j) estimation error, 4(k) cumulative |r| EM+IM vs
+//! EM-only, 4(l) cumulative stimulus per dimension, 4(m) occupancy of the map
+//! per period between module freezes.
 
 use std::path::{Path, PathBuf};
 use std::sync::Once;
@@ -18,6 +21,7 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 use crate::algo::model::GridMap;
 
+use super::curiosity::{CuriosityRecord, Room, STIMULI};
 use super::paper::{Experiment, ExperimentKind, Snapshot, TrialRecord};
 
 const FONT: &str = "sans-serif";
@@ -550,6 +554,195 @@ fn draw_maze(
         };
         let size = (grid.cols() as u32 * 34 + 24, grid.rows() as u32 * 34 + 60);
         files.extend(save(&fig, out, &format!("fig3{letter}_values"), size)?);
+    }
+    Ok(files)
+}
+
+// ---------------------------------------------------------------------------
+// Experiment 3: Fig. 4(j)-(m)
+// ---------------------------------------------------------------------------
+
+/// Visits per state over the map during one period of a run (Fig. 4m).
+struct OccupancyMap<'a> {
+    title: String,
+    grid: &'a GridMap,
+    /// Ticks spent in each state.
+    visits: Vec<f64>,
+    /// (mark, state) of F, R, K, M.
+    marks: Vec<(char, usize)>,
+}
+
+impl Figure for OccupancyMap<'_> {
+    fn title(&self) -> &str {
+        &self.title
+    }
+
+    fn draw<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, Shift>,
+    ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+        root.fill(&WHITE)?;
+        let (rows, cols) = (self.grid.rows() as f64, self.grid.cols() as f64);
+        // Colour by log(1 + visits), so rarely visited cells still show.
+        let shade: Vec<f64> = self.visits.iter().map(|v| v.ln_1p()).collect();
+        let hi = shade.iter().copied().fold(0.0, f64::max).max(1e-9);
+        let mut ctx = ChartBuilder::on(root)
+            .caption(&self.title, (FONT, 18))
+            .margin(12)
+            .build_cartesian_2d(0.0..cols, 0.0..rows)?;
+        let mut cells = Vec::new();
+        for r in 0..self.grid.rows() {
+            for c in 0..self.grid.cols() {
+                let style = match self.grid.state_at(r, c) {
+                    None => RGBColor(40, 40, 40).filled(),
+                    Some(s) => ViridisRGB.get_color_normalized(shade[s], 0.0, hi).filled(),
+                };
+                let corners = [
+                    (c as f64, rows - r as f64),
+                    (c as f64 + 1.0, rows - r as f64 - 1.0),
+                ];
+                cells.push(Rectangle::new(corners, style));
+            }
+        }
+        ctx.draw_series(cells)?;
+        let label_style = (FONT, 20)
+            .into_font()
+            .style(FontStyle::Bold)
+            .color(&RED)
+            .pos(Pos::new(HPos::Center, VPos::Center));
+        ctx.draw_series(self.marks.iter().map(|&(mark, s)| {
+            let (r, c) = self.grid.cell_of(s);
+            Text::new(
+                mark.to_string(),
+                (c as f64 + 0.5, rows - r as f64 - 0.5),
+                label_style.clone(),
+            )
+        }))?;
+        Ok(())
+    }
+}
+
+/// Draws Fig. 4(j)-(m) of Experiment 3 into `out`; returns the files.
+///
+/// (j) ε of the active module over time (one run and the mean); (k)
+/// cumulative |r|, EM+IM vs EM-only (mean ± sd); (l) cumulative stimulus per
+/// dimension of EM+IM (mean ± sd); (m) the occupancy of the map in run 1
+/// during each period between module freezes (the module learned in it).
+pub fn draw_curiosity(
+    room: &Room,
+    grouped: &[(&'static str, Vec<CuriosityRecord>)],
+    out: &Path,
+) -> Result<Vec<PathBuf>> {
+    let find = |name: &str| {
+        grouped
+            .iter()
+            .find(|(n, _)| *n == name)
+            .map(|(_, r)| r.as_slice())
+            .filter(|r| !r.is_empty())
+            .ok_or_else(|| anyhow!("no trials of {name}"))
+    };
+    let im = find("em_im")?;
+    let em = find("em_only")?;
+    let mut files = Vec::new();
+
+    let eps: Vec<Vec<f64>> = im.iter().map(|r| r.epsilon.clone()).collect();
+    let (mean_eps, _) = mean_sd(&eps);
+    let fig_j = LineChart {
+        title: "Fig. 4(j) Curiosity room: estimation error of the active module".into(),
+        x_label: "tick".into(),
+        y_label: "estimation error ε".into(),
+        series: vec![
+            line("run 1", PALETTE[0], 1, &eps[0]),
+            line(
+                format!("mean of {} runs", eps.len()),
+                PALETTE[1],
+                2,
+                &mean_eps,
+            ),
+        ],
+    };
+    files.extend(save(&fig_j, out, "fig4j_estimation_error", SIZE)?);
+
+    let abs_r = |r: &CuriosityRecord| cumsum(r.base.abs_reward.iter().copied());
+    let fig_k = LineChart {
+        title: "Fig. 4(k) Curiosity room: cumulative |r|".into(),
+        x_label: "tick".into(),
+        y_label: "cumulative |r|".into(),
+        series: vec![
+            mean_band(
+                "EM+IM",
+                PALETTE[0],
+                &im.iter().map(abs_r).collect::<Vec<_>>(),
+            ),
+            mean_band(
+                "EM only",
+                PALETTE[1],
+                &em.iter().map(abs_r).collect::<Vec<_>>(),
+            ),
+        ],
+    };
+    files.extend(save(&fig_k, out, "fig4k_cumulative_reward", SIZE)?);
+
+    let series = STIMULI
+        .iter()
+        .enumerate()
+        .map(|(j, name)| {
+            let cum: Vec<Vec<f64>> = im
+                .iter()
+                .map(|r| cumsum(component(&r.base, j, &r.base.stimulus, r.base.dims).into_iter()))
+                .collect();
+            mean_band(name, PALETTE[j % PALETTE.len()], &cum)
+        })
+        .collect();
+    let fig_l = LineChart {
+        title: "Fig. 4(l) Curiosity room: cumulative stimulus per dimension (EM+IM)".into(),
+        x_label: "tick".into(),
+        y_label: "cumulative stimulus".into(),
+        series,
+    };
+    files.extend(save(&fig_l, out, "fig4l_cumulative_stimulus", SIZE)?);
+
+    let run = &im[0];
+    let marks = vec![
+        ('F', room.food),
+        ('R', room.rest),
+        ('K', room.book),
+        ('M', room.music),
+    ];
+    let steps = run.base.steps();
+    let mut bounds: Vec<(usize, usize, Option<usize>)> = Vec::new();
+    let mut from = 0;
+    for &(tick, source) in &run.freezes {
+        bounds.push((from, tick as usize, Some(source)));
+        from = tick as usize;
+    }
+    bounds.push((from, steps, None));
+    let size = (
+        room.grid.cols() as u32 * 34 + 24,
+        room.grid.rows() as u32 * 34 + 60,
+    );
+    for (i, &(a, b, source)) in bounds.iter().enumerate() {
+        let mut visits = vec![0.0; room.grid.states()];
+        for &s in &run.base.states[a..b] {
+            visits[s as usize] += 1.0;
+        }
+        let what = match source {
+            Some(0) => format!("module {} learns the book (K)", i + 1),
+            Some(_) => format!("module {} learns the music (M)", i + 1),
+            None => "after the last freeze".to_string(),
+        };
+        let fig = OccupancyMap {
+            title: format!("Fig. 4(m) run 1, ticks {}-{b}: {what}", a + 1),
+            grid: &room.grid,
+            visits,
+            marks: marks.clone(),
+        };
+        files.extend(save(
+            &fig,
+            out,
+            &format!("fig4m_occupancy_{}", i + 1),
+            size,
+        )?);
     }
     Ok(files)
 }

@@ -136,7 +136,7 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
     })
 }
 
-fn progress_bar(opts: &RunOptions, len: u64, name: &str) -> ProgressBar {
+pub(crate) fn progress_bar(opts: &RunOptions, len: u64, name: &str) -> ProgressBar {
     if !opts.progress {
         return ProgressBar::hidden();
     }
