@@ -203,6 +203,81 @@ fn same_seed_gives_the_same_summary() {
 }
 
 #[test]
+fn curiosity_learns_the_signals_and_is_deterministic() {
+    let a = tempfile_dir("curiosity-a");
+    let b = tempfile_dir("curiosity-b");
+    for (i, dir) in [&a, &b].into_iter().enumerate() {
+        let mut args = vec![
+            "experiment",
+            "curiosity",
+            "--trials",
+            "2",
+            "--steps",
+            "4000",
+            "--seed",
+            "4",
+            "--out",
+            dir.to_str().expect("utf-8 path"),
+        ];
+        if i == 1 {
+            args.extend(["--no-csv", "--no-figures"]);
+        }
+        let stdout = run_cli(&args);
+        assert!(stdout.contains("| em_im |"), "results table: {stdout}");
+    }
+    let s = summary(&a);
+    assert_eq!(s, summary(&b), "same seed, same summary");
+    check_shape(&s, "curiosity", &["em_im", "em_only"], 2, 4000, 4);
+    for config in ["em_im", "em_only"] {
+        for metric in [
+            "cumulative_stimulus_food",
+            "cumulative_stimulus_rest",
+            "cumulative_stimulus_curiosity",
+            "modules_learned",
+            "first_module_frozen",
+            "cumulative_abs_reward_second_half",
+        ] {
+            assert!(
+                s["configs"][config][metric]["mean"].is_number(),
+                "{config}.{metric}"
+            );
+        }
+    }
+    let max = |config: &str, metric: &str| {
+        s["configs"][config][metric]["max"]
+            .as_f64()
+            .unwrap_or_else(|| panic!("{config}.{metric}.max"))
+    };
+    assert!(
+        max("em_im", "modules_learned") >= 1.0,
+        "a signal is learned in some trial"
+    );
+    assert!(mean(&s, "em_im", "first_module_frozen") <= 4000.0);
+    assert_eq!(max("em_only", "modules_learned"), 0.0);
+    assert_eq!(max("em_only", "cumulative_stimulus_curiosity"), 0.0);
+    assert!(mean(&s, "em_im", "cumulative_stimulus_curiosity") > 0.0);
+    assert!(mean(&s, "em_im", "balance") > 0.8, "food and rest balanced");
+    for fig in [
+        "fig4j_estimation_error",
+        "fig4k_cumulative_reward",
+        "fig4l_cumulative_stimulus",
+        "fig4m_occupancy_1",
+    ] {
+        let png = fs::read(a.join(format!("{fig}.png"))).expect("png written");
+        assert_eq!(&png[1..4], b"PNG", "{fig}.png is a PNG");
+    }
+    let csv = fs::read_to_string(a.join("em_im/trial_00.csv")).expect("csv written");
+    assert_eq!(
+        csv.lines().next(),
+        Some(
+            "tick,state,action,d_food,d_rest,d_curiosity,abs_reward,cum_food,cum_rest,cum_curiosity,lstdq_error,epsilon"
+        )
+    );
+    fs::remove_dir_all(a).ok();
+    fs::remove_dir_all(b).ok();
+}
+
+#[test]
 fn bad_arguments_fail_with_a_message() {
     let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
         .args([
