@@ -57,9 +57,12 @@ figures: release
 	  | tee docs/figures/hallway_results.md
 	./target/release/mcapi experiment three-room --trials 20 --steps 10000 --seed 1 --out out/three-room --no-csv \
 	  | tee docs/figures/three_room_results.md
-	cp out/hallway/fig2* out/three-room/fig3* docs/figures/
+	./target/release/mcapi experiment curiosity --trials 20 --steps 10000 --seed 1 --out out/curiosity --no-csv \
+	  | tee docs/figures/curiosity_results.md
+	cp out/hallway/fig2* out/three-room/fig3* out/curiosity/fig4* docs/figures/
 	cp out/hallway/summary.json docs/figures/hallway_summary.json
 	cp out/three-room/summary.json docs/figures/three_room_summary.json
+	cp out/curiosity/summary.json docs/figures/curiosity_summary.json
 
 clean:
 	$(CARGO) clean

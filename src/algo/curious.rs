@@ -316,6 +316,16 @@ mod tests {
         assert!((crate::algo::drive::norm(d) - 1.0).abs() < 1e-12);
         let own = a.agent().stimulus().own_column().expect("own column");
         assert_eq!(own.dim, 1);
+        // A new source (music) is known and unexplained: D[cur] = 1/√2,
+        // renormalised from D = (±1, 0), i.e. 1/√3.
+        let x = Signals::eq6(Eq6Source::Music, 0.0);
+        let state = a.agent().state().expect("state");
+        let s = a
+            .step(&CuriousObservation::new(state, &[0.0], Some((1, &x))))
+            .expect("music sample");
+        assert!(!s.suppressed);
+        let d = a.agent().drive().vector();
+        assert!((d[1] - 1.0 / 3f64.sqrt()).abs() < 1e-12, "{d:?}");
     }
 
     #[test]

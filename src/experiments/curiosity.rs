@@ -121,6 +121,9 @@ pub struct CuriosityRecord {
     /// Per frozen module at the end: its source and its window means on the
     /// book and on the music (None where it has fewer than τ samples).
     pub explain: Vec<(usize, [Option<f64>; 2])>,
+    /// Per frozen module at the end: |correlation| of its slow feature with
+    /// its source's hidden slow feature (sin t, resp. sin(2t + π/3)).
+    pub feature_correlation: Vec<f64>,
     /// Ticks with condition (3) in force (D[cur] held at 0).
     pub suppressed_ticks: u64,
 }
@@ -266,6 +269,15 @@ fn run_trial(
                     (m.source(), [judged(0), judged(1)])
                 })
                 .collect();
+            rec.feature_correlation = a
+                .channel()
+                .library()
+                .iter()
+                .map(|m| {
+                    let source = Eq6Source::ALL[m.source().min(1)];
+                    feature_correlation(|x| m.sfa().output(x), source, setup.curiosity.dt)
+                })
+                .collect();
             a.agent()
         }
         Runner::Plain(a) => a,
@@ -273,6 +285,32 @@ fn run_trial(
     let stats = agent.planner().stats();
     rec.base.reuse_fraction = stats.reuses as f64 / stats.updates.max(1) as f64;
     Ok(rec)
+}
+
+/// |Pearson correlation| of a learned feature with the slow feature of
+/// `source` over one period of sin t (2π/dt samples of Eq. 6 from t = 0).
+pub fn feature_correlation(feature: impl Fn(&[f64]) -> f64, source: Eq6Source, dt: f64) -> f64 {
+    let k = (std::f64::consts::TAU / dt).ceil() as usize;
+    let (mut ys, mut ss) = (Vec::with_capacity(k), Vec::with_capacity(k));
+    for i in 0..k {
+        let t = i as f64 * dt;
+        ys.push(feature(&Signals::eq6(source, t)));
+        ss.push(source.slow_feature(t));
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len() as f64;
+    let (my, ms) = (mean(&ys), mean(&ss));
+    let (mut sxy, mut sxx, mut syy) = (0.0, 0.0, 0.0);
+    for (y, s) in ys.iter().zip(&ss) {
+        sxy += (y - my) * (s - ms);
+        sxx += (y - my) * (y - my);
+        syy += (s - ms) * (s - ms);
+    }
+    let denom = (sxx * syy).sqrt();
+    if denom > 0.0 {
+        (sxy / denom).abs()
+    } else {
+        0.0
+    }
 }
 
 fn drive_of(runner: &Runner) -> &[f64] {
@@ -343,6 +381,14 @@ pub fn curiosity_metrics(rec: &CuriosityRecord, room: &Room, curious: bool) -> T
             .filter_map(|(s, w)| w[1 - (*s).min(1)])
             .fold(None, |a: Option<f64>, e| Some(a.map_or(e, |a| a.min(e))));
         m.insert("own_source_error".into(), own.unwrap_or(1.0));
+        m.insert(
+            "feature_correlation_min".into(),
+            rec.feature_correlation
+                .iter()
+                .copied()
+                .fold(None, |a: Option<f64>, c| Some(a.map_or(c, |a| a.min(c))))
+                .unwrap_or(0.0),
+        );
         m.insert("other_source_error".into(), other.unwrap_or(1.0));
         m.insert(
             "suppressed_fraction".into(),
@@ -492,4 +538,29 @@ pub fn results_table(summary: &Summary) -> String {
         ));
     }
     out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_room_has_its_four_marks() {
+        let room = Room::new().expect("room");
+        let s = room.sources();
+        assert!(s.iter().all(|&x| x < room.grid.states()));
+        assert_eq!(room.signal_at(room.book), Some(Eq6Source::Book));
+        assert_eq!(room.signal_at(room.music), Some(Eq6Source::Music));
+        assert_eq!(room.signal_at(room.food), None);
+    }
+
+    #[test]
+    fn the_exact_slow_feature_correlates_fully() {
+        // Book: x1 − x2² = sin t exactly; music: x1 + x2² = sin(2t + π/3).
+        let book = feature_correlation(|x| x[0] - x[1] * x[1], Eq6Source::Book, 0.08);
+        let music = feature_correlation(|x| -(x[0] + x[1] * x[1]), Eq6Source::Music, 0.08);
+        assert!((book - 1.0).abs() < 1e-12 && (music - 1.0).abs() < 1e-12);
+        let fast = feature_correlation(|x| x[1], Eq6Source::Book, 0.08);
+        assert!(fast < 0.2, "cos 11t is not the slow feature: {fast}");
+    }
 }

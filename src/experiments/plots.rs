@@ -650,7 +650,7 @@ pub fn draw_curiosity(
     let fig_j = LineChart {
         title: "Fig. 4(j) Curiosity room: estimation error of the active module".into(),
         x_label: "tick".into(),
-        y_label: "estimation error ε".into(),
+        y_label: "estimation error ε (a fresh, unfed module reads 1)".into(),
         series: vec![
             line("run 1", PALETTE[0], 1, &eps[0]),
             line(
