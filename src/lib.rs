@@ -11,7 +11,8 @@
 //! transition model the agent re-plans every tick by model-based LSTDQ.
 //!
 //! Modules:
-//! - [`algo`]: the pure, synchronous algorithm core (Algorithm 1, Eqs. 1-3).
+//! - [`algo`]: the pure, synchronous algorithm core (Algorithm 1, Eqs. 1-3;
+//!   the curiosity channel and the curious agent, Eqs. 6-7).
 //! - [`experiments`]: the paper's experiments, metrics and figures.
 //! - [`service`]: the session layer both transports call (sessions, tick loop, limits).
 
