@@ -11,14 +11,14 @@
 //! 2. the agent observes ξ = [extrinsic, ξ_cur] (Algorithm 1 lines 5-7 and
 //!    Eq. 3, the same MCA update for every dimension, Λ = diag(1/ρ));
 //! 3. if a module froze on this sample, the curiosity column of Ξ is
-//!    re-initialised optimistically, Ξ[:, cur] ~ N(0, σ²) with the agent's σ
+//!    re-initialised optimistically, Ξ\[:, cur\] ~ N(0, σ²) with the agent's σ
 //!    (0.3 by default) and its own visit counts n_cur restarted at 0 (the
 //!    paper's "initialised with optimistic values"; the column's rate is
 //!    1/n_cur from the start);
 //! 4. **condition (3) (ours, from Sec. 3.1):** while every known signal
 //!    source is explained, ξ_cur is identically zero and needs no planning:
-//!    D[cur] = 0, renormalised. When a known source becomes unexplained
-//!    again, D[cur] = 1/√n, renormalised. Without it MCA turns D towards the
+//!    D\[cur\] = 0, renormalised. When a known source becomes unexplained
+//!    again, D\[cur\] = 1/√n, renormalised. Without it MCA turns D towards the
 //!    never-stimulated curiosity dimension once both signals are learned,
 //!    and the agent starves;
 //! 5. plan (line 8-9) and act, as [`Agent::step`].
@@ -84,7 +84,7 @@ pub struct CuriousStep {
     pub curiosity: Option<CuriosityStep>,
     /// The curiosity column of Ξ was re-initialised (a module froze).
     pub column_reset: bool,
-    /// Condition (3) holds after this tick: D[cur] is held at 0.
+    /// Condition (3) holds after this tick: D\[cur\] is held at 0.
     pub suppressed: bool,
 }
 
@@ -96,7 +96,7 @@ pub struct CuriousAgent {
     channel: CuriosityChannel,
     /// The curiosity dimension: n − 1.
     cur: usize,
-    /// Condition (3) in force: D[cur] held at 0.
+    /// Condition (3) in force: D\[cur\] held at 0.
     suppressed: bool,
     /// Scratch: the full stimulus [extrinsic, ξ_cur].
     xi: Vec<f64>,
@@ -199,7 +199,7 @@ impl CuriousAgent {
         })
     }
 
-    /// Condition (3) (§7, ours): D[cur] = 0 while every known source is
+    /// Condition (3) (§7, ours): D\[cur\] = 0 while every known source is
     /// explained; 1/√n, renormalised, when one becomes unexplained again.
     fn apply_condition_3(&mut self) -> Result<()> {
         let all = self.channel.all_explained();
@@ -228,7 +228,7 @@ impl CuriousAgent {
         self.cur
     }
 
-    /// Condition (3) in force: D[cur] is held at 0.
+    /// Condition (3) in force: D\[cur\] is held at 0.
     pub fn suppressed(&self) -> bool {
         self.suppressed
     }

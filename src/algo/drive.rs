@@ -120,7 +120,7 @@ impl Drive {
     }
 
     /// Sets component `dim` of D to `value` and renormalises, |D| = 1
-    /// (ALGORITHM.md §7, condition (3): D[cur] = 0 while every known signal
+    /// (ALGORITHM.md §7, condition (3): D\[cur\] = 0 while every known signal
     /// source is explained, 1/√n when one becomes unexplained again). Sets
     /// nothing and returns false if the result would not be a finite
     /// non-zero vector; a component already equal to `value` is left as it

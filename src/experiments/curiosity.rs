@@ -124,7 +124,7 @@ pub struct CuriosityRecord {
     /// Per frozen module at the end: |correlation| of its slow feature with
     /// its source's hidden slow feature (sin t, resp. sin(2t + π/3)).
     pub feature_correlation: Vec<f64>,
-    /// Ticks with condition (3) in force (D[cur] held at 0).
+    /// Ticks with condition (3) in force (D\[cur\] held at 0).
     pub suppressed_ticks: u64,
 }
 
