@@ -13,8 +13,8 @@
 //! source's own dimension only (§6).
 
 use std::collections::BTreeMap;
-use std::fs::{self, File};
-use std::io::{BufWriter, Write};
+use std::fs;
+use std::io::Write;
 use std::path::Path;
 use std::sync::Arc;
 use std::time::Instant;
@@ -23,7 +23,6 @@ use anyhow::{Context, Result};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
-use rayon::prelude::*;
 
 use crate::algo::model::{CURIOSITY_ROOM_MAP, GridMap, names};
 use crate::algo::{
@@ -34,7 +33,7 @@ use crate::algo::{
 use super::metrics::{Stat, TrialMetrics, summarise, trial_metrics};
 use super::paper::{SOURCE_NOISE_SD, SOURCE_STIMULUS, TrialRecord, trial_seeds};
 use super::plots;
-use super::run::{ExperimentOutput, RunOptions, Summary, progress_bar};
+use super::run::{ExperimentOutput, RunOptions, Summary, run_trials, trial_csv, write_summary};
 
 /// The experiment's name in files and `summary.json`.
 pub const NAME: &str = "curiosity";
@@ -406,28 +405,15 @@ pub fn run_curiosity(opts: &RunOptions) -> Result<(ExperimentOutput, Grouped)> {
     fs::create_dir_all(&opts.out).with_context(|| format!("creating {}", opts.out.display()))?;
     let setup = Setup::new()?;
     let started = Instant::now();
-    let jobs: Vec<(usize, usize)> = (0..CONFIGS.len())
-        .flat_map(|c| (0..opts.trials).map(move |t| (c, t)))
-        .collect();
-    let bar = progress_bar(opts, jobs.len() as u64, NAME);
-    let records: Vec<CuriosityRecord> = jobs
-        .par_iter()
-        .map(|&(c, t)| {
-            let config = CONFIGS[c];
-            let rec = run_trial(&setup, config, opts.seed, t, opts.steps)
-                .with_context(|| format!("{config} trial {t}"))?;
-            if opts.csv {
-                write_csv(config, t, &rec, &opts.out)?;
-            }
-            bar.inc(1);
-            Ok(rec)
-        })
-        .collect::<Result<_>>()?;
-    bar.finish_and_clear();
-    let mut grouped: Grouped = CONFIGS.iter().map(|&c| (c, Vec::new())).collect();
-    for (&(c, _), rec) in jobs.iter().zip(records) {
-        grouped[c].1.push(rec);
-    }
+    let grouped: Grouped = run_trials(opts, NAME, &CONFIGS, |c, t| {
+        let config = CONFIGS[c];
+        let rec = run_trial(&setup, config, opts.seed, t, opts.steps)
+            .with_context(|| format!("{config} trial {t}"))?;
+        if opts.csv {
+            write_csv(config, t, &rec, &opts.out)?;
+        }
+        Ok(rec)
+    })?;
     let mut configs: BTreeMap<String, BTreeMap<String, Stat>> = BTreeMap::new();
     for (i, (name, recs)) in grouped.iter().enumerate() {
         let per_trial: Vec<TrialMetrics> = recs
@@ -443,11 +429,7 @@ pub fn run_curiosity(opts: &RunOptions) -> Result<(ExperimentOutput, Grouped)> {
         seed: opts.seed,
         configs,
     };
-    let summary_path = opts.out.join("summary.json");
-    let json = serde_json::to_string_pretty(&summary)?;
-    fs::write(&summary_path, json + "\n")
-        .with_context(|| format!("writing {}", summary_path.display()))?;
-    let mut files = vec![summary_path];
+    let mut files = vec![write_summary(&summary, &opts.out)?];
     if opts.figures {
         files.extend(plots::draw_curiosity(&setup.room, &grouped, &opts.out)?);
     }
@@ -470,11 +452,7 @@ pub fn run_curiosity(opts: &RunOptions) -> Result<(ExperimentOutput, Grouped)> {
 /// Writes `DIR/<config>/trial_<i>.csv`: tick, state, action, D, |r|,
 /// cumulative stimulus per dimension, LSTDQ error, ε of the active module.
 fn write_csv(config: &str, trial: usize, rec: &CuriosityRecord, out: &Path) -> Result<()> {
-    let dir = out.join(config);
-    fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let path = dir.join(format!("trial_{trial:02}.csv"));
-    let file = File::create(&path).with_context(|| format!("creating {}", path.display()))?;
-    let mut w = BufWriter::new(file);
+    let (path, mut w) = trial_csv(out, config, trial)?;
     let mut header = String::from("tick,state,action");
     for n in STIMULI {
         header.push_str(&format!(",d_{n}"));

@@ -69,40 +69,27 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
     let ctxs = exp.planning_models()?;
     let started = Instant::now();
 
-    let jobs: Vec<(usize, usize)> = (0..exp.configs.len())
-        .flat_map(|c| (0..opts.trials).map(move |t| (c, t)))
-        .collect();
-    let bar = progress_bar(opts, jobs.len() as u64, exp.name());
-    let records: Vec<TrialRecord> = jobs
-        .par_iter()
-        .map(|&(c, t)| {
-            let config = &exp.configs[c];
-            let snapshots = c == 0 && t == 0 && exp.preset.grid.is_some();
-            let rec = run_trial(
-                exp,
-                config,
-                ctxs[c].as_ref(),
-                opts.seed,
-                t,
-                opts.steps,
-                snapshots,
-            )
-            .with_context(|| format!("{} trial {t}", config.name))?;
-            if opts.csv {
-                write_csv(exp, config.name, t, &rec, &opts.out)?;
-            }
-            bar.inc(1);
-            Ok(rec)
-        })
-        .collect::<Result<_>>()?;
-    bar.finish_and_clear();
+    let names: Vec<&'static str> = exp.configs.iter().map(|c| c.name).collect();
+    let grouped = run_trials(opts, exp.name(), &names, |c, t| {
+        let config = &exp.configs[c];
+        let snapshots = c == 0 && t == 0 && exp.preset.grid.is_some();
+        let rec = run_trial(
+            exp,
+            config,
+            ctxs[c].as_ref(),
+            opts.seed,
+            t,
+            opts.steps,
+            snapshots,
+        )
+        .with_context(|| format!("{} trial {t}", config.name))?;
+        if opts.csv {
+            write_csv(exp, config.name, t, &rec, &opts.out)?;
+        }
+        Ok(rec)
+    })?;
 
     let sources: Vec<usize> = exp.preset.sources.iter().map(|s| s.state).collect();
-    let mut grouped: Vec<(&'static str, Vec<TrialRecord>)> =
-        exp.configs.iter().map(|c| (c.name, Vec::new())).collect();
-    for (&(c, _), rec) in jobs.iter().zip(records) {
-        grouped[c].1.push(rec);
-    }
     let mut configs = BTreeMap::new();
     for (name, recs) in &grouped {
         let per_trial: Vec<TrialMetrics> =
@@ -116,11 +103,7 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
         seed: opts.seed,
         configs,
     };
-    let summary_path = opts.out.join("summary.json");
-    let json = serde_json::to_string_pretty(&summary)?;
-    fs::write(&summary_path, json + "\n")
-        .with_context(|| format!("writing {}", summary_path.display()))?;
-    let mut files = vec![summary_path];
+    let mut files = vec![write_summary(&summary, &opts.out)?];
     if opts.figures {
         files.extend(plots::draw_experiment(exp, &grouped, &opts.out)?);
     }
@@ -136,7 +119,57 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
     })
 }
 
-pub(crate) fn progress_bar(opts: &RunOptions, len: u64, name: &str) -> ProgressBar {
+/// Runs `trial(c, t)` for every configuration `c` (named by `names`) and
+/// trial `t` in parallel, with a progress bar, and groups the records by
+/// configuration, in `names`' order and trial order.
+pub(crate) fn run_trials<R: Send>(
+    opts: &RunOptions,
+    name: &str,
+    names: &[&'static str],
+    trial: impl Fn(usize, usize) -> Result<R> + Sync,
+) -> Result<Vec<(&'static str, Vec<R>)>> {
+    let jobs: Vec<(usize, usize)> = (0..names.len())
+        .flat_map(|c| (0..opts.trials).map(move |t| (c, t)))
+        .collect();
+    let bar = progress_bar(opts, jobs.len() as u64, name);
+    let records: Vec<R> = jobs
+        .par_iter()
+        .map(|&(c, t)| {
+            let rec = trial(c, t)?;
+            bar.inc(1);
+            Ok(rec)
+        })
+        .collect::<Result<_>>()?;
+    bar.finish_and_clear();
+    let mut grouped: Vec<(&'static str, Vec<R>)> = names.iter().map(|&n| (n, Vec::new())).collect();
+    for (&(c, _), rec) in jobs.iter().zip(records) {
+        grouped[c].1.push(rec);
+    }
+    Ok(grouped)
+}
+
+/// Writes `DIR/summary.json` and returns its path.
+pub(crate) fn write_summary(summary: &Summary, out: &Path) -> Result<PathBuf> {
+    let path = out.join("summary.json");
+    let json = serde_json::to_string_pretty(summary)?;
+    fs::write(&path, json + "\n").with_context(|| format!("writing {}", path.display()))?;
+    Ok(path)
+}
+
+/// Creates `DIR/<config>/trial_<i>.csv` (and its directory) for writing.
+pub(crate) fn trial_csv(
+    out: &Path,
+    config: &str,
+    trial: usize,
+) -> Result<(PathBuf, BufWriter<File>)> {
+    let dir = out.join(config);
+    fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+    let path = dir.join(format!("trial_{trial:02}.csv"));
+    let file = File::create(&path).with_context(|| format!("creating {}", path.display()))?;
+    Ok((path, BufWriter::new(file)))
+}
+
+fn progress_bar(opts: &RunOptions, len: u64, name: &str) -> ProgressBar {
     if !opts.progress {
         return ProgressBar::hidden();
     }
@@ -159,11 +192,7 @@ fn write_csv(
     rec: &TrialRecord,
     out: &Path,
 ) -> Result<()> {
-    let dir = out.join(config);
-    fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
-    let path = dir.join(format!("trial_{trial:02}.csv"));
-    let file = File::create(&path).with_context(|| format!("creating {}", path.display()))?;
-    let mut w = BufWriter::new(file);
+    let (path, mut w) = trial_csv(out, config, trial)?;
     let names = exp.preset.model.stimuli();
     let mut header = String::from("tick,state,action");
     for n in names {
