@@ -216,14 +216,13 @@ impl Session {
         let mut log = Vec::new();
         let log_to = self.durability.as_ref().map(|_| &mut log);
         let result = st.apply_all(batch, plan, self.history_cap, &mut out, log_to);
-        let elapsed_from = started;
         let commit = match &self.durability {
             Some(d) if !log.is_empty() => Some(st.log(&self.id, d, log)),
             _ => None,
         };
         drop(st);
         if plan {
-            self.record_plan_cost(elapsed_from, out.len());
+            self.record_plan_cost(started, out.len());
         }
         Observed {
             result: result.map(|()| out),
