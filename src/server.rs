@@ -10,6 +10,7 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
+use crate::api::dashboard::Stopping;
 use crate::api::rest::{self, AppState};
 use crate::config::{ServeConfig, StoreKind};
 use crate::service::SessionManager;
@@ -55,7 +56,8 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
         manager: Arc::clone(&manager),
         metrics: telemetry::prometheus(),
     };
-    let app = rest::router(state);
+    // Ends the dashboard's event streams at shutdown.
+    let app = rest::router(state).layer(axum::Extension(Stopping(stop_rx.clone())));
     let rest_task = tokio::spawn({
         let rx = stop_rx.clone();
         async move {

@@ -89,7 +89,7 @@ fn json_rejection(rejection: &JsonRejection) -> ServiceError {
     }
 }
 
-fn query<T>(q: Result<Query<T>, QueryRejection>) -> Result<T, ApiError> {
+pub(crate) fn query<T>(q: Result<Query<T>, QueryRejection>) -> Result<T, ApiError> {
     q.map(|Query(v)| v).map_err(|e| {
         ApiError(ServiceError::BadRequest(format!(
             "bad query string: {}",
@@ -111,7 +111,8 @@ fn query<T>(q: Result<Query<T>, QueryRejection>) -> Result<T, ApiError> {
         delete_session,
         observe,
         values,
-        history
+        history,
+        crate::api::dashboard::events
     ),
     components(schemas(ErrorBody, ObserveBatch, ObserveBatchReply)),
     modifiers(&BearerAuth),
@@ -162,6 +163,7 @@ pub fn router(state: AppState) -> Router {
         .route("/metrics", get(metrics_text))
         // Serves the document at /v1/openapi.json and the UI under /docs.
         .merge(SwaggerUi::new("/docs").url("/v1/openapi.json", openapi()))
+        .merge(crate::api::dashboard::routes()) // the page at `/` and the events stream
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(body_limit))
         .layer(middleware::from_fn(record_request))

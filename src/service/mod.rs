@@ -388,6 +388,7 @@ impl SessionManager {
             deterministic: model.is_deterministic(),
             basis,
             features: ctx.n_features(),
+            layout: input.layout(),
         };
         Ok((Agent::new(ctx, params), summary, config))
     }

@@ -327,6 +327,72 @@ pub struct ModelSummary {
     pub basis: BasisSummary,
     /// Number of features.
     pub features: usize,
+    /// Where each state lies on the map, for grid models (grid form and the
+    /// `three_room` preset); absent for other models.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub layout: Option<GridLayout>,
+}
+
+/// The map of a grid model: its size, the cell of each state and the marked
+/// cells (the stimulus sources), for drawing values over the map.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct GridLayout {
+    /// Map height in cells.
+    pub rows: usize,
+    /// Map width in cells.
+    pub cols: usize,
+    /// `[row, col]` of each state, indexed by state.
+    pub cells: Vec<[usize; 2]>,
+    /// Marked cells in row-major order: the mark and its state.
+    pub marks: Vec<GridMark>,
+}
+
+/// A marked cell of a grid map.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct GridMark {
+    /// The mark character.
+    pub mark: String,
+    /// The state of the marked cell.
+    pub state: usize,
+}
+
+impl GridLayout {
+    /// The layout of a parsed map.
+    pub fn of(grid: &GridMap) -> Self {
+        Self {
+            rows: grid.rows(),
+            cols: grid.cols(),
+            cells: (0..grid.states())
+                .map(|s| {
+                    let (r, c) = grid.cell_of(s);
+                    [r, c]
+                })
+                .collect(),
+            marks: grid
+                .marks()
+                .iter()
+                .map(|&(mark, state)| GridMark {
+                    mark: mark.to_string(),
+                    state,
+                })
+                .collect(),
+        }
+    }
+}
+
+impl ModelInput {
+    /// The map layout of a grid-form model or the `three_room` preset
+    /// (`None` for other models, or a map that does not parse).
+    pub fn layout(&self) -> Option<GridLayout> {
+        let grid = match self {
+            Self::Preset { name, .. } if name == "three_room" => {
+                GridMap::from_text(crate::algo::model::THREE_ROOM_MAP).ok()?
+            }
+            Self::Grid { lines, .. } => GridMap::parse(lines).ok()?,
+            Self::Preset { .. } | Self::Spec(_) => return None,
+        };
+        Some(GridLayout::of(&grid))
+    }
 }
 
 /// The effective configuration of a session, every field set.

@@ -263,6 +263,7 @@ fn model_summary(m: ModelSummary) -> pb::ModelSummary {
         deterministic,
         basis: spec,
         features,
+        layout: _, // REST only for now (the dashboard draws it)
     } = m;
     pb::ModelSummary {
         states: states as u64,
