@@ -1,9 +1,9 @@
 # `make test` is what CI runs (.ci/run): formatting, lints, every test.
 CARGO ?= cargo
 
-.PHONY: test lint-docker fmt-check clippy unit build release bench figures peers clean python-test
+.PHONY: test lint-docker fmt-check clippy unit build release bench figures peers clean python-test e2e
 
-test: lint-docker fmt-check clippy unit python-test
+test: lint-docker fmt-check clippy unit python-test e2e
 
 # hadolint on the Dockerfile (installs a pinned hadolint into .venv-tools/).
 lint-docker:
@@ -41,6 +41,21 @@ python-test: build
 	$(PY_CLIENT)/.venv/bin/python -m pip install --quiet --disable-pip-version-check \
 	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[test,gymnasium,plot]'
 	cd $(PY_CLIENT) && MCAPI_BIN=$(MCAPI_BIN) .venv/bin/pytest
+
+# The dashboard in headless Chromium (tests/e2e): drives a session against
+# the debug binary, checks that the charts and the heatmap render and
+# update, and writes docs/dashboard.png. Needs Debian's `chromium` (.ci/run
+# installs it); skipped with a message when it is missing. `npm ci` installs
+# the pinned playwright-core (no browser download).
+CHROMIUM ?= $(shell command -v chromium 2>/dev/null || command -v chromium-browser 2>/dev/null)
+E2E := tests/e2e
+e2e: build
+	@if [ -z "$(CHROMIUM)" ] || [ ! -x "$(CHROMIUM)" ]; then \
+	  echo "e2e skipped: chromium not installed (apt-get install chromium)"; \
+	else \
+	  cd $(E2E) && npm ci --no-audit --no-fund --loglevel=error && \
+	  CHROMIUM="$(CHROMIUM)" MCAPI_BIN="$(MCAPI_BIN)" node dashboard.mjs; \
+	fi
 
 # Criterion benches of the core tick.
 bench:

@@ -439,7 +439,10 @@
     view.charts.stimulus.setData([view.x, ...view.cum]);
     view.charts.reward.setData([view.x, view.reward, view.err]);
     $("stimulus-missing").hidden = view.sawStimulus || view.x.length === 0;
-    for (const id of ["chart-drive", "chart-stimulus", "chart-reward"]) $(id).dataset.points = String(view.x.length);
+    for (const id of ["chart-drive", "chart-stimulus", "chart-reward"]) {
+      $(id).dataset.points = String(view.x.length);
+      $(id).dataset.lastTick = view.x.length ? String(view.x[view.x.length - 1]) : "";
+    }
     if (view.values && view.values.v) {
       if (view.info.model.layout) drawHeatmap(view);
       else drawBars(view);
@@ -459,7 +462,7 @@
     const { rows, cols, cells, marks } = view.info.model.layout;
     const v = view.values.v;
     const policy = view.values.policy || [];
-    const width = Math.max(300, canvas.clientWidth || canvas.parentElement.clientWidth);
+    const width = Math.max(300, $("heatmap-box").clientWidth);
     const cell = Math.max(4, Math.min(Math.floor(width / cols), Math.floor(420 / rows)));
     const barH = 26;
     const w = cell * cols, h = cell * rows + barH + 8;
