@@ -2,7 +2,10 @@
 //! types, caching), the grid layout in the model summary, and the
 //! server-sent-events stream of a session (`GET /v1/sessions/{id}/events`):
 //! its `session`, `tick`, `values` and `end` events, API keys, bad
-//! intervals. The page itself is tested in a browser by `tests/e2e`.
+//! intervals, and a server shutdown with streams open. The page itself is
+//! tested in a browser by `tests/e2e`.
+
+mod common;
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -486,4 +489,33 @@ async fn the_openapi_document_describes_the_events_stream() {
         "{}",
         doc["components"]["schemas"]
     );
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn open_streams_end_when_the_server_stops() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let launch = common::Launch::new(dir.path(), &["--store", "memory"]);
+    let mut server = common::Server::start(&launch, dir.path().join("serve.log")).await;
+    let base = server.base();
+    let client = client();
+    let info = create(&client, &base, None, json!({"preset": "hallway"})).await;
+    let id = info["id"].as_str().expect("id");
+    let resp = open_events(&client, &base, id, "", None).await;
+    assert_eq!(resp.status(), 200);
+    let mut events = EventReader {
+        resp,
+        buf: String::new(),
+    };
+    assert_eq!(events.next().await.expect("session").event, "session");
+    // A graceful shutdown waits for in-flight responses; the stream must
+    // not hold it up.
+    let stopped = tokio::task::spawn_blocking(move || {
+        let status = server.terminate();
+        (status, server.log_text())
+    });
+    while let Some(e) = events.next().await {
+        assert_eq!(e.event, "values", "only the first values may still come");
+    }
+    let (status, log) = stopped.await.expect("join");
+    assert!(status.success(), "exit {status}; log:\n{log}");
 }
