@@ -47,6 +47,9 @@ from .types import (
     AgentConfig,
     AgentOptions,
     BasisSummary,
+    CuriosityConfig,
+    CuriosityInfo,
+    FrozenModule,
     HistoryEntry,
     ModelSummary,
     Observation,
@@ -55,6 +58,7 @@ from .types import (
     SessionStats,
     SessionSummary,
     Step,
+    TickCuriosity,
     Values,
 )
 
@@ -86,6 +90,9 @@ __all__ = [
     "AgentConfig",
     "AgentOptions",
     "BasisSummary",
+    "CuriosityConfig",
+    "CuriosityInfo",
+    "FrozenModule",
     "HistoryEntry",
     "ModelSummary",
     "Observation",
@@ -94,6 +101,7 @@ __all__ = [
     "SessionStats",
     "SessionSummary",
     "Step",
+    "TickCuriosity",
     "Values",
     "__version__",
 ]
