@@ -448,9 +448,9 @@ class HistoryEntry:
         reward: |r| of the tick.
         lstdq_error: LSTDQ error of the newest policy update at the time.
         stimulus: The full stimulus received at the tick, one float per
-            stimulus dimension (with a curiosity channel, xi_cur last; empty
-            on a session's first tick); ``None`` only for ticks restored from
-            a store written by an older server.
+            stimulus dimension (with a curiosity channel, xi_cur last);
+            ``None`` only for ticks restored from a store written by an
+            older server.
         curiosity: The curiosity channel at the tick; ``None`` for a session
             without one.
     """
