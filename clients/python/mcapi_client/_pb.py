@@ -26,6 +26,7 @@ from .types import (
     TickCuriosity,
     UpdateMode,
     Values,
+    check_signal,
 )
 
 _UPDATE_MODES: dict[str, int] = {"lockstep": pb.UPDATE_MODE_LOCKSTEP, "async": pb.UPDATE_MODE_ASYNC}
@@ -81,7 +82,7 @@ def observation(
     elif action_taken is not None:
         msg.action_index = int(action_taken)
     if signal is not None:
-        msg.signal.extend(float(x) for x in signal)
+        msg.signal.extend(float(x) for x in check_signal(signal))
     if signal_source is not None:
         msg.signal_source = signal_source
     return msg

@@ -61,6 +61,17 @@ def _finite(name: str, xs: Sequence[float]) -> list[float]:
     return out
 
 
+def check_signal(signal: Sequence[float]) -> Sequence[float]:
+    """``signal``, refused when empty: REST would refuse it, while gRPC cannot
+    tell an empty signal from none, so both transports refuse it here."""
+    if len(signal) == 0:
+        raise error_for(
+            "invalid_parameter",
+            "invalid parameter `signal`: is empty (leave it out when there is no signal sample)",
+        )
+    return signal
+
+
 @dataclass(frozen=True, slots=True)
 class CuriosityConfig:
     """A session's curiosity channel (the paper's section on curiosity-driven
@@ -498,7 +509,7 @@ class Observation:
         if self.action_taken is not None:
             out["action_taken"] = self.action_taken
         if self.signal is not None:
-            out["signal"] = _finite("signal", self.signal)
+            out["signal"] = _finite("signal", check_signal(self.signal))
         if self.signal_source is not None:
             out["signal_source"] = self.signal_source
         return out

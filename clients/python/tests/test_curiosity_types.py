@@ -13,6 +13,7 @@ from mcapi_client import (
     CuriosityInfo,
     FrozenModule,
     InvalidObservation,
+    InvalidParameter,
     Observation,
     Step,
     TickCuriosity,
@@ -51,6 +52,15 @@ def test_a_non_finite_signal_is_refused_as_the_server_would() -> None:
     with pytest.raises(InvalidObservation) as e:
         Observation(3, [0.0], signal=[1.0, math.inf]).to_json()
     assert e.value.code == "non_finite_number" and "`signal[1]`" in str(e.value)
+
+
+def test_an_empty_signal_is_refused_on_both_transports() -> None:
+    """gRPC cannot tell an empty signal from none, REST refuses it: refused here."""
+    with pytest.raises(InvalidParameter) as e:
+        Observation(3, [0.0], signal=[]).to_json()
+    assert e.value.code == "invalid_parameter" and e.value.status == 400
+    with pytest.raises(InvalidParameter):
+        _pb.observation(3, [0.0], None, signal=[])
 
 
 def test_the_observation_message_carries_the_signal() -> None:
