@@ -13,6 +13,10 @@ action, the drive and the reward.
   tables, Gymnasium toy-text environments).
 - :mod:`mcapi_client.errors`: :class:`McapiError` and its subclasses, one per
   family of the server's stable error codes.
+- Curiosity: ``create_session(..., curiosity=CuriosityConfig(signal_dim=2))``
+  adds a ``curiosity`` stimulus the server computes from raw ``signal=``
+  samples sent with observations; see :class:`CuriosityConfig`,
+  :class:`TickCuriosity` and :class:`CuriosityInfo`.
 
     from mcapi_client import Client, models
 
