@@ -591,3 +591,69 @@ async fn bad_curiosity_input_is_a_precise_client_error() {
     assert_eq!(status.code(), Code::InvalidArgument, "{status:?}");
     assert!(status.message().contains("params_json"), "{status:?}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_async_curious_session_learns_as_a_lockstep_one() {
+    let data = tempfile::tempdir().expect("data dir");
+    let logs = tempfile::tempdir().expect("logs");
+    let server = Server::start(
+        &Launch::new(data.path(), &[]),
+        logs.path().join("serve.log"),
+    )
+    .await;
+    let client = http_client();
+    let base = server.base();
+    let (status, body) = rest(
+        &client,
+        Method::POST,
+        &format!("{base}/v1/sessions"),
+        None,
+        Some(&json!({
+            "model": {"preset": "hallway"},
+            "agent": {"seed": SEED, "update_mode": "async", "curiosity": {"signal_dim": 2}},
+        })),
+    )
+    .await;
+    assert_eq!(status, 201, "{body}");
+    let id = body["id"].as_str().expect("id");
+    // Batches: the channel, Ξ and D do not depend on when the policy is
+    // updated, since the schedule reports its actions.
+    let ticks = schedule(300, 30);
+    let mut agent = core();
+    let mut want = Vec::new();
+    for t in &ticks {
+        let s = t.step(&mut agent);
+        want.push(s.xi_cur.to_bits());
+    }
+    let mut got = Vec::new();
+    for chunk in ticks.chunks(100) {
+        let (status, reply) = rest(
+            &client,
+            Method::POST,
+            &format!("{base}/v1/sessions/{id}/observations"),
+            None,
+            Some(&json!({"observations": chunk.iter().map(Tick::json).collect::<Vec<_>>()})),
+        )
+        .await;
+        assert_eq!(status, 200, "{reply}");
+        got.extend(
+            reply["steps"]
+                .as_array()
+                .expect("steps")
+                .iter()
+                .map(|s| f64_bits(&s["curiosity"]["xi_cur"])),
+        );
+    }
+    assert_eq!(got, want, "ξ_cur of every tick");
+    let session = get(&client, &format!("{base}/v1/sessions/{id}")).await;
+    assert_eq!(
+        bits(&session["drive"]),
+        agent
+            .agent()
+            .drive()
+            .vector()
+            .iter()
+            .map(|x| x.to_bits())
+            .collect::<Vec<_>>()
+    );
+}

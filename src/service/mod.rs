@@ -916,11 +916,16 @@ fn info_of(session: &Session) -> SessionInfo {
     }
 }
 
-/// An algorithm error about a nested configuration field, named.
-fn prefix(field: &str, e: crate::algo::AlgoError) -> ServiceError {
+/// An algorithm error about a field of `agent.curiosity`, with its path:
+/// `invalid parameter `agent.curiosity.params`: `gain` must be ...`.
+fn prefix(field: &'static str, e: crate::algo::AlgoError) -> ServiceError {
     match e {
         crate::algo::AlgoError::InvalidParameter { name, reason } => {
-            ServiceError::field(&format!("{field}.{name}"), reason)
+            crate::algo::AlgoError::InvalidParameter {
+                name: field,
+                reason: format!("`{name}` {reason}"),
+            }
+            .into()
         }
         e => ServiceError::field(field, e),
     }
