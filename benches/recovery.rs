@@ -85,6 +85,8 @@ fn main() -> anyhow::Result<()> {
                                     state,
                                     stimulus: (!first).then(|| hallway_stimulus(state)),
                                     action_taken: None,
+                                    signal: None,
+                                    signal_source: None,
                                 });
                                 first = false;
                                 // Moves right then left along the hallway; the

@@ -6,13 +6,22 @@
 //! warmed up first so the policy is in its steady regime (drives switching,
 //! factorisation reused on some ticks and updated on others).
 //!
+//! The `curiosity` group prices the intMCA channel (ALGORITHM.md §7): a
+//! curious agent standing at a signal source, learning a book sample every
+//! tick (freezing disabled, so every tick pays for slow-feature learning),
+//! against the plain agent on the same observations.
+//!
 //! Run: `cargo bench --bench tick`.
 
 use std::hint::black_box;
 use std::sync::Arc;
 
 use criterion::{Criterion, criterion_group, criterion_main};
-use mcapi::algo::{AgentParams, Basis, BasisSpec, PlanningModel};
+use mcapi::algo::model::hallway;
+use mcapi::algo::{
+    Agent, AgentParams, Basis, BasisSpec, CuriosityParams, CuriousAgent, CuriousObservation,
+    Eq6Source, Observation, PlanningModel, Signals,
+};
 use mcapi::experiments::paper::Simulation;
 use mcapi::experiments::{Experiment, ExperimentKind};
 
@@ -65,5 +74,73 @@ fn bench_tick(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_tick);
+/// The hallway's state where the signal is delivered.
+const SOURCE: usize = 25;
+const STAY: usize = 2;
+
+fn bench_curiosity(c: &mut Criterion) {
+    let params = |n| {
+        AgentParams {
+            seed: Some(7),
+            ..Default::default()
+        }
+        .check(n, 7)
+        .expect("params")
+    };
+    let plain_model = hallway().model;
+    let curious_model = plain_model
+        .clone()
+        .with_stimulus("curiosity")
+        .expect("curiosity dimension");
+    let never_freeze = CuriosityParams {
+        freeze_after: u32::MAX,
+        ..CuriosityParams::default()
+    }
+    .check()
+    .expect("curiosity params");
+    let mut curious = CuriousAgent::new(
+        Arc::new(PlanningModel::new(curious_model, Basis::Indicator)),
+        params(3),
+        never_freeze,
+        2,
+    )
+    .expect("curious agent");
+    let mut plain = Agent::new(
+        Arc::new(PlanningModel::new(plain_model, Basis::Indicator)),
+        params(2),
+    );
+    curious
+        .step(&CuriousObservation::first(SOURCE))
+        .expect("first");
+    plain.step(&Observation::first(SOURCE)).expect("first");
+    let mut signals = Signals::new(0.08);
+    let extrinsic = [0.0, 0.0];
+    let mut curious_tick = move || {
+        let x = signals.next(Eq6Source::Book);
+        let obs = CuriousObservation {
+            action_taken: Some(STAY),
+            ..CuriousObservation::new(SOURCE, &extrinsic, Some((0, &x)))
+        };
+        curious.step(&obs).expect("curious tick")
+    };
+    let mut plain_tick = move || {
+        let obs = Observation {
+            action_taken: Some(STAY),
+            ..Observation::new(SOURCE, &extrinsic)
+        };
+        plain.step(&obs).expect("plain tick")
+    };
+    for _ in 0..WARM_UP_TICKS {
+        curious_tick();
+        plain_tick();
+    }
+    let mut group = c.benchmark_group("curiosity");
+    group.bench_function("hallway_plain_tick", |b| b.iter(|| black_box(plain_tick())));
+    group.bench_function("hallway_curious_tick_learning", |b| {
+        b.iter(|| black_box(curious_tick()))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_tick, bench_curiosity);
 criterion_main!(benches);

@@ -630,6 +630,7 @@ impl Hallway {
                 values: self.stimulus().to_vec(),
             }),
             action_taken: None,
+            ..Default::default()
         }
     }
 

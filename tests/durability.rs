@@ -1147,6 +1147,7 @@ async fn interact_status(
             values: vec![0.0, 0.0],
         }),
         action_taken: None,
+        ..Default::default()
     })
     .await
     .expect("queued");
@@ -1207,6 +1208,7 @@ async fn every_grpc_call(
                         values: vec![0.0, 0.0],
                     }),
                     action_taken: None,
+                    ..Default::default()
                 }],
             },
             key,

@@ -131,6 +131,7 @@ fn observation(id: &str, state: usize, stimulus: Option<Vec<f64>>) -> pb::Observ
         state: state as u64,
         stimulus: stimulus.map(|values| pb::Stimulus { values }),
         action_taken: None,
+        ..Default::default()
     }
 }
 

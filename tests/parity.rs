@@ -95,6 +95,7 @@ async fn rest_and_grpc_give_identical_trajectories() {
                     state: state as u64,
                     stimulus: xi.map(|values| pb::Stimulus { values }),
                     action_taken: None,
+                    ..Default::default()
                 }],
             })
             .await

@@ -28,11 +28,14 @@
 
 use std::sync::Arc;
 
-use super::agent::{Agent, Observation, Step};
+use serde::{Deserialize, Serialize};
+
+use super::agent::{Agent, AgentSnapshot, Observation, ObserveOutcome, Step};
 use super::curiosity::{CuriosityChannel, CuriosityStep, ValidCuriosityParams};
 use super::error::{AlgoError, Result};
-use super::lstdq::PlanningModel;
+use super::lstdq::{PlanOutcome, PlanningModel};
 use super::params::ValidParams;
+use super::stimulus::OwnColumn;
 
 /// Mixed into the agent's seed to seed the curiosity channel.
 const CHANNEL_SEED_MIX: u64 = 0xC0_1D_5E_ED_CA_FE_F0_0D;
@@ -88,6 +91,22 @@ pub struct CuriousStep {
     pub suppressed: bool,
 }
 
+/// What [`CuriousAgent::observe`] did: steps 1-4 of a tick, before
+/// planning.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CuriousObserved {
+    /// The agent's tick and |r| (Eq. 3) for ξ = [extrinsic, ξ_cur].
+    pub observed: ObserveOutcome,
+    /// ξ_cur of this tick (0 without a signal sample).
+    pub xi_cur: f64,
+    /// What the channel did with the tick's sample, if there was one.
+    pub curiosity: Option<CuriosityStep>,
+    /// The curiosity column of Ξ was re-initialised (a module froze).
+    pub column_reset: bool,
+    /// Condition (3) holds after this tick: D\[cur\] is held at 0.
+    pub suppressed: bool,
+}
+
 /// An [`Agent`] with the intMCA curiosity channel as its last stimulus
 /// dimension (§7).
 #[derive(Debug, Clone)]
@@ -98,8 +117,27 @@ pub struct CuriousAgent {
     cur: usize,
     /// Condition (3) in force: D\[cur\] held at 0.
     suppressed: bool,
+    /// The agent's tick at each module freeze, in library order.
+    frozen_ticks: Vec<u64>,
     /// Scratch: the full stimulus [extrinsic, ξ_cur].
     xi: Vec<f64>,
+}
+
+/// Everything of a [`CuriousAgent`] a durable store keeps to resume it: the
+/// agent's snapshot, the curiosity column's own visit counts (which
+/// [`AgentSnapshot`]'s encoding leaves out), the channel and condition (3).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CuriousSnapshot {
+    /// The MCA-PI agent.
+    pub agent: AgentSnapshot,
+    /// The curiosity column's own visit counts n_cur.
+    pub own_column: Option<OwnColumn>,
+    /// The curiosity channel (modules, library, known sources).
+    pub channel: CuriosityChannel,
+    /// Condition (3) in force.
+    pub suppressed: bool,
+    /// The agent's tick at each module freeze.
+    pub frozen_ticks: Vec<u64>,
 }
 
 impl CuriousAgent {
@@ -131,12 +169,40 @@ impl CuriousAgent {
             channel,
             cur,
             suppressed: false,
+            frozen_ticks: Vec::new(),
             xi: vec![0.0; n],
         })
     }
 
     /// One tick (module docs, steps 1-5). Nothing changes on error.
     pub fn step(&mut self, obs: &CuriousObservation<'_>) -> Result<CuriousStep> {
+        let o = self.observe(obs)?;
+        let plan = self.agent.needs_plan().then(|| self.agent.plan());
+        let action = self
+            .agent
+            .act()
+            .ok_or_else(|| AlgoError::Numerical("no state after an observation".into()))?;
+        let plan = plan.transpose()?;
+        Ok(CuriousStep {
+            step: Step {
+                tick: o.observed.tick,
+                action,
+                reward: o.observed.reward,
+                plan,
+            },
+            xi_cur: o.xi_cur,
+            curiosity: o.curiosity,
+            column_reset: o.column_reset,
+            suppressed: o.suppressed,
+        })
+    }
+
+    /// Steps 1-4 of a tick (module docs): the channel learns from the
+    /// sample, the agent observes ξ = [extrinsic, ξ_cur], the column reset
+    /// and condition (3). Planning and acting are left to the caller
+    /// ([`Self::plan`], [`Self::act`]), as with [`Agent::observe`]. Nothing
+    /// changes on error.
+    pub fn observe(&mut self, obs: &CuriousObservation<'_>) -> Result<CuriousObserved> {
         let extrinsic = obs.stimulus;
         if let Some(x) = extrinsic
             && x.len() != self.cur
@@ -177,25 +243,103 @@ impl CuriousAgent {
         if column_reset {
             let sd = self.agent.params().optimistic_sd;
             self.agent.reset_stimulus_column(self.cur, sd)?;
+            self.frozen_ticks.push(observed.tick);
         }
         self.apply_condition_3()?;
-        let plan = self.agent.needs_plan().then(|| self.agent.plan());
-        let action = self
-            .agent
-            .act()
-            .ok_or_else(|| AlgoError::Numerical("no state after an observation".into()))?;
-        let plan = plan.transpose()?;
-        Ok(CuriousStep {
-            step: Step {
-                tick: observed.tick,
-                action,
-                reward: observed.reward,
-                plan,
-            },
+        Ok(CuriousObserved {
+            observed,
             xi_cur,
             curiosity,
             column_reset,
             suppressed: self.suppressed,
+        })
+    }
+
+    /// One LSTDQ policy update (Algorithm 1, lines 8-9), as [`Agent::plan`].
+    pub fn plan(&mut self) -> Result<PlanOutcome> {
+        self.agent.plan()
+    }
+
+    /// The next action, as [`Agent::act`].
+    pub fn act(&mut self) -> Option<usize> {
+        self.agent.act()
+    }
+
+    /// Records the action a reply advised, as [`Agent::set_advised_action`]
+    /// (replaying a log).
+    pub fn set_advised_action(&mut self, action: usize) -> Result<()> {
+        self.agent.set_advised_action(action)
+    }
+
+    /// Resumes the policy version counter, as [`Agent::resume_policy_version`].
+    pub fn resume_policy_version(&mut self, version: u64) {
+        self.agent.resume_policy_version(version);
+    }
+
+    /// The agent's tick at each module freeze, in library order.
+    pub fn frozen_ticks(&self) -> &[u64] {
+        &self.frozen_ticks
+    }
+
+    /// The resumable state.
+    pub fn snapshot(&self) -> CuriousSnapshot {
+        CuriousSnapshot {
+            agent: self.agent.snapshot(),
+            own_column: self.agent.stimulus().own_column().cloned(),
+            channel: self.channel.clone(),
+            suppressed: self.suppressed,
+            frozen_ticks: self.frozen_ticks.clone(),
+        }
+    }
+
+    /// A curious agent resumed from a snapshot of one with the same model,
+    /// parameters and signal dimension; refuses a snapshot that does not fit.
+    pub fn restore(
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+        curiosity: &ValidCuriosityParams,
+        signal_dim: usize,
+        snap: CuriousSnapshot,
+    ) -> Result<Self> {
+        let n = ctx.model().n_stimuli();
+        let bad = |what: String| Err(AlgoError::InvalidSnapshot(what));
+        if n < 2 {
+            return bad(format!(
+                "a curious agent needs 2 stimuli, the model has {n}"
+            ));
+        }
+        let cur = n - 1;
+        if snap.own_column.as_ref().is_none_or(|c| c.dim != cur) {
+            return bad(format!(
+                "Ξ's own column is not the curiosity dimension {cur}"
+            ));
+        }
+        if snap.channel.signal_dim() != signal_dim {
+            return bad(format!(
+                "the channel takes {}-dimensional signals, the session {signal_dim}",
+                snap.channel.signal_dim()
+            ));
+        }
+        if snap.channel.params() != curiosity {
+            return bad("the channel's parameters differ from the session's".into());
+        }
+        if snap.frozen_ticks.len() != snap.channel.module_count() {
+            return bad(format!(
+                "{} freeze ticks for {} frozen modules",
+                snap.frozen_ticks.len(),
+                snap.channel.module_count()
+            ));
+        }
+        let mut agent_snap = snap.agent;
+        agent_snap.stimulus.restore_own_column(snap.own_column);
+        let agent = Agent::restore(ctx, params, agent_snap)?;
+        Ok(Self {
+            agent,
+            channel: snap.channel,
+            cur,
+            suppressed: snap.suppressed,
+            frozen_ticks: snap.frozen_ticks,
+            xi: vec![0.0; n],
         })
     }
 
@@ -355,5 +499,35 @@ mod tests {
             .expect_err("non-finite signal");
         assert_eq!(a.channel().samples(), 0, "the channel learned nothing");
         assert_eq!(a.agent().tick(), 0);
+    }
+
+    #[test]
+    fn a_restored_snapshot_continues_bit_for_bit() {
+        let mut a = agent(5);
+        a.step(&CuriousObservation::first(1)).expect("first");
+        let before = walk(&mut a, 2500);
+        assert!(
+            before.iter().any(|s| s.column_reset),
+            "a module froze, so the snapshot holds a library and own counts"
+        );
+        assert_eq!(a.frozen_ticks().len(), a.channel().module_count());
+        // Through the store's encoding, which drops the own column from Ξ.
+        let bytes = postcard::to_stdvec(&a.snapshot()).expect("encode");
+        let snap: CuriousSnapshot = postcard::from_bytes(&bytes).expect("decode");
+        let ctx = Arc::clone(a.agent().planning_model());
+        let curiosity = a.channel().params().clone();
+        let mut b = CuriousAgent::restore(ctx, a.agent().params().clone(), &curiosity, 2, snap)
+            .expect("restore");
+        assert_eq!(b.snapshot(), a.snapshot());
+        let key = |s: &CuriousStep| (s.step.action, s.xi_cur.to_bits(), s.step.reward.to_bits());
+        let ka: Vec<_> = walk(&mut a, 800).iter().map(key).collect();
+        let kb: Vec<_> = walk(&mut b, 800).iter().map(key).collect();
+        assert_eq!(ka, kb);
+        // A snapshot for another signal dimension is refused.
+        let ctx = Arc::clone(a.agent().planning_model());
+        let err =
+            CuriousAgent::restore(ctx, a.agent().params().clone(), &curiosity, 3, a.snapshot())
+                .expect_err("wrong signal dimension");
+        assert!(matches!(err, AlgoError::InvalidSnapshot(_)), "{err}");
     }
 }

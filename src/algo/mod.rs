@@ -20,7 +20,9 @@ pub use basis::{Basis, BasisSpec};
 pub use curiosity::{
     CuriosityChannel, CuriosityParams, CuriosityStep, Eq6Source, Signals, ValidCuriosityParams,
 };
-pub use curious::{CuriousAgent, CuriousObservation, CuriousStep};
+pub use curious::{
+    CuriousAgent, CuriousObservation, CuriousObserved, CuriousSnapshot, CuriousStep,
+};
 pub use drive::Drive;
 pub use error::AlgoError;
 pub use lstdq::{PlanOutcome, Planner, PlanningModel};

@@ -295,6 +295,15 @@ impl EnvModel {
         })
     }
 
+    /// The same model with one more stimulus dimension, last (the curiosity
+    /// dimension of ALGORITHM.md §7: no transition delivers it, a channel
+    /// does). Refuses a name the model already has.
+    pub fn with_stimulus(mut self, name: &str) -> Result<Self> {
+        self.stimuli.push(name.to_string());
+        check_names("stimuli", &self.stimuli)?;
+        Ok(self)
+    }
+
     /// Builds a deterministic model from `next[s][a]` (`None` = unavailable).
     pub fn deterministic(
         next: Vec<Vec<Option<usize>>>,

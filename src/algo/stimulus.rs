@@ -78,6 +78,12 @@ impl StimulusFunction {
         self.count_column_separately(dim);
     }
 
+    /// Puts back the own column of a snapshot (whose encoding leaves it
+    /// out); `Agent::restore` checks that it fits.
+    pub fn restore_own_column(&mut self, column: Option<OwnColumn>) {
+        self.own_column = column;
+    }
+
     /// The column with its own visit counts, if any.
     pub fn own_column(&self) -> Option<&OwnColumn> {
         self.own_column.as_ref()

@@ -268,6 +268,21 @@ impl Agents for AgentsService {
         let values = self.manager.values(caller, &id, sel).map_err(to_status)?;
         Ok(Response::new(convert::values(values)))
     }
+
+    async fn get_history(
+        &self,
+        request: Request<pb::GetHistoryRequest>,
+    ) -> Result<Response<pb::History>, Status> {
+        let caller = caller(&self.manager, request.metadata())?;
+        let meta = metadata_session(request.metadata())?;
+        let (id, limit) =
+            convert::history_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
+        let entries = self
+            .manager
+            .history(caller, &id, limit)
+            .map_err(to_status)?;
+        Ok(Response::new(convert::history(entries)))
+    }
 }
 
 /// Observations in, steps out, one at a time and in order. The next

@@ -19,16 +19,18 @@ use parking_lot::{Mutex, RwLock};
 use serde::{Deserialize, Serialize};
 use tokio::sync::oneshot;
 
-use crate::algo::{Agent, Basis, PlanningModel};
+use crate::algo::{Agent, Basis, CuriousAgent, PlanningModel};
 use crate::store::Store;
 
 pub use auth::{ApiKeys, Caller};
 pub use error::ServiceError;
 pub use limits::Limits;
-pub use session::{Durability, HistoryEntry, ObservationIn, Session, SessionRef, StepOut};
+pub use session::{
+    Durability, HistoryEntry, Learner, ObservationIn, Session, SessionRef, StepOut, TickCuriosity,
+};
 pub use spec::{
-    BasisSummary, CreateSession, EffectiveConfig, ModelInput, ModelSummary, SessionConfig,
-    UpdateMode,
+    BasisSummary, CreateSession, CuriosityConfig, EffectiveConfig, ModelInput, ModelSummary,
+    SessionConfig, UpdateMode,
 };
 use tick::{Job, TickPool};
 
@@ -59,6 +61,62 @@ pub struct SessionInfo {
     pub agent: EffectiveConfig,
     /// Statistics of the learner.
     pub stats: SessionStats,
+    /// The curiosity channel, for a session with one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub curiosity: Option<CuriosityInfo>,
+}
+
+/// The state of a session's curiosity channel (ALGORITHM.md §7).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct CuriosityInfo {
+    /// Signal samples received.
+    pub samples: u64,
+    /// The active module's estimation error ε.
+    pub epsilon: f64,
+    /// The source the active module learns, once bound.
+    pub active_source: Option<usize>,
+    /// Samples the active module learned from.
+    pub active_samples: u64,
+    /// Every known source is explained by a frozen module: condition (3)
+    /// holds and D\[curiosity\] is held at 0.
+    pub all_explained: bool,
+    /// The module library, in freezing order.
+    pub modules: Vec<FrozenModuleInfo>,
+}
+
+/// One frozen module of the library.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct FrozenModuleInfo {
+    /// The source it learned.
+    pub source: usize,
+    /// The session's tick when it froze.
+    pub frozen_tick: u64,
+    /// Samples it learned from before freezing.
+    pub learned_samples: u64,
+}
+
+impl CuriosityInfo {
+    fn of(agent: &CuriousAgent) -> Self {
+        let channel = agent.channel();
+        let active = channel.active();
+        Self {
+            samples: channel.samples(),
+            epsilon: channel.epsilon(),
+            active_source: active.source(),
+            active_samples: active.learned_samples(),
+            all_explained: channel.all_explained(),
+            modules: channel
+                .library()
+                .iter()
+                .zip(agent.frozen_ticks())
+                .map(|(m, &tick)| FrozenModuleInfo {
+                    source: m.source(),
+                    frozen_tick: tick,
+                    learned_samples: m.learned_samples(),
+                })
+                .collect(),
+        }
+    }
 }
 
 /// Learner statistics of a session.
@@ -178,6 +236,9 @@ pub struct Values {
     /// Ξ(s, a), one vector per pair.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub xi: Option<Vec<Vec<Option<Vec<f64>>>>>,
+    /// The curiosity channel (ε, module library), for a session with one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub curiosity: Option<CuriosityInfo>,
 }
 
 /// Default of [`ManagerOptions::inline_plan`].
@@ -312,15 +373,16 @@ impl SessionManager {
     fn planning_model(
         &self,
         input: &ModelInput,
+        curious: bool,
     ) -> Result<(Arc<PlanningModel>, BasisSummary), ServiceError> {
-        let key = input.cache_key();
+        let key = format!("{}:curious={curious}", input.cache_key());
         if let Some((weak, basis)) = self.models.lock().get(&key)
             && let Some(ctx) = weak.upgrade()
         {
             return Ok((ctx, basis.clone()));
         }
         // Built outside the lock: PVFs cost an eigendecomposition.
-        let (model, basis_spec) = input.build(&self.limits)?;
+        let (model, basis_spec) = input.build(&self.limits, curious)?;
         let basis = Basis::build(&basis_spec, &model)?;
         let summary = BasisSummary::of(&basis_spec);
         let ctx = Arc::new(PlanningModel::new(model, basis));
@@ -356,8 +418,8 @@ impl SessionManager {
         &self,
         input: &ModelInput,
         agent: &SessionConfig,
-    ) -> Result<(Agent, ModelSummary, EffectiveConfig), ServiceError> {
-        let (ctx, basis) = self.planning_model(input)?;
+    ) -> Result<(Learner, ModelSummary, EffectiveConfig), ServiceError> {
+        let (ctx, basis) = self.planning_model(input, agent.curiosity.is_some())?;
         let model = ctx.model();
         let history = agent.history.unwrap_or(spec::DEFAULT_HISTORY);
         if history > self.limits.max_history {
@@ -378,6 +440,7 @@ impl SessionManager {
             seed: params.seed,
             update_mode: agent.update_mode.unwrap_or_default(),
             history,
+            curiosity: agent.curiosity.clone(),
         };
         let summary = ModelSummary {
             states: model.states(),
@@ -390,7 +453,20 @@ impl SessionManager {
             features: ctx.n_features(),
             layout: input.layout(),
         };
-        Ok((Agent::new(ctx, params), summary, config))
+        let learner = match &agent.curiosity {
+            None => Learner::Plain(Agent::new(ctx, params)),
+            Some(c) => {
+                let checked = c
+                    .params
+                    .check()
+                    .map_err(|e| prefix("agent.curiosity.params", e))?;
+                Learner::Curious(Box::new(
+                    CuriousAgent::new(ctx, params, checked, c.signal_dim)
+                        .map_err(|e| prefix("agent.curiosity", e))?,
+                ))
+            }
+        };
+        Ok((learner, summary, config))
     }
 
     /// Creates a session. Synchronous and possibly slow (a PVF basis costs
@@ -402,7 +478,7 @@ impl SessionManager {
         }
         let model_text = self.durability.as_ref().map(|_| req.model.to_string());
         let input = ModelInput::parse(req.model)?;
-        let (agent, summary, config) = self.build(&input, &req.agent)?;
+        let (learner, summary, config) = self.build(&input, &req.agent)?;
         let id = format!("s{:04x}.{}", self.fresh_u64() % SHARDS, ulid::Ulid::new());
         if let (Some(d), Some(model)) = (&self.durability, model_text) {
             let record = durable::SessionRecord {
@@ -422,7 +498,7 @@ impl SessionManager {
         }
         let session = Arc::new(Session::resume(
             id.clone(),
-            agent,
+            learner,
             summary,
             config,
             self.durability.clone(),
@@ -512,22 +588,18 @@ impl SessionManager {
             seed: Some(c.seed),
             update_mode: Some(c.update_mode),
             history: Some(c.history),
+            curiosity: c.curiosity.clone(),
         };
-        let (mut agent, summary, config) = self
+        let (mut learner, summary, config) = self
             .build(&input, &agent_cfg)
             .map_err(|e| ctx(e.to_string()))?;
         let mut history = std::collections::VecDeque::new();
         let mut after = None;
         if let Some((seq, bytes)) = &stored.snapshot {
-            let snap: durable::SnapshotRecord =
-                durable::decode(bytes, "its snapshot").map_err(&ctx)?;
-            agent = Agent::restore(
-                Arc::clone(agent.planning_model()),
-                agent.params().clone(),
-                snap.agent,
-            )
-            .map_err(|e| ctx(e.to_string()))?;
-            history = snap.history.into();
+            let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(&ctx)?;
+            learner = restore(&learner, snap.learner, config.curiosity.as_ref())
+                .map_err(|e| ctx(e.to_string()))?;
+            history = snap.history.into_iter().map(HistoryEntry::from).collect();
             after = Some(*seq);
         }
         let mut next_seq = after.map_or(0, |s| s + 1);
@@ -539,23 +611,23 @@ impl SessionManager {
                         "log entry {next_seq} is missing (found {seq})"
                     ))));
                 }
-                let entry: durable::LogEntry = durable::decode(bytes, &format!("log entry {seq}"))
+                let entry = durable::decode_entry(bytes, &format!("log entry {seq}"))
                     .map_err(|e| crate::store::StoreError::Failed(ctx(e)))?;
-                durable::replay(&mut agent, &mut history, config.history, &entry).map_err(|e| {
-                    crate::store::StoreError::Failed(ctx(format!("log entry {seq}: {e}")))
-                })?;
+                durable::replay(&mut learner, &mut history, config.history, &entry).map_err(
+                    |e| crate::store::StoreError::Failed(ctx(format!("log entry {seq}: {e}"))),
+                )?;
                 next_seq += 1;
                 replayed += 1;
                 Ok(())
             })
             .map_err(|e| e.to_string())?;
-        if agent.needs_plan() {
-            agent.plan().map_err(|e| ctx(e.to_string()))?;
+        if learner.needs_plan() {
+            learner.plan().map_err(|e| ctx(e.to_string()))?;
         }
         let since_snapshot = next_seq - after.map_or(0, |s| s + 1);
         let session = Session::resume(
             id.clone(),
-            agent,
+            learner,
             summary,
             config,
             Some(d.clone()),
@@ -628,7 +700,7 @@ impl SessionManager {
             .take(limit)
             .map(|s| SessionSummary {
                 id: s.id.clone(),
-                tick: s.state.lock().agent.tick(),
+                tick: s.state.lock().learner.agent().tick(),
                 states: s.model.states,
                 update_mode: s.mode,
             })
@@ -740,7 +812,7 @@ impl SessionManager {
     ) -> Result<Values, ServiceError> {
         let session = self.session_for(caller, id)?;
         let st = session.state.lock();
-        let agent = &st.agent;
+        let agent = st.learner.agent();
         let model = agent.planning_model().model();
         let per_pair = |f: &dyn Fn(usize) -> f64| -> Vec<Vec<Option<f64>>> {
             (0..model.states())
@@ -774,6 +846,7 @@ impl SessionManager {
                     })
                     .collect()
             }),
+            curiosity: st.learner.curious().map(CuriosityInfo::of),
         })
     }
 
@@ -822,7 +895,7 @@ pub struct RecoveryReport {
 
 fn info_of(session: &Session) -> SessionInfo {
     let st = session.state.lock();
-    let agent = &st.agent;
+    let agent = st.learner.agent();
     let stats = agent.planner().stats();
     SessionInfo {
         id: session.id.clone(),
@@ -840,5 +913,49 @@ fn info_of(session: &Session) -> SessionInfo {
             factorisation_reuses: stats.reuses,
             factorisations: stats.factorisations,
         },
+        curiosity: st.learner.curious().map(CuriosityInfo::of),
+    }
+}
+
+/// An algorithm error about a field of `agent.curiosity`, with its path:
+/// `invalid parameter `agent.curiosity.params`: `gain` must be ...`.
+fn prefix(field: &'static str, e: crate::algo::AlgoError) -> ServiceError {
+    match e {
+        crate::algo::AlgoError::InvalidParameter { name, reason } => {
+            crate::algo::AlgoError::InvalidParameter {
+                name: field,
+                reason: format!("`{name}` {reason}"),
+            }
+            .into()
+        }
+        e => ServiceError::field(field, e),
+    }
+}
+
+/// A recovered learner: `base` (built from the session record) resumed from
+/// a snapshot of the same kind.
+fn restore(
+    base: &Learner,
+    snap: durable::LearnerSnapshot,
+    curiosity: Option<&CuriosityConfig>,
+) -> Result<Learner, String> {
+    let ctx = Arc::clone(base.agent().planning_model());
+    let params = base.agent().params().clone();
+    match (snap, curiosity) {
+        (durable::LearnerSnapshot::Plain(s), None) => Agent::restore(ctx, params, s)
+            .map(Learner::Plain)
+            .map_err(|e| e.to_string()),
+        (durable::LearnerSnapshot::Curious(s), Some(c)) => {
+            let checked = c.params.check().map_err(|e| e.to_string())?;
+            CuriousAgent::restore(ctx, params, &checked, c.signal_dim, *s)
+                .map(|a| Learner::Curious(Box::new(a)))
+                .map_err(|e| e.to_string())
+        }
+        (durable::LearnerSnapshot::Plain(_), Some(_)) => {
+            Err("its snapshot has no curiosity channel, its record one".into())
+        }
+        (durable::LearnerSnapshot::Curious(_), None) => {
+            Err("its snapshot has a curiosity channel, its record none".into())
+        }
     }
 }

@@ -10,10 +10,10 @@ use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 
 use crate::algo::model::ActionRef;
-use crate::algo::{Agent, AlgoError, Observation};
+use crate::algo::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation, PlanOutcome};
 use crate::store::{Commit, Store, Write};
 
-use super::durable::{LogEntry, SnapshotRecord, encode};
+use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};
 use super::error::ServiceError;
 use super::spec::{EffectiveConfig, ModelSummary, UpdateMode};
 
@@ -30,6 +30,27 @@ pub struct ObservationIn {
     #[serde(default)]
     #[schema(value_type = Option<Object>)]
     pub action_taken: Option<ActionRef>,
+    /// A raw signal sample x(t) received on arrival, for a session with a
+    /// curiosity channel (ALGORITHM.md §7); `stimulus` is then the
+    /// extrinsic part and the server appends ξ_cur.
+    #[serde(default)]
+    pub signal: Option<Vec<f64>>,
+    /// The signal's source (e.g. 0 = book, 1 = music); default 0.
+    #[serde(default)]
+    pub signal_source: Option<usize>,
+}
+
+/// The curiosity channel at one tick (ALGORITHM.md §7).
+#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct TickCuriosity {
+    /// ξ_cur of the tick (Eq. 7; 0 without a signal sample).
+    pub xi_cur: f64,
+    /// The active module's estimation error ε after the tick.
+    pub epsilon: f64,
+    /// Frozen modules in the library after the tick.
+    pub modules: usize,
+    /// The source of the tick's signal sample, if there was one.
+    pub source: Option<usize>,
 }
 
 /// The reply to one observation.
@@ -47,6 +68,9 @@ pub struct StepOut {
     pub reward: f64,
     /// Number of policy updates applied.
     pub policy_version: u64,
+    /// The curiosity channel at this tick, for a session with one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub curiosity: Option<TickCuriosity>,
 }
 
 /// One tick of the history ring.
@@ -64,13 +88,168 @@ pub struct HistoryEntry {
     pub reward: f64,
     /// LSTDQ error of the newest policy update.
     pub lstdq_error: f64,
+    /// The full stimulus received at this tick (ξ_cur last for a curious
+    /// session); absent only for ticks restored from a snapshot written
+    /// before store format 3.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub stimulus: Option<Vec<f64>>,
+    /// The curiosity channel at this tick, for a session with one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub curiosity: Option<TickCuriosity>,
+}
+
+/// A session's learner: an MCA-PI agent, or one with a curiosity channel.
+#[derive(Debug)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "one per session, never moved after creation; the common plain agent stays unboxed"
+)]
+pub enum Learner {
+    /// An MCA-PI agent.
+    Plain(Agent),
+    /// An agent with a curiosity channel (ALGORITHM.md §7).
+    Curious(Box<CuriousAgent>),
+}
+
+/// What [`Learner::observe`] did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnerObserved {
+    /// Ticks so far.
+    pub tick: u64,
+    /// |r| (Eq. 3).
+    pub reward: f64,
+    /// The full stimulus the agent observed (empty on a first observation).
+    pub stimulus: Vec<f64>,
+    /// The curiosity channel after the tick.
+    pub curiosity: Option<TickCuriosity>,
+}
+
+impl Learner {
+    /// The MCA-PI agent.
+    pub fn agent(&self) -> &Agent {
+        match self {
+            Self::Plain(a) => a,
+            Self::Curious(c) => c.agent(),
+        }
+    }
+
+    /// The curious agent, if this is one.
+    pub fn curious(&self) -> Option<&CuriousAgent> {
+        match self {
+            Self::Plain(_) => None,
+            Self::Curious(c) => Some(c),
+        }
+    }
+
+    /// Algorithm 1 lines 5-7 (and §7 steps 1-4 with a channel); no plan.
+    pub fn observe(
+        &mut self,
+        obs: &Observation<'_>,
+        signal: Option<(usize, &[f64])>,
+    ) -> Result<LearnerObserved, ServiceError> {
+        match self {
+            Self::Plain(agent) => {
+                if signal.is_some() {
+                    return Err(ServiceError::field(
+                        "signal",
+                        "this session has no curiosity channel (declare `agent.curiosity` when creating it)",
+                    ));
+                }
+                let out = agent.observe(obs)?;
+                Ok(LearnerObserved {
+                    tick: out.tick,
+                    reward: out.reward,
+                    stimulus: obs.stimulus.map(<[f64]>::to_vec).unwrap_or_default(),
+                    curiosity: None,
+                })
+            }
+            Self::Curious(agent) => {
+                let out = agent
+                    .observe(&CuriousObservation {
+                        state: obs.state,
+                        stimulus: obs.stimulus,
+                        signal,
+                        action_taken: obs.action_taken,
+                    })
+                    .map_err(|e| match e {
+                        AlgoError::StimulusLength { got, expected } => ServiceError::field(
+                            "stimulus",
+                            format!(
+                                "has {got} components; this session takes the {expected} extrinsic ones (the server appends `curiosity`)"
+                            ),
+                        ),
+                        e => e.into(),
+                    })?;
+                let mut stimulus = obs.stimulus.map(<[f64]>::to_vec).unwrap_or_default();
+                if obs.stimulus.is_some() {
+                    stimulus.push(out.xi_cur);
+                }
+                Ok(LearnerObserved {
+                    tick: out.observed.tick,
+                    reward: out.observed.reward,
+                    stimulus,
+                    curiosity: Some(TickCuriosity {
+                        xi_cur: out.xi_cur,
+                        epsilon: agent.channel().epsilon(),
+                        modules: agent.channel().module_count(),
+                        source: signal.map(|(s, _)| s),
+                    }),
+                })
+            }
+        }
+    }
+
+    /// True when R changed since the last policy update.
+    pub fn needs_plan(&self) -> bool {
+        self.agent().needs_plan()
+    }
+
+    /// One LSTDQ policy update (Algorithm 1, lines 8-9).
+    pub fn plan(&mut self) -> Result<PlanOutcome, AlgoError> {
+        match self {
+            Self::Plain(a) => a.plan(),
+            Self::Curious(c) => c.plan(),
+        }
+    }
+
+    /// The next action (line 10).
+    pub fn act(&mut self) -> Option<usize> {
+        match self {
+            Self::Plain(a) => a.act(),
+            Self::Curious(c) => c.act(),
+        }
+    }
+
+    /// Records the action a logged reply advised (replay).
+    pub fn set_advised_action(&mut self, action: usize) -> Result<(), AlgoError> {
+        match self {
+            Self::Plain(a) => a.set_advised_action(action),
+            Self::Curious(c) => c.set_advised_action(action),
+        }
+    }
+
+    /// Resumes the policy version counter (replay).
+    pub fn resume_policy_version(&mut self, version: u64) {
+        match self {
+            Self::Plain(a) => a.resume_policy_version(version),
+            Self::Curious(c) => c.resume_policy_version(version),
+        }
+    }
+
+    /// The resumable state.
+    pub fn snapshot(&self) -> LearnerSnapshot {
+        match self {
+            Self::Plain(a) => LearnerSnapshot::Plain(a.snapshot()),
+            Self::Curious(c) => LearnerSnapshot::Curious(Box::new(c.snapshot())),
+        }
+    }
 }
 
 /// Mutable state of a session, behind its lock.
 #[derive(Debug)]
 pub struct SessionState {
-    /// The MCA-PI agent.
-    pub agent: Agent,
+    /// The learner.
+    pub learner: Learner,
     history: VecDeque<HistoryEntry>,
     /// Sequence number of the next log entry.
     seq: u64,
@@ -138,15 +317,15 @@ pub struct Session {
 }
 
 impl Session {
-    /// Wraps a fresh agent.
-    pub fn new(id: String, agent: Agent, model: ModelSummary, config: EffectiveConfig) -> Self {
-        Self::resume(id, agent, model, config, None, Resumed::default())
+    /// Wraps a fresh learner.
+    pub fn new(id: String, learner: Learner, model: ModelSummary, config: EffectiveConfig) -> Self {
+        Self::resume(id, learner, model, config, None, Resumed::default())
     }
 
-    /// Wraps an agent with its owner, store and recovered log position.
+    /// Wraps a learner with its owner, store and recovered log position.
     pub fn resume(
         id: String,
-        agent: Agent,
+        learner: Learner,
         model: ModelSummary,
         config: EffectiveConfig,
         durability: Option<Durability>,
@@ -161,7 +340,7 @@ impl Session {
             owner: resumed.owner,
             durability,
             state: Mutex::new(SessionState {
-                agent,
+                learner,
                 history: resumed.history.into(),
                 seq: resumed.seq,
                 since_snapshot: resumed.since_snapshot,
@@ -263,11 +442,11 @@ impl Session {
     /// loop's work for async sessions).
     pub fn plan_if_needed(&self) -> Result<bool, ServiceError> {
         let mut st = self.state.lock();
-        if !st.agent.needs_plan() {
+        if !st.learner.needs_plan() {
             return Ok(false);
         }
         let started = Instant::now();
-        st.agent.plan()?;
+        st.learner.plan()?;
         drop(st);
         self.record_plan_cost(started, 1);
         Ok(true)
@@ -312,8 +491,8 @@ impl SessionState {
 
     fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
         let record = SnapshotRecord {
-            agent: self.agent.snapshot(),
-            history: self.history.iter().cloned().collect(),
+            learner: self.learner.snapshot(),
+            history: self.history.iter().map(TickRecord::from).collect(),
         };
         self.since_snapshot = 0;
         Ok(Write::Snapshot {
@@ -358,7 +537,7 @@ impl SessionState {
     ) -> Result<(), ServiceError> {
         for (i, obs) in batch.iter().enumerate() {
             // The action whose pair this observation updates, resolved now.
-            let advised_before = self.agent.advised_action();
+            let advised_before = self.learner.agent().advised_action();
             match self.apply(obs, plan, history_cap) {
                 Ok((step, taken)) => {
                     if let Some(log) = log.as_deref_mut() {
@@ -371,8 +550,12 @@ impl SessionState {
                                 .and(taken.or(advised_before))
                                 .map(|a| a as u32),
                             advised: step.action_index as u32,
-                            lstdq_error: self.agent.last_plan().lstdq_error,
+                            lstdq_error: self.learner.agent().last_plan().lstdq_error,
                             policy_version: step.policy_version,
+                            signal: obs
+                                .signal
+                                .as_ref()
+                                .map(|x| (obs.signal_source.unwrap_or(0) as u32, x.clone())),
                         });
                     }
                     out.push(step);
@@ -399,7 +582,7 @@ impl SessionState {
         plan: bool,
         history_cap: usize,
     ) -> Result<(StepOut, Option<usize>), ServiceError> {
-        let model = self.agent.planning_model().model();
+        let model = self.learner.agent().planning_model().model();
         let action_taken = match &obs.action_taken {
             None => None,
             Some(ActionRef::Index(a)) => Some(*a),
@@ -419,49 +602,58 @@ impl SessionState {
                     })?,
             ),
         };
+        if obs.signal_source.is_some() && obs.signal.is_none() {
+            return Err(ServiceError::field(
+                "signal_source",
+                "is given without a `signal`",
+            ));
+        }
         let observation = Observation {
             state: obs.state,
             stimulus: obs.stimulus.as_deref(),
             action_taken,
         };
-        let step = if plan {
-            self.agent.step(&observation)?
-        } else {
-            let observed = self.agent.observe(&observation)?;
-            let action = self
-                .agent
-                .act()
-                .ok_or_else(|| ServiceError::Internal("no state after an observation".into()))?;
-            crate::algo::Step {
-                tick: observed.tick,
-                action,
-                reward: observed.reward,
-                plan: None,
-            }
-        };
-        let agent = &self.agent;
+        let signal = obs
+            .signal
+            .as_deref()
+            .map(|x| (obs.signal_source.unwrap_or(0), x));
+        let observed = self.learner.observe(&observation, signal)?;
+        // Algorithm 1 lines 8-10, as `Agent::step`: act even if planning
+        // failed, so the agent stays consistent.
+        let planned = (plan && self.learner.needs_plan()).then(|| self.learner.plan());
+        let action = self
+            .learner
+            .act()
+            .ok_or_else(|| ServiceError::Internal("no state after an observation".into()))?;
+        if let Some(planned) = planned {
+            planned?;
+        }
+        let agent = self.learner.agent();
         let drive = agent.drive().vector().to_vec();
         if history_cap > 0 && obs.stimulus.is_some() {
             if self.history.len() == history_cap {
                 self.history.pop_front();
             }
             self.history.push_back(HistoryEntry {
-                tick: step.tick,
+                tick: observed.tick,
                 state: obs.state,
-                action: step.action,
+                action,
                 drive: drive.clone(),
-                reward: step.reward,
+                reward: observed.reward,
                 lstdq_error: agent.last_plan().lstdq_error,
+                stimulus: Some(observed.stimulus),
+                curiosity: observed.curiosity,
             });
         }
         Ok((
             StepOut {
-                tick: step.tick,
-                action: agent.planning_model().model().actions()[step.action].clone(),
-                action_index: step.action,
+                tick: observed.tick,
+                action: agent.planning_model().model().actions()[action].clone(),
+                action_index: action,
                 drive,
-                reward: step.reward,
+                reward: observed.reward,
                 policy_version: agent.policy_version(),
+                curiosity: observed.curiosity,
             },
             action_taken,
         ))

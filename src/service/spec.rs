@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use crate::algo::model::{GridMap, ModelSpec, grid_preset, hallway, three_room};
-use crate::algo::{AgentParams, BasisSpec, EnvModel, StimulusRate};
+use crate::algo::{AgentParams, BasisSpec, CuriosityParams, EnvModel, StimulusRate};
 
 use super::error::ServiceError;
 use super::limits::Limits;
@@ -52,6 +52,25 @@ pub struct SessionConfig {
     pub update_mode: Option<UpdateMode>,
     /// Number of recent ticks kept for `/history`; default 256.
     pub history: Option<usize>,
+    /// A curiosity channel (ALGORITHM.md §7): the server appends a stimulus
+    /// dimension `curiosity`, last, and computes it from raw `signal`s.
+    pub curiosity: Option<CuriosityConfig>,
+}
+
+/// Name of the stimulus dimension a curiosity channel adds.
+pub const CURIOSITY_DIMENSION: &str = "curiosity";
+
+/// A session's curiosity channel (ALGORITHM.md §7).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CuriosityConfig {
+    /// Dimension m of the raw signal x(t) (2 for the paper's Eq. 6).
+    pub signal_dim: usize,
+    /// The channel's constants (§7); each defaults to the paper's or the
+    /// reproduction's value (`g` = 800, `dt` = 0.08, δ = 0.3, ...).
+    #[serde(default)]
+    #[schema(value_type = Object)]
+    pub params: CuriosityParams,
 }
 
 impl SessionConfig {
@@ -171,8 +190,13 @@ impl ModelInput {
         }
     }
 
-    /// Builds and validates the model and picks its basis.
-    pub fn build(&self, limits: &Limits) -> Result<(EnvModel, BasisSpec), ServiceError> {
+    /// Builds and validates the model and picks its basis; with
+    /// `curious`, the model gains the curiosity dimension, last.
+    pub fn build(
+        &self,
+        limits: &Limits,
+        curious: bool,
+    ) -> Result<(EnvModel, BasisSpec), ServiceError> {
         let (model, basis) = match self {
             Self::Preset { name, basis } => {
                 let preset = match name.as_str() {
@@ -200,6 +224,16 @@ impl ModelInput {
                 limits.check_model_spec(spec)?;
                 (EnvModel::from_spec(spec)?, spec.basis.clone())
             }
+        };
+        let model = if curious {
+            model.with_stimulus(CURIOSITY_DIMENSION).map_err(|e| {
+                ServiceError::field(
+                    "model.stimuli",
+                    format!("{e}; the curiosity channel adds `{CURIOSITY_DIMENSION}`"),
+                )
+            })?
+        } else {
+            model
         };
         limits.check_model(&model)?;
         let basis = basis.unwrap_or_else(|| BasisSpec::default_for(&model));
@@ -419,4 +453,7 @@ pub struct EffectiveConfig {
     pub update_mode: UpdateMode,
     /// History length.
     pub history: usize,
+    /// The curiosity channel, every parameter set; absent without one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub curiosity: Option<CuriosityConfig>,
 }

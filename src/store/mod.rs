@@ -19,6 +19,12 @@
 //!   The session key is the 128-bit ULID of the session id. A snapshot at
 //!   sequence number n drops the chunks that end at or before n.
 //!
+//! Since format 3 every snapshot and log record begins with one byte naming
+//! the encoding of the rest, which the service chooses and reads
+//! ([`RECORD_V2`] for records written under format 2). Opening a format-2
+//! file upgrades it in place, in one transaction, by prefixing each of its
+//! records with [`RECORD_V2`]; nothing else changes.
+//!
 //! Chunks, not one record per observation: a B-tree entry per 20-byte
 //! observation cost about 140 bytes of file, and the file's size is what
 //! opening it (integrity check) and recovery cost.
@@ -34,8 +40,12 @@ use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinitio
 use thiserror::Error;
 use tokio::sync::oneshot;
 
-/// Version of the on-disk layout; a file of another version is refused.
-pub const FORMAT_VERSION: u64 = 2;
+/// Version of the on-disk layout. A format-2 file is upgraded at open;
+/// a file of any other version is refused.
+pub const FORMAT_VERSION: u64 = 3;
+
+/// The record-encoding byte given to records written under format 2.
+pub const RECORD_V2: u8 = 2;
 
 /// Name of the store file inside the data directory.
 pub const FILE_NAME: &str = "mcapi.redb";
@@ -233,6 +243,19 @@ impl Store {
                 .map(|v| v.value());
             match found {
                 Some(FORMAT_VERSION) => {}
+                Some(2) => {
+                    let started = Instant::now();
+                    let records = tag_format_2_records(&write)
+                        .map_err(|e| corrupt(format!("upgrading from format version 2: {e}")))?;
+                    meta.insert("format_version", FORMAT_VERSION)
+                        .map_err(|e| corrupt(e.to_string()))?;
+                    tracing::info!(
+                        path = %path.display(),
+                        records,
+                        seconds = started.elapsed().as_secs_f64(),
+                        "store upgraded from format version 2 to {FORMAT_VERSION}"
+                    );
+                }
                 Some(found) => {
                     return Err(StoreError::Version {
                         path: path.clone(),
@@ -394,6 +417,52 @@ fn writer(db: &Database, rx: &Receiver<Pending>) {
             }
         }
     }
+}
+
+/// The 2 → 3 upgrade: prefixes every snapshot and log record with
+/// [`RECORD_V2`]. Returns the number of records rewritten.
+fn tag_format_2_records(write: &redb::WriteTransaction) -> Result<u64, String> {
+    let e = |e: redb::Error| e.to_string();
+    let tagged = |bytes: &[u8]| {
+        let mut out = Vec::with_capacity(bytes.len() + 1);
+        out.push(RECORD_V2);
+        out.extend_from_slice(bytes);
+        out
+    };
+    let mut n = 0u64;
+    let mut snapshots = write.open_table(SNAPSHOTS).map_err(|x| e(x.into()))?;
+    let mut rows = Vec::new();
+    for row in snapshots.iter().map_err(|x| e(x.into()))? {
+        let (id, v) = row.map_err(|x| e(x.into()))?;
+        let (seq, bytes) = v.value();
+        rows.push((id.value().to_string(), seq, tagged(bytes)));
+    }
+    for (id, seq, bytes) in &rows {
+        snapshots
+            .insert(id.as_str(), (*seq, bytes.as_slice()))
+            .map_err(|x| e(x.into()))?;
+        n += 1;
+    }
+    let mut log = write.open_table(LOG).map_err(|x| e(x.into()))?;
+    let mut chunks = Vec::new();
+    for row in log.iter().map_err(|x| e(x.into()))? {
+        let (key, chunk) = row.map_err(|x| e(x.into()))?;
+        let mut rest = chunk.value();
+        let mut out = Vec::with_capacity(rest.len() + CHUNK as usize);
+        while !rest.is_empty() {
+            let (seq, entry, tail) =
+                split_entry(rest).ok_or_else(|| "a log chunk is malformed".to_string())?;
+            push_entry(&mut out, seq, &tagged(entry));
+            n += 1;
+            rest = tail;
+        }
+        chunks.push((key.value(), out));
+    }
+    for (key, chunk) in &chunks {
+        log.insert(*key, chunk.as_slice())
+            .map_err(|x| e(x.into()))?;
+    }
+    Ok(n)
 }
 
 /// Frames one record of a chunk: sequence number, length, bytes.
@@ -656,5 +725,63 @@ mod tests {
             matches!(err, StoreError::Version { found, .. } if found == FORMAT_VERSION + 1),
             "{err}"
         );
+    }
+
+    fn set_version(dir: &Path, version: u64) {
+        let db = Database::create(dir.join(FILE_NAME)).expect("db");
+        let w = db.begin_write().expect("write");
+        w.open_table(META)
+            .expect("meta")
+            .insert("format_version", version)
+            .expect("insert");
+        w.commit().expect("commit");
+    }
+
+    #[test]
+    fn a_format_2_file_is_upgraded_by_tagging_its_records() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let n = 2 * CHUNK + 7;
+        {
+            let store = Store::open(dir.path()).expect("open");
+            let mut writes = vec![Write::Session {
+                id: id("a"),
+                record: b"ra".to_vec(),
+            }];
+            writes.extend((0..n).map(|seq| Write::Append {
+                id: id("a"),
+                seq,
+                entry: vec![seq as u8, 0xAB],
+            }));
+            writes.push(Write::Snapshot {
+                id: id("a"),
+                seq: CHUNK + 1,
+                snapshot: b"snap".to_vec(),
+            });
+            store.submit(writes).wait_blocking().expect("commit");
+            store.close();
+        }
+        // The records above stand for untagged format-2 records.
+        set_version(dir.path(), 2);
+        let store = Store::open(dir.path()).expect("upgrade");
+        let sessions = store.sessions().expect("sessions");
+        assert_eq!(sessions[0].record, b"ra", "creation records are unchanged");
+        assert_eq!(
+            sessions[0].snapshot,
+            Some((CHUNK + 1, vec![RECORD_V2, b's', b'n', b'a', b'p']))
+        );
+        let log = entries(&store, "a", Some(CHUNK + 1));
+        let want: Vec<_> = (CHUNK + 2..n)
+            .map(|seq| (seq, vec![RECORD_V2, seq as u8, 0xAB]))
+            .collect();
+        assert_eq!(log, want);
+        store.close();
+        drop(store);
+        // Upgraded once: reopening does not tag again.
+        let store = Store::open(dir.path()).expect("reopen");
+        assert_eq!(entries(&store, "a", Some(CHUNK + 1)), want);
+        let read = store.db.begin_read().expect("read");
+        let meta = read.open_table(META).expect("meta");
+        let v = meta.get("format_version").expect("get").map(|v| v.value());
+        assert_eq!(v, Some(FORMAT_VERSION));
     }
 }

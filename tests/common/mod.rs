@@ -460,6 +460,7 @@ impl Obs {
                     ActionTaken::ActionIndex(a as u32)
                 }
             }),
+            ..Default::default()
         }
     }
 }

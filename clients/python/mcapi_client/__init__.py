@@ -13,6 +13,10 @@ action, the drive and the reward.
   tables, Gymnasium toy-text environments).
 - :mod:`mcapi_client.errors`: :class:`McapiError` and its subclasses, one per
   family of the server's stable error codes.
+- Curiosity: ``create_session(..., curiosity=CuriosityConfig(signal_dim=2))``
+  adds a ``curiosity`` stimulus the server computes from raw ``signal=``
+  samples sent with observations; see :class:`CuriosityConfig`,
+  :class:`TickCuriosity` and :class:`CuriosityInfo`.
 
     from mcapi_client import Client, models
 
@@ -47,6 +51,9 @@ from .types import (
     AgentConfig,
     AgentOptions,
     BasisSummary,
+    CuriosityConfig,
+    CuriosityInfo,
+    FrozenModule,
     HistoryEntry,
     ModelSummary,
     Observation,
@@ -55,6 +62,7 @@ from .types import (
     SessionStats,
     SessionSummary,
     Step,
+    TickCuriosity,
     Values,
 )
 
@@ -86,6 +94,9 @@ __all__ = [
     "AgentConfig",
     "AgentOptions",
     "BasisSummary",
+    "CuriosityConfig",
+    "CuriosityInfo",
+    "FrozenModule",
     "HistoryEntry",
     "ModelSummary",
     "Observation",
@@ -94,6 +105,7 @@ __all__ = [
     "SessionStats",
     "SessionSummary",
     "Step",
+    "TickCuriosity",
     "Values",
     "__version__",
 ]

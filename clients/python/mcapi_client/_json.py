@@ -8,6 +8,9 @@ from typing import Any
 from .types import (
     AgentConfig,
     BasisSummary,
+    CuriosityConfig,
+    CuriosityInfo,
+    FrozenModule,
     HistoryEntry,
     ModelSummary,
     SessionInfo,
@@ -15,6 +18,7 @@ from .types import (
     SessionStats,
     SessionSummary,
     Step,
+    TickCuriosity,
     Values,
 )
 
@@ -23,6 +27,50 @@ Json = dict[str, Any]
 
 def _floats(xs: Iterable[Any]) -> list[float]:
     return [float(x) for x in xs]
+
+
+def _opt_int(x: Any) -> int | None:
+    return None if x is None else int(x)
+
+
+def tick_curiosity(d: Json | None) -> TickCuriosity | None:
+    """The curiosity channel at one tick (absent without a channel)."""
+    if d is None:
+        return None
+    return TickCuriosity(
+        xi_cur=float(d["xi_cur"]),
+        epsilon=float(d["epsilon"]),
+        modules=int(d["modules"]),
+        source=_opt_int(d.get("source")),
+    )
+
+
+def curiosity_info(d: Json | None) -> CuriosityInfo | None:
+    """The state of a session's curiosity channel (absent without a channel)."""
+    if d is None:
+        return None
+    return CuriosityInfo(
+        samples=int(d["samples"]),
+        epsilon=float(d["epsilon"]),
+        active_source=_opt_int(d.get("active_source")),
+        active_samples=int(d["active_samples"]),
+        all_explained=bool(d["all_explained"]),
+        modules=[
+            FrozenModule(
+                source=int(m["source"]),
+                frozen_tick=int(m["frozen_tick"]),
+                learned_samples=int(m["learned_samples"]),
+            )
+            for m in d["modules"]
+        ],
+    )
+
+
+def curiosity_config(d: Json | None) -> CuriosityConfig | None:
+    """A session's effective curiosity channel (absent without a channel)."""
+    if d is None:
+        return None
+    return CuriosityConfig(signal_dim=int(d["signal_dim"]), params=dict(d.get("params") or {}))
 
 
 def step(d: Json) -> Step:
@@ -34,6 +82,7 @@ def step(d: Json) -> Step:
         drive=_floats(d["drive"]),
         reward=float(d["reward"]),
         policy_version=int(d["policy_version"]),
+        curiosity=tick_curiosity(d.get("curiosity")),
     )
 
 
@@ -66,6 +115,7 @@ def agent_config(d: Json) -> AgentConfig:
         seed=int(d["seed"]),
         update_mode=d["update_mode"],
         history=int(d["history"]),
+        curiosity=curiosity_config(d.get("curiosity")),
     )
 
 
@@ -88,6 +138,7 @@ def session_info(d: Json) -> SessionInfo:
             factorisation_reuses=int(s["factorisation_reuses"]),
             factorisations=int(s["factorisations"]),
         ),
+        curiosity=curiosity_info(d.get("curiosity")),
     )
 
 
@@ -128,6 +179,7 @@ def values(d: Json) -> Values:
         xi=None
         if xi is None
         else [[None if x is None else _floats(x) for x in row] for row in xi],
+        curiosity=curiosity_info(d.get("curiosity")),
     )
 
 
@@ -136,6 +188,7 @@ def history(entries: Sequence[Json], actions: Sequence[str]) -> list[HistoryEntr
     out = []
     for e in entries:
         a = int(e["action"])
+        stimulus = e.get("stimulus")
         out.append(
             HistoryEntry(
                 tick=int(e["tick"]),
@@ -145,6 +198,8 @@ def history(entries: Sequence[Json], actions: Sequence[str]) -> list[HistoryEntr
                 drive=_floats(e["drive"]),
                 reward=float(e["reward"]),
                 lstdq_error=float(e["lstdq_error"]),
+                stimulus=None if stimulus is None else _floats(stimulus),
+                curiosity=tick_curiosity(e.get("curiosity")),
             )
         )
     return out

@@ -12,6 +12,10 @@ from .types import (
     AgentConfig,
     AgentOptions,
     BasisSummary,
+    CuriosityConfig,
+    CuriosityInfo,
+    FrozenModule,
+    HistoryEntry,
     ModelSummary,
     Observation,
     SessionInfo,
@@ -19,8 +23,10 @@ from .types import (
     SessionStats,
     SessionSummary,
     Step,
+    TickCuriosity,
     UpdateMode,
     Values,
+    check_signal,
 )
 
 _UPDATE_MODES: dict[str, int] = {"lockstep": pb.UPDATE_MODE_LOCKSTEP, "async": pb.UPDATE_MODE_ASYNC}
@@ -49,6 +55,12 @@ def create_request(model: dict[str, Any], agent: AgentOptions) -> pb.CreateSessi
         if agent.update_mode not in _UPDATE_MODES:
             raise ValueError(f"unknown update_mode {agent.update_mode!r} (use 'lockstep' or 'async')")
         cfg.update_mode = _UPDATE_MODES[agent.update_mode]  # type: ignore[assignment]
+    if agent.curiosity is not None:
+        cfg.curiosity.signal_dim = agent.curiosity.signal_dim
+        # The constants travel as the JSON object REST takes; empty: every default.
+        if agent.curiosity.params:
+            cfg.curiosity.params_json = json.dumps(agent.curiosity.params)
+        cfg.curiosity.SetInParent()
     return pb.CreateSessionRequest(model_json=json.dumps(model), agent=cfg)
 
 
@@ -57,6 +69,8 @@ def observation(
     stimulus: Sequence[float] | None,
     action_taken: ActionRef | None,
     session_id: str = "",
+    signal: Sequence[float] | None = None,
+    signal_source: int | None = None,
 ) -> pb.Observation:
     """One observation message (``session_id`` empty: the metadata names it)."""
     msg = pb.Observation(session_id=session_id, state=state)
@@ -67,12 +81,53 @@ def observation(
         msg.action_name = action_taken
     elif action_taken is not None:
         msg.action_index = int(action_taken)
+    if signal is not None:
+        msg.signal.extend(float(x) for x in check_signal(signal))
+    if signal_source is not None:
+        msg.signal_source = signal_source
     return msg
 
 
 def observations(obs: Iterable[Observation]) -> list[pb.Observation]:
     """Batch entries as messages."""
-    return [observation(o.state, o.stimulus, o.action_taken) for o in obs]
+    return [
+        observation(
+            o.state, o.stimulus, o.action_taken, signal=o.signal, signal_source=o.signal_source
+        )
+        for o in obs
+    ]
+
+
+def tick_curiosity(m: pb.TickCuriosity) -> TickCuriosity:
+    """The curiosity channel at one tick."""
+    return TickCuriosity(
+        xi_cur=m.xi_cur,
+        epsilon=m.epsilon,
+        modules=m.modules,
+        source=m.source if m.HasField("source") else None,
+    )
+
+
+def curiosity_info(m: pb.CuriosityInfo) -> CuriosityInfo:
+    """The state of a session's curiosity channel."""
+    return CuriosityInfo(
+        samples=m.samples,
+        epsilon=m.epsilon,
+        active_source=m.active_source if m.HasField("active_source") else None,
+        active_samples=m.active_samples,
+        all_explained=m.all_explained,
+        modules=[
+            FrozenModule(source=f.source, frozen_tick=f.frozen_tick, learned_samples=f.learned_samples)
+            for f in m.modules
+        ],
+    )
+
+
+def curiosity_config(m: pb.CuriosityConfig) -> CuriosityConfig:
+    """A session's effective curiosity channel (constants as JSON, as REST has them)."""
+    return CuriosityConfig(
+        signal_dim=m.signal_dim, params=json.loads(m.params_json) if m.params_json else {}
+    )
 
 
 def step(m: pb.Step) -> Step:
@@ -84,6 +139,7 @@ def step(m: pb.Step) -> Step:
         drive=list(m.drive),
         reward=m.reward,
         policy_version=m.policy_version,
+        curiosity=tick_curiosity(m.curiosity) if m.HasField("curiosity") else None,
     )
 
 
@@ -121,6 +177,7 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
             seed=agent.seed,
             update_mode=_UPDATE_MODE_NAMES.get(agent.update_mode, "lockstep"),
             history=agent.history,
+            curiosity=curiosity_config(agent.curiosity) if agent.HasField("curiosity") else None,
         ),
         stats=SessionStats(
             lstdq_error=stats.lstdq_error,
@@ -130,6 +187,7 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
             factorisation_reuses=stats.factorisation_reuses,
             factorisations=stats.factorisations,
         ),
+        curiosity=curiosity_info(m.curiosity) if m.HasField("curiosity") else None,
     )
 
 
@@ -175,4 +233,24 @@ def values(m: pb.Values, states: int, actions: int) -> Values:
         policy=list(m.policy.actions) if m.HasField("policy") else None,
         r=_dense_values(m.r.pairs, states, actions) if m.HasField("r") else None,
         xi=_dense_vectors(m.xi.pairs, states, actions) if m.HasField("xi") else None,
+        curiosity=curiosity_info(m.curiosity) if m.HasField("curiosity") else None,
     )
+
+
+def history(m: pb.History, actions: Sequence[str]) -> list[HistoryEntry]:
+    """History entries, the actions named with ``actions`` as the REST client does."""
+    n = len(actions)
+    return [
+        HistoryEntry(
+            tick=e.tick,
+            state=e.state,
+            action=actions[e.action_index] if e.action_index < n else str(e.action_index),
+            action_index=e.action_index,
+            drive=list(e.drive),
+            reward=e.reward,
+            lstdq_error=e.lstdq_error,
+            stimulus=list(e.stimulus.values) if e.HasField("stimulus") else None,
+            curiosity=tick_curiosity(e.curiosity) if e.HasField("curiosity") else None,
+        )
+        for e in m.entries
+    ]

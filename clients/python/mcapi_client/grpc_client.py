@@ -33,10 +33,11 @@ from . import _pb
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
 from .errors import McapiError, Timeout, TransportError, Unavailable, error_for
-from .rest import ModelLike, model_json
+from .rest import ModelLike, agent_options, model_json
 from .types import (
     ActionRef,
-    AgentOptions,
+    CuriosityLike,
+    HistoryEntry,
     ObservationLike,
     SessionInfo,
     SessionPage,
@@ -129,6 +130,9 @@ class Interaction:
         state: int,
         stimulus: Sequence[float] | None = None,
         action_taken: ActionRef | None = None,
+        *,
+        signal: Sequence[float] | None = None,
+        signal_source: int | None = None,
     ) -> None:
         """Queues one observation without waiting for its step.
 
@@ -138,10 +142,17 @@ class Interaction:
                 session's first observation.
             action_taken: The action actually taken, by name or index, if not
                 the advised one.
+            signal: A raw signal sample, for a session with a curiosity
+                channel (``stimulus`` is then the extrinsic part only).
+            signal_source: The signal's source (server default 0).
         """
         if self._half_closed:
             raise RuntimeError("this interaction no longer accepts observations")
-        self._outbox.put(_pb.observation(state, stimulus, action_taken))
+        self._outbox.put(
+            _pb.observation(
+                state, stimulus, action_taken, signal=signal, signal_source=signal_source
+            )
+        )
         self._sent += 1
 
     def recv(self) -> Step:
@@ -164,9 +175,13 @@ class Interaction:
         state: int,
         stimulus: Sequence[float] | None = None,
         action_taken: ActionRef | None = None,
+        *,
+        signal: Sequence[float] | None = None,
+        signal_source: int | None = None,
     ) -> Step:
-        """Sends one observation and returns its step (the next action)."""
-        self.send(state, stimulus, action_taken)
+        """Sends one observation and returns its step (the next action);
+        arguments as :meth:`send`."""
+        self.send(state, stimulus, action_taken, signal=signal, signal_source=signal_source)
         return self.recv()
 
     def __iter__(self) -> Interaction:
@@ -254,8 +269,8 @@ class GrpcClient:
         credentials: TLS channel credentials; plaintext when ``None``.
         options: Extra channel options, e.g. ``[("grpc.max_receive_message_length", n)]``.
 
-    Offers the REST client's operations except ``history``, which the gRPC
-    API does not have. Use as a context manager, or call :meth:`close`.
+    Offers the REST client's operations, with the same results. Use as a
+    context manager, or call :meth:`close`.
     """
 
     def __init__(
@@ -279,8 +294,9 @@ class GrpcClient:
         self._auth: _Metadata = (
             (("authorization", f"Bearer {api_key}"),) if api_key is not None else ()
         )
-        # (states, actions) per session, to make per-pair value tables dense.
-        self._shapes: dict[str, tuple[int, int]] = {}
+        # (states, action names) per session, to make per-pair value tables
+        # dense and to name the actions of history entries.
+        self._shapes: dict[str, tuple[int, list[str]]] = {}
 
     def close(self) -> None:
         """Closes the channel (and with it any open stream)."""
@@ -305,7 +321,7 @@ class GrpcClient:
 
     def _remember(self, info: SessionInfo) -> SessionInfo:
         self._shapes.pop(info.id, None)
-        self._shapes[info.id] = (info.model.states, len(info.model.actions))
+        self._shapes[info.id] = (info.model.states, info.model.actions)
         while len(self._shapes) > 1024:
             del self._shapes[next(iter(self._shapes))]
         return info
@@ -332,12 +348,13 @@ class GrpcClient:
         seed: int | None = None,
         update_mode: UpdateMode | None = None,
         history: int | None = None,
+        curiosity: CuriosityLike | None = None,
     ) -> SessionInfo:
         """Creates a session; arguments as :meth:`mcapi_client.Client.create_session`."""
-        agent = AgentOptions(
+        agent = agent_options(
             eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
             optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
-            update_mode=update_mode, history=history,
+            update_mode=update_mode, history=history, curiosity=curiosity,
         )
         request = _pb.create_request(model_json(model), agent)
         return self._remember(_pb.session_info(self._unary(self._stub.CreateSession, request)))
@@ -381,15 +398,23 @@ class GrpcClient:
         state: int,
         stimulus: Sequence[float] | None = None,
         action_taken: ActionRef | None = None,
+        *,
+        signal: Sequence[float] | None = None,
+        signal_source: int | None = None,
     ) -> Step:
-        """Reports one observation (unary ``Observe``) and returns the next action.
+        """Reports one observation (unary ``Observe``) and returns the next
+        action; arguments as :meth:`mcapi_client.Client.observe`.
 
         For a loop of many observations, :meth:`interact` saves a round of
         call set-up per tick.
         """
         request = pb.ObserveRequest(
             session_id=session_id,
-            observations=[_pb.observation(state, stimulus, action_taken)],
+            observations=[
+                _pb.observation(
+                    state, stimulus, action_taken, signal=signal, signal_source=signal_source
+                )
+            ],
         )
         reply = self._unary(self._stub.Observe, request, session_id)
         return _pb.step(reply.steps[0])
@@ -417,11 +442,22 @@ class GrpcClient:
         tables = [t.strip() for part in tables for t in part.split(",") if t.strip()]
         request = pb.GetValuesRequest(session_id=session_id, include=tables)
         reply = self._unary(self._stub.GetValues, request, session_id)
+        states, actions = self._shape(session_id)
+        return _pb.values(reply, states, len(actions))
+
+    def history(self, session_id: str, limit: int | None = None) -> list[HistoryEntry]:
+        """The most recent ticks of a session (at most ``limit``), oldest first
+        (``GetHistory``); the same entries as :meth:`mcapi_client.Client.history`."""
+        request = pb.GetHistoryRequest(session_id=session_id, limit=limit)
+        reply = self._unary(self._stub.GetHistory, request, session_id)
+        return _pb.history(reply, self._shape(session_id)[1])
+
+    def _shape(self, session_id: str) -> tuple[int, list[str]]:
         shape = self._shapes.get(session_id)
         if shape is None:
             info = self.get_session(session_id)
-            shape = (info.model.states, len(info.model.actions))
-        return _pb.values(reply, *shape)
+            shape = (info.model.states, info.model.actions)
+        return shape
 
     def interact(self, session_id: str) -> Interaction:
         """Opens an ``Interact`` stream on a session; see :class:`Interaction`."""

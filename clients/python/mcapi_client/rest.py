@@ -24,6 +24,7 @@ from .models import Model
 from .types import (
     ActionRef,
     AgentOptions,
+    CuriosityLike,
     HistoryEntry,
     Observation,
     ObservationLike,
@@ -34,6 +35,7 @@ from .types import (
     StimulusRate,
     UpdateMode,
     Values,
+    as_curiosity,
     as_observation,
 )
 
@@ -104,9 +106,36 @@ def _path(session_id: str, tail: str = "") -> str:
 
 
 def _observation(
-    state: int, stimulus: Sequence[float] | None, action_taken: ActionRef | None
+    state: int,
+    stimulus: Sequence[float] | None,
+    action_taken: ActionRef | None,
+    signal: Sequence[float] | None,
+    signal_source: int | None,
 ) -> dict[str, object]:
-    return Observation(state, stimulus, action_taken).to_json()
+    return Observation(state, stimulus, action_taken, signal, signal_source).to_json()
+
+
+def agent_options(
+    *,
+    eta: float | None,
+    gamma: float | None,
+    priorities: Sequence[float] | None,
+    stimulus_rate: StimulusRate | None,
+    optimistic_sd: float | None,
+    ridge: float | None,
+    epsilon: float | None,
+    seed: int | None,
+    update_mode: UpdateMode | None,
+    history: int | None,
+    curiosity: CuriosityLike | None,
+) -> AgentOptions:
+    """The :class:`AgentOptions` of ``create_session``'s keyword arguments."""
+    return AgentOptions(
+        eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
+        optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
+        update_mode=update_mode, history=history,
+        curiosity=None if curiosity is None else as_curiosity(curiosity),
+    )
 
 
 def _batch(observations: Iterable[ObservationLike]) -> dict[str, object]:
@@ -205,6 +234,7 @@ class Client:
         seed: int | None = None,
         update_mode: UpdateMode | None = None,
         history: int | None = None,
+        curiosity: CuriosityLike | None = None,
     ) -> SessionInfo:
         """Creates a session on a model; unset agent options take the server's defaults.
 
@@ -220,14 +250,21 @@ class Client:
             seed: Seed of the session's RNG (drawn by the server when unset).
             update_mode: ``"lockstep"`` (default) or ``"async"``.
             history: Recent ticks kept for :meth:`history`.
+            curiosity: A curiosity channel: a
+                :class:`~mcapi_client.types.CuriosityConfig`, its JSON, or the
+                signal dimension alone. The server appends a stimulus
+                dimension ``"curiosity"`` (last) and computes it from the
+                ``signal`` samples of observations; send only the model's own
+                (extrinsic) stimulus components. ``priorities``, if given,
+                need one entry for it too.
 
         Returns:
             The new session, with its effective configuration (seed included).
         """
-        agent = AgentOptions(
+        agent = agent_options(
             eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
             optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
-            update_mode=update_mode, history=history,
+            update_mode=update_mode, history=history, curiosity=curiosity,
         )
         body = {"model": model_json(model), "agent": agent.to_json()}
         return self._remember(_json.session_info(self._request("POST", "/v1/sessions", json=body)))
@@ -268,6 +305,9 @@ class Client:
         state: int,
         stimulus: Sequence[float] | None = None,
         action_taken: ActionRef | None = None,
+        *,
+        signal: Sequence[float] | None = None,
+        signal_source: int | None = None,
     ) -> Step:
         """Reports one observation and returns the next action.
 
@@ -278,12 +318,18 @@ class Client:
                 session's first observation.
             action_taken: The action actually taken, by name or index, if not
                 the one the session advised.
+            signal: A raw signal sample received on arriving there, for a
+                session with a curiosity channel; ``stimulus`` is then the
+                extrinsic part only and the server appends xi_cur (see
+                ``step.curiosity``). Not on the first observation.
+            signal_source: The signal's source, e.g. 0 = book, 1 = music
+                (server default 0); only with ``signal``.
         """
         return _json.step(
             self._request(
                 "POST",
                 _path(session_id, "/observations"),
-                json=_observation(state, stimulus, action_taken),
+                json=_observation(state, stimulus, action_taken, signal, signal_source),
             )
         )
 
@@ -292,8 +338,9 @@ class Client:
     ) -> list[Step]:
         """Applies observations in order (e.g. replaying a log); one step each.
 
-        On an error at observation i, the i before it stay applied and the
-        error's message says so.
+        Each entry is an :class:`~mcapi_client.Observation` (which may carry
+        a ``signal``), a mapping or a tuple. On an error at observation i,
+        the i before it stay applied and the error's message says so.
         """
         reply = self._request(
             "POST", _path(session_id, "/observations"), json=_batch(observations)
@@ -316,7 +363,11 @@ class Client:
         return _json.values(self._request("GET", _path(session_id, "/values"), params=params))
 
     def history(self, session_id: str, limit: int | None = None) -> list[HistoryEntry]:
-        """The most recent ticks of a session (at most ``limit``), oldest first."""
+        """The most recent ticks of a session (at most ``limit``), oldest first.
+
+        Each entry has the full stimulus received (with a curiosity channel,
+        xi_cur last) and, for a curious session, the channel at that tick.
+        """
         params = {"limit": limit} if limit is not None else None
         entries = self._request("GET", _path(session_id, "/history"), params=params)
         actions = self._actions.get(session_id)
@@ -406,12 +457,13 @@ class AsyncClient:
         seed: int | None = None,
         update_mode: UpdateMode | None = None,
         history: int | None = None,
+        curiosity: CuriosityLike | None = None,
     ) -> SessionInfo:
         """Creates a session; see :meth:`Client.create_session`."""
-        agent = AgentOptions(
+        agent = agent_options(
             eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
             optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
-            update_mode=update_mode, history=history,
+            update_mode=update_mode, history=history, curiosity=curiosity,
         )
         body = {"model": model_json(model), "agent": agent.to_json()}
         return self._remember(
@@ -452,13 +504,16 @@ class AsyncClient:
         state: int,
         stimulus: Sequence[float] | None = None,
         action_taken: ActionRef | None = None,
+        *,
+        signal: Sequence[float] | None = None,
+        signal_source: int | None = None,
     ) -> Step:
         """Reports one observation; see :meth:`Client.observe`."""
         return _json.step(
             await self._request(
                 "POST",
                 _path(session_id, "/observations"),
-                json=_observation(state, stimulus, action_taken),
+                json=_observation(state, stimulus, action_taken, signal, signal_source),
             )
         )
 

@@ -19,6 +19,10 @@ __all__ = [
     "UpdateMode",
     "StimulusRate",
     "ActionRef",
+    "CuriosityConfig",
+    "TickCuriosity",
+    "FrozenModule",
+    "CuriosityInfo",
     "Step",
     "BasisSummary",
     "ModelSummary",
@@ -47,6 +51,138 @@ ActionRef = Union[str, int]
 """An action by name (``"left"``) or by index into the model's actions."""
 
 
+def _finite(name: str, xs: Sequence[float]) -> list[float]:
+    """``xs`` as floats; JSON has no NaN or infinity, so they are refused here
+    with the error the server would give."""
+    out = [float(x) for x in xs]
+    for i, x in enumerate(out):
+        if not math.isfinite(x):
+            raise error_for("non_finite_number", f"`{name}[{i}]` is {x}, not a finite number")
+    return out
+
+
+def check_signal(signal: Sequence[float]) -> Sequence[float]:
+    """``signal``, refused when empty: REST would refuse it, while gRPC cannot
+    tell an empty signal from none, so both transports refuse it here."""
+    if len(signal) == 0:
+        raise error_for(
+            "invalid_parameter",
+            "invalid parameter `signal`: is empty (leave it out when there is no signal sample)",
+        )
+    return signal
+
+
+@dataclass(frozen=True, slots=True)
+class CuriosityConfig:
+    """A session's curiosity channel (the paper's section on curiosity-driven
+    learning; ALGORITHM.md section 7 of the server).
+
+    A session created with one gets an extra stimulus dimension named
+    ``"curiosity"``, last in ``model.stimuli``: the server computes it, as
+    xi_cur, from raw signal samples the client sends with observations
+    (``signal=``). The client sends only the extrinsic stimulus components.
+
+    Attributes:
+        signal_dim: Dimension m of the raw signal x(t), at least 1 (2 for
+            the paper's Eq. 6).
+        params: The channel's constants, every key optional (e.g.
+            ``{"gain": 800, "delta": 0.3}``); ``None`` or ``{}`` take the
+            server's defaults. In a session's effective configuration every
+            constant is filled in.
+    """
+
+    signal_dim: int
+    params: dict[str, Any] | None = None
+
+    def to_json(self) -> dict[str, object]:
+        """The ``agent.curiosity`` object of a REST create request."""
+        out: dict[str, object] = {"signal_dim": self.signal_dim}
+        if self.params is not None:
+            out["params"] = dict(self.params)
+        return out
+
+
+CuriosityLike = Union[CuriosityConfig, Mapping[str, Any], int]
+"""A curiosity channel to create a session with: a :class:`CuriosityConfig`,
+its JSON (``{"signal_dim": 2, "params": {...}}``), or just the signal
+dimension (every constant at its default)."""
+
+
+def as_curiosity(c: CuriosityLike) -> CuriosityConfig:
+    """Normalises a ``curiosity=`` argument to a :class:`CuriosityConfig`."""
+    if isinstance(c, CuriosityConfig):
+        return c
+    if isinstance(c, bool):
+        raise TypeError("curiosity: give the signal dimension or a CuriosityConfig, not a bool")
+    if isinstance(c, int):
+        return CuriosityConfig(signal_dim=c)
+    if isinstance(c, Mapping):
+        unknown = set(c) - {"signal_dim", "params"}
+        if unknown:
+            raise TypeError(f"unknown curiosity keys: {sorted(unknown)}")
+        params = c.get("params")
+        return CuriosityConfig(
+            signal_dim=int(c["signal_dim"]), params=None if params is None else dict(params)
+        )
+    raise TypeError(f"not a curiosity channel: {c!r}")
+
+
+@dataclass(frozen=True, slots=True)
+class TickCuriosity:
+    """The curiosity channel at one tick (in :class:`Step` and :class:`HistoryEntry`).
+
+    Attributes:
+        xi_cur: The intrinsic reward of the tick, the paper's Eq. 7: the
+            clipped learning progress of the active module (0 without a
+            signal sample, and once every source is explained).
+        epsilon: The active module's estimation error after the tick.
+        modules: Frozen modules in the library after the tick.
+        source: The source of the tick's signal sample, ``None`` without one.
+    """
+
+    xi_cur: float
+    epsilon: float
+    modules: int
+    source: int | None
+
+
+@dataclass(frozen=True, slots=True)
+class FrozenModule:
+    """One frozen module of a session's curiosity library.
+
+    Attributes:
+        source: The signal source it learned.
+        frozen_tick: The session's tick when it froze.
+        learned_samples: Samples it learned from before freezing.
+    """
+
+    source: int
+    frozen_tick: int
+    learned_samples: int
+
+
+@dataclass(frozen=True, slots=True)
+class CuriosityInfo:
+    """The state of a session's curiosity channel (in :class:`SessionInfo` and :class:`Values`).
+
+    Attributes:
+        samples: Signal samples received.
+        epsilon: The active module's estimation error.
+        active_source: The source the active module learns, ``None`` until bound.
+        active_samples: Samples the active module learned from.
+        all_explained: Every known source is explained by a frozen module;
+            the drive's ``curiosity`` component is then held at 0.
+        modules: The frozen modules, in freezing order.
+    """
+
+    samples: int
+    epsilon: float
+    active_source: int | None
+    active_samples: int
+    all_explained: bool
+    modules: list[FrozenModule]
+
+
 @dataclass(frozen=True, slots=True)
 class Step:
     """The reply to one observation: the next action and the agent's drive.
@@ -58,6 +194,8 @@ class Step:
         drive: The drive D after this tick, one float per stimulus dimension.
         reward: |r| of this tick (the paper's Eq. 3).
         policy_version: Policy updates applied so far.
+        curiosity: The curiosity channel at this tick; ``None`` for a
+            session without one.
     """
 
     tick: int
@@ -66,6 +204,7 @@ class Step:
     drive: list[float]
     reward: float
     policy_version: int
+    curiosity: TickCuriosity | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -122,6 +261,8 @@ class AgentConfig:
         seed: Seed of the session's RNG.
         update_mode: ``"lockstep"`` or ``"async"``.
         history: Recent ticks kept for :meth:`~mcapi_client.Client.history`.
+        curiosity: The curiosity channel with every constant filled in;
+            ``None`` for a session without one.
     """
 
     eta: float
@@ -134,6 +275,7 @@ class AgentConfig:
     seed: int
     update_mode: UpdateMode
     history: int
+    curiosity: CuriosityConfig | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -153,6 +295,9 @@ class AgentOptions:
         seed: Seed of the session's RNG (default: drawn by the server).
         update_mode: ``"lockstep"`` (default) or ``"async"``.
         history: Recent ticks kept for the history (default 256).
+        curiosity: A curiosity channel (default none); the server appends the
+            stimulus dimension ``"curiosity"``, so ``priorities``, if given,
+            have one entry more than the model's stimuli.
     """
 
     eta: float | None = None
@@ -165,6 +310,7 @@ class AgentOptions:
     seed: int | None = None
     update_mode: UpdateMode | None = None
     history: int | None = None
+    curiosity: CuriosityConfig | None = None
 
     def to_json(self) -> dict[str, object]:
         """The ``agent`` object of a REST create request (unset fields left out)."""
@@ -173,7 +319,12 @@ class AgentOptions:
             value = getattr(self, name)
             if value is None:
                 continue
-            out[name] = list(value) if name == "priorities" else value
+            if name == "priorities":
+                out[name] = list(value)
+            elif name == "curiosity":
+                out[name] = value.to_json()
+            else:
+                out[name] = value
         return out
 
 
@@ -212,6 +363,8 @@ class SessionInfo:
         model: Summary of the environment model.
         agent: The effective agent configuration.
         stats: Learner statistics.
+        curiosity: The curiosity channel's state; ``None`` for a session
+            without one.
     """
 
     id: str
@@ -222,6 +375,7 @@ class SessionInfo:
     model: ModelSummary
     agent: AgentConfig
     stats: SessionStats
+    curiosity: CuriosityInfo | None = None
 
     def drive_by_stimulus(self) -> dict[str, float]:
         """The drive keyed by stimulus name, e.g. ``{"food": 0.6, "rest": 0.8}``."""
@@ -278,6 +432,8 @@ class Values:
         policy: Name of the greedy action per state.
         r: R(s, a) = |Xi Lambda D| as of the last update.
         xi: Xi(s, a), the learned stimulus vector per pair.
+        curiosity: The curiosity channel's state (always sent, whatever the
+            tables asked for); ``None`` for a session without one.
     """
 
     tick: int
@@ -287,6 +443,7 @@ class Values:
     policy: list[str] | None = None
     r: list[list[float | None]] | None = None
     xi: list[list[list[float] | None]] | None = None
+    curiosity: CuriosityInfo | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -301,6 +458,12 @@ class HistoryEntry:
         drive: The drive after the tick.
         reward: |r| of the tick.
         lstdq_error: LSTDQ error of the newest policy update at the time.
+        stimulus: The full stimulus received at the tick, one float per
+            stimulus dimension (with a curiosity channel, xi_cur last);
+            ``None`` only for ticks restored from a store written by an
+            older server.
+        curiosity: The curiosity channel at the tick; ``None`` for a session
+            without one.
     """
 
     tick: int
@@ -310,6 +473,8 @@ class HistoryEntry:
     drive: list[float]
     reward: float
     lstdq_error: float
+    stimulus: list[float] | None = None
+    curiosity: TickCuriosity | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -322,33 +487,40 @@ class Observation:
             stimulus dimension; ``None`` on a session's first observation.
         action_taken: The action actually taken to get here, by name or
             index, when it was not the advised one (exploration, an override).
+        signal: A raw signal sample x(t) received on arriving there, for a
+            session with a curiosity channel (``signal_dim`` floats); the
+            ``stimulus`` is then the extrinsic part only and the server
+            appends xi_cur. Not on a session's first observation.
+        signal_source: The signal's source (e.g. 0 = book, 1 = music);
+            the server's default is 0. Only with a ``signal``.
     """
 
     state: int
     stimulus: Sequence[float] | None = None
     action_taken: ActionRef | None = None
+    signal: Sequence[float] | None = None
+    signal_source: int | None = None
 
     def to_json(self) -> dict[str, object]:
         """The observation as the REST API takes it."""
         out: dict[str, object] = {"state": self.state}
         if self.stimulus is not None:
-            stimulus = [float(x) for x in self.stimulus]
-            for i, x in enumerate(stimulus):
-                if not math.isfinite(x):
-                    # JSON has no NaN or infinity: refused here as the server would.
-                    raise error_for(
-                        "non_finite_number", f"`stimulus[{i}]` is {x}, not a finite number"
-                    )
-            out["stimulus"] = stimulus
+            out["stimulus"] = _finite("stimulus", self.stimulus)
         if self.action_taken is not None:
             out["action_taken"] = self.action_taken
+        if self.signal is not None:
+            out["signal"] = _finite("signal", check_signal(self.signal))
+        if self.signal_source is not None:
+            out["signal_source"] = self.signal_source
         return out
 
 
 ObservationLike = Union[Observation, Mapping[str, object], tuple[Any, ...]]
 """What batch methods accept per observation: an :class:`Observation`, a
-mapping with ``state``/``stimulus``/``action_taken`` keys, or a tuple
-``(state, stimulus[, action_taken])``."""
+mapping with ``state``/``stimulus``/``action_taken``/``signal``/``signal_source``
+keys, or a tuple ``(state, stimulus[, action_taken[, signal[, signal_source]]])``."""
+
+_OBSERVATION_KEYS = {"state", "stimulus", "action_taken", "signal", "signal_source"}
 
 
 def as_observation(obs: ObservationLike) -> Observation:
@@ -356,15 +528,17 @@ def as_observation(obs: ObservationLike) -> Observation:
     if isinstance(obs, Observation):
         return obs
     if isinstance(obs, Mapping):
-        unknown = set(obs) - {"state", "stimulus", "action_taken"}
+        unknown = set(obs) - _OBSERVATION_KEYS
         if unknown:
             raise TypeError(f"unknown observation keys: {sorted(unknown)}")
         return Observation(
             state=int(obs["state"]),  # type: ignore[call-overload]
             stimulus=obs.get("stimulus"),  # type: ignore[arg-type]
             action_taken=obs.get("action_taken"),  # type: ignore[arg-type]
+            signal=obs.get("signal"),  # type: ignore[arg-type]
+            signal_source=obs.get("signal_source"),  # type: ignore[arg-type]
         )
-    if isinstance(obs, tuple) and 1 <= len(obs) <= 3:
+    if isinstance(obs, tuple) and 1 <= len(obs) <= 5:
         return Observation(*obs)
     raise TypeError(f"not an observation: {obs!r}")
 

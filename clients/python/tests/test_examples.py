@@ -73,3 +73,16 @@ def test_examples_delete_their_sessions(
         _run("hallway_rest", ["--url", server.http_url, "--steps", "5", "--no-plot", "--keep"], capsys)
         after = {s.id for s in c.iter_sessions()}
     assert len(after - before) == 1, "only the --keep run left its session"
+
+
+def test_curiosity(server: Server, examples_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = _run("curiosity", ["--url", server.http_url, "--steps", "2000"], capsys)
+    assert "stimuli food, rest, curiosity; book at 25" in out
+    froze = re.findall(
+        r"^tick +\d+: a module froze after learning source 0 from (\d+) book samples", out, re.MULTILINE
+    )
+    assert len(froze) == 1 and int(froze[0]) >= 100, out
+    summary = re.search(r"2000 ticks: (\d+) book samples, 1 frozen module\(s\), the book explained", out)
+    assert summary and int(summary.group(1)) >= int(froze[0]), out
+    visits = re.search(r"visits: food (\d+), rest (\d+), book (\d+)", out)
+    assert visits and all(int(v) > 0 for v in visits.groups()), out

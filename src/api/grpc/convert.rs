@@ -11,9 +11,10 @@ use crate::algo::StimulusRate;
 use crate::algo::model::ActionRef;
 use crate::algo::params::StimulusRateName;
 use crate::service::{
-    BasisSummary, CreateSession, EffectiveConfig, ModelSummary, ObservationIn, ServiceError,
-    SessionConfig, SessionInfo, SessionPage, SessionStats, SessionSummary, StepOut, UpdateMode,
-    ValueSelection, Values,
+    BasisSummary, CreateSession, CuriosityConfig, CuriosityInfo, EffectiveConfig, FrozenModuleInfo,
+    HistoryEntry, ModelSummary, ObservationIn, ServiceError, SessionConfig, SessionInfo,
+    SessionPage, SessionStats, SessionSummary, StepOut, TickCuriosity, UpdateMode, ValueSelection,
+    Values,
 };
 
 use super::pb;
@@ -60,6 +61,7 @@ fn session_config(c: pb::SessionConfig) -> Result<SessionConfig, ServiceError> {
         seed,
         update_mode,
         history,
+        curiosity,
     } = c;
     let stimulus_rate = match stimulus_rate {
         None => None,
@@ -94,6 +96,24 @@ fn session_config(c: pb::SessionConfig) -> Result<SessionConfig, ServiceError> {
         seed,
         update_mode,
         history: history.map(|h| to_usize("agent.history", h)).transpose()?,
+        curiosity: curiosity.map(curiosity_config).transpose()?,
+    })
+}
+
+fn curiosity_config(c: pb::CuriosityConfig) -> Result<CuriosityConfig, ServiceError> {
+    let pb::CuriosityConfig {
+        signal_dim,
+        params_json,
+    } = c;
+    let params = if params_json.trim().is_empty() {
+        Default::default()
+    } else {
+        serde_json::from_str(&params_json)
+            .map_err(|e| ServiceError::field("agent.curiosity.params_json", e))?
+    };
+    Ok(CuriosityConfig {
+        signal_dim: to_usize("agent.curiosity.signal_dim", signal_dim)?,
+        params,
     })
 }
 
@@ -139,6 +159,8 @@ pub fn observation(
         state,
         stimulus,
         action_taken,
+        signal,
+        signal_source,
     } = obs;
     let id = session_id(id, default_id)?;
     let action_taken = match action_taken {
@@ -155,6 +177,10 @@ pub fn observation(
             state: to_usize("state", state)?,
             stimulus,
             action_taken,
+            // proto3 cannot tell an empty list from an absent one; a signal
+            // has at least one component.
+            signal: (!signal.is_empty()).then_some(signal),
+            signal_source: signal_source.map(|s| s as usize),
         },
     ))
 }
@@ -219,6 +245,18 @@ pub fn watch_request(
         }
     };
     Ok((id, interval))
+}
+
+/// `GetHistory`: the session and the number of ticks.
+pub fn history_request(
+    req: pb::GetHistoryRequest,
+    metadata_id: Option<&str>,
+) -> Result<(String, Option<usize>), ServiceError> {
+    let pb::GetHistoryRequest {
+        session_id: id,
+        limit,
+    } = req;
+    Ok((session_id(id, metadata_id)?, limit.map(|l| l as usize)))
 }
 
 /// `GetValues`: the session and the tables, parsed as REST's `?include=`.
@@ -289,6 +327,7 @@ fn effective_config(c: EffectiveConfig) -> pb::EffectiveConfig {
         seed,
         update_mode: mode,
         history,
+        curiosity,
     } = c;
     use pb::effective_config::StimulusRate as Rate;
     let stimulus_rate = match stimulus_rate {
@@ -308,6 +347,59 @@ fn effective_config(c: EffectiveConfig) -> pb::EffectiveConfig {
         seed,
         update_mode: update_mode(mode).into(),
         history: history as u64,
+        curiosity: curiosity.map(
+            |CuriosityConfig { signal_dim, params }| pb::CuriosityConfig {
+                signal_dim: signal_dim as u64,
+                params_json: serde_json::to_string(&params).unwrap_or_default(),
+            },
+        ),
+    }
+}
+
+fn curiosity_info(c: CuriosityInfo) -> pb::CuriosityInfo {
+    let CuriosityInfo {
+        samples,
+        epsilon,
+        active_source,
+        active_samples,
+        all_explained,
+        modules,
+    } = c;
+    pb::CuriosityInfo {
+        samples,
+        epsilon,
+        active_source: active_source.map(|s| s as u64),
+        active_samples,
+        all_explained,
+        modules: modules
+            .into_iter()
+            .map(
+                |FrozenModuleInfo {
+                     source,
+                     frozen_tick,
+                     learned_samples,
+                 }| pb::FrozenModule {
+                    source: source as u64,
+                    frozen_tick,
+                    learned_samples,
+                },
+            )
+            .collect(),
+    }
+}
+
+fn tick_curiosity(c: TickCuriosity) -> pb::TickCuriosity {
+    let TickCuriosity {
+        xi_cur,
+        epsilon,
+        modules,
+        source,
+    } = c;
+    pb::TickCuriosity {
+        xi_cur,
+        epsilon,
+        modules: modules as u64,
+        source: source.map(|s| s as u64),
     }
 }
 
@@ -341,6 +433,7 @@ pub fn session_info(info: SessionInfo) -> pb::SessionInfo {
         model,
         agent,
         stats: s,
+        curiosity,
     } = info;
     pb::SessionInfo {
         id,
@@ -351,6 +444,7 @@ pub fn session_info(info: SessionInfo) -> pb::SessionInfo {
         model: Some(model_summary(model)),
         agent: Some(effective_config(agent)),
         stats: Some(stats(s)),
+        curiosity: curiosity.map(curiosity_info),
     }
 }
 
@@ -387,6 +481,7 @@ pub fn step(s: StepOut) -> pb::Step {
         drive,
         reward,
         policy_version,
+        curiosity,
     } = s;
     pb::Step {
         tick,
@@ -395,6 +490,37 @@ pub fn step(s: StepOut) -> pb::Step {
         drive,
         reward,
         policy_version,
+        curiosity: curiosity.map(tick_curiosity),
+    }
+}
+
+/// A session's recent ticks.
+pub fn history(entries: Vec<HistoryEntry>) -> pb::History {
+    pb::History {
+        entries: entries
+            .into_iter()
+            .map(
+                |HistoryEntry {
+                     tick,
+                     state,
+                     action,
+                     drive,
+                     reward,
+                     lstdq_error,
+                     stimulus,
+                     curiosity,
+                 }| pb::HistoryEntry {
+                    tick,
+                    state: state as u64,
+                    action_index: u32_of(action),
+                    drive,
+                    reward,
+                    lstdq_error,
+                    stimulus: stimulus.map(|values| pb::Stimulus { values }),
+                    curiosity: curiosity.map(tick_curiosity),
+                },
+            )
+            .collect(),
     }
 }
 
@@ -429,6 +555,7 @@ pub fn values(v: Values) -> pb::Values {
         policy,
         r,
         xi,
+        curiosity,
     } = v;
     pb::Values {
         tick,
@@ -446,6 +573,7 @@ pub fn values(v: Values) -> pb::Values {
                 })
                 .collect(),
         }),
+        curiosity: curiosity.map(curiosity_info),
     }
 }
 
@@ -471,6 +599,8 @@ mod tests {
                 state: 3,
                 stimulus: None,
                 action_taken: None,
+                signal: vec![],
+                signal_source: None,
             },
             None,
         )
@@ -483,12 +613,16 @@ mod tests {
                 state: 3,
                 stimulus: Some(pb::Stimulus { values: vec![] }),
                 action_taken: Some(pb::observation::ActionTaken::ActionName("left".into())),
+                signal: vec![0.5, 1.0],
+                signal_source: Some(1),
             },
             None,
         )
         .expect("valid");
         assert_eq!(obs.stimulus, Some(vec![]));
         assert_eq!(obs.action_taken, Some(ActionRef::Name("left".into())));
+        assert_eq!(obs.signal, Some(vec![0.5, 1.0]));
+        assert_eq!(obs.signal_source, Some(1));
     }
 
     #[test]

@@ -32,7 +32,7 @@ class CreateSessionRequest(_message.Message):
     def __init__(self, model_json: _Optional[str] = ..., agent: _Optional[_Union[SessionConfig, _Mapping]] = ...) -> None: ...
 
 class SessionConfig(_message.Message):
-    __slots__ = ("eta", "gamma", "priorities", "stimulus_rate_rule", "stimulus_rate_constant", "optimistic_sd", "ridge", "epsilon", "seed", "update_mode", "history")
+    __slots__ = ("eta", "gamma", "priorities", "stimulus_rate_rule", "stimulus_rate_constant", "optimistic_sd", "ridge", "epsilon", "seed", "update_mode", "history", "curiosity")
     ETA_FIELD_NUMBER: _ClassVar[int]
     GAMMA_FIELD_NUMBER: _ClassVar[int]
     PRIORITIES_FIELD_NUMBER: _ClassVar[int]
@@ -44,6 +44,7 @@ class SessionConfig(_message.Message):
     SEED_FIELD_NUMBER: _ClassVar[int]
     UPDATE_MODE_FIELD_NUMBER: _ClassVar[int]
     HISTORY_FIELD_NUMBER: _ClassVar[int]
+    CURIOSITY_FIELD_NUMBER: _ClassVar[int]
     eta: float
     gamma: float
     priorities: _containers.RepeatedScalarFieldContainer[float]
@@ -55,10 +56,19 @@ class SessionConfig(_message.Message):
     seed: int
     update_mode: UpdateMode
     history: int
-    def __init__(self, eta: _Optional[float] = ..., gamma: _Optional[float] = ..., priorities: _Optional[_Iterable[float]] = ..., stimulus_rate_rule: _Optional[_Union[StimulusRateRule, str]] = ..., stimulus_rate_constant: _Optional[float] = ..., optimistic_sd: _Optional[float] = ..., ridge: _Optional[float] = ..., epsilon: _Optional[float] = ..., seed: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ..., history: _Optional[int] = ...) -> None: ...
+    curiosity: CuriosityConfig
+    def __init__(self, eta: _Optional[float] = ..., gamma: _Optional[float] = ..., priorities: _Optional[_Iterable[float]] = ..., stimulus_rate_rule: _Optional[_Union[StimulusRateRule, str]] = ..., stimulus_rate_constant: _Optional[float] = ..., optimistic_sd: _Optional[float] = ..., ridge: _Optional[float] = ..., epsilon: _Optional[float] = ..., seed: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ..., history: _Optional[int] = ..., curiosity: _Optional[_Union[CuriosityConfig, _Mapping]] = ...) -> None: ...
+
+class CuriosityConfig(_message.Message):
+    __slots__ = ("signal_dim", "params_json")
+    SIGNAL_DIM_FIELD_NUMBER: _ClassVar[int]
+    PARAMS_JSON_FIELD_NUMBER: _ClassVar[int]
+    signal_dim: int
+    params_json: str
+    def __init__(self, signal_dim: _Optional[int] = ..., params_json: _Optional[str] = ...) -> None: ...
 
 class EffectiveConfig(_message.Message):
-    __slots__ = ("eta", "gamma", "priorities", "stimulus_rate_rule", "stimulus_rate_constant", "optimistic_sd", "ridge", "epsilon", "seed", "update_mode", "history")
+    __slots__ = ("eta", "gamma", "priorities", "stimulus_rate_rule", "stimulus_rate_constant", "optimistic_sd", "ridge", "epsilon", "seed", "update_mode", "history", "curiosity")
     ETA_FIELD_NUMBER: _ClassVar[int]
     GAMMA_FIELD_NUMBER: _ClassVar[int]
     PRIORITIES_FIELD_NUMBER: _ClassVar[int]
@@ -70,6 +80,7 @@ class EffectiveConfig(_message.Message):
     SEED_FIELD_NUMBER: _ClassVar[int]
     UPDATE_MODE_FIELD_NUMBER: _ClassVar[int]
     HISTORY_FIELD_NUMBER: _ClassVar[int]
+    CURIOSITY_FIELD_NUMBER: _ClassVar[int]
     eta: float
     gamma: float
     priorities: _containers.RepeatedScalarFieldContainer[float]
@@ -81,7 +92,8 @@ class EffectiveConfig(_message.Message):
     seed: int
     update_mode: UpdateMode
     history: int
-    def __init__(self, eta: _Optional[float] = ..., gamma: _Optional[float] = ..., priorities: _Optional[_Iterable[float]] = ..., stimulus_rate_rule: _Optional[_Union[StimulusRateRule, str]] = ..., stimulus_rate_constant: _Optional[float] = ..., optimistic_sd: _Optional[float] = ..., ridge: _Optional[float] = ..., epsilon: _Optional[float] = ..., seed: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ..., history: _Optional[int] = ...) -> None: ...
+    curiosity: CuriosityConfig
+    def __init__(self, eta: _Optional[float] = ..., gamma: _Optional[float] = ..., priorities: _Optional[_Iterable[float]] = ..., stimulus_rate_rule: _Optional[_Union[StimulusRateRule, str]] = ..., stimulus_rate_constant: _Optional[float] = ..., optimistic_sd: _Optional[float] = ..., ridge: _Optional[float] = ..., epsilon: _Optional[float] = ..., seed: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ..., history: _Optional[int] = ..., curiosity: _Optional[_Union[CuriosityConfig, _Mapping]] = ...) -> None: ...
 
 class BasisSummary(_message.Message):
     __slots__ = ("kind", "k")
@@ -128,7 +140,7 @@ class SessionStats(_message.Message):
     def __init__(self, lstdq_error: _Optional[float] = ..., lambda1_estimate: _Optional[float] = ..., condition_1_holds: _Optional[bool] = ..., constant_stimuli: _Optional[_Iterable[int]] = ..., factorisation_reuses: _Optional[int] = ..., factorisations: _Optional[int] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("id", "tick", "drive", "policy_version", "state", "model", "agent", "stats")
+    __slots__ = ("id", "tick", "drive", "policy_version", "state", "model", "agent", "stats", "curiosity")
     ID_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
     DRIVE_FIELD_NUMBER: _ClassVar[int]
@@ -137,6 +149,7 @@ class SessionInfo(_message.Message):
     MODEL_FIELD_NUMBER: _ClassVar[int]
     AGENT_FIELD_NUMBER: _ClassVar[int]
     STATS_FIELD_NUMBER: _ClassVar[int]
+    CURIOSITY_FIELD_NUMBER: _ClassVar[int]
     id: str
     tick: int
     drive: _containers.RepeatedScalarFieldContainer[float]
@@ -145,7 +158,46 @@ class SessionInfo(_message.Message):
     model: ModelSummary
     agent: EffectiveConfig
     stats: SessionStats
-    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., policy_version: _Optional[int] = ..., state: _Optional[int] = ..., model: _Optional[_Union[ModelSummary, _Mapping]] = ..., agent: _Optional[_Union[EffectiveConfig, _Mapping]] = ..., stats: _Optional[_Union[SessionStats, _Mapping]] = ...) -> None: ...
+    curiosity: CuriosityInfo
+    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., policy_version: _Optional[int] = ..., state: _Optional[int] = ..., model: _Optional[_Union[ModelSummary, _Mapping]] = ..., agent: _Optional[_Union[EffectiveConfig, _Mapping]] = ..., stats: _Optional[_Union[SessionStats, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ...) -> None: ...
+
+class CuriosityInfo(_message.Message):
+    __slots__ = ("samples", "epsilon", "active_source", "active_samples", "all_explained", "modules")
+    SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    EPSILON_FIELD_NUMBER: _ClassVar[int]
+    ACTIVE_SOURCE_FIELD_NUMBER: _ClassVar[int]
+    ACTIVE_SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    ALL_EXPLAINED_FIELD_NUMBER: _ClassVar[int]
+    MODULES_FIELD_NUMBER: _ClassVar[int]
+    samples: int
+    epsilon: float
+    active_source: int
+    active_samples: int
+    all_explained: bool
+    modules: _containers.RepeatedCompositeFieldContainer[FrozenModule]
+    def __init__(self, samples: _Optional[int] = ..., epsilon: _Optional[float] = ..., active_source: _Optional[int] = ..., active_samples: _Optional[int] = ..., all_explained: _Optional[bool] = ..., modules: _Optional[_Iterable[_Union[FrozenModule, _Mapping]]] = ...) -> None: ...
+
+class FrozenModule(_message.Message):
+    __slots__ = ("source", "frozen_tick", "learned_samples")
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    FROZEN_TICK_FIELD_NUMBER: _ClassVar[int]
+    LEARNED_SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    source: int
+    frozen_tick: int
+    learned_samples: int
+    def __init__(self, source: _Optional[int] = ..., frozen_tick: _Optional[int] = ..., learned_samples: _Optional[int] = ...) -> None: ...
+
+class TickCuriosity(_message.Message):
+    __slots__ = ("xi_cur", "epsilon", "modules", "source")
+    XI_CUR_FIELD_NUMBER: _ClassVar[int]
+    EPSILON_FIELD_NUMBER: _ClassVar[int]
+    MODULES_FIELD_NUMBER: _ClassVar[int]
+    SOURCE_FIELD_NUMBER: _ClassVar[int]
+    xi_cur: float
+    epsilon: float
+    modules: int
+    source: int
+    def __init__(self, xi_cur: _Optional[float] = ..., epsilon: _Optional[float] = ..., modules: _Optional[int] = ..., source: _Optional[int] = ...) -> None: ...
 
 class GetSessionRequest(_message.Message):
     __slots__ = ("session_id",)
@@ -198,34 +250,40 @@ class Stimulus(_message.Message):
     def __init__(self, values: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class Observation(_message.Message):
-    __slots__ = ("session_id", "state", "stimulus", "action_name", "action_index")
+    __slots__ = ("session_id", "state", "stimulus", "action_name", "action_index", "signal", "signal_source")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     STIMULUS_FIELD_NUMBER: _ClassVar[int]
     ACTION_NAME_FIELD_NUMBER: _ClassVar[int]
     ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
+    SIGNAL_FIELD_NUMBER: _ClassVar[int]
+    SIGNAL_SOURCE_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     state: int
     stimulus: Stimulus
     action_name: str
     action_index: int
-    def __init__(self, session_id: _Optional[str] = ..., state: _Optional[int] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., action_name: _Optional[str] = ..., action_index: _Optional[int] = ...) -> None: ...
+    signal: _containers.RepeatedScalarFieldContainer[float]
+    signal_source: int
+    def __init__(self, session_id: _Optional[str] = ..., state: _Optional[int] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., action_name: _Optional[str] = ..., action_index: _Optional[int] = ..., signal: _Optional[_Iterable[float]] = ..., signal_source: _Optional[int] = ...) -> None: ...
 
 class Step(_message.Message):
-    __slots__ = ("tick", "action", "action_index", "drive", "reward", "policy_version")
+    __slots__ = ("tick", "action", "action_index", "drive", "reward", "policy_version", "curiosity")
     TICK_FIELD_NUMBER: _ClassVar[int]
     ACTION_FIELD_NUMBER: _ClassVar[int]
     ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
     DRIVE_FIELD_NUMBER: _ClassVar[int]
     REWARD_FIELD_NUMBER: _ClassVar[int]
     POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
+    CURIOSITY_FIELD_NUMBER: _ClassVar[int]
     tick: int
     action: str
     action_index: int
     drive: _containers.RepeatedScalarFieldContainer[float]
     reward: float
     policy_version: int
-    def __init__(self, tick: _Optional[int] = ..., action: _Optional[str] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., policy_version: _Optional[int] = ...) -> None: ...
+    curiosity: TickCuriosity
+    def __init__(self, tick: _Optional[int] = ..., action: _Optional[str] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., policy_version: _Optional[int] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ...) -> None: ...
 
 class ObserveRequest(_message.Message):
     __slots__ = ("session_id", "observations")
@@ -302,7 +360,7 @@ class PairVectors(_message.Message):
     def __init__(self, pairs: _Optional[_Iterable[_Union[PairVector, _Mapping]]] = ...) -> None: ...
 
 class Values(_message.Message):
-    __slots__ = ("tick", "policy_version", "v", "q", "policy", "r", "xi")
+    __slots__ = ("tick", "policy_version", "v", "q", "policy", "r", "xi", "curiosity")
     TICK_FIELD_NUMBER: _ClassVar[int]
     POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
     V_FIELD_NUMBER: _ClassVar[int]
@@ -310,6 +368,7 @@ class Values(_message.Message):
     POLICY_FIELD_NUMBER: _ClassVar[int]
     R_FIELD_NUMBER: _ClassVar[int]
     XI_FIELD_NUMBER: _ClassVar[int]
+    CURIOSITY_FIELD_NUMBER: _ClassVar[int]
     tick: int
     policy_version: int
     v: StateValues
@@ -317,4 +376,39 @@ class Values(_message.Message):
     policy: Policy
     r: PairValues
     xi: PairVectors
-    def __init__(self, tick: _Optional[int] = ..., policy_version: _Optional[int] = ..., v: _Optional[_Union[StateValues, _Mapping]] = ..., q: _Optional[_Union[PairValues, _Mapping]] = ..., policy: _Optional[_Union[Policy, _Mapping]] = ..., r: _Optional[_Union[PairValues, _Mapping]] = ..., xi: _Optional[_Union[PairVectors, _Mapping]] = ...) -> None: ...
+    curiosity: CuriosityInfo
+    def __init__(self, tick: _Optional[int] = ..., policy_version: _Optional[int] = ..., v: _Optional[_Union[StateValues, _Mapping]] = ..., q: _Optional[_Union[PairValues, _Mapping]] = ..., policy: _Optional[_Union[Policy, _Mapping]] = ..., r: _Optional[_Union[PairValues, _Mapping]] = ..., xi: _Optional[_Union[PairVectors, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ...) -> None: ...
+
+class GetHistoryRequest(_message.Message):
+    __slots__ = ("session_id", "limit")
+    SESSION_ID_FIELD_NUMBER: _ClassVar[int]
+    LIMIT_FIELD_NUMBER: _ClassVar[int]
+    session_id: str
+    limit: int
+    def __init__(self, session_id: _Optional[str] = ..., limit: _Optional[int] = ...) -> None: ...
+
+class HistoryEntry(_message.Message):
+    __slots__ = ("tick", "state", "action_index", "drive", "reward", "lstdq_error", "stimulus", "curiosity")
+    TICK_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
+    DRIVE_FIELD_NUMBER: _ClassVar[int]
+    REWARD_FIELD_NUMBER: _ClassVar[int]
+    LSTDQ_ERROR_FIELD_NUMBER: _ClassVar[int]
+    STIMULUS_FIELD_NUMBER: _ClassVar[int]
+    CURIOSITY_FIELD_NUMBER: _ClassVar[int]
+    tick: int
+    state: int
+    action_index: int
+    drive: _containers.RepeatedScalarFieldContainer[float]
+    reward: float
+    lstdq_error: float
+    stimulus: Stimulus
+    curiosity: TickCuriosity
+    def __init__(self, tick: _Optional[int] = ..., state: _Optional[int] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., lstdq_error: _Optional[float] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ...) -> None: ...
+
+class History(_message.Message):
+    __slots__ = ("entries",)
+    ENTRIES_FIELD_NUMBER: _ClassVar[int]
+    entries: _containers.RepeatedCompositeFieldContainer[HistoryEntry]
+    def __init__(self, entries: _Optional[_Iterable[_Union[HistoryEntry, _Mapping]]] = ...) -> None: ...

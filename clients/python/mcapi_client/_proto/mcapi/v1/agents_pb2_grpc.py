@@ -75,6 +75,11 @@ class AgentsStub:
                 request_serializer=mcapi_dot_v1_dot_agents__pb2.GetValuesRequest.SerializeToString,
                 response_deserializer=mcapi_dot_v1_dot_agents__pb2.Values.FromString,
                 _registered_method=True)
+        self.GetHistory = channel.unary_unary(
+                '/mcapi.v1.Agents/GetHistory',
+                request_serializer=mcapi_dot_v1_dot_agents__pb2.GetHistoryRequest.SerializeToString,
+                response_deserializer=mcapi_dot_v1_dot_agents__pb2.History.FromString,
+                _registered_method=True)
 
 
 class AgentsServicer:
@@ -141,6 +146,13 @@ class AgentsServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def GetHistory(self, request, context):
+        """The most recent ticks of a session, oldest first.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_AgentsServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -183,6 +195,11 @@ def add_AgentsServicer_to_server(servicer, server):
                     servicer.GetValues,
                     request_deserializer=mcapi_dot_v1_dot_agents__pb2.GetValuesRequest.FromString,
                     response_serializer=mcapi_dot_v1_dot_agents__pb2.Values.SerializeToString,
+            ),
+            'GetHistory': grpc.unary_unary_rpc_method_handler(
+                    servicer.GetHistory,
+                    request_deserializer=mcapi_dot_v1_dot_agents__pb2.GetHistoryRequest.FromString,
+                    response_serializer=mcapi_dot_v1_dot_agents__pb2.History.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -402,6 +419,33 @@ class Agents:
             '/mcapi.v1.Agents/GetValues',
             mcapi_dot_v1_dot_agents__pb2.GetValuesRequest.SerializeToString,
             mcapi_dot_v1_dot_agents__pb2.Values.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetHistory(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/mcapi.v1.Agents/GetHistory',
+            mcapi_dot_v1_dot_agents__pb2.GetHistoryRequest.SerializeToString,
+            mcapi_dot_v1_dot_agents__pb2.History.FromString,
             options,
             channel_credentials,
             insecure,
