@@ -331,11 +331,24 @@ async fn events_stream_sessions_ticks_values_and_ends_when_deleted() {
     let backlog = events.until("values").await;
     assert_eq!(ticks(&backlog), (1..=20).collect::<Vec<u64>>());
     let entry = &backlog[0].data;
-    for field in ["state", "action", "drive", "reward", "lstdq_error"] {
+    for field in [
+        "state",
+        "action",
+        "drive",
+        "reward",
+        "lstdq_error",
+        "stimulus",
+    ] {
         assert!(
             entry.get(field).is_some(),
             "tick event lacks {field}: {entry}"
         );
+    }
+    // The stimulus the page sums: 6 on arrival at a source, else 0.
+    for e in backlog.iter().filter(|e| e.event == "tick") {
+        let xi = e.data["stimulus"].as_array().expect("stimulus");
+        assert_eq!(xi.len(), 3, "{}", e.data);
+        assert!(xi.iter().all(|x| x == 0.0 || x == 6.0), "{}", e.data);
     }
     let values = &backlog.last().expect("values").data;
     assert_eq!(values["v"].as_array().expect("v").len(), 200);

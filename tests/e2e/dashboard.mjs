@@ -176,7 +176,7 @@ async function mainServer(browser) {
         heatmapWidth: canvas.width,
         stream: document.getElementById("fact-stream").textContent,
         stimulusMissing: !document.getElementById("stimulus-missing").hidden,
-        stimulusCanvases: stim.querySelectorAll("canvas").length,
+        cumulative: Number(stim.dataset.total),
       };
     });
     const first = await snapshot();
@@ -193,6 +193,7 @@ async function mainServer(browser) {
     check(second.points > first.points || second.points === 1000, "the charts get more points");
     check(second.version > first.version, "the heatmap shows newer policies");
     check(second.draws > first.draws, "the heatmap is redrawn");
+    check(!second.stimulusMissing && second.cumulative > 0, "cumulative stimulus is plotted");
     check(errors.length === 0, "no page errors: " + errors.join("; "));
 
     // The agent has lived a while; a picture for the README.

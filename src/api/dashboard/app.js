@@ -439,6 +439,7 @@
     view.charts.stimulus.setData([view.x, ...view.cum]);
     view.charts.reward.setData([view.x, view.reward, view.err]);
     $("stimulus-missing").hidden = view.sawStimulus || view.x.length === 0;
+    $("chart-stimulus").dataset.total = String(view.totals.reduce((a, b) => a + b, 0));
     for (const id of ["chart-drive", "chart-stimulus", "chart-reward"]) {
       $(id).dataset.points = String(view.x.length);
       $(id).dataset.lastTick = view.x.length ? String(view.x[view.x.length - 1]) : "";
