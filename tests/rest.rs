@@ -404,6 +404,20 @@ async fn session_limit_pagination_and_delete() {
     .await;
     assert_eq!(page["sessions"].as_array().expect("sessions").len(), 3);
     assert!(page["next"].is_null());
+    // `idle_ms`: absent until a session's first observation, then the time
+    // since its last one.
+    assert!(page["sessions"][0].get("idle_ms").is_none(), "{page}");
+    let (status, _) = post(
+        &client,
+        &format!("{}/v1/sessions/{}/observations", server.base, ids[0]),
+        &json!({"state": 3}),
+    )
+    .await;
+    assert_eq!(status, 200);
+    tokio::time::sleep(std::time::Duration::from_millis(30)).await;
+    let (_, page) = get(&client, &format!("{}/v1/sessions?limit=1", server.base)).await;
+    let idle = page["sessions"][0]["idle_ms"].as_u64().expect("idle_ms");
+    assert!((30..60_000).contains(&idle), "{page}");
     let resp = client
         .delete(format!("{}/v1/sessions/{}", server.base, ids[0]))
         .send()

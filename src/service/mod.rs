@@ -147,6 +147,10 @@ pub struct SessionSummary {
     pub states: usize,
     /// Update mode.
     pub update_mode: UpdateMode,
+    /// Milliseconds since its last applied observation; absent if it had
+    /// none since the server started.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub idle_ms: Option<u64>,
 }
 
 /// A page of sessions, ordered by id.
@@ -703,6 +707,9 @@ impl SessionManager {
                 tick: s.state.lock().learner.agent().tick(),
                 states: s.model.states,
                 update_mode: s.mode,
+                idle_ms: s
+                    .idle()
+                    .map(|d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX)),
             })
             .collect();
         Ok(SessionPage { sessions, next })

@@ -313,7 +313,19 @@ pub struct Session {
     /// Moving average of one policy update's cost in nanoseconds;
     /// `u64::MAX` until the first update is measured.
     plan_cost_ns: AtomicU64,
+    /// [`clock_ns`] at the last applied observation; 0 if none since the
+    /// server started.
+    last_observed_ns: AtomicU64,
     history_cap: usize,
+}
+
+/// Nanoseconds since the process's first call, plus one (never 0).
+fn clock_ns() -> u64 {
+    static EPOCH: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    let epoch = EPOCH.get_or_init(Instant::now);
+    u64::try_from(epoch.elapsed().as_nanos())
+        .unwrap_or(u64::MAX - 1)
+        .saturating_add(1)
 }
 
 impl Session {
@@ -348,6 +360,18 @@ impl Session {
             }),
             queued: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
+            last_observed_ns: AtomicU64::new(0),
+        }
+    }
+
+    /// Time since the last applied observation; `None` if none since the
+    /// server started.
+    pub fn idle(&self) -> Option<std::time::Duration> {
+        match self.last_observed_ns.load(Ordering::Relaxed) {
+            0 => None,
+            at => Some(std::time::Duration::from_nanos(
+                clock_ns().saturating_sub(at),
+            )),
         }
     }
 
@@ -395,6 +419,9 @@ impl Session {
         let mut log = Vec::new();
         let log_to = self.durability.as_ref().map(|_| &mut log);
         let result = st.apply_all(batch, plan, self.history_cap, &mut out, log_to);
+        if !out.is_empty() {
+            self.last_observed_ns.store(clock_ns(), Ordering::Relaxed);
+        }
         let commit = match &self.durability {
             Some(d) if !log.is_empty() => Some(st.log(&self.id, d, log)),
             _ => None,

@@ -151,6 +151,7 @@ def session_page(d: Json) -> SessionPage:
                 tick=int(s["tick"]),
                 states=int(s["states"]),
                 update_mode=s["update_mode"],
+                idle_ms=None if s.get("idle_ms") is None else int(s["idle_ms"]),
             )
             for s in d["sessions"]
         ],

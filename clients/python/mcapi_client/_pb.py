@@ -200,6 +200,7 @@ def session_page(m: pb.ListSessionsResponse) -> SessionPage:
                 tick=s.tick,
                 states=s.states,
                 update_mode=_UPDATE_MODE_NAMES.get(s.update_mode, "lockstep"),
+                idle_ms=s.idle_ms if s.HasField("idle_ms") else None,
             )
             for s in m.sessions
         ],

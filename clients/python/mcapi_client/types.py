@@ -396,12 +396,15 @@ class SessionSummary:
         tick: Ticks so far.
         states: Number of states of its model.
         update_mode: ``"lockstep"`` or ``"async"``.
+        idle_ms: Milliseconds since its last observation; ``None`` if it had
+            none since the server started.
     """
 
     id: str
     tick: int
     states: int
     update_mode: UpdateMode
+    idle_ms: int | None = None
 
 
 @dataclass(frozen=True, slots=True)

@@ -52,6 +52,10 @@ def test_create_get_list_delete(grpc_client: GrpcClient) -> None:
     assert len(page.sessions) == 1 and page.next == page.sessions[0].id
     summary = next(s for s in grpc_client.iter_sessions() if s.id == info.id)
     assert (summary.states, summary.update_mode) == (50, "async")
+    assert summary.idle_ms is None, "no observation yet"
+    grpc_client.observe(info.id, 3)
+    summary = next(s for s in grpc_client.iter_sessions() if s.id == info.id)
+    assert summary.idle_ms is not None and 0 <= summary.idle_ms < 60_000
 
     grpc_client.delete_session(info.id)
     with pytest.raises(NotFound) as e:

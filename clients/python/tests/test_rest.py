@@ -159,6 +159,10 @@ def test_list_pages_and_iterates_every_session(client: Client) -> None:
     assert second.sessions[0].id > first.sessions[-1].id
     summary = next(s for s in client.iter_sessions() if s.id in ids)
     assert summary.states == 50 and summary.update_mode == "lockstep" and summary.tick == 0
+    assert summary.idle_ms is None, "no observation yet"
+    client.observe(summary.id, 3)
+    observed = next(s for s in client.iter_sessions() if s.id == summary.id)
+    assert observed.idle_ms is not None and 0 <= observed.idle_ms < 60_000
 
 
 def test_delete(client: Client) -> None:

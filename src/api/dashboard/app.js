@@ -115,7 +115,7 @@
 
   // ------------------------------------------------------------ session list
 
-  const known = new Map(); // id -> { tick, changedAt, model }
+  const known = new Map(); // id -> { model }
   let selectedId = null;
 
   async function refreshList() {
@@ -126,20 +126,15 @@
       $("sessions-note").textContent = "cannot list sessions: " + e.message;
       return;
     }
-    const now = Date.now();
     const ids = new Set();
     for (const s of page.sessions) {
       ids.add(s.id);
-      let k = known.get(s.id);
-      if (!k) {
-        k = { tick: s.tick, changedAt: null, model: null };
+      if (!known.has(s.id)) {
+        const k = { model: null };
         known.set(s.id, k);
         getJson("/v1/sessions/" + encodeURIComponent(s.id))
           .then((info) => { k.model = info.model; renderList(page); })
           .catch(() => {});
-      } else if (k.tick !== s.tick) {
-        k.tick = s.tick;
-        k.changedAt = now;
       }
     }
     for (const id of known.keys()) if (!ids.has(id)) known.delete(id);
@@ -151,7 +146,6 @@
 
   function renderList(page) {
     const body = $("sessions").tBodies[0];
-    const now = Date.now();
     const rows = page.sessions.map((s) => {
       const k = known.get(s.id) || {};
       const tr = document.createElement("tr");
@@ -162,7 +156,7 @@
         [k.model ? describeModel(k.model) : s.states + " states", ""],
         [String(s.tick), "num"],
         [s.update_mode, ""],
-        [k.changedAt ? ago(now - k.changedAt) : "none seen", ""],
+        [s.idle_ms == null ? "none since start" : ago(s.idle_ms), ""],
       ];
       for (const [text, cls] of cells) {
         const td = document.createElement("td");
@@ -170,7 +164,7 @@
         if (cls) td.className = cls;
         tr.appendChild(td);
       }
-      tr.lastChild.title = "when this page last saw the tick count change";
+      tr.lastChild.title = "the session's last observation (the server's clock)";
       tr.addEventListener("click", () => select(s.id));
       return tr;
     });

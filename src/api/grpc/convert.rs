@@ -460,11 +460,13 @@ pub fn session_page(page: SessionPage) -> pb::ListSessionsResponse {
                      tick,
                      states,
                      update_mode: mode,
+                     idle_ms,
                  }| pb::SessionSummary {
                     id,
                     tick,
                     states: states as u64,
                     update_mode: update_mode(mode).into(),
+                    idle_ms,
                 },
             )
             .collect(),

@@ -214,16 +214,18 @@ class ListSessionsRequest(_message.Message):
     def __init__(self, after: _Optional[str] = ..., limit: _Optional[int] = ...) -> None: ...
 
 class SessionSummary(_message.Message):
-    __slots__ = ("id", "tick", "states", "update_mode")
+    __slots__ = ("id", "tick", "states", "update_mode", "idle_ms")
     ID_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
     STATES_FIELD_NUMBER: _ClassVar[int]
     UPDATE_MODE_FIELD_NUMBER: _ClassVar[int]
+    IDLE_MS_FIELD_NUMBER: _ClassVar[int]
     id: str
     tick: int
     states: int
     update_mode: UpdateMode
-    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., states: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ...) -> None: ...
+    idle_ms: int
+    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., states: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ..., idle_ms: _Optional[int] = ...) -> None: ...
 
 class ListSessionsResponse(_message.Message):
     __slots__ = ("sessions", "next")
