@@ -16,7 +16,10 @@
 //!   call; another key's session is 404 / NOT_FOUND on every call,
 //!   indistinguishable from a missing one, and is never listed; health,
 //!   readiness and metrics need no key; keys are never logged or echoed;
-//! - `--store memory` with keys from `MCAPI_API_KEYS` touches no disk.
+//! - `--store memory` with keys from `MCAPI_API_KEYS` touches no disk;
+//! - a failed commit rolls the session back to its durable state, a retry
+//!   applies exactly once, and the store still recovers (no hole in the
+//!   log).
 
 mod common;
 
@@ -1479,4 +1482,96 @@ fn short_or_empty_keys_are_refused_and_never_echoed() {
             "refused before the store"
         );
     }
+}
+
+// ------------------------------------------------------- storage failures
+
+/// A failed commit rolls the session back to its durable state (the
+/// observations it did not make durable are not kept in memory either), the
+/// store refuses nothing afterwards, a retry applies exactly once, and the
+/// store still recovers: no hole in the log.
+#[test]
+fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
+    use mcapi::service::{
+        Caller, CreateSession, Limits, ManagerOptions, ObservationIn, ServiceError, SessionConfig,
+        SessionManager,
+    };
+    use mcapi::store::Store;
+    use std::sync::Arc;
+
+    // Plain threads: `create` and `shutdown` block on the store.
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let data = tempfile::tempdir().expect("data dir");
+    let open = |store: Arc<Store>| {
+        let manager = SessionManager::with_options(ManagerOptions {
+            store: Some(store),
+            snapshot_every: 4,
+            ..ManagerOptions::new(Limits::default(), 1)
+        })
+        .expect("manager");
+        manager.recover().expect("recovery");
+        manager
+    };
+    let obs = |state: usize, first: bool| ObservationIn {
+        state,
+        stimulus: (!first).then(|| stimulus(state).to_vec()),
+        action_taken: None,
+        signal: None,
+        signal_source: None,
+    };
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = open(Arc::clone(&store));
+    let id = manager
+        .create(
+            Caller::Anyone,
+            CreateSession {
+                model: json!({"preset": "hallway"}),
+                agent: SessionConfig {
+                    seed: Some(5),
+                    ..SessionConfig::default()
+                },
+            },
+        )
+        .expect("create")
+        .id;
+    let mut core = core_agent(&params(5, None));
+    rt.block_on(manager.observe(Caller::Anyone, &id, vec![obs(9, true)]))
+        .expect("first");
+    core.step(&Observation::first(9)).expect("core first");
+    // Ticks 1-5 (a snapshot at 4), then a failing commit for ticks 6-7.
+    for s in [10, 11, 12, 11, 10] {
+        rt.block_on(manager.observe(Caller::Anyone, &id, vec![obs(s, false)]))
+            .expect("observe");
+        core.step(&Observation::new(s, &stimulus(s))).expect("core");
+    }
+    store.fail_next_commits(1);
+    let err = rt
+        .block_on(manager.observe(Caller::Anyone, &id, vec![obs(9, false), obs(8, false)]))
+        .expect_err("the commit fails");
+    assert!(matches!(err, ServiceError::Storage(_)), "{err}");
+    let info = manager.get(Caller::Anyone, &id).expect("get");
+    assert_eq!(info.tick, 5, "rolled back to the durable tick");
+    assert_bits_eq(&info.drive, core.drive().vector(), "D after the rollback");
+    // The retry applies once, exactly as on a core agent that never failed.
+    let steps = rt
+        .block_on(manager.observe(Caller::Anyone, &id, vec![obs(9, false), obs(8, false)]))
+        .expect("the retry");
+    core.step(&Observation::new(9, &stimulus(9))).expect("core");
+    core.step(&Observation::new(8, &stimulus(8))).expect("core");
+    assert_eq!(steps.last().map(|s| s.tick), Some(7));
+    assert!(
+        !store.is_broken(&id),
+        "the reload resumed the session's writes"
+    );
+    assert_bits_eq(&steps[1].drive, core.drive().vector(), "D after the retry");
+    manager.shutdown();
+    drop(manager);
+    drop(store);
+    // The store recovers: the log has no hole.
+    let store = Arc::new(Store::open(data.path()).expect("reopen"));
+    let manager = open(store);
+    let info = manager.get(Caller::Anyone, &id).expect("recovered");
+    assert_eq!(info.tick, 7);
+    assert_bits_eq(&info.drive, core.drive().vector(), "D after recovery");
+    manager.shutdown();
 }

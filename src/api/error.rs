@@ -79,8 +79,9 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
 pub fn public_message(e: &ServiceError, status: StatusCode) -> String {
     if let ServiceError::Storage(detail) = e {
         tracing::error!(error = %detail, "storage failure");
-        return "the session store failed: the request's effect was not made durable and may be \
-                lost at the next restart (see the server log)"
+        return "the session store failed, so the request was not made durable; its effect is \
+                rolled back (the session is reloaded from its last durable state before it takes \
+                another observation), so it is safe to retry (details in the server log)"
             .to_string();
     }
     if status.is_server_error() && status != StatusCode::SERVICE_UNAVAILABLE {

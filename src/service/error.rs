@@ -36,7 +36,8 @@ pub enum ServiceError {
     /// message says which, never the key.
     #[error("{0}")]
     Unauthenticated(String),
-    /// The durable store failed; the request's effect was not made durable.
+    /// The durable store failed; the request's effect was not made durable
+    /// (the manager rolls an observed session back by reloading it).
     #[error("storage failure: {0}")]
     Storage(String),
     /// A fault of the server, not the client's; details are logged, not sent.

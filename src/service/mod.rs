@@ -297,6 +297,8 @@ pub struct SessionManager {
     keys: ApiKeys,
     /// False while stored sessions are being recovered.
     ready: AtomicBool,
+    /// Held while a session is reloaded after a storage failure.
+    reloading: Mutex<()>,
 }
 
 /// SplitMix64, for seeds and shards.
@@ -343,6 +345,7 @@ impl SessionManager {
             durability,
             keys,
             ready,
+            reloading: Mutex::new(()),
         })
     }
 
@@ -757,7 +760,74 @@ impl SessionManager {
                 self.limits.max_batch
             )));
         }
-        let session = self.session_for(caller, id)?;
+        let mut session = self.session_for(caller, id)?;
+        if session.is_stale() {
+            // An earlier reload after a storage failure did not succeed.
+            self.reload(&session).map_err(|e| {
+                ServiceError::Unavailable(format!(
+                    "session `{id}` cannot be reloaded after a storage failure ({e}); retry"
+                ))
+            })?;
+            session = self.session_for(caller, id)?;
+        }
+        let result = self.observe_on(&session, batch).await;
+        if let Err(ServiceError::Storage(detail)) = &result {
+            // The observations are applied in memory but not durable, and
+            // the store refuses the session's writes from now on: roll it
+            // back to what is durable before it takes another observation.
+            // Rare, and a few milliseconds of reading: done on this task.
+            tracing::warn!(session = %id, error = %detail, "reloading the session after a failed commit");
+            if let Err(e) = self.reload(&session) {
+                tracing::error!(session = %id, error = %e, "reload failed; the session takes no observations until one succeeds");
+            }
+        }
+        result
+    }
+
+    /// Replaces a session whose commit failed by a fresh recovery of its
+    /// durable state (snapshot and log, as at start), then lets the store
+    /// accept its writes again ([`crate::store::Write::Resume`]). The old
+    /// session is marked stale first, so nothing is applied to it while
+    /// this runs. A no-op if the session was deleted or already replaced.
+    pub fn reload(&self, session: &SessionRef) -> Result<(), String> {
+        let Some(d) = &self.durability else {
+            return Ok(());
+        };
+        session.mark_stale();
+        let _one_at_a_time = self.reloading.lock();
+        let current = |sessions: &BTreeMap<String, SessionRef>| {
+            sessions
+                .get(&session.id)
+                .is_some_and(|s| Arc::ptr_eq(s, session))
+        };
+        if !current(&self.sessions.read()) {
+            return Ok(());
+        }
+        let stored = d
+            .store
+            .session(&session.id)
+            .map_err(|e| e.to_string())?
+            .ok_or_else(|| format!("session `{}` is not in the store", session.id))?;
+        let (fresh, replayed) = self.recover_one(d, stored)?;
+        // Queued before the fresh session can submit anything, so the
+        // store readmits exactly the writes that continue the durable state.
+        drop(d.store.submit(vec![crate::store::Write::Resume {
+            id: Arc::from(session.id.as_str()),
+        }]));
+        let mut sessions = self.sessions.write();
+        if current(&sessions) {
+            sessions.insert(session.id.clone(), fresh);
+        }
+        tracing::info!(session = %session.id, replayed, "session reloaded from its durable state");
+        Ok(())
+    }
+
+    async fn observe_on(
+        &self,
+        session: &SessionRef,
+        batch: Vec<ObservationIn>,
+    ) -> Result<Vec<StepOut>, ServiceError> {
+        let session = Arc::clone(session);
         let n = batch.len() as u64;
         // Updates measured to be cheap run here: a hand-off to the pool
         // would cost more than the update itself.

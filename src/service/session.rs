@@ -257,6 +257,9 @@ pub struct SessionState {
     since_snapshot: u64,
     /// Set by `delete`: the session takes no more observations.
     deleted: bool,
+    /// Set after a failed commit: the state is ahead of what is durable,
+    /// so it takes no more observations and is replaced by a reload.
+    stale: bool,
 }
 
 /// Where a session's observations are made durable.
@@ -357,6 +360,7 @@ impl Session {
                 seq: resumed.seq,
                 since_snapshot: resumed.since_snapshot,
                 deleted: false,
+                stale: false,
             }),
             queued: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
@@ -414,6 +418,15 @@ impl Session {
                 commit: None,
             };
         }
+        if st.stale {
+            return Observed {
+                result: Err(ServiceError::Unavailable(format!(
+                    "session `{}` is being reloaded from its last durable state after a storage failure; retry",
+                    self.id
+                ))),
+                commit: None,
+            };
+        }
         let started = Instant::now();
         let mut out = Vec::with_capacity(batch.len());
         let mut log = Vec::new();
@@ -436,6 +449,17 @@ impl Session {
         }
     }
 
+    /// Marks the session stale after a failed commit: no observation is
+    /// applied to it any more (the manager replaces it by a reload).
+    pub fn mark_stale(&self) {
+        self.state.lock().stale = true;
+    }
+
+    /// Whether a failed commit made this session stale.
+    pub fn is_stale(&self) -> bool {
+        self.state.lock().stale
+    }
+
     /// Marks the session deleted (no observation is applied after this) and
     /// deletes its stored data; the commit resolves once that is durable.
     pub fn delete(&self) -> Option<Commit> {
@@ -453,7 +477,7 @@ impl Session {
     pub fn snapshot(&self) -> Option<Commit> {
         let d = self.durability.as_ref()?;
         let mut st = self.state.lock();
-        if st.deleted || st.since_snapshot == 0 {
+        if st.deleted || st.stale || st.since_snapshot == 0 {
             return None;
         }
         match st.snapshot_write(&self.id) {

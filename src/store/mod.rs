@@ -25,12 +25,20 @@
 //! file upgrades it in place, in one transaction, by prefixing each of its
 //! records with [`RECORD_V2`]; nothing else changes.
 //!
+//! A failed commit leaves a hole in the logs of the sessions it wrote to, so
+//! from then on the store refuses their appends and snapshots
+//! ([`StoreError::Broken`]) instead of writing after the hole, until the
+//! service has reloaded the session from what is durable and sent
+//! [`Write::Resume`]. Later records therefore never depend on lost ones.
+//!
 //! Chunks, not one record per observation: a B-tree entry per 20-byte
 //! observation cost about 140 bytes of file, and the file's size is what
 //! opening it (integrity check) and recovery cost.
 
+use std::collections::HashSet;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
@@ -111,6 +119,12 @@ pub enum StoreError {
     /// A read or write failed while running.
     #[error("store failure: {0}")]
     Failed(String),
+    /// An earlier write of this session failed; its writes are refused
+    /// until it is reloaded ([`Write::Resume`]).
+    #[error(
+        "an earlier write of session `{0}` failed; its writes are refused until it is reloaded"
+    )]
+    Broken(Arc<str>),
     /// The store was closed.
     #[error("the store is closed")]
     Closed,
@@ -153,6 +167,32 @@ pub enum Write {
         /// Session id.
         id: Arc<str>,
     },
+    /// Accepts a broken session's writes again: the service reloaded it
+    /// from its durable state, so what follows continues that state.
+    Resume {
+        /// Session id.
+        id: Arc<str>,
+    },
+}
+
+impl Write {
+    /// The session an append or snapshot extends (what a broken session
+    /// may not get).
+    fn extends(&self) -> Option<&Arc<str>> {
+        match self {
+            Self::Append { id, .. } | Self::Snapshot { id, .. } => Some(id),
+            Self::Session { .. } | Self::Delete { .. } | Self::Resume { .. } => None,
+        }
+    }
+}
+
+/// What the writer thread shares with the store's handle.
+#[derive(Debug, Default)]
+struct Shared {
+    /// Sessions whose log has a hole (a commit with their writes failed).
+    broken: Mutex<HashSet<Arc<str>>>,
+    /// Commits to fail on purpose (tests of the failure path).
+    fail_next: AtomicU32,
 }
 
 struct Pending {
@@ -191,6 +231,7 @@ pub struct StoredSession {
 pub struct Store {
     db: Arc<Database>,
     path: PathBuf,
+    shared: Arc<Shared>,
     tx: Mutex<Option<Sender<Pending>>>,
     writer: Mutex<Option<JoinHandle<()>>>,
 }
@@ -283,9 +324,11 @@ impl Store {
         let db = Arc::new(db);
         let (tx, rx) = unbounded::<Pending>();
         let writer_db = Arc::clone(&db);
+        let shared = Arc::new(Shared::default());
+        let writer_shared = Arc::clone(&shared);
         let writer = std::thread::Builder::new()
             .name("mcapi-store".into())
-            .spawn(move || writer(&writer_db, &rx))
+            .spawn(move || writer(&writer_db, &rx, &writer_shared))
             .map_err(|e| StoreError::Io {
                 path: path.clone(),
                 reason: format!("starting the writer thread: {e}"),
@@ -293,6 +336,7 @@ impl Store {
         Ok(Self {
             db,
             path,
+            shared,
             tx: Mutex::new(Some(tx)),
             writer: Mutex::new(Some(writer)),
         })
@@ -319,6 +363,38 @@ impl Store {
         let (done, rx) = oneshot::channel();
         let _ = done.send(Err(StoreError::Closed));
         Commit(rx)
+    }
+
+    /// Whether session `id` is broken: a commit with its writes failed and
+    /// no [`Write::Resume`] has been processed since.
+    pub fn is_broken(&self, id: &str) -> bool {
+        self.shared.broken.lock().contains(id)
+    }
+
+    /// Makes the next `n` commits fail without writing anything, as a
+    /// failing disk would (for tests of the failure path).
+    #[doc(hidden)]
+    pub fn fail_next_commits(&self, n: u32) {
+        self.shared.fail_next.store(n, Ordering::SeqCst);
+    }
+
+    /// One stored session: its record and newest snapshot, if it exists.
+    pub fn session(&self, id: &str) -> Result<Option<StoredSession>, StoreError> {
+        let read = self.db.begin_read().map_err(failed)?;
+        let sessions = read.open_table(SESSIONS).map_err(failed)?;
+        let Some(record) = sessions.get(id).map_err(failed)? else {
+            return Ok(None);
+        };
+        let snapshots = read.open_table(SNAPSHOTS).map_err(failed)?;
+        let snapshot = snapshots.get(id).map_err(failed)?.map(|v| {
+            let (seq, bytes) = v.value();
+            (seq, bytes.to_vec())
+        });
+        Ok(Some(StoredSession {
+            id: id.to_string(),
+            record: record.value().to_vec(),
+            snapshot,
+        }))
     }
 
     /// Every stored session: its record and newest snapshot.
@@ -394,7 +470,7 @@ impl Drop for Store {
     }
 }
 
-fn writer(db: &Database, rx: &Receiver<Pending>) {
+fn writer(db: &Database, rx: &Receiver<Pending>, shared: &Shared) {
     while let Ok(first) = rx.recv() {
         let mut group = vec![first];
         let mut writes = group[0].writes.len();
@@ -404,12 +480,53 @@ fn writer(db: &Database, rx: &Receiver<Pending>) {
             writes += next.writes.len();
             group.push(next);
         }
+        // In queue order: a `Resume` readmits its session's later writes;
+        // writes extending a broken session are refused.
+        let mut refused: Vec<(usize, Arc<str>)> = Vec::new();
+        {
+            let mut broken = shared.broken.lock();
+            for (i, p) in group.iter().enumerate() {
+                for w in &p.writes {
+                    if let Write::Resume { id } | Write::Delete { id } = w {
+                        broken.remove(id);
+                    }
+                }
+                if let Some(id) = p
+                    .writes
+                    .iter()
+                    .filter_map(Write::extends)
+                    .find(|id| broken.contains(*id))
+                {
+                    refused.push((i, Arc::clone(id)));
+                }
+            }
+        }
+        for (i, id) in refused.iter().rev() {
+            let mut p = group.remove(*i);
+            if let Some(done) = p.done.take() {
+                let _ = done.send(Err(StoreError::Broken(Arc::clone(id))));
+            }
+        }
         let started = Instant::now();
-        let result = commit(db, &group);
+        let injected = shared
+            .fail_next
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
+            .is_ok();
+        let result = if injected {
+            Err(StoreError::Failed("injected commit failure".into()))
+        } else {
+            commit(db, &group)
+        };
         metrics::histogram!("mcapi_store_commit_seconds").record(started.elapsed().as_secs_f64());
         metrics::histogram!("mcapi_store_commit_writes").record(writes as f64);
         if let Err(e) = &result {
             tracing::error!(error = %e, writes, "store commit failed");
+            let mut broken = shared.broken.lock();
+            for w in group.iter().flat_map(|p| &p.writes) {
+                if let Some(id) = w.extends() {
+                    broken.insert(Arc::clone(id));
+                }
+            }
         }
         for mut p in group {
             if let Some(done) = p.done.take() {
@@ -517,6 +634,7 @@ fn commit(db: &Database, group: &[Pending]) -> Result<(), StoreError> {
                     log.retain_in((key, 0)..(key, whole), |_, _| false)
                         .map_err(failed)?;
                 }
+                Write::Resume { .. } => {}
                 Write::Delete { id } => {
                     sessions.remove(&**id).map_err(failed)?;
                     snapshots.remove(&**id).map_err(failed)?;
@@ -783,5 +901,50 @@ mod tests {
         let meta = read.open_table(META).expect("meta");
         let v = meta.get("format_version").expect("get").map(|v| v.value());
         assert_eq!(v, Some(FORMAT_VERSION));
+    }
+
+    #[test]
+    fn after_a_failed_commit_a_session_is_refused_until_resumed() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Store::open(dir.path()).expect("open");
+        let append = |s: &str, seq: u64| Write::Append {
+            id: id(s),
+            seq,
+            entry: vec![seq as u8],
+        };
+        store
+            .submit(vec![append("a", 0), append("b", 0)])
+            .wait_blocking()
+            .expect("commit");
+        store.fail_next_commits(1);
+        let err = store
+            .submit(vec![append("a", 1)])
+            .wait_blocking()
+            .expect_err("injected failure");
+        assert!(matches!(err, StoreError::Failed(_)), "{err}");
+        assert!(store.is_broken("a") && !store.is_broken("b"));
+        // Writes after the hole are refused; other sessions go on.
+        let err = store
+            .submit(vec![append("a", 2)])
+            .wait_blocking()
+            .expect_err("a is broken");
+        assert!(
+            matches!(&err, StoreError::Broken(s) if &**s == "a"),
+            "{err}"
+        );
+        store
+            .submit(vec![append("b", 1)])
+            .wait_blocking()
+            .expect("b is fine");
+        // A resume in the same queue readmits what follows it.
+        let resumed = store.submit(vec![Write::Resume { id: id("a") }]);
+        store
+            .submit(vec![append("a", 1)])
+            .wait_blocking()
+            .expect("a after its resume");
+        resumed.wait_blocking().expect("resume");
+        assert!(!store.is_broken("a"));
+        assert_eq!(entries(&store, "a", None), vec![(0, vec![0]), (1, vec![1])]);
+        assert_eq!(entries(&store, "b", None), vec![(0, vec![0]), (1, vec![1])]);
     }
 }
