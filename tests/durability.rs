@@ -1575,3 +1575,52 @@ fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
     assert_bits_eq(&info.drive, core.drive().vector(), "D after recovery");
     manager.shutdown();
 }
+
+/// Limits are for new sessions: a store holding sessions created under
+/// looser limits still recovers them all.
+#[test]
+fn tighter_limits_at_restart_keep_the_stored_sessions() {
+    use mcapi::service::{
+        Caller, CreateSession, Limits, ManagerOptions, ServiceError, SessionConfig, SessionManager,
+    };
+    use mcapi::store::Store;
+    use std::sync::Arc;
+
+    let data = tempfile::tempdir().expect("data dir");
+    let open = |limits: Limits| {
+        let manager = SessionManager::with_options(ManagerOptions {
+            store: Some(Arc::new(Store::open(data.path()).expect("store"))),
+            ..ManagerOptions::new(limits, 1)
+        })
+        .expect("manager");
+        manager.recover().expect("recovery");
+        manager
+    };
+    let request = || CreateSession {
+        model: json!({"preset": "hallway"}),
+        agent: SessionConfig {
+            history: Some(500),
+            ..SessionConfig::default()
+        },
+    };
+    let manager = open(Limits::default());
+    let id = manager
+        .create(Caller::Anyone, request())
+        .expect("create")
+        .id;
+    manager.shutdown();
+    drop(manager);
+    let tight = Limits {
+        max_pairs: 10,
+        max_history: 100,
+        ..Limits::default()
+    };
+    let manager = open(tight);
+    let info = manager.get(Caller::Anyone, &id).expect("recovered");
+    assert_eq!((info.model.pairs, info.agent.history), (148, 500));
+    let err = manager
+        .create(Caller::Anyone, request())
+        .expect_err("a new session is held to the limits");
+    assert!(matches!(err, ServiceError::LimitExceeded(_)), "{err}");
+    manager.shutdown();
+}

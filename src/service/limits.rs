@@ -53,6 +53,25 @@ impl Default for Limits {
     }
 }
 
+impl Limits {
+    /// No limit at all (recovering sessions created under looser limits).
+    pub fn unlimited() -> Self {
+        Self {
+            max_sessions: usize::MAX,
+            max_pairs: usize::MAX,
+            max_transitions: usize::MAX,
+            max_features: usize::MAX,
+            max_pvf_states: usize::MAX,
+            max_stimuli: usize::MAX,
+            max_body_bytes: usize::MAX,
+            max_batch: usize::MAX,
+            max_history: usize::MAX,
+            stream_buffer: usize::MAX,
+            queue: usize::MAX,
+        }
+    }
+}
+
 fn exceeded(what: &str, got: usize, limit: usize) -> ServiceError {
     ServiceError::LimitExceeded(format!("{what} is {got}; the limit is {limit}"))
 }

@@ -381,6 +381,7 @@ impl SessionManager {
         &self,
         input: &ModelInput,
         curious: bool,
+        limits: &Limits,
     ) -> Result<(Arc<PlanningModel>, BasisSummary), ServiceError> {
         let key = format!("{}:curious={curious}", input.cache_key());
         if let Some((weak, basis)) = self.models.lock().get(&key)
@@ -389,7 +390,7 @@ impl SessionManager {
             return Ok((ctx, basis.clone()));
         }
         // Built outside the lock: PVFs cost an eigendecomposition.
-        let (model, basis_spec) = input.build(&self.limits, curious)?;
+        let (model, basis_spec) = input.build(limits, curious)?;
         let basis = Basis::build(&basis_spec, &model)?;
         let summary = BasisSummary::of(&basis_spec);
         let ctx = Arc::new(PlanningModel::new(model, basis));
@@ -425,14 +426,15 @@ impl SessionManager {
         &self,
         input: &ModelInput,
         agent: &SessionConfig,
+        limits: &Limits,
     ) -> Result<(Learner, ModelSummary, EffectiveConfig), ServiceError> {
-        let (ctx, basis) = self.planning_model(input, agent.curiosity.is_some())?;
+        let (ctx, basis) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
         let model = ctx.model();
         let history = agent.history.unwrap_or(spec::DEFAULT_HISTORY);
-        if history > self.limits.max_history {
+        if history > limits.max_history {
             return Err(ServiceError::LimitExceeded(format!(
                 "`agent.history` is {history}; the limit is {}",
-                self.limits.max_history
+                limits.max_history
             )));
         }
         let params = agent.params().check(model.n_stimuli(), self.fresh_u64())?;
@@ -485,7 +487,7 @@ impl SessionManager {
         }
         let model_text = self.durability.as_ref().map(|_| req.model.to_string());
         let input = ModelInput::parse(req.model)?;
-        let (learner, summary, config) = self.build(&input, &req.agent)?;
+        let (learner, summary, config) = self.build(&input, &req.agent, &self.limits)?;
         let id = format!("s{:04x}.{}", self.fresh_u64() % SHARDS, ulid::Ulid::new());
         if let (Some(d), Some(model)) = (&self.durability, model_text) {
             let record = durable::SessionRecord {
@@ -597,9 +599,16 @@ impl SessionManager {
             history: Some(c.history),
             curiosity: c.curiosity.clone(),
         };
-        let (mut learner, summary, config) = self
-            .build(&input, &agent_cfg)
-            .map_err(|e| ctx(e.to_string()))?;
+        // Limits are for new sessions: one created under looser limits is
+        // recovered anyway (and said so), not refused with the whole store.
+        let built = match self.build(&input, &agent_cfg, &self.limits) {
+            Err(ServiceError::LimitExceeded(why)) => {
+                tracing::warn!(session = %id, limit = %why, "a stored session exceeds the current limits; recovered anyway");
+                self.build(&input, &agent_cfg, &Limits::unlimited())
+            }
+            built => built,
+        };
+        let (mut learner, summary, config) = built.map_err(|e| ctx(e.to_string()))?;
         let mut history = std::collections::VecDeque::new();
         let mut after = None;
         if let Some((seq, bytes)) = &stored.snapshot {
