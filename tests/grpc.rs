@@ -861,3 +861,43 @@ async fn shutdown_ends_open_streams() {
     assert_code(watch.message().await, Code::Unavailable, "shutting down");
     drop(tx);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn grid_models_come_with_their_layout() {
+    let server = Server::start().await;
+    let mut client = server.client().await;
+    let create = |model: &str| pb::CreateSessionRequest {
+        model_json: model.into(),
+        agent: None,
+    };
+    let grid = client
+        .create_session(create(
+            &serde_json::json!({
+                "grid": ["#####", "#a.b#", "#.#.#", "#####"],
+                "sources": {"a": 0, "b": 1},
+            })
+            .to_string(),
+        ))
+        .await
+        .expect("grid session")
+        .into_inner();
+    let layout = grid
+        .model
+        .and_then(|m| m.layout)
+        .expect("a grid model has a layout");
+    assert_eq!((layout.rows, layout.cols), (4, 5));
+    let cells: Vec<(u64, u64)> = layout.cells.iter().map(|c| (c.row, c.col)).collect();
+    assert_eq!(cells, vec![(1, 1), (1, 2), (1, 3), (2, 1), (2, 3)]);
+    let marks: Vec<(&str, u64)> = layout
+        .marks
+        .iter()
+        .map(|m| (m.mark.as_str(), m.state))
+        .collect();
+    assert_eq!(marks, vec![("a", 0), ("b", 2)]);
+    let hallway = client
+        .create_session(create(r#"{"preset": "hallway"}"#))
+        .await
+        .expect("hallway session")
+        .into_inner();
+    assert!(hallway.model.expect("model").layout.is_none());
+}

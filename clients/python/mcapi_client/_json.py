@@ -11,6 +11,7 @@ from .types import (
     CuriosityConfig,
     CuriosityInfo,
     FrozenModule,
+    GridLayout,
     HistoryEntry,
     ModelSummary,
     SessionInfo,
@@ -98,6 +99,17 @@ def model_summary(d: Json) -> ModelSummary:
         deterministic=bool(d["deterministic"]),
         basis=BasisSummary(kind=str(b["kind"]), k=int(b["k"])),
         features=int(d["features"]),
+        layout=None if d.get("layout") is None else grid_layout(d["layout"]),
+    )
+
+
+def grid_layout(d: Json) -> GridLayout:
+    """The map of a grid model."""
+    return GridLayout(
+        rows=int(d["rows"]),
+        cols=int(d["cols"]),
+        cells=[(int(r), int(c)) for r, c in d["cells"]],
+        marks=[(str(m["mark"]), int(m["state"])) for m in d["marks"]],
     )
 
 

@@ -15,6 +15,7 @@ from .types import (
     CuriosityConfig,
     CuriosityInfo,
     FrozenModule,
+    GridLayout,
     HistoryEntry,
     ModelSummary,
     Observation,
@@ -165,6 +166,16 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
             deterministic=model.deterministic,
             basis=BasisSummary(kind=model.basis.kind, k=model.basis.k),
             features=model.features,
+            layout=(
+                GridLayout(
+                    rows=model.layout.rows,
+                    cols=model.layout.cols,
+                    cells=[(c.row, c.col) for c in model.layout.cells],
+                    marks=[(m.mark, m.state) for m in model.layout.marks],
+                )
+                if model.HasField("layout")
+                else None
+            ),
         ),
         agent=AgentConfig(
             eta=agent.eta,

@@ -221,6 +221,24 @@ class BasisSummary:
 
 
 @dataclass(frozen=True, slots=True)
+class GridLayout:
+    """The map of a grid model.
+
+    Attributes:
+        rows: Map height in cells.
+        cols: Map width in cells.
+        cells: ``(row, col)`` of each state, indexed by state.
+        marks: The marked cells (stimulus sources) in row-major order, as
+            ``(mark, state)``.
+    """
+
+    rows: int
+    cols: int
+    cells: list[tuple[int, int]]
+    marks: list[tuple[str, int]]
+
+
+@dataclass(frozen=True, slots=True)
 class ModelSummary:
     """What a session's environment model looks like.
 
@@ -233,6 +251,8 @@ class ModelSummary:
         deterministic: Whether every pair has exactly one successor.
         basis: The basis in use.
         features: Number of features.
+        layout: The map of a grid model (grid maps and ``three_room``), for
+            drawing values over it; ``None`` for other models.
     """
 
     states: int
@@ -243,6 +263,7 @@ class ModelSummary:
     deterministic: bool
     basis: BasisSummary
     features: int
+    layout: GridLayout | None = None
 
 
 @dataclass(frozen=True, slots=True)

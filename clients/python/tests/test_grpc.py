@@ -214,3 +214,17 @@ def test_watch_cancel_and_errors(grpc_client: GrpcClient) -> None:
         next(grpc_client.watch("s0000.01AAAAAAAAAAAAAAAAAAAAAAAA"))
     with pytest.raises(ValueError):
         grpc_client.watch(sid, interval=0.001)
+
+
+def test_grid_models_carry_their_layout_on_both_transports(
+    client: Client, grpc_client: GrpcClient
+) -> None:
+    """A grid model's map (rows, cols, cell per state, marks) is the same
+    over REST and gRPC; other models have none."""
+    rest = client.create_session("three_room").model
+    grpc = grpc_client.create_session("three_room").model
+    assert rest.layout is not None and rest.layout == grpc.layout
+    assert len(rest.layout.cells) == rest.states
+    assert all(0 <= r < rest.layout.rows and 0 <= c < rest.layout.cols for r, c in rest.layout.cells)
+    assert len(set(rest.layout.cells)) == rest.states, "one cell per state"
+    assert grpc_client.create_session("hallway").model.layout is None

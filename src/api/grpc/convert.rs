@@ -10,6 +10,7 @@ use std::time::Duration;
 use crate::algo::StimulusRate;
 use crate::algo::model::ActionRef;
 use crate::algo::params::StimulusRateName;
+use crate::service::spec::{GridLayout, GridMark};
 use crate::service::{
     BasisSummary, CreateSession, CuriosityConfig, CuriosityInfo, EffectiveConfig, FrozenModuleInfo,
     HistoryEntry, ModelSummary, ObservationIn, ServiceError, SessionConfig, SessionInfo,
@@ -301,7 +302,7 @@ fn model_summary(m: ModelSummary) -> pb::ModelSummary {
         deterministic,
         basis: spec,
         features,
-        layout: _, // REST only for now (the dashboard draws it)
+        layout,
     } = m;
     pb::ModelSummary {
         states: states as u64,
@@ -312,6 +313,34 @@ fn model_summary(m: ModelSummary) -> pb::ModelSummary {
         deterministic,
         basis: Some(basis(spec)),
         features: features as u64,
+        layout: layout.map(grid_layout),
+    }
+}
+
+fn grid_layout(l: GridLayout) -> pb::GridLayout {
+    let GridLayout {
+        rows,
+        cols,
+        cells,
+        marks,
+    } = l;
+    pb::GridLayout {
+        rows: rows as u64,
+        cols: cols as u64,
+        cells: cells
+            .into_iter()
+            .map(|[row, col]| pb::GridCell {
+                row: row as u64,
+                col: col as u64,
+            })
+            .collect(),
+        marks: marks
+            .into_iter()
+            .map(|GridMark { mark, state }| pb::GridMark {
+                mark,
+                state: state as u64,
+            })
+            .collect(),
     }
 }
 

@@ -104,7 +104,7 @@ class BasisSummary(_message.Message):
     def __init__(self, kind: _Optional[str] = ..., k: _Optional[int] = ...) -> None: ...
 
 class ModelSummary(_message.Message):
-    __slots__ = ("states", "actions", "stimuli", "pairs", "transitions", "deterministic", "basis", "features")
+    __slots__ = ("states", "actions", "stimuli", "pairs", "transitions", "deterministic", "basis", "features", "layout")
     STATES_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     STIMULI_FIELD_NUMBER: _ClassVar[int]
@@ -113,6 +113,7 @@ class ModelSummary(_message.Message):
     DETERMINISTIC_FIELD_NUMBER: _ClassVar[int]
     BASIS_FIELD_NUMBER: _ClassVar[int]
     FEATURES_FIELD_NUMBER: _ClassVar[int]
+    LAYOUT_FIELD_NUMBER: _ClassVar[int]
     states: int
     actions: _containers.RepeatedScalarFieldContainer[str]
     stimuli: _containers.RepeatedScalarFieldContainer[str]
@@ -121,7 +122,36 @@ class ModelSummary(_message.Message):
     deterministic: bool
     basis: BasisSummary
     features: int
-    def __init__(self, states: _Optional[int] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., pairs: _Optional[int] = ..., transitions: _Optional[int] = ..., deterministic: _Optional[bool] = ..., basis: _Optional[_Union[BasisSummary, _Mapping]] = ..., features: _Optional[int] = ...) -> None: ...
+    layout: GridLayout
+    def __init__(self, states: _Optional[int] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., pairs: _Optional[int] = ..., transitions: _Optional[int] = ..., deterministic: _Optional[bool] = ..., basis: _Optional[_Union[BasisSummary, _Mapping]] = ..., features: _Optional[int] = ..., layout: _Optional[_Union[GridLayout, _Mapping]] = ...) -> None: ...
+
+class GridLayout(_message.Message):
+    __slots__ = ("rows", "cols", "cells", "marks")
+    ROWS_FIELD_NUMBER: _ClassVar[int]
+    COLS_FIELD_NUMBER: _ClassVar[int]
+    CELLS_FIELD_NUMBER: _ClassVar[int]
+    MARKS_FIELD_NUMBER: _ClassVar[int]
+    rows: int
+    cols: int
+    cells: _containers.RepeatedCompositeFieldContainer[GridCell]
+    marks: _containers.RepeatedCompositeFieldContainer[GridMark]
+    def __init__(self, rows: _Optional[int] = ..., cols: _Optional[int] = ..., cells: _Optional[_Iterable[_Union[GridCell, _Mapping]]] = ..., marks: _Optional[_Iterable[_Union[GridMark, _Mapping]]] = ...) -> None: ...
+
+class GridCell(_message.Message):
+    __slots__ = ("row", "col")
+    ROW_FIELD_NUMBER: _ClassVar[int]
+    COL_FIELD_NUMBER: _ClassVar[int]
+    row: int
+    col: int
+    def __init__(self, row: _Optional[int] = ..., col: _Optional[int] = ...) -> None: ...
+
+class GridMark(_message.Message):
+    __slots__ = ("mark", "state")
+    MARK_FIELD_NUMBER: _ClassVar[int]
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    mark: str
+    state: int
+    def __init__(self, mark: _Optional[str] = ..., state: _Optional[int] = ...) -> None: ...
 
 class SessionStats(_message.Message):
     __slots__ = ("lstdq_error", "lambda1_estimate", "condition_1_holds", "constant_stimuli", "factorisation_reuses", "factorisations")
