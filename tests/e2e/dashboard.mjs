@@ -125,6 +125,25 @@ async function hallway(base, key) {
   return info.id;
 }
 
+/** A hallway session with a curiosity channel: the book (Eq. 6) at 25. */
+async function curiousHallway(base, key) {
+  const info = await call(base, "POST", "/v1/sessions",
+    { model: { preset: "hallway" }, agent: { seed: 5, curiosity: { signal_dim: 2 } } }, key);
+  check(info.model.stimuli.join() === "food,rest,curiosity", "the server appends the curiosity dimension");
+  let state = 25, samples = 0;
+  let step = await call(base, "POST", `/v1/sessions/${info.id}/observations`, { state }, key);
+  for (let t = 0; t < 200; t++) {
+    state += step.action === "left" ? -1 : step.action === "right" ? 1 : 0;
+    const obs = { state, stimulus: [state === 10 ? 6 : 0, state === 40 ? 6 : 0] };
+    if (state === 25) {
+      const u = 0.08 * samples++;
+      obs.signal = [Math.sin(u) + Math.cos(11 * u) ** 2, Math.cos(11 * u)];
+    }
+    step = await call(base, "POST", `/v1/sessions/${info.id}/observations`, obs, key);
+  }
+  return info.id;
+}
+
 async function mainServer(browser) {
   const server = await startServer();
   const { base } = server;
@@ -231,6 +250,15 @@ async function keyedServer(browser) {
     // Hallway: no grid, so V per state as bars.
     await page.locator("#chart-values .uplot canvas").waitFor({ timeout: 15000 });
     check(await page.locator("#heatmap").isHidden(), "no heatmap without a grid");
+    check(await page.locator("#curiosity-card").isHidden(), "no curiosity chart without a channel");
+    // A curious session: its ξ_cur and ε are charted.
+    const curious = await curiousHallway(base, KEY);
+    const curiousRow = page.locator(`#sessions tbody tr[data-id="${curious}"]`);
+    await curiousRow.waitFor({ timeout: 15000 });
+    await curiousRow.click();
+    await page.locator("#chart-curiosity .uplot canvas").waitFor({ timeout: 15000 });
+    await page.waitForFunction(() => Number(document.getElementById("chart-curiosity").dataset.points) > 0, null, { timeout: 15000 });
+    check(await page.locator("#curiosity-card").isVisible(), "the curiosity chart is shown");
     const stored = await page.evaluate(() => sessionStorage.getItem("mcapi.apiKey"));
     check(stored === KEY, "the key is kept in sessionStorage");
     check(!page.url().includes(KEY), "the key is not in the URL");

@@ -293,6 +293,9 @@
       totals: [],
       reward: [],
       err: [],
+      xiCur: [],
+      eps: [],
+      modules: null,
       lastTick: null,
       state: null,
       sawStimulus: false,
@@ -303,7 +306,8 @@
     $("view-title").textContent = id;
     $("view-model").textContent = "";
     for (const f of ["tick", "state", "drive", "policy"]) $("fact-" + f).textContent = "–";
-    for (const el of ["chart-drive", "chart-stimulus", "chart-reward", "chart-values"]) $(el).replaceChildren();
+    for (const el of ["chart-drive", "chart-stimulus", "chart-reward", "chart-values", "chart-curiosity"]) $(el).replaceChildren();
+    $("curiosity-card").hidden = true;
     streamLoop(current);
   }
 
@@ -350,9 +354,13 @@
     for (let d = 0; d < n; d++) view.cum[d].push(view.sawStimulus ? view.totals[d] : null);
     view.reward.push(e.reward);
     view.err.push(e.lstdq_error);
+    const c = e.curiosity;
+    view.xiCur.push(c ? c.xi_cur : null);
+    view.eps.push(c ? c.epsilon : null);
+    if (c) view.modules = c.modules;
     if (view.x.length > WINDOW) {
       const k = view.x.length - WINDOW;
-      for (const a of [view.x, view.reward, view.err, ...view.drive, ...view.cum]) a.splice(0, k);
+      for (const a of [view.x, view.reward, view.err, view.xiCur, view.eps, ...view.drive, ...view.cum]) a.splice(0, k);
     }
   }
 
@@ -394,6 +402,19 @@
       scales: { x: { time: false } },
       axes: [{ label: "tick" }, { label: "|r|" }, { scale: "err", side: 1, label: "LSTDQ error", grid: { show: false } }],
     });
+    // A session with a curiosity channel (ALGORITHM.md §7): ξ_cur and ε.
+    const curious = !!view.info.curiosity;
+    $("curiosity-card").hidden = !curious;
+    if (curious) {
+      view.modules = view.info.curiosity.modules.length;
+      view.charts.curiosity = lineChart(view, $("chart-curiosity"), [
+        { label: "ξ_cur", stroke: "#16a34a", width: 1.4 },
+        { label: "ε", stroke: "#9333ea", width: 1.4, scale: "eps" },
+      ], {
+        scales: { x: { time: false } },
+        axes: [{ label: "tick" }, { label: "ξ_cur" }, { scale: "eps", side: 1, label: "ε", grid: { show: false } }],
+      });
+    }
     const grid = !!m.layout;
     $("heatmap").hidden = !grid;
     $("chart-values").hidden = grid;
@@ -432,6 +453,11 @@
     view.charts.drive.setData([view.x, ...view.drive]);
     view.charts.stimulus.setData([view.x, ...view.cum]);
     view.charts.reward.setData([view.x, view.reward, view.err]);
+    if (view.charts.curiosity) {
+      view.charts.curiosity.setData([view.x, view.xiCur, view.eps]);
+      $("curiosity-modules").textContent = String(view.modules ?? 0);
+      $("chart-curiosity").dataset.points = String(view.xiCur.filter((x) => x !== null).length);
+    }
     $("stimulus-missing").hidden = view.sawStimulus || view.x.length === 0;
     $("chart-stimulus").dataset.total = String(view.totals.reduce((a, b) => a + b, 0));
     for (const id of ["chart-drive", "chart-stimulus", "chart-reward"]) {
