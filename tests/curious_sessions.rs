@@ -525,7 +525,7 @@ async fn bad_curiosity_input_is_a_precise_client_error() {
         (
             &curious,
             json!({"state": 3, "stimulus": [0.0, 0.0, 0.0]}),
-            "extrinsic",
+            "2 extrinsic",
         ),
         (
             &curious,
@@ -553,6 +553,12 @@ async fn bad_curiosity_input_is_a_precise_client_error() {
         let message = body["message"].as_str().unwrap_or_default();
         assert!(message.contains(needle), "{obs}: {message}");
     }
+    let (_, body) = post(
+        observe(&curious),
+        json!({"state": 3, "stimulus": [0.0, 0.0, 0.0]}),
+    )
+    .await;
+    assert_eq!(body["code"], json!("stimulus_length"), "{body}");
     // Nothing above was applied.
     let session = get(&client, &format!("{base}/v1/sessions/{curious}")).await;
     assert_eq!(session["tick"], json!(0));

@@ -207,7 +207,7 @@ impl CuriousAgent {
         if let Some(x) = extrinsic
             && x.len() != self.cur
         {
-            return Err(AlgoError::StimulusLength {
+            return Err(AlgoError::ExtrinsicStimulusLength {
                 got: x.len(),
                 expected: self.cur,
             });
@@ -493,7 +493,10 @@ mod tests {
         let err = a
             .step(&CuriousObservation::new(1, &[0.0, 0.0], None))
             .expect_err("extrinsic part only");
-        assert!(matches!(err, AlgoError::StimulusLength { expected: 1, .. }));
+        assert!(matches!(
+            err,
+            AlgoError::ExtrinsicStimulusLength { expected: 1, .. }
+        ));
         let nan = [f64::NAN, 0.0];
         a.step(&CuriousObservation::new(1, &[0.0], Some((0, &nan))))
             .expect_err("non-finite signal");

@@ -67,6 +67,18 @@ pub enum AlgoError {
         expected: usize,
     },
 
+    /// The extrinsic stimulus of a curious agent has the wrong number of
+    /// components (ξ_cur, its last dimension, comes from the signal).
+    #[error(
+        "stimulus has {got} components; this agent takes the {expected} extrinsic ones (the last dimension, curiosity, is computed from the signal)"
+    )]
+    ExtrinsicStimulusLength {
+        /// Components received.
+        got: usize,
+        /// Extrinsic stimulus dimensions.
+        expected: usize,
+    },
+
     /// A number supplied by the caller is NaN or infinite.
     #[error("`{field}` contains a non-finite number")]
     NonFinite {

@@ -30,7 +30,7 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
             AlgoError::ActionNotAvailable { .. } => {
                 (H::BAD_REQUEST, G::InvalidArgument, "action_not_available")
             }
-            AlgoError::StimulusLength { .. } => {
+            AlgoError::StimulusLength { .. } | AlgoError::ExtrinsicStimulusLength { .. } => {
                 (H::BAD_REQUEST, G::InvalidArgument, "stimulus_length")
             }
             AlgoError::NonFinite { .. } => {

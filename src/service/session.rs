@@ -164,22 +164,12 @@ impl Learner {
                 })
             }
             Self::Curious(agent) => {
-                let out = agent
-                    .observe(&CuriousObservation {
-                        state: obs.state,
-                        stimulus: obs.stimulus,
-                        signal,
-                        action_taken: obs.action_taken,
-                    })
-                    .map_err(|e| match e {
-                        AlgoError::StimulusLength { got, expected } => ServiceError::field(
-                            "stimulus",
-                            format!(
-                                "has {got} components; this session takes the {expected} extrinsic ones (the server appends `curiosity`)"
-                            ),
-                        ),
-                        e => e.into(),
-                    })?;
+                let out = agent.observe(&CuriousObservation {
+                    state: obs.state,
+                    stimulus: obs.stimulus,
+                    signal,
+                    action_taken: obs.action_taken,
+                })?;
                 let mut stimulus = obs.stimulus.map(<[f64]>::to_vec).unwrap_or_default();
                 if obs.stimulus.is_some() {
                     stimulus.push(out.xi_cur);
