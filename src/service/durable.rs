@@ -245,6 +245,8 @@ pub fn replay(
         if history.len() >= history_cap {
             history.pop_front();
         }
+        let mut stimulus = entry.stimulus.clone().unwrap_or_default();
+        stimulus.extend(out.xi_cur);
         history.push_back(HistoryEntry {
             tick: out.tick,
             state: obs.state,
@@ -252,7 +254,7 @@ pub fn replay(
             drive: learner.agent().drive().vector().to_vec(),
             reward: out.reward,
             lstdq_error: entry.lstdq_error,
-            stimulus: Some(out.stimulus),
+            stimulus: Some(stimulus),
             curiosity: out.curiosity,
         });
     }

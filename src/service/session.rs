@@ -118,8 +118,8 @@ pub struct LearnerObserved {
     pub tick: u64,
     /// |r| (Eq. 3).
     pub reward: f64,
-    /// The full stimulus the agent observed (empty on a first observation).
-    pub stimulus: Vec<f64>,
+    /// ξ_cur appended to the client's stimulus (curious sessions only).
+    pub xi_cur: Option<f64>,
     /// The curiosity channel after the tick.
     pub curiosity: Option<TickCuriosity>,
 }
@@ -159,7 +159,7 @@ impl Learner {
                 Ok(LearnerObserved {
                     tick: out.tick,
                     reward: out.reward,
-                    stimulus: obs.stimulus.map(<[f64]>::to_vec).unwrap_or_default(),
+                    xi_cur: None,
                     curiosity: None,
                 })
             }
@@ -170,14 +170,10 @@ impl Learner {
                     signal,
                     action_taken: obs.action_taken,
                 })?;
-                let mut stimulus = obs.stimulus.map(<[f64]>::to_vec).unwrap_or_default();
-                if obs.stimulus.is_some() {
-                    stimulus.push(out.xi_cur);
-                }
                 Ok(LearnerObserved {
                     tick: out.observed.tick,
                     reward: out.observed.reward,
-                    stimulus,
+                    xi_cur: Some(out.xi_cur),
                     curiosity: Some(TickCuriosity {
                         xi_cur: out.xi_cur,
                         epsilon: agent.channel().epsilon(),
@@ -235,12 +231,103 @@ impl Learner {
     }
 }
 
+/// One tick of the history ring as kept in memory: D and the stimulus in
+/// one allocation and the curiosity part boxed (plain sessions have none),
+/// so a full ring costs about what it did before ticks kept their stimulus.
+/// [`HistoryEntry`] is what readers get.
+#[derive(Debug, Clone, PartialEq)]
+struct RingTick {
+    tick: u64,
+    state: u32,
+    action: u32,
+    reward: f64,
+    lstdq_error: f64,
+    /// D, then the stimulus if there was one.
+    values: Box<[f64]>,
+    /// Components of D in `values`.
+    drive_len: u32,
+    curiosity: Option<Box<TickCuriosity>>,
+}
+
+/// State and action indices fit u32: the model indexes pairs with u32.
+fn index32(i: usize) -> u32 {
+    u32::try_from(i).unwrap_or(u32::MAX)
+}
+
+impl RingTick {
+    /// A tick from its parts: D, the stimulus the client sent and, for a
+    /// curious session, the ξ_cur the server appended to it.
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "one call site per path (live, recovered), every argument named there"
+    )]
+    fn new(
+        tick: u64,
+        state: usize,
+        action: usize,
+        drive: &[f64],
+        stimulus: Option<&[f64]>,
+        xi_cur: Option<f64>,
+        reward: f64,
+        lstdq_error: f64,
+        curiosity: Option<TickCuriosity>,
+    ) -> Self {
+        let stimulus = stimulus.into_iter().flatten().copied();
+        Self {
+            tick,
+            state: index32(state),
+            action: index32(action),
+            reward,
+            lstdq_error,
+            values: drive
+                .iter()
+                .copied()
+                .chain(stimulus)
+                .chain(xi_cur)
+                .collect(),
+            drive_len: index32(drive.len()),
+            curiosity: curiosity.map(Box::new),
+        }
+    }
+
+    /// The entry readers get.
+    fn entry(&self) -> HistoryEntry {
+        let (drive, stimulus) = self.values.split_at(self.drive_len as usize);
+        HistoryEntry {
+            tick: self.tick,
+            state: self.state as usize,
+            action: self.action as usize,
+            drive: drive.to_vec(),
+            reward: self.reward,
+            lstdq_error: self.lstdq_error,
+            stimulus: (!stimulus.is_empty()).then(|| stimulus.to_vec()),
+            curiosity: self.curiosity.as_deref().copied(),
+        }
+    }
+}
+
+impl From<&HistoryEntry> for RingTick {
+    fn from(e: &HistoryEntry) -> Self {
+        Self::new(
+            e.tick,
+            e.state,
+            e.action,
+            &e.drive,
+            e.stimulus.as_deref(),
+            None,
+            e.reward,
+            e.lstdq_error,
+            e.curiosity,
+        )
+    }
+}
+
 /// Mutable state of a session, behind its lock.
 #[derive(Debug)]
 pub struct SessionState {
     /// The learner.
     pub learner: Learner,
-    history: VecDeque<HistoryEntry>,
+    history: VecDeque<RingTick>,
     /// Sequence number of the next log entry.
     seq: u64,
     /// Log entries since the last snapshot.
@@ -346,7 +433,7 @@ impl Session {
             durability,
             state: Mutex::new(SessionState {
                 learner,
-                history: resumed.history.into(),
+                history: resumed.history.iter().map(RingTick::from).collect(),
                 seq: resumed.seq,
                 since_snapshot: resumed.since_snapshot,
                 deleted: false,
@@ -507,7 +594,7 @@ impl Session {
     pub fn history(&self, limit: usize) -> Vec<HistoryEntry> {
         let st = self.state.lock();
         let skip = st.history.len().saturating_sub(limit);
-        st.history.iter().skip(skip).cloned().collect()
+        st.history.iter().skip(skip).map(RingTick::entry).collect()
     }
 }
 
@@ -526,14 +613,18 @@ pub struct Resumed {
 
 impl SessionState {
     /// The history ring, oldest first.
-    pub fn history(&self) -> impl Iterator<Item = &HistoryEntry> {
-        self.history.iter()
+    pub fn history(&self) -> impl Iterator<Item = HistoryEntry> + '_ {
+        self.history.iter().map(RingTick::entry)
     }
 
     fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
         let record = SnapshotRecord {
             learner: self.learner.snapshot(),
-            history: self.history.iter().map(TickRecord::from).collect(),
+            history: self
+                .history
+                .iter()
+                .map(|t| TickRecord::from(&t.entry()))
+                .collect(),
         };
         self.since_snapshot = 0;
         Ok(Write::Snapshot {
@@ -675,16 +766,17 @@ impl SessionState {
             if self.history.len() == history_cap {
                 self.history.pop_front();
             }
-            self.history.push_back(HistoryEntry {
-                tick: observed.tick,
-                state: obs.state,
+            self.history.push_back(RingTick::new(
+                observed.tick,
+                obs.state,
                 action,
-                drive: drive.clone(),
-                reward: observed.reward,
-                lstdq_error: agent.last_plan().lstdq_error,
-                stimulus: Some(observed.stimulus),
-                curiosity: observed.curiosity,
-            });
+                &drive,
+                obs.stimulus.as_deref(),
+                observed.xi_cur,
+                observed.reward,
+                agent.last_plan().lstdq_error,
+                observed.curiosity,
+            ));
         }
         Ok((
             StepOut {
@@ -703,3 +795,42 @@ impl SessionState {
 
 /// A shared handle.
 pub type SessionRef = Arc<Session>;
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ring_ticks_are_compact_and_give_back_their_entries() {
+        // D and ξ in one allocation; the curiosity part boxed.
+        assert!(std::mem::size_of::<RingTick>() <= 64);
+        let curious = RingTick::new(
+            7,
+            3,
+            2,
+            &[0.6, 0.0, 0.8],
+            Some(&[1.0, 0.0]),
+            Some(2.5),
+            0.25,
+            0.125,
+            Some(TickCuriosity {
+                xi_cur: 2.5,
+                epsilon: 0.9,
+                modules: 1,
+                source: Some(0),
+            }),
+        );
+        let e = curious.entry();
+        assert_eq!(e.drive, vec![0.6, 0.0, 0.8]);
+        assert_eq!(e.stimulus, Some(vec![1.0, 0.0, 2.5]));
+        assert_eq!((e.tick, e.state, e.action), (7, 3, 2));
+        assert_eq!(RingTick::from(&e), curious);
+        // A tick restored from a format-2 snapshot has no stimulus.
+        let old = HistoryEntry {
+            stimulus: None,
+            curiosity: None,
+            ..e
+        };
+        assert_eq!(RingTick::from(&old).entry(), old);
+    }
+}
