@@ -23,7 +23,7 @@ use crate::algo::{AgentSnapshot, CuriousSnapshot};
 pub use crate::store::RECORD_V2;
 
 use super::error::ServiceError;
-use super::session::{HistoryEntry, Learner, TickCuriosity};
+use super::session::{Learner, RingTick, TickCuriosity, push_tick};
 use super::spec::EffectiveConfig;
 
 /// The encoding byte of the records this version writes.
@@ -104,14 +104,14 @@ struct SnapshotRecordV2 {
 /// shape; this one only under a new record version).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct TickRecord {
-    tick: u64,
-    state: usize,
-    action: usize,
-    drive: Vec<f64>,
-    reward: f64,
-    lstdq_error: f64,
-    stimulus: Option<Vec<f64>>,
-    curiosity: Option<TickCuriosity>,
+    pub(super) tick: u64,
+    pub(super) state: usize,
+    pub(super) action: usize,
+    pub(super) drive: Vec<f64>,
+    pub(super) reward: f64,
+    pub(super) lstdq_error: f64,
+    pub(super) stimulus: Option<Vec<f64>>,
+    pub(super) curiosity: Option<TickCuriosity>,
 }
 
 /// A history entry as format 2 kept it (no stimulus).
@@ -123,36 +123,6 @@ struct TickRecordV2 {
     drive: Vec<f64>,
     reward: f64,
     lstdq_error: f64,
-}
-
-impl From<&HistoryEntry> for TickRecord {
-    fn from(h: &HistoryEntry) -> Self {
-        Self {
-            tick: h.tick,
-            state: h.state,
-            action: h.action,
-            drive: h.drive.clone(),
-            reward: h.reward,
-            lstdq_error: h.lstdq_error,
-            stimulus: h.stimulus.clone(),
-            curiosity: h.curiosity,
-        }
-    }
-}
-
-impl From<TickRecord> for HistoryEntry {
-    fn from(t: TickRecord) -> Self {
-        Self {
-            tick: t.tick,
-            state: t.state,
-            action: t.action,
-            drive: t.drive,
-            reward: t.reward,
-            lstdq_error: t.lstdq_error,
-            stimulus: t.stimulus,
-            curiosity: t.curiosity,
-        }
-    }
 }
 
 /// Encodes a log entry or snapshot: [`RECORD_V3`], then postcard.
@@ -224,7 +194,7 @@ pub fn decode_snapshot(bytes: &[u8], what: &str) -> Result<SnapshotRecord, Strin
 /// they did live.
 pub fn replay(
     learner: &mut Learner,
-    history: &mut VecDeque<HistoryEntry>,
+    history: &mut VecDeque<RingTick>,
     history_cap: usize,
     entry: &LogEntry,
 ) -> Result<(), String> {
@@ -241,22 +211,19 @@ pub fn replay(
     learner
         .set_advised_action(entry.advised as usize)
         .map_err(|e| e.to_string())?;
-    if history_cap > 0 && entry.stimulus.is_some() {
-        if history.len() >= history_cap {
-            history.pop_front();
-        }
-        let mut stimulus = entry.stimulus.clone().unwrap_or_default();
-        stimulus.extend(out.xi_cur);
-        history.push_back(HistoryEntry {
-            tick: out.tick,
-            state: obs.state,
-            action: entry.advised as usize,
-            drive: learner.agent().drive().vector().to_vec(),
-            reward: out.reward,
-            lstdq_error: entry.lstdq_error,
-            stimulus: Some(stimulus),
-            curiosity: out.curiosity,
-        });
+    if entry.stimulus.is_some() {
+        let tick = RingTick::new(
+            out.tick,
+            obs.state,
+            entry.advised as usize,
+            learner.agent().drive().vector(),
+            entry.stimulus.as_deref(),
+            out.xi_cur,
+            out.reward,
+            entry.lstdq_error,
+            out.curiosity,
+        );
+        push_tick(history, history_cap, tick);
     }
     learner.resume_policy_version(entry.policy_version);
     Ok(())
@@ -337,14 +304,18 @@ mod tests {
             LearnerSnapshot::Plain(a) => assert_eq!(a, agent.snapshot()),
             LearnerSnapshot::Curious(_) => panic!("a format-2 snapshot is a plain agent's"),
         }
-        let h: Vec<HistoryEntry> = snap.history.into_iter().map(HistoryEntry::from).collect();
+        let h: Vec<_> = snap
+            .history
+            .iter()
+            .map(|t| RingTick::from(t).entry())
+            .collect();
         assert_eq!(h.len(), 1);
         assert_eq!((h[0].tick, h[0].reward), (1, 0.5));
         assert_eq!(h[0].stimulus, None, "format 2 kept no stimulus");
         // The same snapshot as this version writes it.
         let new = SnapshotRecord {
             learner: LearnerSnapshot::Plain(agent.snapshot()),
-            history: vec![TickRecord::from(&h[0])],
+            history: vec![TickRecord::from(&RingTick::from(&snap.history[0]))],
         };
         let bytes = encode(&new).expect("encode");
         let back = decode_snapshot(&bytes, "snapshot").expect("decode");

@@ -613,9 +613,8 @@ impl SessionManager {
         let mut after = None;
         if let Some((seq, bytes)) = &stored.snapshot {
             let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(&ctx)?;
-            learner = restore(&learner, snap.learner, config.curiosity.as_ref())
-                .map_err(|e| ctx(e.to_string()))?;
-            history = snap.history.into_iter().map(HistoryEntry::from).collect();
+            learner = restore(&learner, snap.learner).map_err(|e| ctx(e.to_string()))?;
+            history = snap.history.iter().map(session::RingTick::from).collect();
             after = Some(*seq);
         }
         let mut next_seq = after.map_or(0, |s| s + 1);
@@ -649,7 +648,7 @@ impl SessionManager {
             Some(d.clone()),
             session::Resumed {
                 owner: record.owner,
-                history: history.into(),
+                history,
                 seq: next_seq,
                 since_snapshot,
             },
@@ -1020,20 +1019,16 @@ fn prefix(field: &'static str, e: crate::algo::AlgoError) -> ServiceError {
 
 /// A recovered learner: `base` (built from the session record) resumed from
 /// a snapshot of the same kind.
-fn restore(
-    base: &Learner,
-    snap: durable::LearnerSnapshot,
-    curiosity: Option<&CuriosityConfig>,
-) -> Result<Learner, String> {
+fn restore(base: &Learner, snap: durable::LearnerSnapshot) -> Result<Learner, String> {
     let ctx = Arc::clone(base.agent().planning_model());
     let params = base.agent().params().clone();
-    match (snap, curiosity) {
+    match (snap, base.curious()) {
         (durable::LearnerSnapshot::Plain(s), None) => Agent::restore(ctx, params, s)
             .map(Learner::Plain)
             .map_err(|e| e.to_string()),
         (durable::LearnerSnapshot::Curious(s), Some(c)) => {
-            let checked = c.params.check().map_err(|e| e.to_string())?;
-            CuriousAgent::restore(ctx, params, &checked, c.signal_dim, *s)
+            let channel = c.channel();
+            CuriousAgent::restore(ctx, params, channel.params(), channel.signal_dim(), *s)
                 .map(|a| Learner::Curious(Box::new(a)))
                 .map_err(|e| e.to_string())
         }

@@ -234,9 +234,9 @@ impl Learner {
 /// One tick of the history ring as kept in memory: D and the stimulus in
 /// one allocation and the curiosity part boxed (plain sessions have none),
 /// so a full ring costs about what it did before ticks kept their stimulus.
-/// [`HistoryEntry`] is what readers get.
+/// [`HistoryEntry`] is what readers get, [`TickRecord`] what snapshots keep.
 #[derive(Debug, Clone, PartialEq)]
-struct RingTick {
+pub struct RingTick {
     tick: u64,
     state: u32,
     action: u32,
@@ -259,9 +259,9 @@ impl RingTick {
     /// curious session, the ξ_cur the server appended to it.
     #[expect(
         clippy::too_many_arguments,
-        reason = "one call site per path (live, recovered), every argument named there"
+        reason = "one call site per path (live, replayed), every argument named there"
     )]
-    fn new(
+    pub fn new(
         tick: u64,
         state: usize,
         action: usize,
@@ -291,7 +291,7 @@ impl RingTick {
     }
 
     /// The entry readers get.
-    fn entry(&self) -> HistoryEntry {
+    pub fn entry(&self) -> HistoryEntry {
         let (drive, stimulus) = self.values.split_at(self.drive_len as usize);
         HistoryEntry {
             tick: self.tick,
@@ -306,20 +306,57 @@ impl RingTick {
     }
 }
 
-impl From<&HistoryEntry> for RingTick {
-    fn from(e: &HistoryEntry) -> Self {
+impl From<&TickRecord> for RingTick {
+    fn from(t: &TickRecord) -> Self {
         Self::new(
-            e.tick,
-            e.state,
-            e.action,
-            &e.drive,
-            e.stimulus.as_deref(),
+            t.tick,
+            t.state,
+            t.action,
+            &t.drive,
+            t.stimulus.as_deref(),
             None,
-            e.reward,
-            e.lstdq_error,
-            e.curiosity,
+            t.reward,
+            t.lstdq_error,
+            t.curiosity,
         )
     }
+}
+
+impl From<&RingTick> for TickRecord {
+    fn from(t: &RingTick) -> Self {
+        let HistoryEntry {
+            tick,
+            state,
+            action,
+            drive,
+            reward,
+            lstdq_error,
+            stimulus,
+            curiosity,
+        } = t.entry();
+        Self {
+            tick,
+            state,
+            action,
+            drive,
+            reward,
+            lstdq_error,
+            stimulus,
+            curiosity,
+        }
+    }
+}
+
+/// Appends a tick to a history ring of capacity `cap` (none kept at 0),
+/// dropping the oldest when full: the live and the replayed path.
+pub fn push_tick(ring: &mut VecDeque<RingTick>, cap: usize, tick: RingTick) {
+    if cap == 0 {
+        return;
+    }
+    if ring.len() >= cap {
+        ring.pop_front();
+    }
+    ring.push_back(tick);
 }
 
 /// Mutable state of a session, behind its lock.
@@ -334,9 +371,6 @@ pub struct SessionState {
     since_snapshot: u64,
     /// Set by `delete`: the session takes no more observations.
     deleted: bool,
-    /// Set after a failed commit: the state is ahead of what is durable,
-    /// so it takes no more observations and is replaced by a reload.
-    stale: bool,
 }
 
 /// Where a session's observations are made durable.
@@ -390,6 +424,11 @@ pub struct Session {
     durability: Option<Durability>,
     /// True while a plan job for this session waits in the tick queue.
     pub queued: AtomicBool,
+    /// Set after a failed commit (under the state lock, and read under it
+    /// where observations are applied): the state is ahead of what is
+    /// durable, so it takes no more observations and is replaced by a
+    /// reload. Read without the lock on the request path.
+    stale: AtomicBool,
     /// Moving average of one policy update's cost in nanoseconds;
     /// `u64::MAX` until the first update is measured.
     plan_cost_ns: AtomicU64,
@@ -433,13 +472,13 @@ impl Session {
             durability,
             state: Mutex::new(SessionState {
                 learner,
-                history: resumed.history.iter().map(RingTick::from).collect(),
+                history: resumed.history,
                 seq: resumed.seq,
                 since_snapshot: resumed.since_snapshot,
                 deleted: false,
-                stale: false,
             }),
             queued: AtomicBool::new(false),
+            stale: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
             last_observed_ns: AtomicU64::new(0),
         }
@@ -495,7 +534,7 @@ impl Session {
                 commit: None,
             };
         }
-        if st.stale {
+        if self.stale.load(Ordering::Acquire) {
             return Observed {
                 result: Err(ServiceError::Unavailable(format!(
                     "session `{}` is being reloaded from its last durable state after a storage failure; retry",
@@ -529,12 +568,14 @@ impl Session {
     /// Marks the session stale after a failed commit: no observation is
     /// applied to it any more (the manager replaces it by a reload).
     pub fn mark_stale(&self) {
-        self.state.lock().stale = true;
+        // Under the lock: an observation being applied finishes first.
+        let _st = self.state.lock();
+        self.stale.store(true, Ordering::Release);
     }
 
     /// Whether a failed commit made this session stale.
     pub fn is_stale(&self) -> bool {
-        self.state.lock().stale
+        self.stale.load(Ordering::Acquire)
     }
 
     /// Marks the session deleted (no observation is applied after this) and
@@ -554,7 +595,7 @@ impl Session {
     pub fn snapshot(&self) -> Option<Commit> {
         let d = self.durability.as_ref()?;
         let mut st = self.state.lock();
-        if st.deleted || st.stale || st.since_snapshot == 0 {
+        if st.deleted || self.is_stale() || st.since_snapshot == 0 {
             return None;
         }
         match st.snapshot_write(&self.id) {
@@ -604,7 +645,7 @@ pub struct Resumed {
     /// Owner digest.
     pub owner: Option<[u8; 32]>,
     /// History ring, oldest first.
-    pub history: Vec<HistoryEntry>,
+    pub history: VecDeque<RingTick>,
     /// Sequence number of the next log entry.
     pub seq: u64,
     /// Log entries since the last snapshot.
@@ -612,19 +653,10 @@ pub struct Resumed {
 }
 
 impl SessionState {
-    /// The history ring, oldest first.
-    pub fn history(&self) -> impl Iterator<Item = HistoryEntry> + '_ {
-        self.history.iter().map(RingTick::entry)
-    }
-
     fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
         let record = SnapshotRecord {
             learner: self.learner.snapshot(),
-            history: self
-                .history
-                .iter()
-                .map(|t| TickRecord::from(&t.entry()))
-                .collect(),
+            history: self.history.iter().map(TickRecord::from).collect(),
         };
         self.since_snapshot = 0;
         Ok(Write::Snapshot {
@@ -762,11 +794,8 @@ impl SessionState {
         }
         let agent = self.learner.agent();
         let drive = agent.drive().vector().to_vec();
-        if history_cap > 0 && obs.stimulus.is_some() {
-            if self.history.len() == history_cap {
-                self.history.pop_front();
-            }
-            self.history.push_back(RingTick::new(
+        if obs.stimulus.is_some() {
+            let tick = RingTick::new(
                 observed.tick,
                 obs.state,
                 action,
@@ -776,7 +805,8 @@ impl SessionState {
                 observed.reward,
                 agent.last_plan().lstdq_error,
                 observed.curiosity,
-            ));
+            );
+            push_tick(&mut self.history, history_cap, tick);
         }
         Ok((
             StepOut {
@@ -824,13 +854,10 @@ mod tests {
         assert_eq!(e.drive, vec![0.6, 0.0, 0.8]);
         assert_eq!(e.stimulus, Some(vec![1.0, 0.0, 2.5]));
         assert_eq!((e.tick, e.state, e.action), (7, 3, 2));
-        assert_eq!(RingTick::from(&e), curious);
+        assert_eq!(RingTick::from(&TickRecord::from(&curious)), curious);
         // A tick restored from a format-2 snapshot has no stimulus.
-        let old = HistoryEntry {
-            stimulus: None,
-            curiosity: None,
-            ..e
-        };
-        assert_eq!(RingTick::from(&old).entry(), old);
+        let old = RingTick::new(7, 3, 2, &[0.6, 0.8], None, None, 0.25, 0.125, None);
+        assert_eq!(old.entry().stimulus, None);
+        assert_eq!(RingTick::from(&TickRecord::from(&old)), old);
     }
 }
