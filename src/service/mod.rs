@@ -288,7 +288,7 @@ impl ManagerOptions {
 /// The session manager: owns sessions, shared models and the tick pool.
 pub struct SessionManager {
     sessions: RwLock<BTreeMap<String, SessionRef>>,
-    models: Mutex<HashMap<String, (Weak<PlanningModel>, BasisSummary)>>,
+    models: Mutex<HashMap<String, (Weak<PlanningModel>, Built)>>,
     limits: Limits,
     pool: TickPool,
     seed_counter: AtomicU64,
@@ -299,6 +299,14 @@ pub struct SessionManager {
     ready: AtomicBool,
     /// Held while a session is reloaded after a storage failure.
     reloading: Mutex<()>,
+}
+
+/// What the model summaries of sessions sharing a planning model take from
+/// its one build: the basis chosen and the grid layout.
+#[derive(Debug, Clone)]
+struct Built {
+    basis: BasisSummary,
+    layout: Option<spec::GridLayout>,
 }
 
 /// SplitMix64, for seeds and shards.
@@ -376,33 +384,37 @@ impl SessionManager {
         )
     }
 
-    /// The shared planning model for `input`, built once per distinct model.
+    /// The shared planning model for `input`, built once per distinct model,
+    /// with what a session's model summary takes from its build.
     fn planning_model(
         &self,
         input: &ModelInput,
         curious: bool,
         limits: &Limits,
-    ) -> Result<(Arc<PlanningModel>, BasisSummary), ServiceError> {
+    ) -> Result<(Arc<PlanningModel>, Built), ServiceError> {
         let key = format!("{}:curious={curious}", input.cache_key());
-        if let Some((weak, basis)) = self.models.lock().get(&key)
+        if let Some((weak, built)) = self.models.lock().get(&key)
             && let Some(ctx) = weak.upgrade()
         {
-            return Ok((ctx, basis.clone()));
+            return Ok((ctx, built.clone()));
         }
         // Built outside the lock: PVFs cost an eigendecomposition.
         let (model, basis_spec) = input.build(limits, curious)?;
         let basis = Basis::build(&basis_spec, &model)?;
-        let summary = BasisSummary::of(&basis_spec);
+        let built = Built {
+            basis: BasisSummary::of(&basis_spec),
+            layout: input.layout(),
+        };
         let ctx = Arc::new(PlanningModel::new(model, basis));
         let mut models = self.models.lock();
         models.retain(|_, (w, _)| w.strong_count() > 0);
-        if let Some((weak, basis)) = models.get(&key)
+        if let Some((weak, existing_built)) = models.get(&key)
             && let Some(existing) = weak.upgrade()
         {
-            return Ok((existing, basis.clone()));
+            return Ok((existing, existing_built.clone()));
         }
-        models.insert(key, (Arc::downgrade(&ctx), summary.clone()));
-        Ok((ctx, summary))
+        models.insert(key, (Arc::downgrade(&ctx), built.clone()));
+        Ok((ctx, built))
     }
 
     /// The caller of a request with this `Authorization` header value;
@@ -428,7 +440,7 @@ impl SessionManager {
         agent: &SessionConfig,
         limits: &Limits,
     ) -> Result<(Learner, ModelSummary, EffectiveConfig), ServiceError> {
-        let (ctx, basis) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
+        let (ctx, built) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
         let model = ctx.model();
         let history = agent.history.unwrap_or(spec::DEFAULT_HISTORY);
         if history > limits.max_history {
@@ -458,9 +470,9 @@ impl SessionManager {
             pairs: model.n_pairs(),
             transitions: model.n_transitions(),
             deterministic: model.is_deterministic(),
-            basis,
+            basis: built.basis,
             features: ctx.n_features(),
-            layout: input.layout(),
+            layout: built.layout,
         };
         let learner = match &agent.curiosity {
             None => Learner::Plain(Agent::new(ctx, params)),
