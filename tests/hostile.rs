@@ -203,8 +203,11 @@ async fn hostile_requests_get_precise_refusals_and_the_server_stays_up() {
         ],
     );
     let server = Server::start(&launch, dir.path().join("server.log")).await;
+    // A fresh connection per request: a refused upload (413) closes its
+    // connection, which a pooled client would reuse and fail on.
     let client = reqwest::Client::builder()
         .timeout(Duration::from_secs(60))
+        .pool_max_idle_per_host(0)
         .build()
         .expect("client");
     let grpc = AgentsClient::connect(server.grpc_url())
