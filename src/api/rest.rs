@@ -332,6 +332,22 @@ async fn observe(
     }
 }
 
+/// JSON of a large answer, encoded where the call ran (off the runtime).
+fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
+    serde_json::to_vec(value).map_err(|e| ServiceError::Internal(format!("encoding JSON: {e}")))
+}
+
+fn json_response(body: Vec<u8>) -> Response {
+    (
+        [(
+            axum::http::header::CONTENT_TYPE,
+            axum::http::HeaderValue::from_static("application/json"),
+        )],
+        body,
+    )
+        .into_response()
+}
+
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[serde(deny_unknown_fields)]
 struct ValuesQuery {
@@ -347,14 +363,14 @@ async fn values(
     Auth(caller): Auth,
     Path(id): Path<String>,
     q: Result<Query<ValuesQuery>, QueryRejection>,
-) -> Result<Json<Values>, ApiError> {
+) -> Result<Response, ApiError> {
     let sel = ValueSelection::parse(query(q)?.include.as_deref())?;
-    Ok(Json(
-        state
-            .manager
-            .off_runtime(move |m| m.values(caller, &id, sel))
-            .await?,
-    ))
+    // Tables of up to --max-response-bytes: encoded on the blocking pool too.
+    let json = state
+        .manager
+        .off_runtime(move |m| encode(&m.values(caller, &id, sel)?))
+        .await?;
+    Ok(json_response(json))
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -372,12 +388,11 @@ async fn history(
     Auth(caller): Auth,
     Path(id): Path<String>,
     q: Result<Query<HistoryQuery>, QueryRejection>,
-) -> Result<Json<Vec<HistoryEntry>>, ApiError> {
+) -> Result<Response, ApiError> {
     let q = query(q)?;
-    Ok(Json(
-        state
-            .manager
-            .off_runtime(move |m| m.history(caller, &id, q.limit))
-            .await?,
-    ))
+    let json = state
+        .manager
+        .off_runtime(move |m| encode(&m.history(caller, &id, q.limit)?))
+        .await?;
+    Ok(json_response(json))
 }

@@ -71,7 +71,7 @@ impl Default for Limits {
             max_pairs: 200_000,
             max_transitions: 2_000_000,
             max_features: 1024,
-            max_pvf_states: 2000,
+            max_pvf_states: 800,
             max_stimuli: 64,
             max_body_bytes: 16 << 20,
             max_batch: 10_000,
