@@ -442,8 +442,17 @@ impl SessionManager {
         if !self.is_ready() {
             return Err("recovering the stored sessions".into());
         }
-        self.store_writable()
-            .map_err(|e| format!("the session store cannot write: {e}"))
+        let Some(d) = &self.durability else {
+            return Ok(());
+        };
+        let health = d.store.health();
+        metrics::gauge!("mcapi_store_healthy").set(if health.is_ok() { 1.0 } else { 0.0 });
+        health.map_err(|why| {
+            format!(
+                "the session store {} cannot write after a storage fault ({why}); it is reopened automatically once the fault clears",
+                d.store.path().display()
+            )
+        })
     }
 
     /// `Ok` unless the store is down after a storage fault: writes fail

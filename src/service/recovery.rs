@@ -247,9 +247,7 @@ impl SessionManager {
             .session(&session.id)
             .map_err(|e| e.to_string())?
             .ok_or_else(|| format!("session `{}` is not in the store", session.id))?;
-        let (fresh, replayed) = self
-            .recover_one(d, stored)
-            .map_err(|e| e.to_string())?;
+        let (fresh, replayed) = self.recover_one(d, stored).map_err(|e| e.to_string())?;
         // Queued before the fresh session can submit anything, so the
         // store readmits exactly the writes that continue the durable state.
         drop(d.store.submit(vec![Write::Resume {

@@ -873,7 +873,9 @@ impl SessionState {
         let planned = (plan && self.learner.needs_plan()).then(|| {
             if self.fail_plans > 0 {
                 self.fail_plans -= 1;
-                return Err(AlgoError::Numerical("injected policy update failure".into()));
+                return Err(AlgoError::Numerical(
+                    "injected policy update failure".into(),
+                ));
             }
             self.learner.plan()
         });

@@ -74,6 +74,8 @@ const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
 const SESSIONS: TableDefinition<&str, &[u8]> = TableDefinition::new("sessions");
 const SNAPSHOTS: TableDefinition<&str, (u64, &[u8])> = TableDefinition::new("snapshots");
 const LOG: TableDefinition<(u128, u64), &[u8]> = TableDefinition::new("log");
+/// The health probe's scratch table (empty between probes).
+const PROBE: TableDefinition<&str, &[u8]> = TableDefinition::new("probe");
 
 /// The log's key of a session: the 128 bits of the ULID in its id
 /// (`s<shard>.<ULID>`), or a 128-bit hash of the id for other ids. A number
@@ -107,6 +109,8 @@ const MAX_BACKOFF: Duration = Duration::from_secs(1);
 /// How long a reopen waits for readers to let go of the failed handle
 /// (redb holds the file lock until the last one is dropped).
 const RELEASE_WAIT: Duration = Duration::from_secs(2);
+/// What the health probe writes (and removes again) after a reopen.
+const PROBE_BYTES: usize = 256 * 1024;
 
 /// What can go wrong with the store.
 #[derive(Debug, Clone, Error)]
@@ -357,7 +361,6 @@ impl Store {
         let (tx, rx) = unbounded::<Pending>();
         let shared = Arc::new(Shared::default());
         *shared.db.write() = Some(Arc::new(db));
-        metrics::gauge!("mcapi_store_healthy").set(1.0);
         let writer_shared = Arc::clone(&shared);
         let writer_path = path.clone();
         let writer = std::thread::Builder::new()
@@ -479,9 +482,9 @@ impl Store {
                 .get(id.as_str())
                 .map_err(|e| failed(e.into()))?
                 .map(|v| {
-                let (seq, bytes) = v.value();
-                (seq, bytes.to_vec())
-            });
+                    let (seq, bytes) = v.value();
+                    (seq, bytes.to_vec())
+                });
             out.push(StoredSession {
                 id,
                 record: record.value().to_vec(),
@@ -551,6 +554,26 @@ fn open_database(path: &Path) -> Result<Database, StoreError> {
         path: path.to_path_buf(),
         reason,
     };
+    // An I/O error (a full disk) is not damage: it is reported as such, at
+    // start and at a reopen after a storage fault.
+    let failed = |e: redb::Error| match e {
+        redb::Error::Io(io)
+            if !matches!(
+                io.kind(),
+                std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
+            ) =>
+        {
+            StoreError::Io {
+                path: path.to_path_buf(),
+                reason: io.to_string(),
+            }
+        }
+        redb::Error::PreviousIo => StoreError::Io {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        },
+        other => corrupt(other.to_string()),
+    };
     let existed = path.metadata().map(|m| m.len() > 0).unwrap_or(false);
     let db = Database::builder()
         .set_check_integrity_on_open(true)
@@ -560,23 +583,15 @@ fn open_database(path: &Path) -> Result<Database, StoreError> {
                 path: path.to_path_buf(),
                 reason: "already open in another process (is another mcapi running on this data directory?)".into(),
             },
-            redb::DatabaseError::Storage(redb::StorageError::Io(io))
-                if io.kind() != std::io::ErrorKind::InvalidData =>
-            {
-                StoreError::Io {
-                    path: path.to_path_buf(),
-                    reason: io.to_string(),
-                }
-            }
-            other => corrupt(other.to_string()),
+            other => failed(other.into()),
         })?;
-    let mut write = db.begin_write().map_err(|e| corrupt(e.to_string()))?;
+    let mut write = db.begin_write().map_err(|e| failed(e.into()))?;
     write.set_two_phase_commit(true);
     {
-        let mut meta = write.open_table(META).map_err(|e| corrupt(e.to_string()))?;
+        let mut meta = write.open_table(META).map_err(|e| failed(e.into()))?;
         let found = meta
             .get("format_version")
-            .map_err(|e| corrupt(e.to_string()))?
+            .map_err(|e| failed(e.into()))?
             .map(|v| v.value());
         match found {
             Some(FORMAT_VERSION) => {}
@@ -585,7 +600,7 @@ fn open_database(path: &Path) -> Result<Database, StoreError> {
                 let records = tag_format_2_records(&write)
                     .map_err(|e| corrupt(format!("upgrading from format version 2: {e}")))?;
                 meta.insert("format_version", FORMAT_VERSION)
-                    .map_err(|e| corrupt(e.to_string()))?;
+                    .map_err(|e| failed(e.into()))?;
                 tracing::info!(
                     path = %path.display(),
                     records,
@@ -604,18 +619,14 @@ fn open_database(path: &Path) -> Result<Database, StoreError> {
             }
             None => {
                 meta.insert("format_version", FORMAT_VERSION)
-                    .map_err(|e| corrupt(e.to_string()))?;
+                    .map_err(|e| failed(e.into()))?;
             }
         }
-        write
-            .open_table(SESSIONS)
-            .map_err(|e| corrupt(e.to_string()))?;
-        write
-            .open_table(SNAPSHOTS)
-            .map_err(|e| corrupt(e.to_string()))?;
-        write.open_table(LOG).map_err(|e| corrupt(e.to_string()))?;
+        write.open_table(SESSIONS).map_err(|e| failed(e.into()))?;
+        write.open_table(SNAPSHOTS).map_err(|e| failed(e.into()))?;
+        write.open_table(LOG).map_err(|e| failed(e.into()))?;
     }
-    write.commit().map_err(|e| corrupt(e.to_string()))?;
+    write.commit().map_err(|e| failed(e.into()))?;
     Ok(db)
 }
 
@@ -626,10 +637,8 @@ struct Writer {
     shared: Arc<Shared>,
     /// While the store is down: when to try reopening next.
     retry_at: Option<Instant>,
-    /// The wait after the next failed attempt.
+    /// The wait before the next attempt.
     backoff: Duration,
-    /// Probe commits made (the value the probe writes).
-    probes: u64,
 }
 
 impl Writer {
@@ -639,7 +648,6 @@ impl Writer {
             shared,
             retry_at: None,
             backoff: MIN_BACKOFF,
-            probes: 0,
         }
     }
 
@@ -788,7 +796,10 @@ impl Writer {
             self.release(db);
         }
         if self.retry_at.is_none() {
+            // Doubled here too: a store whose reopen succeeds but whose
+            // next commit fails again retries less and less often.
             self.retry_at = Some(Instant::now() + self.backoff);
+            self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
         }
     }
 
@@ -809,7 +820,9 @@ impl Writer {
                     std::thread::sleep(Duration::from_millis(1));
                 }
                 Err(_) => {
-                    tracing::warn!("a reader still holds the failed store handle; reopening anyway");
+                    tracing::warn!(
+                        "a reader still holds the failed store handle; reopening anyway"
+                    );
                     return;
                 }
             }
@@ -822,8 +835,9 @@ impl Writer {
     fn try_reopen(&mut self) {
         let started = Instant::now();
         let attempt = open_database(&self.path).and_then(|db| {
-            self.probes += 1;
-            probe(&db, self.probes).map_err(|f| StoreError::Failed(f.message))?;
+            probe(&db).map_err(|f| {
+                StoreError::Failed(format!("the probe commit failed: {}", f.message))
+            })?;
             Ok(db)
         });
         match attempt {
@@ -840,25 +854,41 @@ impl Writer {
             }
             Err(e) => {
                 self.shared.set_fault(&e.to_string());
-                self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
                 self.retry_at = Some(Instant::now() + self.backoff);
                 tracing::warn!(error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store cannot be reopened yet");
+                self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
             }
         }
     }
 }
 
-/// The health probe: a durable commit on a freshly opened handle.
-fn probe(db: &Database, n: u64) -> Result<(), DbFailure> {
-    let mut txn = db.begin_write().map_err(DbFailure::of)?;
-    txn.set_durability(Durability::Immediate)
-        .map_err(DbFailure::of)?;
-    txn.set_two_phase_commit(true);
-    txn.open_table(META)
-        .map_err(DbFailure::of)?
-        .insert("probe", n)
-        .map_err(DbFailure::of)?;
-    txn.commit().map_err(DbFailure::of)
+/// The health probe: on a freshly opened handle, a durable commit of
+/// [`PROBE_BYTES`] of new data, then a second one that removes it. A reopen
+/// alone proves little: redb reuses the free pages inside its file, so a
+/// small commit can succeed on a full disk while the next real one fails
+/// again. Writing more than a small store's free pages needs the disk; a
+/// large store whose free pages hold the probe can also take real commits
+/// until they run out (and the fault, with a longer backoff, returns).
+fn probe(db: &Database) -> Result<(), DbFailure> {
+    let blob = vec![0u8; PROBE_BYTES];
+    for keep in [true, false] {
+        let mut txn = db.begin_write().map_err(DbFailure::of)?;
+        txn.set_durability(Durability::Immediate)
+            .map_err(DbFailure::of)?;
+        txn.set_two_phase_commit(true);
+        {
+            let mut table = txn.open_table(PROBE).map_err(DbFailure::of)?;
+            if keep {
+                table
+                    .insert("probe", blob.as_slice())
+                    .map_err(DbFailure::of)?;
+            } else {
+                table.remove("probe").map_err(DbFailure::of)?;
+            }
+        }
+        txn.commit().map_err(DbFailure::of)?;
+    }
+    Ok(())
 }
 
 /// The 2 → 3 upgrade: prefixes every snapshot and log record with
@@ -924,7 +954,8 @@ fn split_entry(chunk: &[u8]) -> Option<(u64, &[u8], &[u8])> {
 
 fn commit(db: &Database, group: &[Pending]) -> Result<(), DbFailure> {
     let mut txn = db.begin_write().map_err(DbFailure::of)?;
-    txn.set_durability(Durability::Immediate).map_err(DbFailure::of)?;
+    txn.set_durability(Durability::Immediate)
+        .map_err(DbFailure::of)?;
     // Two-phase: a damaged newest commit is then reported as corruption
     // instead of being taken for a torn write and silently rolled back
     // (which would lose acknowledged observations). Costs a second sync.
@@ -936,7 +967,9 @@ fn commit(db: &Database, group: &[Pending]) -> Result<(), DbFailure> {
         for write in group.iter().flat_map(|p| &p.writes) {
             match write {
                 Write::Session { id, record } => {
-                    sessions.insert(&**id, record.as_slice()).map_err(DbFailure::of)?;
+                    sessions
+                        .insert(&**id, record.as_slice())
+                        .map_err(DbFailure::of)?;
                 }
                 Write::Append { id, seq, entry } => {
                     let at = (log_key(id), seq / CHUNK);
