@@ -45,6 +45,9 @@ pub(super) enum Unrecoverable {
     Records(String),
 }
 
+/// A rebuilt session and the log entries replayed, or why not.
+type Rebuilt = Result<(SessionRef, u64), Unrecoverable>;
+
 impl std::fmt::Display for Unrecoverable {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
@@ -71,7 +74,7 @@ impl SessionManager {
             .store
             .sessions()
             .map_err(|e| ServiceError::Storage(e.to_string()))?;
-        let recovered: Vec<(String, Result<(SessionRef, u64), Unrecoverable>)> = stored
+        let recovered: Vec<(String, Rebuilt)> = stored
             .into_par_iter()
             .map(|s| (s.id.clone(), self.recover_one(d, s)))
             .collect();
@@ -126,7 +129,7 @@ impl SessionManager {
         &self,
         d: &Durability,
         stored: StoredSession,
-    ) -> Result<(SessionRef, u64), Unrecoverable> {
+    ) -> Rebuilt {
         let id = stored.id;
         let ctx = |e: String| Unrecoverable::Records(format!("session `{id}`: {e}"));
         let record: durable::SessionRecord = serde_json::from_slice(&stored.record)
