@@ -125,11 +125,7 @@ impl SessionManager {
     }
 
     /// Rebuilds one stored session.
-    pub(super) fn recover_one(
-        &self,
-        d: &Durability,
-        stored: StoredSession,
-    ) -> Rebuilt {
+    pub(super) fn recover_one(&self, d: &Durability, stored: StoredSession) -> Rebuilt {
         let id = stored.id;
         let ctx = |e: String| Unrecoverable::Records(format!("session `{id}`: {e}"));
         let record: durable::SessionRecord = serde_json::from_slice(&stored.record)
