@@ -93,6 +93,45 @@ pub struct ServeConfig {
     /// Buffered messages per gRPC stream.
     #[arg(long, env = "MCAPI_STREAM_BUFFER", default_value_t = Limits::default().stream_buffer)]
     pub stream_buffer: usize,
+    /// Maximum history ticks a session keeps (`agent.history`).
+    #[arg(long, env = "MCAPI_MAX_HISTORY", default_value_t = Limits::default().max_history)]
+    pub max_history: usize,
+    /// Maximum states of a model with a proto_value basis (its
+    /// eigendecomposition is O(|S|³): the default keeps one build under a
+    /// second on one core).
+    #[arg(long, env = "MCAPI_MAX_PVF_STATES", default_value_t = Limits::default().max_pvf_states)]
+    pub max_pvf_states: usize,
+    /// Maximum bytes of a name (action, stimulus, state, preset, grid mark).
+    #[arg(long, env = "MCAPI_MAX_NAME_BYTES", default_value_t = Limits::default().max_name_bytes)]
+    pub max_name_bytes: usize,
+    /// Maximum curiosity `tau` and `lag`.
+    #[arg(long, env = "MCAPI_MAX_CURIOSITY_WINDOW", default_value_t = Limits::default().max_curiosity_window)]
+    pub max_curiosity_window: usize,
+    /// Maximum curiosity `max_centres`.
+    #[arg(long, env = "MCAPI_MAX_ROC_CENTRES", default_value_t = Limits::default().max_roc_centres)]
+    pub max_roc_centres: usize,
+    /// Maximum curiosity `max_sources`.
+    #[arg(long, env = "MCAPI_MAX_SIGNAL_SOURCES", default_value_t = Limits::default().max_signal_sources)]
+    pub max_signal_sources: usize,
+    /// Maximum estimated memory of one session, in bytes.
+    #[arg(long, env = "MCAPI_MAX_SESSION_BYTES", default_value_t = Limits::default().max_session_bytes)]
+    pub max_session_bytes: u64,
+    /// Maximum estimated CPU time of one observation, in microseconds.
+    #[arg(long, env = "MCAPI_MAX_TICK_US", default_value_t = Limits::default().max_tick_us)]
+    pub max_tick_us: u64,
+    /// Maximum estimated CPU time of one batch of observations, in ms.
+    #[arg(long, env = "MCAPI_MAX_BATCH_MS", default_value_t = Limits::default().max_batch_ms)]
+    pub max_batch_ms: u64,
+    /// Sessions one API key (without keys: all clients) may hold.
+    #[arg(long, env = "MCAPI_MAX_KEY_SESSIONS", default_value_t = Limits::default().max_key_sessions)]
+    pub max_key_sessions: usize,
+    /// Estimated bytes of all sessions of one API key (without keys: of all
+    /// sessions).
+    #[arg(long, env = "MCAPI_MAX_KEY_BYTES", default_value_t = Limits::default().max_key_bytes)]
+    pub max_key_bytes: u64,
+    /// Maximum bytes of one response of value tables.
+    #[arg(long, env = "MCAPI_MAX_RESPONSE_BYTES", default_value_t = Limits::default().max_response_bytes)]
+    pub max_response_bytes: usize,
 }
 
 impl ServeConfig {
@@ -113,6 +152,18 @@ impl ServeConfig {
             max_body_bytes: self.max_body_bytes,
             max_batch: self.max_batch,
             stream_buffer: self.stream_buffer,
+            max_history: self.max_history,
+            max_pvf_states: self.max_pvf_states,
+            max_name_bytes: self.max_name_bytes,
+            max_curiosity_window: self.max_curiosity_window,
+            max_roc_centres: self.max_roc_centres,
+            max_signal_sources: self.max_signal_sources,
+            max_session_bytes: self.max_session_bytes,
+            max_tick_us: self.max_tick_us,
+            max_batch_ms: self.max_batch_ms,
+            max_key_sessions: self.max_key_sessions,
+            max_key_bytes: self.max_key_bytes,
+            max_response_bytes: self.max_response_bytes,
             ..Limits::default()
         }
     }
@@ -165,11 +216,31 @@ impl ServeConfig {
             ("--max-body-bytes", self.max_body_bytes),
             ("--max-batch", self.max_batch),
             ("--stream-buffer", self.stream_buffer),
+            ("--max-pvf-states", self.max_pvf_states),
+            ("--max-name-bytes", self.max_name_bytes),
+            ("--max-curiosity-window", self.max_curiosity_window),
+            ("--max-roc-centres", self.max_roc_centres),
+            ("--max-signal-sources", self.max_signal_sources),
+            ("--max-key-sessions", self.max_key_sessions),
+            ("--max-response-bytes", self.max_response_bytes),
         ];
         for (flag, value) in positive {
             if value == 0 {
                 return Err(format!("{flag} must be at least 1"));
             }
+        }
+        for (flag, value) in [
+            ("--max-session-bytes", self.max_session_bytes),
+            ("--max-tick-us", self.max_tick_us),
+            ("--max-batch-ms", self.max_batch_ms),
+            ("--max-key-bytes", self.max_key_bytes),
+        ] {
+            if value == 0 {
+                return Err(format!("{flag} must be at least 1"));
+            }
+        }
+        if self.max_roc_centres < 2 {
+            return Err("--max-roc-centres must be at least 2 (ROC merges a pair)".into());
         }
         Ok(())
     }

@@ -256,11 +256,11 @@ async fn list_sessions(
     q: Result<Query<ListQuery>, QueryRejection>,
 ) -> Result<Json<SessionPage>, ApiError> {
     let q = query(q)?;
-    Ok(Json(state.manager.list(
-        caller,
-        q.after.as_deref(),
-        q.limit,
-    )?))
+    let page = state
+        .manager
+        .off_runtime(move |m| m.list(caller, q.after.as_deref(), q.limit))
+        .await?;
+    Ok(Json(page))
 }
 
 /// A session's drive, tick, policy version, model, configuration and statistics.
@@ -270,7 +270,12 @@ async fn get_session(
     Auth(caller): Auth,
     Path(id): Path<String>,
 ) -> Result<Json<SessionInfo>, ApiError> {
-    Ok(Json(state.manager.get(caller, &id)?))
+    Ok(Json(
+        state
+            .manager
+            .off_runtime(move |m| m.get(caller, &id))
+            .await?,
+    ))
 }
 
 /// Delete a session.
@@ -343,7 +348,12 @@ async fn values(
     q: Result<Query<ValuesQuery>, QueryRejection>,
 ) -> Result<Json<Values>, ApiError> {
     let sel = ValueSelection::parse(query(q)?.include.as_deref())?;
-    Ok(Json(state.manager.values(caller, &id, sel)?))
+    Ok(Json(
+        state
+            .manager
+            .off_runtime(move |m| m.values(caller, &id, sel))
+            .await?,
+    ))
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -363,5 +373,10 @@ async fn history(
     q: Result<Query<HistoryQuery>, QueryRejection>,
 ) -> Result<Json<Vec<HistoryEntry>>, ApiError> {
     let q = query(q)?;
-    Ok(Json(state.manager.history(caller, &id, q.limit)?))
+    Ok(Json(
+        state
+            .manager
+            .off_runtime(move |m| m.history(caller, &id, q.limit))
+            .await?,
+    ))
 }

@@ -3,15 +3,20 @@
 //! limits, and the tick loop that runs policy updates off the request path.
 
 pub mod auth;
+pub mod cost;
 pub mod durable;
 pub mod error;
 pub mod limits;
 mod recovery;
 pub mod session;
 pub mod spec;
+pub mod table;
 pub mod tick;
 
-use std::collections::{BTreeMap, HashMap};
+#[cfg(test)]
+mod fault_tests;
+
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -24,8 +29,9 @@ use crate::algo::{Agent, Basis, CuriousAgent, PlanningModel};
 use crate::store::Store;
 
 pub use auth::{ApiKeys, Caller};
+pub use cost::SessionCost;
 pub use error::ServiceError;
-pub use limits::Limits;
+pub use limits::{Limits, Usage};
 pub use recovery::RecoveryReport;
 pub use session::{
     Durability, HistoryEntry, Learner, ObservationIn, Session, SessionRef, StepOut, TickCuriosity,
@@ -34,6 +40,7 @@ pub use spec::{
     BasisSummary, CreateSession, CuriosityConfig, EffectiveConfig, ModelInput, ModelSummary,
     SessionConfig, UpdateMode,
 };
+use table::SessionTable;
 use tick::{Job, TickPool};
 
 /// Number of virtual shards in session ids (fixed forever, DESIGN.md).
@@ -63,6 +70,9 @@ pub struct SessionInfo {
     pub agent: EffectiveConfig,
     /// Statistics of the learner.
     pub stats: SessionStats,
+    /// The session's estimated memory and per-observation CPU time, as
+    /// checked against the server's budgets when it was created.
+    pub cost: SessionCost,
     /// The curiosity channel, for a session with one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curiosity: Option<CuriosityInfo>,
@@ -289,7 +299,7 @@ impl ManagerOptions {
 
 /// The session manager: owns sessions, shared models and the tick pool.
 pub struct SessionManager {
-    sessions: RwLock<BTreeMap<String, SessionRef>>,
+    sessions: RwLock<SessionTable>,
     models: Mutex<HashMap<String, (Weak<PlanningModel>, Built)>>,
     limits: Limits,
     pool: TickPool,
@@ -301,6 +311,59 @@ pub struct SessionManager {
     ready: AtomicBool,
     /// Held while a session is reloaded after a storage failure.
     reloading: Mutex<()>,
+    /// Bounds the planning models being built at once (a PVF basis costs an
+    /// eigendecomposition).
+    builds: BuildSlots,
+}
+
+/// A counting semaphore for model builds: at most `slots` at once, and at
+/// most `queue` more waiting; beyond that a create is refused with 503
+/// instead of piling up blocking threads.
+struct BuildSlots {
+    state: Mutex<(usize, usize)>,
+    freed: parking_lot::Condvar,
+    slots: usize,
+    queue: usize,
+}
+
+struct BuildSlot<'a>(&'a BuildSlots);
+
+impl BuildSlots {
+    fn new(slots: usize) -> Self {
+        Self {
+            state: Mutex::new((0, 0)),
+            freed: parking_lot::Condvar::new(),
+            slots: slots.max(1),
+            queue: 8 * slots.max(1),
+        }
+    }
+
+    /// Waits for a slot (blocking: call off the async runtime).
+    fn acquire(&self) -> Result<BuildSlot<'_>, ServiceError> {
+        let mut st = self.state.lock();
+        if st.0 >= self.slots {
+            if st.1 >= self.queue {
+                return Err(ServiceError::Unavailable(format!(
+                    "{} sessions are being created and {} more wait; retry shortly",
+                    st.0, st.1
+                )));
+            }
+            st.1 += 1;
+            while st.0 >= self.slots {
+                self.freed.wait(&mut st);
+            }
+            st.1 -= 1;
+        }
+        st.0 += 1;
+        Ok(BuildSlot(self))
+    }
+}
+
+impl Drop for BuildSlot<'_> {
+    fn drop(&mut self) {
+        self.0.state.lock().0 -= 1;
+        self.0.freed.notify_one();
+    }
 }
 
 /// What the model summaries of sessions sharing a planning model take from
@@ -346,7 +409,7 @@ impl SessionManager {
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos() as u64);
         Ok(Self {
-            sessions: RwLock::new(BTreeMap::new()),
+            sessions: RwLock::new(SessionTable::default()),
             models: Mutex::new(HashMap::new()),
             limits,
             pool,
@@ -356,6 +419,7 @@ impl SessionManager {
             keys,
             ready,
             reloading: Mutex::new(()),
+            builds: BuildSlots::new(workers),
         })
     }
 
@@ -400,7 +464,9 @@ impl SessionManager {
         {
             return Ok((ctx, built.clone()));
         }
-        // Built outside the lock: PVFs cost an eigendecomposition.
+        // Built outside the lock (PVFs cost an eigendecomposition), a few at
+        // a time.
+        let _slot = self.builds.acquire()?;
         let (model, basis_spec) = input.build(limits, curious)?;
         let basis = Basis::build(&basis_spec, &model)?;
         let built = Built {
@@ -476,15 +542,10 @@ impl SessionManager {
         agent: &SessionConfig,
         limits: &Limits,
     ) -> Result<(Learner, ModelSummary, EffectiveConfig), ServiceError> {
+        limits.check_config(agent)?;
         let (ctx, built) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
         let model = ctx.model();
         let history = agent.history.unwrap_or(spec::DEFAULT_HISTORY);
-        if history > limits.max_history {
-            return Err(ServiceError::LimitExceeded(format!(
-                "`agent.history` is {history}; the limit is {}",
-                limits.max_history
-            )));
-        }
         let params = agent.params().check(model.n_stimuli(), self.fresh_u64())?;
         let config = EffectiveConfig {
             eta: params.eta,
@@ -535,7 +596,19 @@ impl SessionManager {
         }
         let model_text = self.durability.as_ref().map(|_| req.model.to_string());
         let input = ModelInput::parse(req.model)?;
+        let owner = caller.owner();
+        // Refused early when the key's quota of sessions is used up.
+        self.limits.check_cost(
+            &SessionCost {
+                bytes: 0,
+                tick_us: 0,
+            },
+            self.sessions.read().usage(&owner),
+        )?;
         let (learner, summary, config) = self.build(&input, &req.agent, &self.limits)?;
+        let cost = cost::estimate(&summary, &config);
+        self.limits
+            .check_cost(&cost, self.sessions.read().usage(&owner))?;
         let id = format!("s{:04x}.{}", self.fresh_u64() % SHARDS, ulid::Ulid::new());
         if let (Some(d), Some(model)) = (&self.durability, model_text) {
             let record = durable::SessionRecord {
@@ -566,13 +639,19 @@ impl SessionManager {
         ));
         {
             let mut sessions = self.sessions.write();
-            if sessions.len() >= self.limits.max_sessions {
+            // Checked again under the lock: concurrent creates see each other.
+            let refused = if sessions.len() >= self.limits.max_sessions {
+                Some(ServiceError::TooManySessions(self.limits.max_sessions))
+            } else {
+                self.limits.check_cost(&cost, sessions.usage(&owner)).err()
+            };
+            if let Some(e) = refused {
                 drop(sessions);
                 // Undo the stored record; the client sees the limit.
                 if let Some(commit) = session.delete() {
                     let _ = commit.wait_blocking();
                 }
-                return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+                return Err(e);
             }
             sessions.insert(id.clone(), Arc::clone(&session));
             metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
@@ -591,12 +670,23 @@ impl SessionManager {
     }
 
     /// The session with this id if `caller` may see it; another key's
-    /// session is `NotFound`, exactly like a missing one.
-    ///
+    /// session is `NotFound`, exactly like a missing one. A quarantined
+    /// session is [`ServiceError::SessionFailed`] (see [`Session::is_failed`]).
     /// A session whose commit failed is first rolled back to its durable
-    /// state (reloaded), so nothing that was not made durable is ever
-    /// served; while that cannot be done, `Storage`.
+    /// state (reloaded, see [`SessionManager::visible_session`]).
     pub fn session_for(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
+        let session = self.visible_session(caller, id)?;
+        if session.is_failed() {
+            return Err(ServiceError::SessionFailed(id.to_string()));
+        }
+        Ok(session)
+    }
+
+    /// [`SessionManager::session_for`], quarantined sessions included (for
+    /// `delete`). A session whose commit failed is first rolled back to its
+    /// durable state (reloaded), so nothing that was not made durable is
+    /// ever served; while that cannot be done, `Storage`.
+    pub fn visible_session(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
         let session = self.session(id)?;
         if !caller.may_see(session.owner.as_ref()) {
             return Err(ServiceError::NotFound(id.to_string()));
@@ -610,6 +700,20 @@ impl SessionManager {
             ))
         })?;
         self.session(id)
+    }
+
+    /// Runs a synchronous service call on the blocking pool, so no reader
+    /// (value tables, history, listing) holds a session lock or copies a
+    /// large table on an async runtime thread.
+    pub async fn off_runtime<T, F>(self: &Arc<Self>, call: F) -> Result<T, ServiceError>
+    where
+        F: FnOnce(&SessionManager) -> Result<T, ServiceError> + Send + 'static,
+        T: Send + 'static,
+    {
+        let manager = Arc::clone(self);
+        tokio::task::spawn_blocking(move || call(&manager))
+            .await
+            .map_err(|e| ServiceError::Internal(format!("a blocking service call failed: {e}")))?
     }
 
     /// Details of a session.
@@ -633,13 +737,8 @@ impl SessionManager {
             ));
         }
         let sessions = self.sessions.read();
-        let range = match after {
-            Some(a) => {
-                sessions.range::<str, _>((std::ops::Bound::Excluded(a), std::ops::Bound::Unbounded))
-            }
-            None => sessions.range::<str, _>(..),
-        };
-        let page: Vec<SessionRef> = range
+        let page: Vec<SessionRef> = sessions
+            .after(after)
             .filter(|(_, s)| caller.may_see(s.owner.as_ref()))
             .take(limit + 1)
             .map(|(_, s)| Arc::clone(s))
@@ -669,7 +768,7 @@ impl SessionManager {
     /// session is gone, restarts included.
     #[tracing::instrument(level = "debug", skip(self))]
     pub async fn delete(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
-        let session = self.session_for(caller, id)?;
+        let session = self.visible_session(caller, id)?;
         self.store_writable()?;
         let result = match session.begin_delete()? {
             Some(commit) => commit
@@ -723,6 +822,10 @@ impl SessionManager {
         }
         // Rolled back first if an earlier commit failed.
         let session = self.session_for(caller, id)?;
+        self.limits.check_batch_cost(
+            batch.len(),
+            &cost::estimate(&session.model, &session.config),
+        )?;
         // While the store cannot write, nothing is applied: the client gets
         // `storage_unavailable` at once and retries.
         self.store_writable()?;
@@ -769,13 +872,30 @@ impl SessionManager {
                     batch,
                     reply: tx,
                 })?;
+                // The pool drains its queue before it stops, so a reply
+                // that never comes means the job itself failed.
                 rx.await
-                    .map_err(|_| ServiceError::Unavailable("the server is shutting down".into()))?
+                    .map_err(|_| ServiceError::Internal("a tick job ended without a reply".into()))?
                     .durable()
                     .await?
             }
             UpdateMode::Async => {
-                let observed = session.observe(&batch, false);
+                // Observing alone recomputes R for every pair and, with a
+                // curiosity channel, learns each signal sample: beyond the
+                // inline budget that runs on the blocking pool.
+                let observe_ns = cost::observe_us(&session.model, &session.config)
+                    .saturating_mul(1000)
+                    .saturating_mul(n);
+                let observed = if observe_ns <= self.inline_plan_ns.max(50_000) {
+                    session.observe(&batch, false)
+                } else {
+                    let session = Arc::clone(&session);
+                    tokio::task::spawn_blocking(move || session.observe(&batch, false))
+                        .await
+                        .map_err(|e| {
+                            ServiceError::Internal(format!("an observation task failed: {e}"))
+                        })?
+                };
                 if inline && observed.result.is_ok() {
                     let started = Instant::now();
                     match session.plan_if_needed() {
@@ -806,6 +926,7 @@ impl SessionManager {
         sel: ValueSelection,
     ) -> Result<Values, ServiceError> {
         let session = self.session_for(caller, id)?;
+        self.check_values_size(&session, sel)?;
         let st = session.state.lock();
         let agent = st.learner.agent();
         let model = agent.planning_model().model();
@@ -845,6 +966,41 @@ impl SessionManager {
         })
     }
 
+    /// Refuses value tables whose JSON would exceed
+    /// [`Limits::max_response_bytes`], before anything is built (about 24
+    /// bytes per number, and per name for `policy`).
+    fn check_values_size(
+        &self,
+        session: &Session,
+        sel: ValueSelection,
+    ) -> Result<(), ServiceError> {
+        let m = &session.model;
+        let cells = m.states.saturating_mul(m.actions.len());
+        let longest = m.actions.iter().map(String::len).max().unwrap_or(0);
+        let mut bytes = 0usize;
+        if sel.v {
+            bytes = bytes.saturating_add(m.states.saturating_mul(24));
+        }
+        if sel.policy {
+            bytes = bytes.saturating_add(m.states.saturating_mul(longest + 4));
+        }
+        for table in [sel.q, sel.r] {
+            if table {
+                bytes = bytes.saturating_add(cells.saturating_mul(24));
+            }
+        }
+        if sel.xi {
+            bytes = bytes.saturating_add(cells.saturating_mul(m.stimuli.len() * 24 + 4));
+        }
+        if bytes > self.limits.max_response_bytes {
+            return Err(ServiceError::LimitExceeded(format!(
+                "the value tables asked for (`include`) would take about {bytes} bytes; the limit of one response is {} (--max-response-bytes): ask for fewer tables",
+                self.limits.max_response_bytes
+            )));
+        }
+        Ok(())
+    }
+
     /// The most recent `limit` ticks of a session's history, oldest first.
     pub fn history(
         &self,
@@ -853,7 +1009,18 @@ impl SessionManager {
         limit: Option<usize>,
     ) -> Result<Vec<HistoryEntry>, ServiceError> {
         let session = self.session_for(caller, id)?;
-        Ok(session.history(limit.unwrap_or(usize::MAX)))
+        let limit = limit.unwrap_or(usize::MAX).min(session.config.history);
+        // About 24 bytes per number: D, the stimulus, and the fixed fields.
+        let entry = (2 * session.model.stimuli.len() + 12) * 24;
+        let bytes = limit.saturating_mul(entry);
+        if bytes > self.limits.max_response_bytes {
+            return Err(ServiceError::LimitExceeded(format!(
+                "{limit} history entries would take about {bytes} bytes; the limit of one response is {} (--max-response-bytes): ask for at most {} with `limit`",
+                self.limits.max_response_bytes,
+                self.limits.max_response_bytes / entry
+            )));
+        }
+        Ok(session.history(limit))
     }
 
     /// Stops the tick loop after draining its queue; with a store, writes
@@ -897,6 +1064,7 @@ fn info_of(session: &Session) -> SessionInfo {
             factorisation_reuses: stats.reuses,
             factorisations: stats.factorisations,
         },
+        cost: cost::estimate(&session.model, &session.config),
         curiosity: st.learner.curious().map(CuriosityInfo::of),
     }
 }

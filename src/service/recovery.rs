@@ -9,7 +9,7 @@
 //! untouched for an operator to inspect. A store that cannot be read at all
 //! still fails the start.
 
-use std::collections::{BTreeMap, VecDeque};
+use std::collections::VecDeque;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
 
@@ -18,6 +18,7 @@ use crate::store::{StoreError, StoredSession, Write};
 
 use super::session::{self, Durability, Learner, Session, SessionRef};
 use super::spec::{ModelInput, SessionConfig};
+use super::table::SessionTable;
 use super::{Limits, ServiceError, SessionManager, durable};
 
 /// What `recover` did.
@@ -233,7 +234,7 @@ impl SessionManager {
         };
         session.mark_stale();
         let _one_at_a_time = self.reloading.lock();
-        let current = |sessions: &BTreeMap<String, SessionRef>| {
+        let current = |sessions: &SessionTable| {
             sessions
                 .get(&session.id)
                 .is_some_and(|s| Arc::ptr_eq(s, session))

@@ -441,6 +441,13 @@ pub struct Session {
     /// server started.
     last_observed_ns: AtomicU64,
     history_cap: usize,
+    /// Set when an update panicked (a bug, not a client's mistake): the
+    /// state may be half-updated, so the session is quarantined and answers
+    /// [`ServiceError::SessionFailed`] until it is deleted.
+    failed: AtomicBool,
+    /// Test hook: the next update of this kind panics (see [`Update`]).
+    #[cfg(test)]
+    pub(crate) panic_next: std::sync::atomic::AtomicU8,
 }
 
 /// Nanoseconds since the process's first call, plus one (never 0).
@@ -488,7 +495,52 @@ impl Session {
             stale: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
             last_observed_ns: AtomicU64::new(0),
+            failed: AtomicBool::new(false),
+            #[cfg(test)]
+            panic_next: std::sync::atomic::AtomicU8::new(0),
         }
+    }
+
+    /// Whether an update of this session panicked (it is quarantined).
+    pub fn is_failed(&self) -> bool {
+        self.failed.load(Ordering::Acquire)
+    }
+
+    /// Runs `update` on the locked state, catching a panic: the session is
+    /// then quarantined ([`Session::is_failed`]) and the caller gets
+    /// [`ServiceError::SessionFailed`] instead of a dead worker or a
+    /// half-updated state served to the next request.
+    fn guarded<T>(
+        &self,
+        st: &mut SessionState,
+        kind: Update,
+        update: impl FnOnce(&mut SessionState) -> Result<T, ServiceError>,
+    ) -> Result<T, ServiceError> {
+        #[cfg(test)]
+        let inject = self
+            .panic_next
+            .compare_exchange(kind as u8, 0, Ordering::AcqRel, Ordering::Acquire)
+            .is_ok();
+        #[cfg(not(test))]
+        let _ = kind;
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            #[cfg(test)]
+            if inject {
+                panic!("injected by a test");
+            }
+            update(st)
+        }));
+        outcome.unwrap_or_else(|panic| {
+            self.failed.store(true, Ordering::Release);
+            let what = panic
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_default();
+            tracing::error!(session = %self.id, panic = %what, "an update panicked; the session is quarantined");
+            metrics::counter!("mcapi_session_panics_total").increment(1);
+            Err(ServiceError::SessionFailed(self.id.clone()))
+        })
     }
 
     /// Time since the last applied observation; `None` if none since the
@@ -541,6 +593,12 @@ impl Session {
                 commit: None,
             };
         }
+        if self.is_failed() {
+            return Observed {
+                result: Err(ServiceError::SessionFailed(self.id.clone())),
+                commit: None,
+            };
+        }
         if self.stale.load(Ordering::Acquire) {
             return Observed {
                 result: Err(ServiceError::Unavailable(format!(
@@ -563,7 +621,12 @@ impl Session {
         let mut out = Vec::with_capacity(batch.len());
         let mut log = Vec::new();
         let log_to = self.durability.as_ref().map(|_| &mut log);
-        let result = st.apply_all(batch, plan, self.history_cap, &mut out, log_to);
+        // The observations applied before a panic stay applied and logged:
+        // the log then holds a consistent prefix, which a restart recovers.
+        let cap = self.history_cap;
+        let result = self.guarded(&mut st, Update::Observe, |st| {
+            st.apply_all(batch, plan, cap, &mut out, log_to)
+        });
         if !out.is_empty() {
             self.last_observed_ns.store(clock_ns(), Ordering::Relaxed);
         }
@@ -668,7 +731,12 @@ impl Session {
     pub fn snapshot(&self) -> Option<Commit> {
         let d = self.durability.as_ref()?;
         let mut st = self.state.lock();
-        if st.deleted || st.deleting || self.is_stale() || st.since_snapshot == 0 {
+        if st.deleted
+            || st.deleting
+            || self.is_stale()
+            || self.is_failed()
+            || st.since_snapshot == 0
+        {
             return None;
         }
         match st.snapshot_write(&self.id) {
@@ -684,11 +752,11 @@ impl Session {
     /// loop's work for async sessions).
     pub fn plan_if_needed(&self) -> Result<bool, ServiceError> {
         let mut st = self.state.lock();
-        if !st.learner.needs_plan() {
+        if self.is_failed() || !st.learner.needs_plan() {
             return Ok(false);
         }
         let started = Instant::now();
-        st.learner.plan()?;
+        self.guarded(&mut st, Update::Plan, |st| Ok(st.learner.plan()?))?;
         drop(st);
         self.record_plan_cost(started, 1);
         Ok(true)
@@ -928,6 +996,16 @@ struct Applied {
 
 /// A shared handle.
 pub type SessionRef = Arc<Session>;
+
+/// The two ways a session's state changes, for [`Session::guarded`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub(crate) enum Update {
+    /// Observations applied (and, in lockstep, their plans).
+    Observe = 1,
+    /// An async-mode policy update.
+    Plan = 2,
+}
 
 #[cfg(test)]
 mod tests {
