@@ -61,6 +61,10 @@ impl Battery {
 
     /// Sends one request with the key (or `key`) and checks the status and
     /// the stable code of its `{"code","message"}` body.
+    #[expect(
+        clippy::too_many_arguments,
+        reason = "a test helper: every part of the request and the expected answer, named at each call"
+    )]
     async fn rest_with(
         &mut self,
         name: &str,

@@ -7,6 +7,7 @@ pub mod cost;
 pub mod durable;
 pub mod error;
 pub mod limits;
+mod recovery;
 pub mod session;
 pub mod spec;
 pub mod table;
@@ -31,6 +32,7 @@ pub use auth::{ApiKeys, Caller};
 pub use cost::SessionCost;
 pub use error::ServiceError;
 pub use limits::{Limits, Usage};
+pub use recovery::RecoveryReport;
 pub use session::{
     Durability, HistoryEntry, Learner, ObservationIn, Session, SessionRef, StepOut, TickCuriosity,
 };
@@ -499,6 +501,40 @@ impl SessionManager {
         self.ready.load(Ordering::Acquire)
     }
 
+    /// Whether the server can serve its API fully (`/readyz`): `Err` with
+    /// the reason while stored sessions are recovered, or while the store
+    /// cannot write after a storage fault (it recovers by itself).
+    pub fn readiness(&self) -> Result<(), String> {
+        if !self.is_ready() {
+            return Err("recovering the stored sessions".into());
+        }
+        let Some(d) = &self.durability else {
+            return Ok(());
+        };
+        let health = d.store.health();
+        metrics::gauge!("mcapi_store_healthy").set(if health.is_ok() { 1.0 } else { 0.0 });
+        health.map_err(|why| {
+            format!(
+                "the session store {} cannot write after a storage fault ({why}); it is reopened automatically once the fault clears",
+                d.store.path().display()
+            )
+        })
+    }
+
+    /// `Ok` unless the store is down after a storage fault: writes fail
+    /// then at once, before anything is applied.
+    fn store_writable(&self) -> Result<(), ServiceError> {
+        match &self.durability {
+            Some(d) => d.store.health().map_err(|why| {
+                ServiceError::Storage(format!(
+                    "the store {} cannot write after a storage fault ({why}); it is reopened automatically once the fault clears",
+                    d.store.path().display()
+                ))
+            }),
+            None => Ok(()),
+        }
+    }
+
     /// Builds the agent of a session (fresh, or the base of a recovery).
     fn build(
         &self,
@@ -624,129 +660,6 @@ impl SessionManager {
         Ok(info_of(&session))
     }
 
-    /// Loads every stored session: snapshot, then the log after it, then
-    /// one policy update; sessions are rebuilt in parallel. Marks the
-    /// manager ready when done. Any record that does not decode or fit its
-    /// model fails the whole recovery: the server must not start on
-    /// silently wrong state.
-    pub fn recover(&self) -> Result<RecoveryReport, ServiceError> {
-        use rayon::prelude::*;
-        let Some(d) = &self.durability else {
-            self.ready.store(true, Ordering::Release);
-            return Ok(RecoveryReport::default());
-        };
-        let started = std::time::Instant::now();
-        let stored = d
-            .store
-            .sessions()
-            .map_err(|e| ServiceError::Storage(e.to_string()))?;
-        let recovered: Vec<Result<(SessionRef, u64), String>> = stored
-            .into_par_iter()
-            .map(|s| self.recover_one(d, s))
-            .collect();
-        let mut report = RecoveryReport::default();
-        let mut sessions = self.sessions.write();
-        for r in recovered {
-            let (session, replayed) = r.map_err(|e| {
-                ServiceError::Storage(format!(
-                    "the store {} holds a session that cannot be recovered (corrupt, or written by an incompatible mcapi): {e}",
-                    d.store.path().display()
-                ))
-            })?;
-            report.sessions += 1;
-            report.replayed += replayed;
-            sessions.insert(session.id.clone(), session);
-        }
-        metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
-        drop(sessions);
-        report.seconds = started.elapsed().as_secs_f64();
-        self.ready.store(true, Ordering::Release);
-        Ok(report)
-    }
-
-    fn recover_one(
-        &self,
-        d: &Durability,
-        stored: crate::store::StoredSession,
-    ) -> Result<(SessionRef, u64), String> {
-        let id = stored.id;
-        let ctx = |e: String| format!("session `{id}`: {e}");
-        let record: durable::SessionRecord = serde_json::from_slice(&stored.record)
-            .map_err(|e| ctx(format!("its record does not decode: {e}")))?;
-        let model: serde_json::Value = serde_json::from_str(&record.model)
-            .map_err(|e| ctx(format!("its model does not decode: {e}")))?;
-        let input = ModelInput::parse(model).map_err(|e| ctx(e.to_string()))?;
-        let c = &record.config;
-        let agent_cfg = SessionConfig {
-            eta: Some(c.eta),
-            gamma: Some(c.gamma),
-            priorities: Some(c.priorities.clone()),
-            stimulus_rate: Some(c.stimulus_rate),
-            optimistic_sd: Some(c.optimistic_sd),
-            ridge: Some(c.ridge),
-            epsilon: Some(c.epsilon),
-            seed: Some(c.seed),
-            update_mode: Some(c.update_mode),
-            history: Some(c.history),
-            curiosity: c.curiosity.clone(),
-        };
-        // Limits are for new sessions: one created under looser limits is
-        // recovered anyway (and said so), not refused with the whole store.
-        let built = match self.build(&input, &agent_cfg, &self.limits) {
-            Err(ServiceError::LimitExceeded(why)) => {
-                tracing::warn!(session = %id, limit = %why, "a stored session exceeds the current limits; recovered anyway");
-                self.build(&input, &agent_cfg, &Limits::unlimited())
-            }
-            built => built,
-        };
-        let (mut learner, summary, config) = built.map_err(|e| ctx(e.to_string()))?;
-        let mut history = std::collections::VecDeque::new();
-        let mut after = None;
-        if let Some((seq, bytes)) = &stored.snapshot {
-            let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(&ctx)?;
-            learner = restore(&learner, snap.learner).map_err(|e| ctx(e.to_string()))?;
-            history = snap.history.iter().map(session::RingTick::from).collect();
-            after = Some(*seq);
-        }
-        let mut next_seq = after.map_or(0, |s| s + 1);
-        let mut replayed = 0u64;
-        d.store
-            .for_each_entry(&id, after, |seq, bytes| {
-                if seq != next_seq {
-                    return Err(crate::store::StoreError::Failed(ctx(format!(
-                        "log entry {next_seq} is missing (found {seq})"
-                    ))));
-                }
-                let entry = durable::decode_entry(bytes, &format!("log entry {seq}"))
-                    .map_err(|e| crate::store::StoreError::Failed(ctx(e)))?;
-                durable::replay(&mut learner, &mut history, config.history, &entry).map_err(
-                    |e| crate::store::StoreError::Failed(ctx(format!("log entry {seq}: {e}"))),
-                )?;
-                next_seq += 1;
-                replayed += 1;
-                Ok(())
-            })
-            .map_err(|e| e.to_string())?;
-        if learner.needs_plan() {
-            learner.plan().map_err(|e| ctx(e.to_string()))?;
-        }
-        let since_snapshot = next_seq - after.map_or(0, |s| s + 1);
-        let session = Session::resume(
-            id.clone(),
-            learner,
-            summary,
-            config,
-            Some(d.clone()),
-            session::Resumed {
-                owner: record.owner,
-                history,
-                seq: next_seq,
-                since_snapshot,
-            },
-        );
-        Ok((Arc::new(session), replayed))
-    }
-
     /// The session with this id, whoever owns it (for tests and tools).
     pub fn session(&self, id: &str) -> Result<SessionRef, ServiceError> {
         self.sessions
@@ -759,6 +672,8 @@ impl SessionManager {
     /// The session with this id if `caller` may see it; another key's
     /// session is `NotFound`, exactly like a missing one. A quarantined
     /// session is [`ServiceError::SessionFailed`] (see [`Session::is_failed`]).
+    /// A session whose commit failed is first rolled back to its durable
+    /// state (reloaded, see [`SessionManager::visible_session`]).
     pub fn session_for(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
         let session = self.visible_session(caller, id)?;
         if session.is_failed() {
@@ -768,14 +683,23 @@ impl SessionManager {
     }
 
     /// [`SessionManager::session_for`], quarantined sessions included (for
-    /// `delete`).
+    /// `delete`). A session whose commit failed is first rolled back to its
+    /// durable state (reloaded), so nothing that was not made durable is
+    /// ever served; while that cannot be done, `Storage`.
     pub fn visible_session(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
         let session = self.session(id)?;
-        if caller.may_see(session.owner.as_ref()) {
-            Ok(session)
-        } else {
-            Err(ServiceError::NotFound(id.to_string()))
+        if !caller.may_see(session.owner.as_ref()) {
+            return Err(ServiceError::NotFound(id.to_string()));
         }
+        if !session.is_stale() {
+            return Ok(session);
+        }
+        self.reload(&session).map_err(|e| {
+            ServiceError::Storage(format!(
+                "session `{id}` cannot be rolled back to its durable state after a storage failure ({e})"
+            ))
+        })?;
+        self.session(id)
     }
 
     /// Runs a synchronous service call on the blocking pool, so no reader
@@ -837,24 +761,41 @@ impl SessionManager {
         Ok(SessionPage { sessions, next })
     }
 
-    /// Deletes a session and, with a store, its stored data (durably,
-    /// before this returns).
+    /// Deletes a session and, with a store, its stored data. The deletion is
+    /// committed before anything is removed: if the commit fails, the
+    /// session stays and is served as before (the client gets
+    /// `storage_unavailable` and may retry); once it returns `Ok`, the
+    /// session is gone, restarts included.
     #[tracing::instrument(level = "debug", skip(self))]
     pub async fn delete(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
-        self.visible_session(caller, id)?;
-        let session = {
-            let mut sessions = self.sessions.write();
-            let session = sessions
-                .remove(id)
-                .ok_or_else(|| ServiceError::NotFound(id.to_string()))?;
-            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
-            session
-        };
-        if let Some(commit) = session.delete() {
-            commit
+        let session = self.visible_session(caller, id)?;
+        self.store_writable()?;
+        let result = match session.begin_delete()? {
+            Some(commit) => commit
                 .wait()
                 .await
-                .map_err(|e| ServiceError::Storage(e.to_string()))?;
+                .map_err(|e| ServiceError::Storage(e.to_string())),
+            None => Ok(()),
+        };
+        // A reload during the commit may have replaced the session in the
+        // map; the delete ends on both.
+        let current = self.session(id).ok().filter(|s| !Arc::ptr_eq(s, &session));
+        if let Err(e) = result {
+            session.end_delete(false);
+            if let Some(s) = current {
+                s.end_delete(false);
+            }
+            tracing::warn!(session = %id, error = %e, "session not deleted: its deletion was not committed");
+            return Err(e);
+        }
+        {
+            let mut sessions = self.sessions.write();
+            sessions.remove(id);
+            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        }
+        session.end_delete(true);
+        if let Some(s) = current {
+            s.end_delete(true);
         }
         tracing::info!(session = %id, "session deleted");
         Ok(())
@@ -879,20 +820,15 @@ impl SessionManager {
                 self.limits.max_batch
             )));
         }
-        let mut session = self.session_for(caller, id)?;
+        // Rolled back first if an earlier commit failed.
+        let session = self.session_for(caller, id)?;
         self.limits.check_batch_cost(
             batch.len(),
             &cost::estimate(&session.model, &session.config),
         )?;
-        if session.is_stale() {
-            // An earlier reload after a storage failure did not succeed.
-            self.reload(&session).map_err(|e| {
-                ServiceError::Unavailable(format!(
-                    "session `{id}` cannot be reloaded after a storage failure ({e}); retry"
-                ))
-            })?;
-            session = self.session_for(caller, id)?;
-        }
+        // While the store cannot write, nothing is applied: the client gets
+        // `storage_unavailable` at once and retries.
+        self.store_writable()?;
         let result = self.observe_on(&session, batch).await;
         if let Err(ServiceError::Storage(detail)) = &result {
             // The observations are applied in memory but not durable, and
@@ -905,44 +841,6 @@ impl SessionManager {
             }
         }
         result
-    }
-
-    /// Replaces a session whose commit failed by a fresh recovery of its
-    /// durable state (snapshot and log, as at start), then lets the store
-    /// accept its writes again ([`crate::store::Write::Resume`]). The old
-    /// session is marked stale first, so nothing is applied to it while
-    /// this runs. A no-op if the session was deleted or already replaced.
-    pub fn reload(&self, session: &SessionRef) -> Result<(), String> {
-        let Some(d) = &self.durability else {
-            return Ok(());
-        };
-        session.mark_stale();
-        let _one_at_a_time = self.reloading.lock();
-        let current = |sessions: &SessionTable| {
-            sessions
-                .get(&session.id)
-                .is_some_and(|s| Arc::ptr_eq(s, session))
-        };
-        if !current(&self.sessions.read()) {
-            return Ok(());
-        }
-        let stored = d
-            .store
-            .session(&session.id)
-            .map_err(|e| e.to_string())?
-            .ok_or_else(|| format!("session `{}` is not in the store", session.id))?;
-        let (fresh, replayed) = self.recover_one(d, stored)?;
-        // Queued before the fresh session can submit anything, so the
-        // store readmits exactly the writes that continue the durable state.
-        drop(d.store.submit(vec![crate::store::Write::Resume {
-            id: Arc::from(session.id.as_str()),
-        }]));
-        let mut sessions = self.sessions.write();
-        if current(&sessions) {
-            sessions.insert(session.id.clone(), fresh);
-        }
-        tracing::info!(session = %session.id, replayed, "session reloaded from its durable state");
-        Ok(())
     }
 
     async fn observe_on(
@@ -1146,17 +1044,6 @@ impl SessionManager {
     }
 }
 
-/// What `recover` did.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct RecoveryReport {
-    /// Sessions recovered.
-    pub sessions: u64,
-    /// Log entries replayed.
-    pub replayed: u64,
-    /// Wall time.
-    pub seconds: f64,
-}
-
 fn info_of(session: &Session) -> SessionInfo {
     let st = session.state.lock();
     let agent = st.learner.agent();
@@ -1194,29 +1081,5 @@ fn prefix(field: &'static str, e: crate::algo::AlgoError) -> ServiceError {
             .into()
         }
         e => ServiceError::field(field, e),
-    }
-}
-
-/// A recovered learner: `base` (built from the session record) resumed from
-/// a snapshot of the same kind.
-fn restore(base: &Learner, snap: durable::LearnerSnapshot) -> Result<Learner, String> {
-    let ctx = Arc::clone(base.agent().planning_model());
-    let params = base.agent().params().clone();
-    match (snap, base.curious()) {
-        (durable::LearnerSnapshot::Plain(s), None) => Agent::restore(ctx, params, s)
-            .map(Learner::Plain)
-            .map_err(|e| e.to_string()),
-        (durable::LearnerSnapshot::Curious(s), Some(c)) => {
-            let channel = c.channel();
-            CuriousAgent::restore(ctx, params, channel.params(), channel.signal_dim(), *s)
-                .map(|a| Learner::Curious(Box::new(a)))
-                .map_err(|e| e.to_string())
-        }
-        (durable::LearnerSnapshot::Plain(_), Some(_)) => {
-            Err("its snapshot has no curiosity channel, its record one".into())
-        }
-        (durable::LearnerSnapshot::Curious(_), None) => {
-            Err("its snapshot has a curiosity channel, its record none".into())
-        }
     }
 }

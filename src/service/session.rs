@@ -371,6 +371,11 @@ pub struct SessionState {
     since_snapshot: u64,
     /// Set by `delete`: the session takes no more observations.
     deleted: bool,
+    /// Set while a delete's commit is in flight: no observation or
+    /// snapshot is queued after the delete; cleared if the commit fails.
+    deleting: bool,
+    /// Policy updates to fail on purpose (tests of the failure path).
+    fail_plans: u32,
 }
 
 /// Where a session's observations are made durable.
@@ -483,6 +488,8 @@ impl Session {
                 seq: resumed.seq,
                 since_snapshot: resumed.since_snapshot,
                 deleted: false,
+                deleting: false,
+                fail_plans: 0,
             }),
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
@@ -601,6 +608,15 @@ impl Session {
                 commit: None,
             };
         }
+        if st.deleting {
+            return Observed {
+                result: Err(ServiceError::Unavailable(format!(
+                    "session `{}` is being deleted; retry",
+                    self.id
+                ))),
+                commit: None,
+            };
+        }
         let started = Instant::now();
         let mut out = Vec::with_capacity(batch.len());
         let mut log = Vec::new();
@@ -653,12 +669,74 @@ impl Session {
         })
     }
 
+    /// Starts deleting the session: queues the deletion of its stored data
+    /// and, until [`Self::end_delete`], refuses observations (nothing is
+    /// queued after the delete). Nothing is removed yet: if the commit
+    /// fails, the session goes on as before. `None` without a store.
+    pub fn begin_delete(&self) -> Result<Option<Commit>, ServiceError> {
+        let mut st = self.state.lock();
+        if st.deleted {
+            return Err(ServiceError::NotFound(self.id.clone()));
+        }
+        if self.is_stale() {
+            return Err(ServiceError::Storage(format!(
+                "session `{}` is being rolled back to its durable state after a storage failure",
+                self.id
+            )));
+        }
+        if st.deleting {
+            return Err(ServiceError::Unavailable(format!(
+                "session `{}` is already being deleted; retry",
+                self.id
+            )));
+        }
+        st.deleting = true;
+        Ok(self.durability.as_ref().map(|d| {
+            d.store.submit(vec![Write::Delete {
+                id: Arc::from(self.id.as_str()),
+            }])
+        }))
+    }
+
+    /// Ends a delete: `deleted` once its commit is durable (the session
+    /// takes nothing more), otherwise the session is served again.
+    pub fn end_delete(&self, deleted: bool) {
+        let mut st = self.state.lock();
+        st.deleting = false;
+        st.deleted |= deleted;
+    }
+
+    /// Whether a delete of this session is in flight.
+    pub fn is_deleting(&self) -> bool {
+        self.state.lock().deleting
+    }
+
+    /// Marks a reloaded session as being deleted, as the session it
+    /// replaces was (the delete in flight ends on it).
+    pub(super) fn inherit_deleting(&self) {
+        self.state.lock().deleting = true;
+    }
+
+    /// Makes the next `n` policy updates of observations fail with
+    /// `AlgoError::Numerical` after the observation was applied, as a
+    /// numerical breakdown of the planner would (for tests of that path;
+    /// no request reaches it).
+    #[doc(hidden)]
+    pub fn fail_next_plans(&self, n: u32) {
+        self.state.lock().fail_plans = n;
+    }
+
     /// Writes a snapshot now (at clean shutdown), unless nothing changed
     /// since the last one.
     pub fn snapshot(&self) -> Option<Commit> {
         let d = self.durability.as_ref()?;
         let mut st = self.state.lock();
-        if st.deleted || self.is_stale() || self.is_failed() || st.since_snapshot == 0 {
+        if st.deleted
+            || st.deleting
+            || self.is_stale()
+            || self.is_failed()
+            || st.since_snapshot == 0
+        {
             return None;
         }
         match st.snapshot_write(&self.id) {
@@ -766,7 +844,11 @@ impl SessionState {
             // The action whose pair this observation updates, resolved now.
             let advised_before = self.learner.agent().advised_action();
             match self.apply(obs, plan, history_cap) {
-                Ok((step, taken)) => {
+                Ok(Applied {
+                    step,
+                    taken,
+                    plan_failed,
+                }) => {
                     if let Some(log) = log.as_deref_mut() {
                         log.push(LogEntry {
                             state: obs.state as u32,
@@ -784,6 +866,12 @@ impl SessionState {
                                 .as_ref()
                                 .map(|x| (obs.signal_source.unwrap_or(0) as u32, x.clone())),
                         });
+                    }
+                    if let Some(e) = plan_failed {
+                        // The observation is applied (Ξ, D, the tick) and
+                        // logged above, so memory and log agree; the reply
+                        // is the planner's error.
+                        return Err(e.into());
                     }
                     out.push(step);
                 }
@@ -803,12 +891,15 @@ impl SessionState {
         Ok(())
     }
 
+    /// Applies one observation. An error means nothing was applied; a
+    /// failed policy update after the observation was applied is
+    /// [`Applied::plan_failed`], so the caller logs the observation.
     fn apply(
         &mut self,
         obs: &ObservationIn,
         plan: bool,
         history_cap: usize,
-    ) -> Result<(StepOut, Option<usize>), ServiceError> {
+    ) -> Result<Applied, ServiceError> {
         let model = self.learner.agent().planning_model().model();
         let action_taken = match &obs.action_taken {
             None => None,
@@ -847,14 +938,20 @@ impl SessionState {
         let observed = self.learner.observe(&observation, signal)?;
         // Algorithm 1 lines 8-10, as `Agent::step`: act even if planning
         // failed, so the agent stays consistent.
-        let planned = (plan && self.learner.needs_plan()).then(|| self.learner.plan());
+        let planned = (plan && self.learner.needs_plan()).then(|| {
+            if self.fail_plans > 0 {
+                self.fail_plans -= 1;
+                return Err(AlgoError::Numerical(
+                    "injected policy update failure".into(),
+                ));
+            }
+            self.learner.plan()
+        });
         let action = self
             .learner
             .act()
             .ok_or_else(|| ServiceError::Internal("no state after an observation".into()))?;
-        if let Some(planned) = planned {
-            planned?;
-        }
+        let plan_failed = planned.and_then(Result::err);
         let agent = self.learner.agent();
         let drive = agent.drive().vector().to_vec();
         if obs.stimulus.is_some() {
@@ -871,8 +968,8 @@ impl SessionState {
             );
             push_tick(&mut self.history, history_cap, tick);
         }
-        Ok((
-            StepOut {
+        Ok(Applied {
+            step: StepOut {
                 tick: observed.tick,
                 action: agent.planning_model().model().actions()[action].clone(),
                 action_index: action,
@@ -881,9 +978,20 @@ impl SessionState {
                 policy_version: agent.policy_version(),
                 curiosity: observed.curiosity,
             },
-            action_taken,
-        ))
+            taken: action_taken,
+            plan_failed,
+        })
     }
+}
+
+/// One applied observation.
+struct Applied {
+    /// The reply.
+    step: StepOut,
+    /// The action the client reported taking, if any.
+    taken: Option<usize>,
+    /// The policy update after it failed (the observation stays applied).
+    plan_failed: Option<AlgoError>,
 }
 
 /// A shared handle.
