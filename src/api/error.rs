@@ -88,6 +88,13 @@ pub fn public_message(e: &ServiceError, status: StatusCode) -> String {
                 another observation), so it is safe to retry (details in the server log)"
             .to_string();
     }
+    if let ServiceError::Algo(AlgoError::Numerical(detail)) = e {
+        tracing::error!(error = %detail, "policy update failed");
+        return "the observation was applied and logged, but the policy update after it failed \
+                numerically (details in the server log); do not send it again: the next \
+                observation plans anew"
+            .to_string();
+    }
     if let ServiceError::SessionFailed(_) = e {
         // A server fault, but the client must learn what to do about it.
         return e.to_string();
