@@ -122,7 +122,8 @@ async fn slow_loris_and_idle_connections_are_closed_after_the_header_timeout() {
 
     // gRPC: a connection that never sends the HTTP/2 preface.
     let mut grpc = TcpStream::connect(format!("127.0.0.1:{}", server.grpc)).expect("connect");
-    grpc.write_all(b"PRI * HTTP/2.0\r\n").expect("half a preface");
+    grpc.write_all(b"PRI * HTTP/2.0\r\n")
+        .expect("half a preface");
     let closed = time_to_close(&mut grpc, Duration::from_secs(10))
         .expect("the gRPC port closes a connection without a preface");
     eprintln!("gRPC connection without a preface closed after {closed:?}");
@@ -141,13 +142,8 @@ async fn slow_loris_and_idle_connections_are_closed_after_the_header_timeout() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn connections_beyond_the_limit_wait_for_a_slot() {
-    let (server, _data) = start(&[
-        "--max-connections",
-        "3",
-        "--header-read-timeout-ms",
-        "1500",
-    ])
-    .await;
+    let (server, _data) =
+        start(&["--max-connections", "3", "--header-read-timeout-ms", "1500"]).await;
     let addr = format!("127.0.0.1:{}", server.http);
     let url = format!("{}/healthz", server.base());
     // With slots free, a request is answered at once.
@@ -303,7 +299,10 @@ async fn watch_streams_per_key_are_limited_over_both_transports() {
             data += chunk.len();
         }
     }
-    assert!(data > 0, "the first stream goes on past the request timeout");
+    assert!(
+        data > 0,
+        "the first stream goes on past the request timeout"
+    );
 
     // Closing a stream gives its slot back.
     drop(second);
@@ -503,7 +502,14 @@ async fn request_metric_labels_stay_bounded() {
             .expect("custom method");
         assert_eq!(resp.status(), 404);
     }
-    let (status, _) = rest(&client, reqwest::Method::GET, &format!("{base}/healthz"), None, None).await;
+    let (status, _) = rest(
+        &client,
+        reqwest::Method::GET,
+        &format!("{base}/healthz"),
+        None,
+        None,
+    )
+    .await;
     assert_eq!(status, 200);
     let text = client
         .get(format!("{base}/metrics"))
@@ -524,7 +530,9 @@ async fn request_metric_labels_stay_bounded() {
         .collect();
     let methods: BTreeSet<String> = lines.iter().filter_map(|l| label(l, "method")).collect();
     let routes: BTreeSet<String> = lines.iter().filter_map(|l| label(l, "route")).collect();
-    let allowed = ["GET", "POST", "DELETE", "PUT", "PATCH", "HEAD", "OPTIONS", "other"];
+    let allowed = [
+        "GET", "POST", "DELETE", "PUT", "PATCH", "HEAD", "OPTIONS", "other",
+    ];
     assert!(methods.contains("other"), "{methods:?}");
     assert!(
         methods.iter().all(|m| allowed.contains(&m.as_str())),
@@ -532,7 +540,9 @@ async fn request_metric_labels_stay_bounded() {
     );
     assert!(routes.contains("unmatched"), "{routes:?}");
     assert!(
-        routes.iter().all(|r| r == "unmatched" || r.starts_with('/')),
+        routes
+            .iter()
+            .all(|r| r == "unmatched" || r.starts_with('/')),
         "{routes:?}"
     );
     assert!(routes.len() <= 3, "{routes:?}");
@@ -547,7 +557,10 @@ async fn zero_connection_limits_are_refused_before_binding() {
         ("--max-streams-per-key", "MCAPI_MAX_STREAMS_PER_KEY"),
         ("--http2-max-streams", "MCAPI_HTTP2_MAX_STREAMS"),
         ("--http2-keepalive-ms", "MCAPI_HTTP2_KEEPALIVE_MS"),
-        ("--http2-keepalive-timeout-ms", "MCAPI_HTTP2_KEEPALIVE_TIMEOUT_MS"),
+        (
+            "--http2-keepalive-timeout-ms",
+            "MCAPI_HTTP2_KEEPALIVE_TIMEOUT_MS",
+        ),
         ("--tcp-keepalive-secs", "MCAPI_TCP_KEEPALIVE_SECS"),
     ] {
         let out = std::process::Command::new(env!("CARGO_BIN_EXE_mcapi"))
@@ -558,7 +571,10 @@ async fn zero_connection_limits_are_refused_before_binding() {
             .expect("mcapi runs");
         assert!(!out.status.success(), "{env}=0 accepted");
         let err = String::from_utf8_lossy(&out.stderr);
-        assert!(err.contains(&format!("{flag} must be at least 1")), "{env}: {err}");
+        assert!(
+            err.contains(&format!("{flag} must be at least 1")),
+            "{env}: {err}"
+        );
     }
 }
 

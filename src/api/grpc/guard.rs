@@ -26,8 +26,8 @@ use std::sync::Arc;
 use std::task::{Context, Poll};
 
 use axum::http::{HeaderMap, Request, Response};
-use hyper::body::{Body as HttpBody, Bytes, Frame};
 use http_body_util::{BodyExt, Full, LengthLimitError, Limited};
+use hyper::body::{Body as HttpBody, Bytes, Frame};
 use tonic::Status;
 use tonic::body::Body;
 use tower::{Layer, Service};
@@ -284,8 +284,9 @@ impl FrameLimit {
             self.head.extend_from_slice(&data[..n]);
             data = &data[n..];
             if self.head.len() == FRAME_HEAD {
-                let len = u32::from_be_bytes([self.head[1], self.head[2], self.head[3], self.head[4]])
-                    as usize;
+                let len =
+                    u32::from_be_bytes([self.head[1], self.head[2], self.head[3], self.head[4]])
+                        as usize;
                 self.head.clear();
                 if len > self.max {
                     return Err(to_status(ServiceError::LimitExceeded(format!(
@@ -343,9 +344,7 @@ mod tests {
     #[test]
     fn observations_are_counted_without_decoding() {
         // session_id = "ab", then three observations (one with state 5).
-        let msg = [
-            0x0a, 2, b'a', b'b', 0x12, 0, 0x12, 2, 0x10, 5, 0x12, 0,
-        ];
+        let msg = [0x0a, 2, b'a', b'b', 0x12, 0, 0x12, 2, 0x10, 5, 0x12, 0];
         assert_eq!(count_observations(&frame(&msg)), Some(3));
         assert_eq!(count_observations(&[]), Some(0));
         // Two frames are summed; a truncated or compressed one is unknown.
@@ -375,7 +374,9 @@ mod tests {
         stream.extend(&ok);
         // Fed a byte at a time, two messages at the limit pass.
         for b in &stream {
-            limit.scan(std::slice::from_ref(b)).expect("within the limit");
+            limit
+                .scan(std::slice::from_ref(b))
+                .expect("within the limit");
         }
         let big = frame(&[7; 11]);
         let err = limit.scan(&big[..3]).and_then(|()| limit.scan(&big[3..]));
