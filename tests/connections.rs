@@ -401,38 +401,42 @@ async fn raw_observe(server: &Server, message: Bytes, key: Option<&str>) -> toni
         .expect_err("refused")
 }
 
-fn rss_kib(pid: u32) -> u64 {
+/// A `/proc/<pid>/status` field in KiB: `VmHWM` is the peak resident set
+/// (what a decoded message costs even after it is freed), `VmRSS` the
+/// current one.
+fn proc_kib(pid: u32, field: &str) -> u64 {
     let status = std::fs::read_to_string(format!("/proc/{pid}/status")).expect("proc status");
     status
         .lines()
-        .find_map(|l| l.strip_prefix("VmRSS:"))
+        .find_map(|l| l.strip_prefix(field)?.strip_prefix(':'))
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
-        .expect("VmRSS")
+        .expect("a /proc status field")
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn oversized_observe_is_refused_before_decoding() {
     let (server, _data) = start(&["--api-key", KEY_A]).await;
+    let pid = server.pid();
     // The largest message the body limit lets through: 16 MiB of empty
     // observations (8 Mi entries), which used to decode to ~930 MB.
     let message = empty_observations((16 << 20) / 2 - 16);
     // Warm up the connection machinery before measuring.
     let status = raw_observe(&server, empty_observations(1), None).await;
     assert_eq!(status.code(), Code::Unauthenticated);
-    let before = rss_kib(server.pid());
+    let (rss0, peak0) = (proc_kib(pid, "VmRSS"), proc_kib(pid, "VmHWM"));
 
     // Without a key: refused before the body is read.
     let status = raw_observe(&server, message.clone(), None).await;
     assert_eq!(status.code(), Code::Unauthenticated, "{status:?}");
     assert_eq!(error_code(&status), "unauthenticated");
-    let after = rss_kib(server.pid());
+    let (rss1, peak1) = (proc_kib(pid, "VmRSS"), proc_kib(pid, "VmHWM"));
     eprintln!(
-        "unauthenticated 16 MiB Observe: server RSS {before} KiB -> {after} KiB ({:+} KiB)",
-        after as i64 - before as i64
+        "unauthenticated 16 MiB Observe: server RSS {rss0} -> {rss1} KiB, peak RSS {peak0} -> {peak1} KiB ({:+} KiB)",
+        peak1 as i64 - peak0 as i64
     );
     assert!(
-        after.saturating_sub(before) < 64 << 10,
-        "RSS grew from {before} KiB to {after} KiB"
+        peak1.saturating_sub(peak0) < 64 << 10,
+        "peak RSS grew from {peak0} KiB to {peak1} KiB"
     );
 
     // With a key: counted before decoding, refused as too long a batch.
@@ -440,14 +444,15 @@ async fn oversized_observe_is_refused_before_decoding() {
     assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
     assert_eq!(error_code(&status), "limit_exceeded");
     assert!(status.message().contains("observations"), "{status:?}");
-    let keyed = rss_kib(server.pid());
+    let (rss2, peak2) = (proc_kib(pid, "VmRSS"), proc_kib(pid, "VmHWM"));
     eprintln!(
-        "authenticated 16 MiB Observe: server RSS {after} KiB -> {keyed} KiB ({:+} KiB)",
-        keyed as i64 - after as i64
+        "authenticated 16 MiB Observe: server RSS {rss1} -> {rss2} KiB, peak RSS {peak1} -> {peak2} KiB ({:+} KiB)",
+        peak2 as i64 - peak1 as i64
     );
+    // The body is buffered (16 MiB, and once more contiguous), never decoded.
     assert!(
-        keyed.saturating_sub(after) < 128 << 10,
-        "RSS grew from {after} KiB to {keyed} KiB"
+        peak2.saturating_sub(peak1) < 128 << 10,
+        "peak RSS grew from {peak1} KiB to {peak2} KiB"
     );
 
     // A batch within the limit is decoded and served as before.
