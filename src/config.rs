@@ -106,7 +106,9 @@ pub struct ServeConfig {
     #[arg(long, env = "MCAPI_HEADER_READ_TIMEOUT_MS", default_value_t = ConnLimits::default().header_read_timeout_ms)]
     pub header_read_timeout_ms: u64,
     /// A request (body read included; not an open event or gRPC stream)
-    /// must be answered within this many ms, or it gets 503 `request_timeout`.
+    /// must be answered within this many ms, or it gets 503 / DEADLINE_EXCEEDED
+    /// `request_timeout`; a REST response write blocked this long (the
+    /// client stopped reading) closes the connection.
     #[arg(long, env = "MCAPI_REQUEST_TIMEOUT_MS", default_value_t = ConnLimits::default().request_timeout_ms)]
     pub request_timeout_ms: u64,
     /// Concurrent event streams (REST `/events`) plus gRPC `Watch` streams

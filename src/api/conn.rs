@@ -429,6 +429,97 @@ impl AsyncWrite for LimitedIo {
     }
 }
 
+/// A connection whose writes fail with `TimedOut` once one has made no
+/// progress for `limit` (nginx's `send_timeout`): a REST client that stops
+/// reading its response or its event stream does not hold its connection,
+/// nor its stream slot, forever.
+pub struct SendTimeout<T> {
+    inner: T,
+    limit: Duration,
+    /// Set while a write is blocked: when it started to be.
+    stalled: Option<Pin<Box<Sleep>>>,
+}
+
+impl<T> SendTimeout<T> {
+    /// `inner` with writes that may block for at most `limit`.
+    pub fn new(inner: T, limit: Duration) -> Self {
+        Self {
+            inner,
+            limit,
+            stalled: None,
+        }
+    }
+
+    /// The outcome of a write poll: progress clears the stall, a stall
+    /// past the limit is an error.
+    fn check<R>(
+        &mut self,
+        cx: &mut Context<'_>,
+        polled: Poll<std::io::Result<R>>,
+    ) -> Poll<std::io::Result<R>> {
+        if polled.is_ready() {
+            self.stalled = None;
+            return polled;
+        }
+        let limit = self.limit;
+        let stalled = self
+            .stalled
+            .get_or_insert_with(|| Box::pin(tokio::time::sleep(limit)));
+        if stalled.as_mut().poll(cx).is_ready() {
+            self.stalled = None;
+            tracing::debug!("a write made no progress within the send timeout");
+            return Poll::Ready(Err(std::io::Error::new(
+                std::io::ErrorKind::TimedOut,
+                "the client did not read for longer than the send timeout",
+            )));
+        }
+        Poll::Pending
+    }
+}
+
+impl<T: AsyncRead + Unpin> AsyncRead for SendTimeout<T> {
+    fn poll_read(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_read(cx, buf)
+    }
+}
+
+impl<T: AsyncWrite + Unpin> AsyncWrite for SendTimeout<T> {
+    fn poll_write(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        let polled = Pin::new(&mut self.inner).poll_write(cx, buf);
+        self.check(cx, polled)
+    }
+
+    fn poll_flush(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        let polled = Pin::new(&mut self.inner).poll_flush(cx);
+        self.check(cx, polled)
+    }
+
+    fn poll_shutdown(mut self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        Pin::new(&mut self.inner).poll_shutdown(cx)
+    }
+
+    fn poll_write_vectored(
+        mut self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        let polled = Pin::new(&mut self.inner).poll_write_vectored(cx, bufs);
+        self.check(cx, polled)
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        self.inner.is_write_vectored()
+    }
+}
+
 /// The request timeout of REST requests, installed by `mcapi serve` as a
 /// router extension; [`request_timeout`] applies it.
 #[derive(Debug, Clone, Copy)]
@@ -513,4 +604,56 @@ impl ResponseForPanic for GrpcPanic {
 /// and every other call go on.
 pub fn grpc_panic_layer() -> CatchPanicLayer<GrpcPanic> {
     CatchPanicLayer::custom(GrpcPanic)
+}
+
+#[cfg(test)]
+mod tests {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+
+    use super::*;
+
+    #[tokio::test]
+    async fn a_write_blocked_past_the_send_timeout_fails() {
+        let (near, mut far) = tokio::io::duplex(64);
+        let mut io = SendTimeout::new(near, Duration::from_millis(200));
+        // Progress: the peer reads as it goes.
+        let reader = tokio::spawn(async move {
+            let mut buf = vec![0u8; 1000];
+            far.read_exact(&mut buf).await.map(|_| far)
+        });
+        io.write_all(&[1u8; 1000])
+            .await
+            .expect("written while read");
+        let _far = reader.await.expect("reader").expect("read");
+        // The peer stops reading: the write fails after the limit.
+        let started = std::time::Instant::now();
+        let err = io
+            .write_all(&[2u8; 1000])
+            .await
+            .expect_err("a stalled write fails");
+        assert_eq!(err.kind(), std::io::ErrorKind::TimedOut);
+        let took = started.elapsed();
+        assert!(
+            took >= Duration::from_millis(150) && took < Duration::from_secs(2),
+            "{took:?}"
+        );
+    }
+
+    #[test]
+    fn zero_and_huge_limits_are_refused() {
+        assert_eq!(ConnLimits::default().validate(), Ok(()));
+        let zero = ConnLimits {
+            max_streams_per_key: 0,
+            ..ConnLimits::default()
+        };
+        assert_eq!(
+            zero.validate(),
+            Err("--max-streams-per-key must be at least 1".into())
+        );
+        let long = ConnLimits {
+            request_timeout_ms: 86_400_001,
+            ..ConnLimits::default()
+        };
+        assert!(long.validate().is_err());
+    }
 }

@@ -503,7 +503,7 @@ pub async fn serve_on(
 /// As [`serve_on`], with these options: at most `max_connections`
 /// connections, each with its HTTP/2 preface due within the header-read
 /// timeout, HTTP/2 and TCP keep-alive, `http2_max_streams` calls per
-/// connection, the request timeout on unary calls; keys checked and
+/// connection, the request timeout (in [`guard`]); keys checked and
 /// `Observe` batches counted before decoding ([`guard`]); a panicking
 /// method answers INTERNAL.
 pub async fn serve_with(
@@ -513,7 +513,7 @@ pub async fn serve_with(
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), ServeError> {
     let (stop_tx, stop_rx) = watch::channel(false);
-    let guard = guard::GuardLayer::new(Arc::clone(&manager));
+    let guard = guard::GuardLayer::new(Arc::clone(&manager), opts.limits.request_timeout());
     let routes = router_with(manager, &opts, stop_rx).await?;
     if let Ok(addr) = listener.local_addr() {
         tracing::info!(%addr, "gRPC listening");
@@ -534,8 +534,6 @@ pub async fn serve_with(
         .http2_keepalive_timeout(Some(Duration::from_millis(
             limits.http2_keepalive_timeout_ms,
         )))
-        // Unary calls; a stream's call returns as soon as it is open.
-        .timeout(limits.request_timeout())
         .layer(layers)
         .add_routes(routes)
         .serve_with_incoming_shutdown(limited_incoming(listener, limits), signal)

@@ -15,6 +15,9 @@
 //!   (`limit_exceeded`, as the session layer answers a decoded batch that
 //!   is too long). A decoded batch is then at most `max_batch` entries plus
 //!   what its bytes hold.
+//! - A call's response head is due within the request timeout (the body
+//!   read included): DEADLINE_EXCEEDED (`request_timeout`) after it; the
+//!   client's own `grpc-timeout` is applied by tonic as usual.
 //! - `Interact`'s messages (one observation each) are checked by their
 //!   gRPC length prefix as they stream in: one above
 //!   [`INTERACT_MESSAGE_LIMIT`] ends the call with RESOURCE_EXHAUSTED
@@ -24,6 +27,7 @@ use std::future::Future;
 use std::pin::Pin;
 use std::sync::Arc;
 use std::task::{Context, Poll};
+use std::time::Duration;
 
 use axum::http::{HeaderMap, Request, Response};
 use http_body_util::{BodyExt, Full, LengthLimitError, Limited};
@@ -52,6 +56,7 @@ struct Config {
     max_body_bytes: usize,
     max_batch: usize,
     interact_max: usize,
+    request_timeout: Duration,
 }
 
 /// The layer; see the module documentation.
@@ -61,8 +66,10 @@ pub struct GuardLayer {
 }
 
 impl GuardLayer {
-    /// A guard over the manager's keys and limits.
-    pub fn new(manager: Arc<SessionManager>) -> Self {
+    /// A guard over the manager's keys and limits; a call whose response
+    /// head takes longer than `request_timeout` gets DEADLINE_EXCEEDED
+    /// (`request_timeout`).
+    pub fn new(manager: Arc<SessionManager>, request_timeout: Duration) -> Self {
         let limits = manager.limits().clone();
         Self {
             cfg: Arc::new(Config {
@@ -70,6 +77,7 @@ impl GuardLayer {
                 max_body_bytes: limits.max_body_bytes,
                 max_batch: limits.max_batch,
                 interact_max: INTERACT_MESSAGE_LIMIT.min(limits.max_body_bytes),
+                request_timeout,
             }),
         }
     }
@@ -148,22 +156,35 @@ where
         }
         let cfg = Arc::clone(&self.cfg);
         Box::pin(async move {
-            let req = match method {
-                Method::Observe => match check_observe(req, &cfg).await {
-                    Ok(req) => req,
-                    Err(status) => return Ok(status.into_http()),
-                },
-                Method::Interact => req.map(|body| {
-                    Body::new(FrameLimit {
-                        inner: body,
-                        max: cfg.interact_max,
-                        head: Vec::with_capacity(FRAME_HEAD),
-                        left: 0,
-                    })
-                }),
-                Method::Other => req,
+            let timeout = cfg.request_timeout;
+            let call = async move {
+                let req = match method {
+                    Method::Observe => match check_observe(req, &cfg).await {
+                        Ok(req) => req,
+                        Err(status) => return Ok(status.into_http()),
+                    },
+                    Method::Interact => req.map(|body| {
+                        Body::new(FrameLimit {
+                            inner: body,
+                            max: cfg.interact_max,
+                            head: Vec::with_capacity(FRAME_HEAD),
+                            left: 0,
+                        })
+                    }),
+                    Method::Other => req,
+                };
+                inner.call(req).await
             };
-            inner.call(req).await
+            // Only the response head is timed: an open stream goes on.
+            match tokio::time::timeout(timeout, call).await {
+                Ok(result) => result,
+                Err(_) => Ok(to_status(ServiceError::RequestTimeout(format!(
+                    "the call was not answered within {} ms (the server's request timeout); \
+                     it may or may not have taken effect",
+                    timeout.as_millis()
+                )))
+                .into_http()),
+            }
         })
     }
 }
