@@ -1,6 +1,11 @@
 //! `mcapi serve`: binds both transports over one session manager, serves
 //! until told to stop, then finishes in-flight requests and stops the tick
 //! loop.
+//!
+//! Both ports are bounded by the connection limits of [`crate::api::conn`]
+//! (connections per port, header-read, request and send timeouts, TCP and
+//! HTTP/2 keep-alive); REST event streams and gRPC `Watch` streams share
+//! one budget per caller ([`crate::api::streams`]).
 
 use std::net::SocketAddr;
 use std::sync::Arc;

@@ -10,6 +10,13 @@
 //! away; `Watch` sends a snapshot per interval. Both end, with UNAVAILABLE,
 //! when the server shuts down, so a graceful shutdown is not held up by
 //! long-lived streams.
+//!
+//! Bounds ([`serve_with`], issue 12): keys are checked and `Observe`
+//! batches counted before a message is decoded ([`guard`]); a caller's
+//! `Watch` streams count against its budget of watch streams, shared with
+//! the REST event streams ([`crate::api::streams`]); connections, HTTP/2
+//! streams per connection, keep-alive and the request timeout come from
+//! [`ConnLimits`]; a panicking method answers INTERNAL.
 
 pub mod convert;
 pub mod guard;
