@@ -8,6 +8,7 @@ use std::time::Duration;
 use clap::{Args, ValueEnum};
 use serde::Serialize;
 
+use crate::api::conn::ConnLimits;
 use crate::service::{ApiKeys, Limits, ManagerOptions};
 
 /// Log output format.
@@ -132,6 +133,43 @@ pub struct ServeConfig {
     /// Maximum bytes of one response of value tables.
     #[arg(long, env = "MCAPI_MAX_RESPONSE_BYTES", default_value_t = Limits::default().max_response_bytes)]
     pub max_response_bytes: usize,
+
+    // Connection limits
+    /// Open connections per port (REST and gRPC each); further clients wait
+    /// in the listen backlog until one closes.
+    #[arg(long, env = "MCAPI_MAX_CONNECTIONS", default_value_t = ConnLimits::default().max_connections)]
+    pub max_connections: usize,
+    /// A client must send a complete request head within this many ms of
+    /// connecting or of its previous response (REST; also the idle limit of
+    /// a kept-alive connection), and the HTTP/2 preface within it (gRPC).
+    #[arg(long, env = "MCAPI_HEADER_READ_TIMEOUT_MS", default_value_t = ConnLimits::default().header_read_timeout_ms)]
+    pub header_read_timeout_ms: u64,
+    /// A request (body read included; not an open event or gRPC stream)
+    /// must be answered within this many ms, or it gets 503 / DEADLINE_EXCEEDED
+    /// `request_timeout`; a REST response write blocked this long (the
+    /// client stopped reading) closes the connection.
+    #[arg(long, env = "MCAPI_REQUEST_TIMEOUT_MS", default_value_t = ConnLimits::default().request_timeout_ms)]
+    pub request_timeout_ms: u64,
+    /// Concurrent event streams (REST `/events`) plus gRPC `Watch` streams
+    /// per API key (per client IP address without keys); beyond it 429
+    /// `too_many_streams` / RESOURCE_EXHAUSTED.
+    #[arg(long, env = "MCAPI_MAX_STREAMS_PER_KEY", default_value_t = ConnLimits::default().max_streams_per_key)]
+    pub max_streams_per_key: usize,
+    /// Concurrent HTTP/2 streams (calls) per gRPC connection.
+    #[arg(long, env = "MCAPI_HTTP2_MAX_STREAMS", default_value_t = ConnLimits::default().http2_max_streams)]
+    pub http2_max_streams: u32,
+    /// HTTP/2 keep-alive: a gRPC connection is pinged after this many ms
+    /// without traffic, and closed if the ping is not answered within
+    /// --http2-keepalive-timeout-ms.
+    #[arg(long, env = "MCAPI_HTTP2_KEEPALIVE_MS", default_value_t = ConnLimits::default().http2_keepalive_ms)]
+    pub http2_keepalive_ms: u64,
+    /// See --http2-keepalive-ms.
+    #[arg(long, env = "MCAPI_HTTP2_KEEPALIVE_TIMEOUT_MS", default_value_t = ConnLimits::default().http2_keepalive_timeout_ms)]
+    pub http2_keepalive_timeout_ms: u64,
+    /// TCP keep-alive probes start after this many seconds of silence on a
+    /// connection (both ports), so dead peers are noticed.
+    #[arg(long, env = "MCAPI_TCP_KEEPALIVE_SECS", default_value_t = ConnLimits::default().tcp_keepalive_secs)]
+    pub tcp_keepalive_secs: u64,
 }
 
 impl ServeConfig {
@@ -165,6 +203,20 @@ impl ServeConfig {
             max_key_bytes: self.max_key_bytes,
             max_response_bytes: self.max_response_bytes,
             ..Limits::default()
+        }
+    }
+
+    /// The connection limits in force.
+    pub fn conn_limits(&self) -> ConnLimits {
+        ConnLimits {
+            max_connections: self.max_connections,
+            header_read_timeout_ms: self.header_read_timeout_ms,
+            request_timeout_ms: self.request_timeout_ms,
+            max_streams_per_key: self.max_streams_per_key,
+            http2_max_streams: self.http2_max_streams,
+            http2_keepalive_ms: self.http2_keepalive_ms,
+            http2_keepalive_timeout_ms: self.http2_keepalive_timeout_ms,
+            tcp_keepalive_secs: self.tcp_keepalive_secs,
         }
     }
 
@@ -242,6 +294,6 @@ impl ServeConfig {
         if self.max_roc_centres < 2 {
             return Err("--max-roc-centres must be at least 2 (ROC merges a pair)".into());
         }
-        Ok(())
+        self.conn_limits().validate()
     }
 }

@@ -18,11 +18,12 @@
 //! session ticks.
 
 use std::convert::Infallible;
+use std::net::SocketAddr;
 use std::sync::{Arc, LazyLock};
 use std::time::Duration;
 
 use axum::extract::rejection::QueryRejection;
-use axum::extract::{Path, Query, State};
+use axum::extract::{ConnectInfo, Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -37,6 +38,7 @@ use tracing::Instrument;
 
 use crate::api::error::{ApiError, ErrorBody, classify, public_message};
 use crate::api::rest::{AppState, Auth, query};
+use crate::api::streams::StreamLimiter;
 use crate::service::{Caller, HistoryEntry, ServiceError, SessionManager, ValueSelection};
 
 /// Default polling interval of the events stream.
@@ -212,22 +214,35 @@ struct EndEvent<'a> {
 /// and a `values` event (V and the greedy policy, as
 /// `GET /v1/sessions/{id}/values`) whenever the policy version changed.
 /// When the session is deleted: an `end` event, then the stream closes.
-/// Comment lines keep idle connections open.
+/// Comment lines keep idle connections open. A caller (an API key; a
+/// client address without keys) holds at most `--max-streams-per-key`
+/// event and gRPC `Watch` streams at once: 429 `too_many_streams` beyond.
 #[utoipa::path(get, path = "/v1/sessions/{id}/events", params(EventsQuery),
     responses(
         (status = 200, description = "`session`, `tick`, `values` and `end` events", content_type = "text/event-stream", body = String),
-        (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 404, body = ErrorBody)))]
+        (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 404, body = ErrorBody),
+        (status = 429, body = ErrorBody)))]
 pub async fn events(
     State(state): State<AppState>,
     Auth(caller): Auth,
     Path(id): Path<String>,
     q: Result<Query<EventsQuery>, QueryRejection>,
     stopping: Option<Extension<Stopping>>,
+    streams: Option<Extension<Arc<StreamLimiter>>>,
+    peer: Option<Extension<ConnectInfo<SocketAddr>>>,
 ) -> Result<Response, ApiError> {
     let interval = query(q)?.interval()?;
     // An unknown session fails the request itself, before any stream.
     let first = state.manager.get(caller, &id)?;
     let first = json_event("session", &first)?;
+    // Held by the stream's task: given back when the stream ends.
+    let slot = match streams {
+        Some(Extension(streams)) => {
+            let peer = peer.map(|Extension(ConnectInfo(addr))| addr.ip());
+            Some(streams.acquire(caller, peer)?)
+        }
+        None => None,
+    };
     let (tx, rx) = mpsc::channel(STREAM_BUFFER);
     let manager = Arc::clone(&state.manager);
     let span = tracing::debug_span!("events", session = %id);
@@ -246,6 +261,7 @@ pub async fn events(
                 () = tx.closed() => tracing::debug!("client went away"),
                 () = stopped => tracing::debug!("server stopping"),
             }
+            drop(slot);
         }
         .instrument(span),
     );

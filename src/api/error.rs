@@ -75,6 +75,16 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
             "storage_unavailable",
         ),
         ServiceError::Internal(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
+        ServiceError::TooManyStreams(_) => (
+            H::TOO_MANY_REQUESTS,
+            G::ResourceExhausted,
+            "too_many_streams",
+        ),
+        ServiceError::RequestTimeout(_) => (
+            H::SERVICE_UNAVAILABLE,
+            G::DeadlineExceeded,
+            "request_timeout",
+        ),
     }
 }
 

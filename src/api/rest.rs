@@ -166,6 +166,10 @@ pub fn router(state: AppState) -> Router {
         .merge(crate::api::dashboard::routes()) // the page at `/` and the events stream
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(body_limit))
+        // `mcapi serve` sets the timeout (`conn::RequestTimeout`).
+        .layer(middleware::from_fn(crate::api::conn::request_timeout))
+        // A panicking handler answers 500 `internal`, and is recorded.
+        .layer(crate::api::conn::rest_panic_layer())
         .layer(middleware::from_fn(record_request))
         .with_state(state)
 }
@@ -177,14 +181,31 @@ async fn not_found(method: axum::http::Method, uri: axum::http::Uri) -> ApiError
     )))
 }
 
-/// Request latency by route and status.
+/// The `method` label: one of a fixed set, so clients cannot create series.
+fn method_label(method: &axum::http::Method) -> &'static str {
+    use axum::http::Method as M;
+    match *method {
+        M::GET => "GET",
+        M::POST => "POST",
+        M::DELETE => "DELETE",
+        M::PUT => "PUT",
+        M::PATCH => "PATCH",
+        M::HEAD => "HEAD",
+        M::OPTIONS => "OPTIONS",
+        _ => "other",
+    }
+}
+
+/// Request latency by method, route and status, every label from a bounded
+/// set: the method from [`method_label`], the route as declared (or
+/// `unmatched`), the status code.
 async fn record_request(req: Request, next: Next) -> Response {
     let started = Instant::now();
     let route = req
         .extensions()
         .get::<MatchedPath>()
         .map_or_else(|| "unmatched".to_string(), |p| p.as_str().to_string());
-    let method = req.method().to_string();
+    let method = method_label(req.method());
     let response = next.run(req).await;
     let status = response.status().as_u16().to_string();
     metrics::histogram!(

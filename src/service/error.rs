@@ -52,6 +52,13 @@ pub enum ServiceError {
     /// A fault of the server, not the client's; details are logged, not sent.
     #[error("internal error")]
     Internal(String),
+    /// The caller already holds its maximum of concurrent watch streams
+    /// (REST events, gRPC `Watch`).
+    #[error("{0}")]
+    TooManyStreams(String),
+    /// The request did not finish within the server's request timeout.
+    #[error("{0}")]
+    RequestTimeout(String),
 }
 
 impl ServiceError {

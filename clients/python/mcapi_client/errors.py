@@ -30,6 +30,7 @@ __all__ = [
     "LimitExceeded",
     "PayloadTooLarge",
     "TooManySessions",
+    "TooManyStreams",
     "Unavailable",
     "TransportError",
     "Timeout",
@@ -122,9 +123,16 @@ class TooManySessions(LimitExceeded):
     """The server holds its maximum number of sessions (HTTP 429, ``too_many_sessions``)."""
 
 
+class TooManyStreams(LimitExceeded):
+    """The caller (its API key, or its address without keys) already holds the
+    server's maximum of open event and ``Watch`` streams (HTTP 429,
+    ``too_many_streams``); close one first."""
+
+
 class Unavailable(McapiError):
-    """The server cannot serve now: stopping, or its queue is full (HTTP 503,
-    gRPC UNAVAILABLE). Worth retrying later."""
+    """The server cannot serve now: stopping, its queue is full, or the request
+    did not finish within its request timeout (HTTP 503, gRPC UNAVAILABLE or
+    DEADLINE_EXCEEDED with ``request_timeout``). Worth retrying later."""
 
 
 class TransportError(Unavailable):
@@ -161,6 +169,8 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "limit_exceeded": (LimitExceeded, 413),
     "payload_too_large": (PayloadTooLarge, 413),
     "too_many_sessions": (TooManySessions, 429),
+    "too_many_streams": (TooManyStreams, 429),
+    "request_timeout": (Unavailable, 503),
     "unavailable": (Unavailable, 503),
     "storage_unavailable": (Unavailable, 503),
     "numerical_failure": (InternalError, 500),
