@@ -233,7 +233,10 @@ pub async fn events(
 ) -> Result<Response, ApiError> {
     let interval = query(q)?.interval()?;
     // An unknown session fails the request itself, before any stream.
-    let first = state.manager.get(caller, &id)?;
+    let first = {
+        let id = id.clone();
+        state.manager.off_runtime(move |m| m.get(caller, &id)).await?
+    };
     let first = json_event("session", &first)?;
     // Held by the stream's task: given back when the stream ends.
     let slot = match streams {
@@ -278,7 +281,7 @@ fn json_event(name: &str, data: &impl Serialize) -> Result<Event, ServiceError> 
 }
 
 /// What a stream has sent so far.
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone, Copy)]
 struct Cursor {
     /// Tick of the newest `tick` event sent.
     tick: Option<u64>,
@@ -288,7 +291,7 @@ struct Cursor {
 
 /// Sends `first`, then polls until the session is gone or sending fails.
 async fn stream_loop(
-    manager: &SessionManager,
+    manager: &Arc<SessionManager>,
     caller: Caller,
     id: &str,
     interval: Duration,
@@ -303,8 +306,19 @@ async fn stream_loop(
     let mut cursor = Cursor::default();
     loop {
         ticker.tick().await;
-        let (events, last) = match poll(manager, caller, id, &mut cursor) {
-            Ok(events) => (events, None),
+        // Reading the session and encoding its tables happen off the runtime.
+        let owned = id.to_string();
+        let polled = manager
+            .off_runtime(move |m| {
+                let mut next = cursor;
+                poll(m, caller, &owned, &mut next).map(|events| (events, next))
+            })
+            .await;
+        let (events, last) = match polled {
+            Ok((events, next)) => {
+                cursor = next;
+                (events, None)
+            }
             Err(ServiceError::NotFound(_)) => (Vec::new(), Some(end_event(id))),
             Err(e) => (Vec::new(), Some(error_event(&e))),
         };

@@ -187,7 +187,11 @@ impl Agents for AgentsService {
         let meta = metadata_session(request.metadata())?;
         let pb::GetSessionRequest { session_id } = request.into_inner();
         let id = convert::session_id(session_id, meta.as_deref()).map_err(to_status)?;
-        let info = self.manager.get(caller, &id).map_err(to_status)?;
+        let info = self
+            .manager
+            .off_runtime(move |m| m.get(caller, &id))
+            .await
+            .map_err(to_status)?;
         Ok(Response::new(convert::session_info(info)))
     }
 
@@ -199,7 +203,8 @@ impl Agents for AgentsService {
         let (after, limit) = convert::list_request(request.into_inner());
         let page = self
             .manager
-            .list(caller, after.as_deref(), limit)
+            .off_runtime(move |m| m.list(caller, after.as_deref(), limit))
+            .await
             .map_err(to_status)?;
         Ok(Response::new(convert::session_page(page)))
     }
@@ -274,7 +279,13 @@ impl Agents for AgentsService {
         let (id, interval) =
             convert::watch_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
         // An unknown session fails the call itself, before any stream.
-        let first = self.manager.get(caller, &id).map_err(to_status)?;
+        let first = {
+            let id = id.clone();
+            self.manager
+                .off_runtime(move |m| m.get(caller, &id))
+                .await
+                .map_err(to_status)?
+        };
         // Held by the stream's task: given back when the stream ends.
         let slot = self.stream_slot(caller, peer)?;
         // One slot: a slow reader gets fresh snapshots, not a backlog of old ones.
@@ -306,7 +317,11 @@ impl Agents for AgentsService {
         let meta = metadata_session(request.metadata())?;
         let (id, sel) =
             convert::values_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
-        let values = self.manager.values(caller, &id, sel).map_err(to_status)?;
+        let values = self
+            .manager
+            .off_runtime(move |m| m.values(caller, &id, sel))
+            .await
+            .map_err(to_status)?;
         Ok(Response::new(convert::values(values)))
     }
 
@@ -320,7 +335,8 @@ impl Agents for AgentsService {
             convert::history_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
         let entries = self
             .manager
-            .history(caller, &id, limit)
+            .off_runtime(move |m| m.history(caller, &id, limit))
+            .await
             .map_err(to_status)?;
         Ok(Response::new(convert::history(entries)))
     }
@@ -373,7 +389,7 @@ async fn interact_loop(
 /// A snapshot now and one per `interval`, until the session is deleted
 /// (ends with NOT_FOUND) or the client goes away.
 async fn watch_loop(
-    manager: &SessionManager,
+    manager: &Arc<SessionManager>,
     caller: Caller,
     id: &str,
     interval: Duration,
@@ -388,7 +404,8 @@ async fn watch_loop(
     }
     loop {
         ticker.tick().await;
-        match manager.get(caller, id) {
+        let owned = id.to_string();
+        match manager.off_runtime(move |m| m.get(caller, &owned)).await {
             Ok(info) => {
                 if tx.send(Ok(convert::session_info(info))).await.is_err() {
                     return;
