@@ -235,7 +235,10 @@ pub async fn events(
     // An unknown session fails the request itself, before any stream.
     let first = {
         let id = id.clone();
-        state.manager.off_runtime(move |m| m.get(caller, &id)).await?
+        state
+            .manager
+            .off_runtime(move |m| m.get(caller, &id))
+            .await?
     };
     let first = json_event("session", &first)?;
     // Held by the stream's task: given back when the stream ends.

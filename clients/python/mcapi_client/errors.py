@@ -31,6 +31,8 @@ __all__ = [
     "PayloadTooLarge",
     "TooManySessions",
     "TooManyStreams",
+    "QuotaExceeded",
+    "SessionFailed",
     "Unavailable",
     "TransportError",
     "Timeout",
@@ -129,6 +131,12 @@ class TooManyStreams(LimitExceeded):
     ``too_many_streams``); close one first."""
 
 
+class QuotaExceeded(LimitExceeded):
+    """The caller's API key (or, without keys, all clients together) would
+    exceed its quota of sessions or of their estimated memory (HTTP 429,
+    ``quota_exceeded``); delete sessions first."""
+
+
 class Unavailable(McapiError):
     """The server cannot serve now: stopping, its queue is full, or the request
     did not finish within its request timeout (HTTP 503, gRPC UNAVAILABLE or
@@ -147,6 +155,11 @@ class Timeout(McapiError):
 
 class InternalError(McapiError):
     """A fault of the server, not the caller's (HTTP 500, gRPC INTERNAL)."""
+
+
+class SessionFailed(InternalError):
+    """An update of the session failed inside the server and the session is
+    quarantined (HTTP 500, ``session_failed``): delete it and create it again."""
 
 
 # The server's stable codes (src/api/error.rs) with their class and HTTP status.
@@ -170,6 +183,8 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "payload_too_large": (PayloadTooLarge, 413),
     "too_many_sessions": (TooManySessions, 429),
     "too_many_streams": (TooManyStreams, 429),
+    "quota_exceeded": (QuotaExceeded, 429),
+    "session_failed": (SessionFailed, 500),
     "request_timeout": (Unavailable, 503),
     "unavailable": (Unavailable, 503),
     "storage_unavailable": (Unavailable, 503),
