@@ -34,6 +34,7 @@ import random
 import socket
 import statistics
 import subprocess
+import sys
 import tempfile
 import threading
 import time
@@ -75,30 +76,36 @@ def chain(states: int, k: int | None = None) -> dict:
     return model
 
 
-class Prober(threading.Thread):
-    def __init__(self, port: int):
-        super().__init__(daemon=True)
-        self.port = port
-        self.samples: list[float] = []
-        self.failures = 0
-        self.stop = threading.Event()
+def probe(port: int, seconds: float) -> None:
+    """The prober's own process (`--probe`): the load's threads hold this
+    process's GIL while they decode large answers, which would show up as
+    /healthz latency if the prober ran among them. Prints the samples."""
+    samples, failures = [], 0
+    end = time.monotonic() + seconds
+    while time.monotonic() < end:
+        t = time.perf_counter()
+        try:
+            status, _ = request(port, "GET", "/healthz", timeout=10)
+            if status == 200:
+                samples.append(time.perf_counter() - t)
+            else:
+                failures += 1
+        except OSError:
+            failures += 1
+        time.sleep(0.02)
+    print(json.dumps({"samples": samples, "failures": failures}))
 
-    def run(self):
-        while not self.stop.is_set():
-            t = time.perf_counter()
-            try:
-                status, _ = request(self.port, "GET", "/healthz", timeout=10)
-                if status == 200:
-                    self.samples.append(time.perf_counter() - t)
-                else:
-                    self.failures += 1
-            except OSError:
-                self.failures += 1
-            time.sleep(0.02)
 
-    def take(self) -> list[float]:
-        out, self.samples = self.samples, []
-        return out
+def run_probe(port: int, seconds: float) -> subprocess.Popen:
+    return subprocess.Popen(
+        [sys.executable, __file__, "--probe", str(port), "--seconds", str(seconds)],
+        stdout=subprocess.PIPE, text=True)
+
+
+def probe_result(proc: subprocess.Popen) -> tuple[list[float], int]:
+    out, _ = proc.communicate(timeout=600)
+    d = json.loads(out)
+    return d["samples"], d["failures"]
 
 
 def half_open(port: int, n: int, stop: threading.Event, counts: dict):
@@ -197,7 +204,11 @@ def main():
     ap.add_argument("--half-open", type=int, default=400)
     ap.add_argument("--only", choices=["half-open", "pvf", "curiosity", "values"],
                     help="run one kind of load only (to find what slows /healthz)")
+    ap.add_argument("--probe", type=int, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.probe:
+        probe(args.probe, args.seconds)
+        return
     port, grpc = free_port(), free_port()
     with tempfile.TemporaryDirectory() as data:
         server = subprocess.Popen(
@@ -213,10 +224,7 @@ def main():
                     pass
                 time.sleep(0.02)
             rss_start = rss(server.pid)
-            prober = Prober(port)
-            prober.start()
-            time.sleep(args.idle_seconds)
-            idle = prober.take()
+            idle, idle_failures = probe_result(run_probe(port, args.idle_seconds))
 
             stop = threading.Event()
             counts = {"opened": 0, "dropped": 0, "refused": 0, "open_now": 0}
@@ -231,11 +239,10 @@ def main():
                        for f, a in work]
             for t in threads:
                 t.start()
-            time.sleep(args.seconds)
-            loaded = prober.take()
+            time.sleep(2)  # the half-open connections are open, the work under way
+            loaded, failures = probe_result(run_probe(port, args.seconds))
             rss_peak = rss(server.pid)
             stop.set()
-            prober.stop.set()
             for t in threads:
                 t.join(timeout=180)
             rss_end = rss(server.pid)
@@ -244,7 +251,8 @@ def main():
             server.wait(timeout=60)
     print(summary("healthz idle  ", idle))
     print(summary("healthz loaded", loaded))
-    print(f"p99 loaded / idle: {pct(loaded, 99) / pct(idle, 99):.1f}x; probe failures: {prober.failures}")
+    print(f"p99 loaded / idle: {pct(loaded, 99) / pct(idle, 99):.1f}x; "
+          f"probe failures: {idle_failures} idle, {failures} loaded")
     print("work:", json.dumps(counts, sort_keys=True))
     print(f"RSS: start {rss_start >> 20} MiB, under load {rss_peak >> 20} MiB, after {rss_end >> 20} MiB")
 
