@@ -4,4 +4,5 @@
 pub mod dashboard;
 pub mod error;
 pub mod grpc;
+pub mod openapi;
 pub mod rest;
