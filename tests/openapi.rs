@@ -80,8 +80,8 @@ fn every_operation_is_tagged_and_documents_its_errors() {
                         let name = r["$ref"].as_str().expect("a reusable error response");
                         let name = name.trim_start_matches("#/components/responses/");
                         assert_eq!(
-                            d["components"]["responses"][name]["content"]["application/json"]
-                                ["schema"]["$ref"],
+                            d["components"]["responses"][name]["content"]["application/json"]["schema"]
+                                ["$ref"],
                             "#/components/schemas/ErrorBody",
                             "{method} {path} {code}"
                         );
@@ -102,7 +102,7 @@ fn every_operation_is_tagged_and_documents_its_errors() {
             }
         }
     }
-    assert_eq!(operations, 12);
+    assert_eq!(operations, 11);
     for code in ["413", "429"] {
         assert!(d["paths"]["/v1/sessions"]["post"]["responses"][code].is_object());
     }
@@ -142,7 +142,10 @@ fn bounds_are_the_limits_of_the_server() {
     assert_eq!(full["properties"]["states"]["minimum"], 1);
     assert_eq!(full["properties"]["actions"]["maxItems"], 1234);
     assert_eq!(full["properties"]["stimuli"]["maxItems"], 7);
-    assert_eq!(full["properties"]["next"]["items"]["items"]["maximum"], 1233);
+    assert_eq!(
+        full["properties"]["next"]["items"]["items"]["maximum"],
+        1233
+    );
     let grid = schema(&d, "GridModel");
     assert_eq!(
         grid["properties"]["sources"]["additionalProperties"]["maximum"],
@@ -254,7 +257,9 @@ fn every_body_form_is_a_closed_one_of_branch() {
         .as_array()
         .expect("oneOf");
     assert_eq!(observe.len(), 2);
-    let rate = schema(&d, "StimulusRate")["oneOf"].as_array().expect("oneOf");
+    let rate = schema(&d, "StimulusRate")["oneOf"]
+        .as_array()
+        .expect("oneOf");
     assert_eq!(rate[1]["enum"], json!(["sample_mean"]));
 }
 
@@ -273,13 +278,11 @@ async fn call(app: &axum::Router, method: &str, uri: &str, body: Option<Value>) 
         .await
         .expect("infallible");
     let status = resp.status().as_u16();
-    let bytes = resp
-        .into_body()
-        .collect()
-        .await
-        .expect("body")
-        .to_bytes();
-    (status, serde_json::from_slice(&bytes).unwrap_or(Value::Null))
+    let bytes = resp.into_body().collect().await.expect("body").to_bytes();
+    (
+        status,
+        serde_json::from_slice(&bytes).unwrap_or(Value::Null),
+    )
 }
 
 fn app() -> axum::Router {
@@ -301,13 +304,8 @@ async fn the_issues_three_cases_and_the_examples() {
     let id = info["id"].as_str().expect("id").to_string();
     for form in ["PresetModel", "GridModel"] {
         let model = schema(&d, form)["examples"][0].clone();
-        let (status, body) = call(
-            &app,
-            "POST",
-            "/v1/sessions",
-            Some(json!({"model": model})),
-        )
-        .await;
+        let (status, body) =
+            call(&app, "POST", "/v1/sessions", Some(json!({"model": model}))).await;
         assert_eq!(status, 201, "{form}: {body}");
     }
     let obs = format!("/v1/sessions/{id}/observations");
@@ -347,7 +345,13 @@ async fn the_issues_three_cases_and_the_examples() {
         assert_eq!(status, StatusCode::BAD_REQUEST.as_u16(), "{uri}: {body}");
         assert!(body["message"].as_str().expect("message").contains("limit"));
     }
-    let (status, body) = call(&app, "GET", &format!("/v1/sessions/{id}/history?limit=1"), None).await;
+    let (status, body) = call(
+        &app,
+        "GET",
+        &format!("/v1/sessions/{id}/history?limit=1"),
+        None,
+    )
+    .await;
     assert_eq!(status, 200);
     assert_eq!(body.as_array().expect("entries").len(), 1);
 }

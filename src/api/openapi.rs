@@ -235,7 +235,12 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         ));
 
     let action_ref = OneOfBuilder::new()
-        .item(integer(0, max_state, false, "the action's index in `actions`"))
+        .item(integer(
+            0,
+            max_state,
+            false,
+            "the action's index in `actions`",
+        ))
         .item(typed(Type::String, false).description(Some("one of the names in `actions`")))
         .description(Some("An action, by index or by name."));
 
@@ -330,8 +335,14 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
                 ),
             )
             .property("actions", names_of("n action", limits.max_pairs, true))
-            .property("stimuli", names_of(" stimulus dimension", max_stimuli, true))
-            .property("basis", nullable_ref("Basis", "the basis (default by size)"))
+            .property(
+                "stimuli",
+                names_of(" stimulus dimension", max_stimuli, true),
+            )
+            .property(
+                "basis",
+                nullable_ref("Basis", "the basis (default by size)"),
+            )
             .required("states")
             .required("actions")
             .required("stimuli")
@@ -339,7 +350,8 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         if with == "next" {
             o.property("next", next).property("transitions", null)
         } else {
-            o.property("transitions", transitions).property("next", null)
+            o.property("transitions", transitions)
+                .property("next", null)
         }
     };
 
@@ -403,7 +415,10 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
                  (default: the marks)",
             )),
     )
-    .property("basis", nullable_ref("Basis", "the basis (default by size)"))
+    .property(
+        "basis",
+        nullable_ref("Basis", "the basis (default by size)"),
+    )
     .required("grid")
     .required("sources")
     .examples([json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}})]);
@@ -478,7 +493,12 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     )
     .property(
         "gain",
-        number(Bound::Excl(0.0), Bound::None, false, "g of Eq. 7 (default 800)"),
+        number(
+            Bound::Excl(0.0),
+            Bound::None,
+            false,
+            "g of Eq. 7 (default 800)",
+        ),
     )
     .property(
         "clip",
@@ -766,7 +786,11 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         ("GridModel", grid.into()),
         (
             "FullModelNext",
-            full_model("next", "A full model with deterministic transitions `next`.").into(),
+            full_model(
+                "next",
+                "A full model with deterministic transitions `next`.",
+            )
+            .into(),
         ),
         (
             "FullModelTransitions",

@@ -472,7 +472,10 @@ async fn observe(
 struct ValuesQuery {
     /// Comma-separated tables: v, q, policy, r, xi, all (default, and when
     /// blank: `v,policy`).
-    #[param(nullable = false, pattern = r"^[\t-\r \x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]*((v|q|policy|r|xi|all)[\t-\r \x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]*(,[\t-\r \x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]*(v|q|policy|r|xi|all)[\t-\r \x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]*)*)?$")]
+    #[param(
+        nullable = false,
+        pattern = r"^[\t-\r \x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]*((v|q|policy|r|xi|all)[\t-\r \x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]*(,[\t-\r \x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]*(v|q|policy|r|xi|all)[\t-\r \x85\xa0\u1680\u2000-\u200a\u2028\u2029\u202f\u205f\u3000]*)*)?$"
+    )]
     include: Option<String>,
 }
 
