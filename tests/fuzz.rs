@@ -898,7 +898,14 @@ fn fuzz_grpc(method: &str, bytes: Vec<u8>) -> Result<(), TestCaseError> {
             probe["agent"] = json!({"curiosity": {"signal_dim": c.signal_dim,
                 "params": serde_json::from_str::<Value>(&c.params_json).unwrap_or(Value::Null)}});
         }
-        if known_unfixed(&probe) {
+        // gRPC reads `params_json` with serde, which takes a struct from an
+        // array of its fields (`[557733413844816262]` is `max_centres`):
+        // found by this fuzzer, refused over REST now, reported for gRPC
+        // (src/api/grpc/convert.rs); arrays are not sent until it is fixed.
+        let positional = probe
+            .pointer("/agent/curiosity/params")
+            .is_some_and(Value::is_array);
+        if positional || known_unfixed(&probe) {
             e.skipped.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
             return Ok(());
         }
@@ -1172,7 +1179,7 @@ fn a_long_quoted_input_still_gets_its_status() {
             .expect_err("refused");
     assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
     assert!(status.message().len() < 1200, "{}", status.message().len());
-    let body = json!({"model": {"preset": "hallway"}, "agent": {"curiosity": {"signal_dim": 2, "params": "x".repeat(20_000)}}});
+    let body = json!({"model": {"preset": "x".repeat(20_000)}});
     let (status, reply) = e.rt.block_on(rest_call(
         &e.rest,
         "POST",
@@ -1186,4 +1193,49 @@ fn a_long_quoted_input_still_gets_its_status() {
             .is_some_and(|m| m.len() < 1200 && m.ends_with("more bytes)")),
         "{reply}"
     );
+}
+
+/// Found by this fuzzer: serde reads a struct from an array of its fields
+/// in order, so `"params": [557733413844816262]` was `max_centres` =
+/// 557733413844816262 and the server aborted allocating ROC centres, and
+/// `[25]` was the observation `{"state": 25}`. Neither form is in the
+/// document; both are refused now, before the body is typed.
+#[test]
+fn structs_are_objects_only() {
+    let e = env();
+    let (id, _, _) = &e.sessions[0];
+    for (uri, body) in [
+        (
+            "/v1/sessions".to_string(),
+            json!({"model": {"preset": "hallway"}, "agent": {"curiosity": {"signal_dim": 2, "params": [557_733_413_844_816_262_u64]}}}),
+        ),
+        (
+            "/v1/sessions".to_string(),
+            json!({"model": {"preset": "hallway"}, "agent": {"curiosity": {"signal_dim": 2, "params": []}}}),
+        ),
+        ("/v1/sessions".to_string(), json!([{"preset": "hallway"}])),
+        (
+            "/v1/sessions".to_string(),
+            json!({"model": {"preset": "hallway", "basis": ["proto_value", 5]}}),
+        ),
+        (format!("/v1/sessions/{id}/observations"), json!([25])),
+        (
+            format!("/v1/sessions/{id}/observations"),
+            json!({"observations": [[25]]}),
+        ),
+    ] {
+        let (status, reply) = e.rt.block_on(rest_call(
+            &e.rest,
+            "POST",
+            &uri,
+            body.to_string().into_bytes(),
+        ));
+        assert_eq!(status, 400, "{body}: {reply}");
+        assert!(
+            reply["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("must be a JSON object")),
+            "{body}: {reply}"
+        );
+    }
 }

@@ -21,7 +21,7 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="$root/.venv-tools"
 st="$venv/bin/schemathesis"
 bin="${MCAPI_BIN:-$root/target/debug/mcapi}"
-max_examples="${CONTRACT_MAX_EXAMPLES:-25}"
+max_examples="${CONTRACT_MAX_EXAMPLES:-200}"
 
 reports="$root/target/contract"
 

@@ -63,18 +63,86 @@ impl FromRequestParts<AppState> for Auth {
 }
 
 /// A JSON body whose rejections become `{"code","message"}` errors. Numbers
-/// are read as JSON Schema reads them (see [`integral_numbers_as_integers`]).
+/// are read as JSON Schema reads them (see [`integral_numbers_as_integers`])
+/// and objects are required where `T` has structs (see [`BodyShape`]).
 pub struct JsonBody<T>(pub T);
+
+/// Where a request type has structs, as JSON pointers (`*`: every item of
+/// an array). serde reads a struct from an array of its fields in order as
+/// well as from an object (`"params": [3, 0.01]`), a form the OpenAPI
+/// document does not have: such bodies are refused before they are typed.
+pub trait BodyShape {
+    /// Pointers to the values that must be objects (or null) when present.
+    const OBJECTS: &'static [&'static str];
+}
+
+impl BodyShape for CreateSession {
+    const OBJECTS: &'static [&'static str] = &[
+        "",
+        "/agent",
+        "/agent/curiosity",
+        "/agent/curiosity/params",
+        "/model",
+        "/model/basis",
+        "/model/transitions/*",
+    ];
+}
+
+/// The structs of an observation body: the observation, or each of a batch.
+const OBSERVE_OBJECTS: &[&str] = &["", "/observations/*"];
+
+/// Refuses a body with an array (or any non-object but null) where the
+/// request type has a struct.
+pub fn require_objects(value: &Value, pointers: &[&str]) -> Result<(), ServiceError> {
+    fn walk(value: &Value, path: &[&str], at: &mut Vec<String>) -> Result<(), ServiceError> {
+        let Some((first, rest)) = path.split_first() else {
+            return match value {
+                Value::Object(_) | Value::Null => Ok(()),
+                _ if at.is_empty() => Err(ServiceError::BadRequest(
+                    "the body must be a JSON object".into(),
+                )),
+                _ => Err(ServiceError::field(&at.join("."), "must be a JSON object")),
+            };
+        };
+        match (*first, value) {
+            ("*", Value::Array(items)) => {
+                for (i, item) in items.iter().enumerate() {
+                    at.push(i.to_string());
+                    walk(item, rest, at)?;
+                    at.pop();
+                }
+                Ok(())
+            }
+            (key, Value::Object(map)) if key != "*" => match map.get(key) {
+                Some(child) => {
+                    at.push(key.to_string());
+                    walk(child, rest, at)?;
+                    at.pop();
+                    Ok(())
+                }
+                None => Ok(()),
+            },
+            // Not there, or not a container: the typed parse says what is wrong.
+            _ => Ok(()),
+        }
+    }
+    for pointer in pointers {
+        let path: Vec<&str> = pointer.split('/').skip(1).collect();
+        walk(value, &path, &mut Vec::new())?;
+    }
+    Ok(())
+}
 
 impl<S, T> FromRequest<S> for JsonBody<T>
 where
-    T: serde::de::DeserializeOwned,
+    T: serde::de::DeserializeOwned + BodyShape,
     S: Send + Sync,
 {
     type Rejection = ApiError;
 
     async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
         let JsonValue(value) = JsonValue::from_request(req, state).await?;
+        require_objects(&value, T::OBJECTS)?;
         // Typed from its text again, so errors name the field's path.
         let bytes = serde_json::to_vec(&value)
             .map_err(|e| ServiceError::Internal(format!("re-encoding a JSON body: {e}")))?;
@@ -446,6 +514,7 @@ async fn observe(
     Path(id): Path<String>,
     JsonValue(body): JsonValue,
 ) -> Result<Response, ApiError> {
+    require_objects(&body, OBSERVE_OBJECTS)?;
     let batch = body.get("observations").is_some();
     let parse_err = |e: serde_json::Error| {
         ApiError(ServiceError::BadRequest(format!(
