@@ -212,6 +212,14 @@ fn env() -> &'static Env {
 /// for the four tests on two cores).
 const DEFAULT_CASES: u32 = 1500;
 
+/// The fuzz tests run one at a time: the RSS budget is the process's, and
+/// their peaks would add up.
+fn one_at_a_time() -> std::sync::MutexGuard<'static, ()> {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    LOCK.lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 fn cases(default: u32) -> u32 {
     std::env::var("PROPTEST_CASES")
         .ok()
@@ -572,8 +580,19 @@ fn arb_json() -> impl Strategy<Value = Value> {
     })
 }
 
-/// The most a `Grow` mutation makes of one array or string, in bytes of JSON.
+/// The most a `Grow` mutation makes of one array or string, in bytes of
+/// JSON and in JSON values (a deeply nested array is small as text and
+/// large in memory): the generator's own memory counts in the RSS budget.
 const GROWN_BYTES: usize = 2 << 20;
+const GROWN_VALUES: usize = 100_000;
+
+fn node_count(v: &Value) -> usize {
+    1 + match v {
+        Value::Array(items) => items.iter().map(node_count).sum(),
+        Value::Object(map) => map.values().map(node_count).sum(),
+        _ => 0,
+    }
+}
 
 /// One change to a JSON value, at the node `at` (an index into its nodes,
 /// modulo their number).
@@ -659,11 +678,14 @@ fn apply(v: &mut Value, (at, m): &(usize, Mutation)) {
             // counts in the RSS budget too.
             Some(Value::Array(items)) if !items.is_empty() => {
                 let original = items.clone();
-                let unit = original
+                let bytes = original
                     .iter()
                     .map(|x| x.to_string().len() + 1)
                     .sum::<usize>();
-                let n = (*n).min(original.len() * GROWN_BYTES / unit.max(1));
+                let values = original.iter().map(node_count).sum::<usize>();
+                let n = (*n)
+                    .min(original.len() * GROWN_BYTES / bytes.max(1))
+                    .min(original.len() * GROWN_VALUES / values.max(1));
                 while items.len() < n {
                     items.push(original[items.len() % original.len()].clone());
                 }
@@ -745,6 +767,7 @@ fn body(bases: Vec<Value>) -> impl Strategy<Value = Vec<u8>> {
 
 #[test]
 fn rest_create_survives_arbitrary_bodies() {
+    let _serial = one_at_a_time();
     let started = Instant::now();
     let mut runner = runner(DEFAULT_CASES);
     let result = runner.run(&body(create_bases()), fuzz_create);
@@ -763,6 +786,7 @@ fn rest_create_survives_arbitrary_bodies() {
 
 #[test]
 fn rest_observe_survives_arbitrary_bodies() {
+    let _serial = one_at_a_time();
     let started = Instant::now();
     let mut runner = runner(DEFAULT_CASES);
     let result = runner.run(&(0usize..4, body(observe_bases())), |(s, b)| {
@@ -1080,6 +1104,7 @@ fn grpc_observe_bodies(ids: Vec<String>) -> impl Strategy<Value = Vec<u8>> {
 
 #[test]
 fn grpc_create_and_observe_survive_arbitrary_messages() {
+    let _serial = one_at_a_time();
     let e = env();
     let started = Instant::now();
     let create =
