@@ -1,9 +1,9 @@
 # `make test` is what CI runs (.ci/run): formatting, lints, every test.
 CARGO ?= cargo
 
-.PHONY: test lint-docker fmt-check clippy unit build release bench figures peers clean python-test e2e
+.PHONY: test lint-docker fmt-check clippy unit build release bench figures peers clean python-test e2e contract fuzz
 
-test: lint-docker fmt-check clippy unit python-test e2e
+test: lint-docker fmt-check clippy unit contract python-test e2e
 
 # hadolint on the Dockerfile (installs a pinned hadolint into .venv-tools/).
 lint-docker:
@@ -41,6 +41,21 @@ python-test: build
 	$(PY_CLIENT)/.venv/bin/python -m pip install --quiet --disable-pip-version-check \
 	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[test,gymnasium,plot]'
 	cd $(PY_CLIENT) && MCAPI_BIN=$(MCAPI_BIN) .venv/bin/pytest
+
+# The REST contract (issue 12): schemathesis (pinned, installed into
+# .venv-tools/) against the debug binary with an in-memory store and an API
+# key on free ports, every phase (examples, coverage, fuzzing, stateful)
+# and every check, 0 failures; then the server must still be up and quick.
+# About 2-3 minutes; CONTRACT_MAX_EXAMPLES=200 for a longer run. Reports in
+# target/contract/.
+contract: build
+	bash tools/contract.sh
+
+# The generative fuzzer (tests/fuzz.rs) for longer than `unit` runs it:
+# FUZZ_CASES cases per test (unit: 1500). A failure prints its FUZZ_SEED.
+FUZZ_CASES ?= 20000
+fuzz:
+	PROPTEST_CASES=$(FUZZ_CASES) $(CARGO) test --locked --test fuzz -- --nocapture
 
 # The dashboard in headless Chromium (tests/e2e): drives a session against
 # the debug binary, checks that the charts and the heatmap render and

@@ -177,9 +177,11 @@ fn serve_asset(i: usize, headers: &HeaderMap) -> Response {
 
 /// Query of the events stream.
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
+#[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
 pub struct EventsQuery {
     /// Polling interval in milliseconds, 50..=10000 (default 250).
+    #[param(nullable = false, minimum = 50, maximum = 10000)]
     interval_ms: Option<u64>,
 }
 
@@ -217,11 +219,16 @@ struct EndEvent<'a> {
 /// Comment lines keep idle connections open. A caller (an API key; a
 /// client address without keys) holds at most `--max-streams-per-key`
 /// event and gRPC `Watch` streams at once: 429 `too_many_streams` beyond.
-#[utoipa::path(get, path = "/v1/sessions/{id}/events", params(EventsQuery),
+#[utoipa::path(get, path = "/v1/sessions/{id}/events", tag = "inspection", operation_id = "get_events",
+    params(("id" = String, Path, description = "The session's id, as `POST /v1/sessions` returned it."), EventsQuery),
     responses(
-        (status = 200, description = "`session`, `tick`, `values` and `end` events", content_type = "text/event-stream", body = String),
-        (status = 400, body = ErrorBody), (status = 401, body = ErrorBody), (status = 404, body = ErrorBody),
-        (status = 429, body = ErrorBody)))]
+        (status = 200, description = "`session`, `tick`, `values` and `end` events; the schema is one event's",
+            content_type = "text/event-stream", body = crate::api::openapi::SseEvent),
+        (status = 400, response = crate::api::openapi::BadRequest),
+        (status = 401, response = crate::api::openapi::Unauthorized),
+        (status = 404, response = crate::api::openapi::NotFound),
+        (status = 429, response = crate::api::openapi::TooManyRequests),
+        (status = 503, response = crate::api::openapi::Unavailable)))]
 pub async fn events(
     State(state): State<AppState>,
     Auth(caller): Auth,

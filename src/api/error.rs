@@ -113,7 +113,27 @@ pub fn public_message(e: &ServiceError, status: StatusCode) -> String {
         tracing::error!(error = ?e, "internal error");
         return "internal error".to_string();
     }
-    e.to_string()
+    capped(e.to_string())
+}
+
+/// Longest message sent, in bytes. A message may quote the input (serde's
+/// "invalid type: string \"...\""); over gRPC it travels in a trailer, and
+/// a trailer beyond the client's header-list limit (16 KiB by default)
+/// breaks the call with an HTTP/2 protocol error instead of the status.
+pub const MAX_MESSAGE_BYTES: usize = 1024;
+
+fn capped(mut message: String) -> String {
+    if message.len() <= MAX_MESSAGE_BYTES {
+        return message;
+    }
+    let total = message.len();
+    let mut end = MAX_MESSAGE_BYTES;
+    while !message.is_char_boundary(end) {
+        end -= 1;
+    }
+    message.truncate(end);
+    message.push_str(&format!("... ({} more bytes)", total - end));
+    message
 }
 
 /// The JSON error body: `{"code", "message"}`.

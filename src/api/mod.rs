@@ -5,5 +5,6 @@ pub mod conn;
 pub mod dashboard;
 pub mod error;
 pub mod grpc;
+pub mod openapi;
 pub mod rest;
 pub mod streams;

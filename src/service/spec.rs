@@ -450,7 +450,7 @@ pub struct EffectiveConfig {
     /// ρ.
     pub priorities: Vec<f64>,
     /// Ξ learning rate.
-    #[schema(value_type = Object)]
+    #[schema(schema_with = crate::api::openapi::stimulus_rate_ref)]
     pub stimulus_rate: StimulusRate,
     /// σ of Ξ's initialisation.
     pub optimistic_sd: f64,
