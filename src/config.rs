@@ -8,6 +8,7 @@ use std::time::Duration;
 use clap::{Args, ValueEnum};
 use serde::Serialize;
 
+use crate::api::conn::ConnLimits;
 use crate::service::{ApiKeys, Limits, ManagerOptions};
 
 /// Log output format.
@@ -93,6 +94,82 @@ pub struct ServeConfig {
     /// Buffered messages per gRPC stream.
     #[arg(long, env = "MCAPI_STREAM_BUFFER", default_value_t = Limits::default().stream_buffer)]
     pub stream_buffer: usize,
+    /// Maximum history ticks a session keeps (`agent.history`).
+    #[arg(long, env = "MCAPI_MAX_HISTORY", default_value_t = Limits::default().max_history)]
+    pub max_history: usize,
+    /// Maximum states of a model with a proto_value basis (its
+    /// eigendecomposition is O(|S|³): the default keeps one build under a
+    /// second on one core).
+    #[arg(long, env = "MCAPI_MAX_PVF_STATES", default_value_t = Limits::default().max_pvf_states)]
+    pub max_pvf_states: usize,
+    /// Maximum bytes of a name (action, stimulus, state, preset, grid mark).
+    #[arg(long, env = "MCAPI_MAX_NAME_BYTES", default_value_t = Limits::default().max_name_bytes)]
+    pub max_name_bytes: usize,
+    /// Maximum curiosity `tau` and `lag`.
+    #[arg(long, env = "MCAPI_MAX_CURIOSITY_WINDOW", default_value_t = Limits::default().max_curiosity_window)]
+    pub max_curiosity_window: usize,
+    /// Maximum curiosity `max_centres`.
+    #[arg(long, env = "MCAPI_MAX_ROC_CENTRES", default_value_t = Limits::default().max_roc_centres)]
+    pub max_roc_centres: usize,
+    /// Maximum curiosity `max_sources`.
+    #[arg(long, env = "MCAPI_MAX_SIGNAL_SOURCES", default_value_t = Limits::default().max_signal_sources)]
+    pub max_signal_sources: usize,
+    /// Maximum estimated memory of one session, in bytes.
+    #[arg(long, env = "MCAPI_MAX_SESSION_BYTES", default_value_t = Limits::default().max_session_bytes)]
+    pub max_session_bytes: u64,
+    /// Maximum estimated CPU time of one observation, in microseconds.
+    #[arg(long, env = "MCAPI_MAX_TICK_US", default_value_t = Limits::default().max_tick_us)]
+    pub max_tick_us: u64,
+    /// Maximum estimated CPU time of one batch of observations, in ms.
+    #[arg(long, env = "MCAPI_MAX_BATCH_MS", default_value_t = Limits::default().max_batch_ms)]
+    pub max_batch_ms: u64,
+    /// Sessions one API key (without keys: all clients) may hold.
+    #[arg(long, env = "MCAPI_MAX_KEY_SESSIONS", default_value_t = Limits::default().max_key_sessions)]
+    pub max_key_sessions: usize,
+    /// Estimated bytes of all sessions of one API key (without keys: of all
+    /// sessions).
+    #[arg(long, env = "MCAPI_MAX_KEY_BYTES", default_value_t = Limits::default().max_key_bytes)]
+    pub max_key_bytes: u64,
+    /// Maximum bytes of one response of value tables.
+    #[arg(long, env = "MCAPI_MAX_RESPONSE_BYTES", default_value_t = Limits::default().max_response_bytes)]
+    pub max_response_bytes: usize,
+
+    // Connection limits
+    /// Open connections per port (REST and gRPC each); further clients wait
+    /// in the listen backlog until one closes.
+    #[arg(long, env = "MCAPI_MAX_CONNECTIONS", default_value_t = ConnLimits::default().max_connections)]
+    pub max_connections: usize,
+    /// A client must send a complete request head within this many ms of
+    /// connecting or of its previous response (REST; also the idle limit of
+    /// a kept-alive connection), and the HTTP/2 preface within it (gRPC).
+    #[arg(long, env = "MCAPI_HEADER_READ_TIMEOUT_MS", default_value_t = ConnLimits::default().header_read_timeout_ms)]
+    pub header_read_timeout_ms: u64,
+    /// A request (body read included; not an open event or gRPC stream)
+    /// must be answered within this many ms, or it gets 503 / DEADLINE_EXCEEDED
+    /// `request_timeout`; a REST response write blocked this long (the
+    /// client stopped reading) closes the connection.
+    #[arg(long, env = "MCAPI_REQUEST_TIMEOUT_MS", default_value_t = ConnLimits::default().request_timeout_ms)]
+    pub request_timeout_ms: u64,
+    /// Concurrent event streams (REST `/events`) plus gRPC `Watch` streams
+    /// per API key (per client IP address without keys); beyond it 429
+    /// `too_many_streams` / RESOURCE_EXHAUSTED.
+    #[arg(long, env = "MCAPI_MAX_STREAMS_PER_KEY", default_value_t = ConnLimits::default().max_streams_per_key)]
+    pub max_streams_per_key: usize,
+    /// Concurrent HTTP/2 streams (calls) per gRPC connection.
+    #[arg(long, env = "MCAPI_HTTP2_MAX_STREAMS", default_value_t = ConnLimits::default().http2_max_streams)]
+    pub http2_max_streams: u32,
+    /// HTTP/2 keep-alive: a gRPC connection is pinged after this many ms
+    /// without traffic, and closed if the ping is not answered within
+    /// --http2-keepalive-timeout-ms.
+    #[arg(long, env = "MCAPI_HTTP2_KEEPALIVE_MS", default_value_t = ConnLimits::default().http2_keepalive_ms)]
+    pub http2_keepalive_ms: u64,
+    /// See --http2-keepalive-ms.
+    #[arg(long, env = "MCAPI_HTTP2_KEEPALIVE_TIMEOUT_MS", default_value_t = ConnLimits::default().http2_keepalive_timeout_ms)]
+    pub http2_keepalive_timeout_ms: u64,
+    /// TCP keep-alive probes start after this many seconds of silence on a
+    /// connection (both ports), so dead peers are noticed.
+    #[arg(long, env = "MCAPI_TCP_KEEPALIVE_SECS", default_value_t = ConnLimits::default().tcp_keepalive_secs)]
+    pub tcp_keepalive_secs: u64,
 }
 
 impl ServeConfig {
@@ -113,7 +190,33 @@ impl ServeConfig {
             max_body_bytes: self.max_body_bytes,
             max_batch: self.max_batch,
             stream_buffer: self.stream_buffer,
+            max_history: self.max_history,
+            max_pvf_states: self.max_pvf_states,
+            max_name_bytes: self.max_name_bytes,
+            max_curiosity_window: self.max_curiosity_window,
+            max_roc_centres: self.max_roc_centres,
+            max_signal_sources: self.max_signal_sources,
+            max_session_bytes: self.max_session_bytes,
+            max_tick_us: self.max_tick_us,
+            max_batch_ms: self.max_batch_ms,
+            max_key_sessions: self.max_key_sessions,
+            max_key_bytes: self.max_key_bytes,
+            max_response_bytes: self.max_response_bytes,
             ..Limits::default()
+        }
+    }
+
+    /// The connection limits in force.
+    pub fn conn_limits(&self) -> ConnLimits {
+        ConnLimits {
+            max_connections: self.max_connections,
+            header_read_timeout_ms: self.header_read_timeout_ms,
+            request_timeout_ms: self.request_timeout_ms,
+            max_streams_per_key: self.max_streams_per_key,
+            http2_max_streams: self.http2_max_streams,
+            http2_keepalive_ms: self.http2_keepalive_ms,
+            http2_keepalive_timeout_ms: self.http2_keepalive_timeout_ms,
+            tcp_keepalive_secs: self.tcp_keepalive_secs,
         }
     }
 
@@ -165,12 +268,32 @@ impl ServeConfig {
             ("--max-body-bytes", self.max_body_bytes),
             ("--max-batch", self.max_batch),
             ("--stream-buffer", self.stream_buffer),
+            ("--max-pvf-states", self.max_pvf_states),
+            ("--max-name-bytes", self.max_name_bytes),
+            ("--max-curiosity-window", self.max_curiosity_window),
+            ("--max-roc-centres", self.max_roc_centres),
+            ("--max-signal-sources", self.max_signal_sources),
+            ("--max-key-sessions", self.max_key_sessions),
+            ("--max-response-bytes", self.max_response_bytes),
         ];
         for (flag, value) in positive {
             if value == 0 {
                 return Err(format!("{flag} must be at least 1"));
             }
         }
-        Ok(())
+        for (flag, value) in [
+            ("--max-session-bytes", self.max_session_bytes),
+            ("--max-tick-us", self.max_tick_us),
+            ("--max-batch-ms", self.max_batch_ms),
+            ("--max-key-bytes", self.max_key_bytes),
+        ] {
+            if value == 0 {
+                return Err(format!("{flag} must be at least 1"));
+            }
+        }
+        if self.max_roc_centres < 2 {
+            return Err("--max-roc-centres must be at least 2 (ROC merges a pair)".into());
+        }
+        self.conn_limits().validate()
     }
 }

@@ -1,6 +1,11 @@
 //! `mcapi serve`: binds both transports over one session manager, serves
 //! until told to stop, then finishes in-flight requests and stops the tick
 //! loop.
+//!
+//! Both ports are bounded by the connection limits of [`crate::api::conn`]
+//! (connections per port, header-read, request and send timeouts, TCP and
+//! HTTP/2 keep-alive); REST event streams and gRPC `Watch` streams share
+//! one budget per caller ([`crate::api::streams`]).
 
 use std::net::SocketAddr;
 use std::sync::Arc;
@@ -10,8 +15,11 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
+use crate::api::conn::{RequestTimeout, serve_http};
 use crate::api::dashboard::Stopping;
+use crate::api::grpc::GrpcOptions;
 use crate::api::rest::{self, AppState};
+use crate::api::streams::StreamLimiter;
 use crate::config::{ServeConfig, StoreKind};
 use crate::service::SessionManager;
 use crate::store::Store;
@@ -56,22 +64,32 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
         manager: Arc::clone(&manager),
         metrics: telemetry::prometheus(),
     };
-    // Ends the dashboard's event streams at shutdown.
-    let app = rest::router(state).layer(axum::Extension(Stopping(stop_rx.clone())));
+    let limits = cfg.conn_limits();
+    limits.warn_on_fd_limit();
+    // One budget of watch streams per caller for both transports.
+    let streams = StreamLimiter::new(limits.max_streams_per_key);
+    let app = rest::router(state)
+        // Ends the dashboard's event streams at shutdown.
+        .layer(axum::Extension(Stopping(stop_rx.clone())))
+        .layer(axum::Extension(Arc::clone(&streams)))
+        .layer(axum::Extension(RequestTimeout(limits.request_timeout())));
     let rest_task = tokio::spawn({
         let rx = stop_rx.clone();
+        let limits = limits.clone();
         async move {
-            axum::serve(http, app)
-                .with_graceful_shutdown(stopped(rx))
-                .await
-                .context("REST server")
+            serve_http(http, app, &limits, stopped(rx)).await;
+            Ok(())
         }
     });
     let grpc_task = tokio::spawn({
         let manager = Arc::clone(&manager);
-        let buffer = cfg.stream_buffer;
+        let opts = GrpcOptions {
+            stream_buffer: cfg.stream_buffer,
+            limits,
+            streams,
+        };
         async move {
-            crate::api::grpc::serve_on(grpc, manager, buffer, stopped(stop_rx))
+            crate::api::grpc::serve_with(grpc, manager, opts, stopped(stop_rx))
                 .await
                 .context("gRPC server")
         }

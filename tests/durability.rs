@@ -9,8 +9,10 @@
 //! - a damaged store (truncated, garbage, overwritten, a changed record, a
 //!   damaged last commit) or one of another format version is refused at
 //!   start with a message naming the file, before any port is bound; a
-//!   record mcapi cannot decode fails the start naming the session; a
-//!   second server on the same data directory is refused;
+//!   session whose record, snapshot or log entry mcapi cannot decode is
+//!   skipped (logged with its id, counted, its data left in the store) and
+//!   the others are served; a second server on the same data directory is
+//!   refused;
 //! - API keys over REST and gRPC: a missing, wrong or malformed key gets
 //!   401 / UNAUTHENTICATED (`unauthenticated`, `WWW-Authenticate`) on every
 //!   call; another key's session is 404 / NOT_FOUND on every call,
@@ -19,7 +21,11 @@
 //! - `--store memory` with keys from `MCAPI_API_KEYS` touches no disk;
 //! - a failed commit rolls the session back to its durable state, a retry
 //!   applies exactly once, and the store still recovers (no hole in the
-//!   log).
+//!   log);
+//! - a delete whose commit fails removes nothing (the session is served as
+//!   before) and its retry deletes it, restarts included;
+//! - a lockstep observation whose policy update fails is applied and
+//!   logged: memory and log agree, live and after a crash.
 
 mod common;
 
@@ -759,56 +765,183 @@ async fn a_store_of_another_format_version_is_refused() {
     assert!(!err.contains("binding"), "{err}");
 }
 
+const SESSIONS: redb::TableDefinition<&str, &[u8]> = redb::TableDefinition::new("sessions");
+const SNAPSHOTS: redb::TableDefinition<&str, (u64, &[u8])> =
+    redb::TableDefinition::new("snapshots");
+const LOG: redb::TableDefinition<(u128, u64), &[u8]> = redb::TableDefinition::new("log");
+
+/// The log key of a session id (`s<shard>.<ULID>`): the ULID's 128 bits.
+fn log_key(id: &str) -> u128 {
+    let (_, ulid) = id.split_once('.').expect("s<shard>.<ULID>");
+    ulid::Ulid::from_string(ulid).expect("a ULID").0
+}
+
+/// Everything the store holds of one session: its record, its snapshot
+/// and its log chunks, as bytes.
+type Stored = (
+    Option<Vec<u8>>,
+    Option<(u64, Vec<u8>)>,
+    Vec<((u128, u64), Vec<u8>)>,
+);
+
+fn stored(file: &Path, id: &str) -> Stored {
+    let db = redb::ReadOnlyDatabase::open(file).expect("the store opens read-only");
+    let read = db.begin_read().expect("read");
+    let record = read
+        .open_table(SESSIONS)
+        .expect("sessions")
+        .get(id)
+        .expect("get")
+        .map(|v| v.value().to_vec());
+    let snapshot = read
+        .open_table(SNAPSHOTS)
+        .expect("snapshots")
+        .get(id)
+        .expect("get")
+        .map(|v| (v.value().0, v.value().1.to_vec()));
+    let key = log_key(id);
+    let log = read
+        .open_table(LOG)
+        .expect("log")
+        .range((key, 0)..=(key, u64::MAX))
+        .expect("range")
+        .map(|row| {
+            let (k, v) = row.expect("row");
+            (k.value(), v.value().to_vec())
+        })
+        .collect();
+    (record, snapshot, log)
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_record_that_does_not_decode_fails_the_start() {
-    // A store redb finds sound, holding a session record or a snapshot
-    // mcapi cannot read: the start fails, naming the session; the server is
-    // never ready on the sessions it could read.
+async fn a_session_that_cannot_be_replayed_is_skipped_and_left_in_the_store() {
+    // A store redb finds sound, holding one session whose record, snapshot
+    // or log entry mcapi cannot decode: the server starts and serves the
+    // other sessions; the bad one is reported (log, metric) and its data is
+    // left in the store exactly as it was, for an operator to inspect.
     let root = tempfile::tempdir().expect("root");
     let logs = logs();
     let good = populated_store(&root.path().join("good"), &logs).await;
-    const SESSIONS: redb::TableDefinition<&str, &[u8]> = redb::TableDefinition::new("sessions");
-    const SNAPSHOTS: redb::TableDefinition<&str, (u64, &[u8])> =
-        redb::TableDefinition::new("snapshots");
-    for what in ["record", "snapshot"] {
-        let dir = write_store(root.path(), what, &good);
-        let victim = {
-            let db = redb::Database::open(dir.join(STORE_FILE)).expect("open");
+    for what in ["record", "snapshot", "log entry"] {
+        let dir = write_store(root.path(), &what.replace(' ', "-"), &good);
+        let file = dir.join(STORE_FILE);
+        let (victim, others) = {
+            let db = redb::Database::open(&file).expect("open");
             let w = db.begin_write().expect("write");
-            let victim = {
-                let sessions = w.open_table(SESSIONS).expect("sessions");
-                let first = sessions.first().expect("read").expect("a session");
-                first.0.value().to_string()
-            };
-            if what == "record" {
-                w.open_table(SESSIONS)
-                    .expect("sessions")
-                    .insert(victim.as_str(), &b"{not a record"[..])
-                    .expect("insert");
-            } else {
-                let mut snapshots = w.open_table(SNAPSHOTS).expect("snapshots");
-                let seq = snapshots
-                    .get(victim.as_str())
-                    .expect("read")
-                    .expect("every session has a snapshot")
-                    .value()
-                    .0;
-                snapshots
-                    .insert(victim.as_str(), (seq, &[0xffu8; 7][..]))
-                    .expect("insert");
+            let ids: Vec<String> = w
+                .open_table(SESSIONS)
+                .expect("sessions")
+                .iter()
+                .expect("iter")
+                .map(|r| r.expect("row").0.value().to_string())
+                .collect();
+            assert_eq!(ids.len(), 6);
+            let victim = ids[2].clone();
+            let seq = w
+                .open_table(SNAPSHOTS)
+                .expect("snapshots")
+                .get(victim.as_str())
+                .expect("read")
+                .expect("every session has a snapshot")
+                .value()
+                .0;
+            match what {
+                "record" => {
+                    w.open_table(SESSIONS)
+                        .expect("sessions")
+                        .insert(victim.as_str(), &b"{not a record"[..])
+                        .expect("insert");
+                }
+                "snapshot" => {
+                    w.open_table(SNAPSHOTS)
+                        .expect("snapshots")
+                        .insert(victim.as_str(), (seq, &[0xffu8; 7][..]))
+                        .expect("insert");
+                }
+                _ => {
+                    // The next log entry after the snapshot, framed as the
+                    // store frames it (sequence number, length, bytes), whose
+                    // bytes are this version's tag and then garbage.
+                    let next = seq + 1;
+                    let at = (log_key(&victim), next / 64);
+                    let mut log = w.open_table(LOG).expect("log");
+                    let mut chunk = log
+                        .get(at)
+                        .expect("read")
+                        .map(|v| v.value().to_vec())
+                        .unwrap_or_default();
+                    let entry = [3u8, 0xff, 0xff, 0xff, 0xff];
+                    chunk.extend_from_slice(&next.to_le_bytes());
+                    chunk.extend_from_slice(&(entry.len() as u32).to_le_bytes());
+                    chunk.extend_from_slice(&entry);
+                    log.insert(at, chunk.as_slice()).expect("insert");
+                }
             }
             w.commit().expect("commit");
-            victim
+            let others: Vec<String> = ids.into_iter().filter(|id| *id != victim).collect();
+            (victim, others)
         };
-        let (status, log) = run_until_exit(&dir, free_port(), free_port());
-        assert!(!status.success(), "{what}: {log}");
-        assert!(
-            log.contains(&victim),
-            "{what}: the message names the session {victim}:\n{log}"
+        let before = stored(&file, &victim);
+
+        let mut server = Server::start(&Launch::new(&dir, &[]), log_path(&logs, what)).await;
+        let client = http_client();
+        let base = server.base();
+        let mut listed = rest_list_all(&client, &base, None).await;
+        listed.sort();
+        assert_eq!(listed, others, "{what}: the other sessions are served");
+        for id in &others {
+            let (status, info) = rest_get(&client, &base, None, id).await;
+            assert_eq!(status, 200, "{what}: {info}");
+            assert_eq!(info["tick"], 99, "{what}: {id} recovered whole");
+        }
+        let (status, body) = rest_get(&client, &base, None, &victim).await;
+        assert_eq!(
+            status, 404,
+            "{what}: the skipped session is not served: {body}"
         );
+        let log = server.log_text();
+        let skipped = log_events(
+            &log,
+            "a stored session cannot be recovered and is skipped; its data is left in the store untouched",
+        );
+        assert_eq!(skipped.len(), 1, "{what}: one session skipped:\n{log}");
+        assert_eq!(skipped[0]["session"], victim.as_str(), "{what}");
         assert!(
-            !log.contains("sessions recovered"),
-            "{what}: never ready:\n{log}"
+            skipped[0]["reason"]
+                .as_str()
+                .is_some_and(|r| r.contains(what.split(' ').next().unwrap_or(what))),
+            "{what}: the reason says what is wrong: {}",
+            skipped[0]
+        );
+        let summary = log_events(&log, "stored sessions skipped at recovery");
+        assert_eq!(summary.len(), 1, "{what}:\n{log}");
+        assert_eq!(summary[0]["skipped"], 1, "{what}");
+        assert!(
+            summary[0]["ids"]
+                .as_str()
+                .is_some_and(|s| s.contains(&victim)),
+            "{what}: {}",
+            summary[0]
+        );
+        let metrics = client
+            .get(format!("{base}/metrics"))
+            .send()
+            .await
+            .expect("metrics")
+            .text()
+            .await
+            .expect("body");
+        assert!(
+            metrics
+                .lines()
+                .any(|l| l.trim() == "mcapi_recovery_skipped_total 1"),
+            "{what}: the metric counts it:\n{metrics}"
+        );
+        assert!(server.terminate().success());
+        assert_eq!(
+            stored(&file, &victim),
+            before,
+            "{what}: the skipped session's data is left untouched"
         );
     }
 }
@@ -1573,6 +1706,197 @@ fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
     let info = manager.get(Caller::Anyone, &id).expect("recovered");
     assert_eq!(info.tick, 7);
     assert_bits_eq(&info.drive, core.drive().vector(), "D after recovery");
+    manager.shutdown();
+}
+
+/// A manager on the store in `dir`, recovered; `snapshot_every` as given.
+fn in_process(
+    store: std::sync::Arc<mcapi::store::Store>,
+    snapshot_every: u64,
+) -> mcapi::service::SessionManager {
+    use mcapi::service::{Limits, ManagerOptions, SessionManager};
+    let manager = SessionManager::with_options(ManagerOptions {
+        store: Some(store),
+        snapshot_every,
+        ..ManagerOptions::new(Limits::default(), 1)
+    })
+    .expect("manager");
+    let report = manager.recover().expect("recovery");
+    assert_eq!(report.skipped, 0, "{report:?}");
+    manager
+}
+
+fn hallway_session(manager: &mcapi::service::SessionManager, seed: u64) -> String {
+    use mcapi::service::{Caller, CreateSession, SessionConfig};
+    manager
+        .create(
+            Caller::Anyone,
+            CreateSession {
+                model: json!({"preset": "hallway"}),
+                agent: SessionConfig {
+                    seed: Some(seed),
+                    ..SessionConfig::default()
+                },
+            },
+        )
+        .expect("create")
+        .id
+}
+
+fn observation(state: usize, first: bool) -> mcapi::service::ObservationIn {
+    mcapi::service::ObservationIn {
+        state,
+        stimulus: (!first).then(|| stimulus(state).to_vec()),
+        action_taken: None,
+        signal: None,
+        signal_source: None,
+    }
+}
+
+/// DELETE commits before it removes anything: a delete whose commit fails
+/// leaves the session in place, served and observed as before; the retry
+/// deletes it, and it stays deleted after a restart (the other session is
+/// untouched).
+#[test]
+fn a_delete_whose_commit_fails_keeps_the_session_and_its_retry_deletes_it() {
+    use mcapi::service::{Caller, ServiceError};
+    use mcapi::store::Store;
+    use std::sync::Arc;
+
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = in_process(Arc::clone(&store), 1000);
+    let (gone, kept) = (hallway_session(&manager, 7), hallway_session(&manager, 8));
+    for id in [&gone, &kept] {
+        rt.block_on(manager.observe(Caller::Anyone, id, vec![observation(9, true)]))
+            .expect("first");
+        for s in [10, 11, 12] {
+            rt.block_on(manager.observe(Caller::Anyone, id, vec![observation(s, false)]))
+                .expect("observe");
+        }
+    }
+    store.fail_next_commits(1);
+    let err = rt
+        .block_on(manager.delete(Caller::Anyone, &gone))
+        .expect_err("the delete's commit fails");
+    assert!(matches!(err, ServiceError::Storage(_)), "{err}");
+    // Nothing was removed: listed, served, observed.
+    let info = manager.get(Caller::Anyone, &gone).expect("still there");
+    assert_eq!(info.tick, 3);
+    let page = manager.list(Caller::Anyone, None, None).expect("list");
+    assert!(page.sessions.iter().any(|s| s.id == gone));
+    let steps = rt
+        .block_on(manager.observe(Caller::Anyone, &gone, vec![observation(11, false)]))
+        .expect("observed after the failed delete");
+    assert_eq!(steps[0].tick, 4);
+    assert!(!store.is_broken(&gone));
+    // The retry deletes it.
+    rt.block_on(manager.delete(Caller::Anyone, &gone))
+        .expect("the retry");
+    assert!(matches!(
+        manager.get(Caller::Anyone, &gone),
+        Err(ServiceError::NotFound(_))
+    ));
+    assert!(store.session(&gone).expect("read").is_none());
+    let err = rt
+        .block_on(manager.delete(Caller::Anyone, &gone))
+        .expect_err("deleting twice");
+    assert!(matches!(err, ServiceError::NotFound(_)), "{err}");
+    // A crash (no shutdown snapshot): still deleted; the other one whole.
+    drop(manager);
+    drop(store);
+    let manager = in_process(Arc::new(Store::open(data.path()).expect("reopen")), 1000);
+    assert!(matches!(
+        manager.get(Caller::Anyone, &gone),
+        Err(ServiceError::NotFound(_))
+    ));
+    assert_eq!(manager.get(Caller::Anyone, &kept).expect("kept").tick, 3);
+    manager.shutdown();
+}
+
+/// A lockstep observation whose policy update fails after it was applied
+/// (`AlgoError::Numerical` from the planner) is logged: the reply is the
+/// error, the tick advanced, and after a crash the session comes back
+/// exactly as it was served (tick, D, Ξ, history), then goes on.
+#[test]
+fn a_lockstep_observation_whose_plan_fails_is_logged() {
+    use mcapi::algo::AlgoError;
+    use mcapi::service::{Caller, ServiceError, ValueSelection};
+    use mcapi::store::Store;
+    use std::sync::Arc;
+
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = in_process(Arc::clone(&store), 1000);
+    let id = hallway_session(&manager, 11);
+    let mut core = core_agent(&params(11, None));
+    rt.block_on(manager.observe(Caller::Anyone, &id, vec![observation(20, true)]))
+        .expect("first");
+    core.step(&Observation::first(20)).expect("core first");
+    for s in [21, 22] {
+        rt.block_on(manager.observe(Caller::Anyone, &id, vec![observation(s, false)]))
+            .expect("observe");
+        core.step(&Observation::new(s, &stimulus(s))).expect("core");
+    }
+    manager.session(&id).expect("session").fail_next_plans(1);
+    let err = rt
+        .block_on(manager.observe(Caller::Anyone, &id, vec![observation(23, false)]))
+        .expect_err("the policy update fails");
+    assert!(
+        matches!(err, ServiceError::Algo(AlgoError::Numerical(_))),
+        "{err}"
+    );
+    // Applied: Ξ, D and the tick moved. The core agent observes it too and
+    // acts on its old policy, as the session did.
+    core.observe(&Observation::new(23, &stimulus(23)))
+        .expect("core observe");
+    core.act().expect("core act");
+    let live = manager.get(Caller::Anyone, &id).expect("get");
+    assert_eq!(live.tick, 3, "the failed update's observation is applied");
+    assert_bits_eq(&live.drive, core.drive().vector(), "D");
+    let all = ValueSelection::parse(Some("xi")).expect("selection");
+    let live_xi = manager.values(Caller::Anyone, &id, all).expect("values").xi;
+    let live_history = manager.history(Caller::Anyone, &id, None).expect("history");
+    assert_eq!(live_history.last().map(|h| h.tick), Some(3));
+    // A crash: what was served comes back from the log.
+    drop(manager);
+    drop(store);
+    let store = Arc::new(Store::open(data.path()).expect("reopen"));
+    let manager = in_process(Arc::clone(&store), 1000);
+    let recovered = manager.get(Caller::Anyone, &id).expect("recovered");
+    assert_eq!(recovered.tick, 3, "the log has the observation memory had");
+    assert_bits_eq(&recovered.drive, &live.drive, "D after recovery");
+    assert_eq!(
+        manager.values(Caller::Anyone, &id, all).expect("values").xi,
+        live_xi,
+        "Ξ after recovery"
+    );
+    assert_eq!(
+        manager.history(Caller::Anyone, &id, None).expect("history"),
+        live_history,
+        "history after recovery"
+    );
+    // And it goes on, planning again, as a core agent that never crashed.
+    let steps = rt
+        .block_on(manager.observe(Caller::Anyone, &id, vec![observation(24, false)]))
+        .expect("observe after recovery");
+    let step = core
+        .step(&Observation::new(24, &stimulus(24)))
+        .expect("core step");
+    assert_eq!(steps[0].tick, 4);
+    assert_eq!(steps[0].action_index, step.action, "action after recovery");
+    assert_bits_eq(&steps[0].drive, core.drive().vector(), "D after recovery");
+    let xi = manager.values(Caller::Anyone, &id, all).expect("values").xi;
+    let model = core.planning_model().model();
+    for (s, row) in xi.expect("xi").iter().enumerate() {
+        for (a, cell) in row.iter().enumerate() {
+            if let (Some(p), Some(cell)) = (model.pair(s, a), cell) {
+                assert_bits_eq(cell, core.stimulus().row(p), &format!("Ξ[{s}][{a}]"));
+            }
+        }
+    }
     manager.shutdown();
 }
 

@@ -149,6 +149,20 @@ pub const MAX_SIGNAL_DIM: usize = 64;
 /// Largest accepted `max_sources`.
 pub const MAX_SOURCES_LIMIT: usize = 1 << 16;
 
+/// Largest accepted `tau` and `lag` (our limit): the error window and the
+/// lag history are allocated at these lengths for every module.
+pub const MAX_WINDOW: usize = 100_000;
+
+/// Largest accepted `max_centres` (our limit): ROC's merge step is
+/// quadratic in the number of centres.
+pub const MAX_CENTRES: usize = 1024;
+
+/// Most frozen modules a channel keeps (our limit; the paper's library is
+/// unbounded). Once the library is full the active module goes on learning
+/// instead of freezing, so memory and the per-sample cost of judging stay
+/// bounded whatever the signal does.
+pub const MAX_LIBRARY: usize = 64;
+
 fn bad(name: &'static str, reason: impl Into<String>) -> AlgoError {
     AlgoError::InvalidParameter {
         name,
@@ -170,14 +184,26 @@ impl CuriosityParams {
         if self.max_centres < 2 {
             return Err(bad("max_centres", "must be at least 2 (ROC merges a pair)"));
         }
+        if self.max_centres > MAX_CENTRES {
+            return Err(bad(
+                "max_centres",
+                format!("{} exceeds the limit of {MAX_CENTRES}", self.max_centres),
+            ));
+        }
         if !(self.beta.is_finite() && self.beta > 0.0 && self.beta <= 1.0) {
             return Err(bad("beta", format!("{} is not in (0, 1]", self.beta)));
         }
-        if self.tau == 0 {
-            return Err(bad("tau", "must be at least 1"));
+        if self.tau == 0 || self.tau > MAX_WINDOW {
+            return Err(bad(
+                "tau",
+                format!("{} is not in 1..={MAX_WINDOW}", self.tau),
+            ));
         }
-        if self.lag == 0 {
-            return Err(bad("lag", "must be at least 1"));
+        if self.lag == 0 || self.lag > MAX_WINDOW {
+            return Err(bad(
+                "lag",
+                format!("{} is not in 1..={MAX_WINDOW}", self.lag),
+            ));
         }
         if !(self.eta_c.is_finite() && self.eta_c > 0.0 && self.eta_c < 1.0) {
             return Err(bad("eta_c", format!("{} is not in (0, 1)", self.eta_c)));
@@ -960,7 +986,7 @@ impl CuriosityChannel {
             step.learned = true;
             step.epsilon = learned.epsilon;
             step.feature = Some(learned.y);
-            if self.active.below >= self.params.freeze_after {
+            if self.active.below >= self.params.freeze_after && self.library.len() < MAX_LIBRARY {
                 step.frozen = Some(self.freeze(source));
             }
         }

@@ -527,7 +527,10 @@ impl GridMap {
             return Err(invalid("grid map is empty"));
         }
         let cols = lines[0].chars().count();
-        let mut cell_state = Vec::with_capacity(rows * cols);
+        // Rows are checked one by one below: reserve no more than the map
+        // actually holds, whatever its first row claims.
+        let cells: usize = lines[..rows].iter().map(|l| l.len()).sum();
+        let mut cell_state = Vec::with_capacity(cells.min(rows.saturating_mul(cols)));
         let mut state_cell = Vec::new();
         let mut marks = Vec::new();
         for (r, line) in lines[..rows].iter().enumerate() {

@@ -18,11 +18,12 @@
 //! session ticks.
 
 use std::convert::Infallible;
+use std::net::SocketAddr;
 use std::sync::{Arc, LazyLock};
 use std::time::Duration;
 
 use axum::extract::rejection::QueryRejection;
-use axum::extract::{Path, Query, State};
+use axum::extract::{ConnectInfo, Path, Query, State};
 use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
@@ -37,6 +38,7 @@ use tracing::Instrument;
 
 use crate::api::error::{ApiError, ErrorBody, classify, public_message};
 use crate::api::rest::{AppState, Auth, query};
+use crate::api::streams::StreamLimiter;
 use crate::service::{Caller, HistoryEntry, ServiceError, SessionManager, ValueSelection};
 
 /// Default polling interval of the events stream.
@@ -214,7 +216,9 @@ struct EndEvent<'a> {
 /// and a `values` event (V and the greedy policy, as
 /// `GET /v1/sessions/{id}/values`) whenever the policy version changed.
 /// When the session is deleted: an `end` event, then the stream closes.
-/// Comment lines keep idle connections open.
+/// Comment lines keep idle connections open. A caller (an API key; a
+/// client address without keys) holds at most `--max-streams-per-key`
+/// event and gRPC `Watch` streams at once: 429 `too_many_streams` beyond.
 #[utoipa::path(get, path = "/v1/sessions/{id}/events", tag = "inspection", operation_id = "get_events",
     params(("id" = String, Path, description = "The session's id, as `POST /v1/sessions` returned it."), EventsQuery),
     responses(
@@ -223,6 +227,8 @@ struct EndEvent<'a> {
         (status = 400, response = crate::api::openapi::BadRequest),
         (status = 401, response = crate::api::openapi::Unauthorized),
         (status = 404, response = crate::api::openapi::NotFound),
+        (status = 429, response = crate::api::openapi::TooManyRequests),
+        (status = 500, response = crate::api::openapi::InternalError),
         (status = 503, response = crate::api::openapi::Unavailable)))]
 pub async fn events(
     State(state): State<AppState>,
@@ -230,11 +236,27 @@ pub async fn events(
     Path(id): Path<String>,
     q: Result<Query<EventsQuery>, QueryRejection>,
     stopping: Option<Extension<Stopping>>,
+    streams: Option<Extension<Arc<StreamLimiter>>>,
+    peer: Option<Extension<ConnectInfo<SocketAddr>>>,
 ) -> Result<Response, ApiError> {
     let interval = query(q)?.interval()?;
     // An unknown session fails the request itself, before any stream.
-    let first = state.manager.get(caller, &id)?;
+    let first = {
+        let id = id.clone();
+        state
+            .manager
+            .off_runtime(move |m| m.get(caller, &id))
+            .await?
+    };
     let first = json_event("session", &first)?;
+    // Held by the stream's task: given back when the stream ends.
+    let slot = match streams {
+        Some(Extension(streams)) => {
+            let peer = peer.map(|Extension(ConnectInfo(addr))| addr.ip());
+            Some(streams.acquire(caller, peer)?)
+        }
+        None => None,
+    };
     let (tx, rx) = mpsc::channel(STREAM_BUFFER);
     let manager = Arc::clone(&state.manager);
     let span = tracing::debug_span!("events", session = %id);
@@ -253,6 +275,7 @@ pub async fn events(
                 () = tx.closed() => tracing::debug!("client went away"),
                 () = stopped => tracing::debug!("server stopping"),
             }
+            drop(slot);
         }
         .instrument(span),
     );
@@ -269,7 +292,7 @@ fn json_event(name: &str, data: &impl Serialize) -> Result<Event, ServiceError> 
 }
 
 /// What a stream has sent so far.
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone, Copy)]
 struct Cursor {
     /// Tick of the newest `tick` event sent.
     tick: Option<u64>,
@@ -279,7 +302,7 @@ struct Cursor {
 
 /// Sends `first`, then polls until the session is gone or sending fails.
 async fn stream_loop(
-    manager: &SessionManager,
+    manager: &Arc<SessionManager>,
     caller: Caller,
     id: &str,
     interval: Duration,
@@ -294,8 +317,19 @@ async fn stream_loop(
     let mut cursor = Cursor::default();
     loop {
         ticker.tick().await;
-        let (events, last) = match poll(manager, caller, id, &mut cursor) {
-            Ok(events) => (events, None),
+        // Reading the session and encoding its tables happen off the runtime.
+        let owned = id.to_string();
+        let polled = manager
+            .off_runtime(move |m| {
+                let mut next = cursor;
+                poll(m, caller, &owned, &mut next).map(|events| (events, next))
+            })
+            .await;
+        let (events, last) = match polled {
+            Ok((events, next)) => {
+                cursor = next;
+                (events, None)
+            }
             Err(ServiceError::NotFound(_)) => (Vec::new(), Some(end_event(id))),
             Err(e) => (Vec::new(), Some(error_event(&e))),
         };

@@ -56,6 +56,10 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
             G::ResourceExhausted,
             "payload_too_large",
         ),
+        ServiceError::QuotaExceeded(_) => {
+            (H::TOO_MANY_REQUESTS, G::ResourceExhausted, "quota_exceeded")
+        }
+        ServiceError::SessionFailed(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "session_failed"),
         ServiceError::TooManySessions(_) => (
             H::TOO_MANY_REQUESTS,
             G::ResourceExhausted,
@@ -71,6 +75,16 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
             "storage_unavailable",
         ),
         ServiceError::Internal(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
+        ServiceError::TooManyStreams(_) => (
+            H::TOO_MANY_REQUESTS,
+            G::ResourceExhausted,
+            "too_many_streams",
+        ),
+        ServiceError::RequestTimeout(_) => (
+            H::SERVICE_UNAVAILABLE,
+            G::DeadlineExceeded,
+            "request_timeout",
+        ),
     }
 }
 
@@ -83,6 +97,17 @@ pub fn public_message(e: &ServiceError, status: StatusCode) -> String {
                 rolled back (the session is reloaded from its last durable state before it takes \
                 another observation), so it is safe to retry (details in the server log)"
             .to_string();
+    }
+    if let ServiceError::Algo(AlgoError::Numerical(detail)) = e {
+        tracing::error!(error = %detail, "policy update failed");
+        return "the observation was applied and logged, but the policy update after it failed \
+                numerically (details in the server log); do not send it again: the next \
+                observation plans anew"
+            .to_string();
+    }
+    if let ServiceError::SessionFailed(_) = e {
+        // A server fault, but the client must learn what to do about it.
+        return e.to_string();
     }
     if status.is_server_error() && status != StatusCode::SERVICE_UNAVAILABLE {
         tracing::error!(error = ?e, "internal error");

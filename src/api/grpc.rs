@@ -10,8 +10,16 @@
 //! away; `Watch` sends a snapshot per interval. Both end, with UNAVAILABLE,
 //! when the server shuts down, so a graceful shutdown is not held up by
 //! long-lived streams.
+//!
+//! Bounds ([`serve_with`], issue 12): keys are checked and `Observe`
+//! batches counted before a message is decoded ([`guard`]); a caller's
+//! `Watch` streams count against its budget of watch streams, shared with
+//! the REST event streams ([`crate::api::streams`]); connections, HTTP/2
+//! streams per connection, keep-alive and the request timeout come from
+//! [`ConnLimits`]; a panicking method answers INTERNAL.
 
 pub mod convert;
+pub mod guard;
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -22,13 +30,15 @@ use thiserror::Error;
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
 use tokio::time::MissedTickBehavior;
-use tokio_stream::wrappers::{ReceiverStream, TcpListenerStream};
+use tokio_stream::wrappers::ReceiverStream;
 use tonic::metadata::MetadataMap;
 use tonic::service::Routes;
 use tonic::{Request, Response, Status, Streaming};
 use tracing::Instrument;
 
+use crate::api::conn::{ConnLimits, grpc_panic_layer, limited_incoming};
 use crate::api::error::to_status;
+use crate::api::streams::{StreamLimiter, StreamSlot};
 use crate::service::{Caller, ServiceError, SessionManager};
 
 use pb::agents_server::{Agents, AgentsServer};
@@ -66,6 +76,7 @@ pub struct AgentsService {
     manager: Arc<SessionManager>,
     stream_buffer: usize,
     stopping: watch::Receiver<bool>,
+    streams: Option<Arc<StreamLimiter>>,
 }
 
 impl AgentsService {
@@ -80,7 +91,27 @@ impl AgentsService {
             manager,
             stream_buffer: stream_buffer.max(1),
             stopping,
+            streams: None,
         }
+    }
+
+    /// `Watch` streams count against `streams` (shared with the REST event
+    /// streams); without it they are not limited.
+    pub fn with_streams(mut self, streams: Arc<StreamLimiter>) -> Self {
+        self.streams = Some(streams);
+        self
+    }
+
+    /// A slot for a new `Watch` stream of `caller`.
+    fn stream_slot(
+        &self,
+        caller: Caller,
+        peer: Option<std::net::IpAddr>,
+    ) -> Result<Option<StreamSlot>, Status> {
+        let Some(streams) = &self.streams else {
+            return Ok(None);
+        };
+        streams.acquire(caller, peer).map(Some).map_err(to_status)
     }
 }
 
@@ -97,8 +128,14 @@ fn shutting_down() -> Status {
     ))
 }
 
-/// The caller, from the `authorization` metadata (`Bearer <key>`).
-fn caller(manager: &SessionManager, metadata: &MetadataMap) -> Result<Caller, Status> {
+/// The caller: as [`guard::GuardLayer`] authenticated it before the
+/// message was decoded, else from the `authorization` metadata
+/// (`Bearer <key>`).
+fn caller<T>(manager: &SessionManager, request: &Request<T>) -> Result<Caller, Status> {
+    if let Some(caller) = request.extensions().get::<Caller>() {
+        return Ok(*caller);
+    }
+    let metadata = request.metadata();
     let header = match metadata.get("authorization") {
         None => None,
         Some(v) => Some(v.to_str().map_err(|_| {
@@ -131,7 +168,7 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::CreateSessionRequest>,
     ) -> Result<Response<pb::SessionInfo>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let req = convert::create_session(request.into_inner()).map_err(to_status)?;
         let manager = Arc::clone(&self.manager);
         // Building a model (PVFs: an eigendecomposition) must not block the runtime.
@@ -146,11 +183,15 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::GetSessionRequest>,
     ) -> Result<Response<pb::SessionInfo>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let meta = metadata_session(request.metadata())?;
         let pb::GetSessionRequest { session_id } = request.into_inner();
         let id = convert::session_id(session_id, meta.as_deref()).map_err(to_status)?;
-        let info = self.manager.get(caller, &id).map_err(to_status)?;
+        let info = self
+            .manager
+            .off_runtime(move |m| m.get(caller, &id))
+            .await
+            .map_err(to_status)?;
         Ok(Response::new(convert::session_info(info)))
     }
 
@@ -158,11 +199,12 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::ListSessionsRequest>,
     ) -> Result<Response<pb::ListSessionsResponse>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let (after, limit) = convert::list_request(request.into_inner());
         let page = self
             .manager
-            .list(caller, after.as_deref(), limit)
+            .off_runtime(move |m| m.list(caller, after.as_deref(), limit))
+            .await
             .map_err(to_status)?;
         Ok(Response::new(convert::session_page(page)))
     }
@@ -171,7 +213,7 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::DeleteSessionRequest>,
     ) -> Result<Response<pb::DeleteSessionResponse>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let meta = metadata_session(request.metadata())?;
         let pb::DeleteSessionRequest { session_id } = request.into_inner();
         let id = convert::session_id(session_id, meta.as_deref()).map_err(to_status)?;
@@ -183,7 +225,7 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::ObserveRequest>,
     ) -> Result<Response<pb::ObserveResponse>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let meta = metadata_session(request.metadata())?;
         let (id, batch) =
             convert::observe_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
@@ -203,7 +245,7 @@ impl Agents for AgentsService {
         &self,
         request: Request<Streaming<pb::Observation>>,
     ) -> Result<Response<Self::InteractStream>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let meta = metadata_session(request.metadata())?;
         let span = tracing::info_span!("interact", session = meta.as_deref().unwrap_or(""));
         let inbound = request.into_inner();
@@ -231,12 +273,21 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::WatchRequest>,
     ) -> Result<Response<Self::WatchStream>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let meta = metadata_session(request.metadata())?;
+        let peer = request.remote_addr().map(|a| a.ip());
         let (id, interval) =
             convert::watch_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
         // An unknown session fails the call itself, before any stream.
-        let first = self.manager.get(caller, &id).map_err(to_status)?;
+        let first = {
+            let id = id.clone();
+            self.manager
+                .off_runtime(move |m| m.get(caller, &id))
+                .await
+                .map_err(to_status)?
+        };
+        // Held by the stream's task: given back when the stream ends.
+        let slot = self.stream_slot(caller, peer)?;
         // One slot: a slow reader gets fresh snapshots, not a backlog of old ones.
         let (tx, rx) = mpsc::channel(1);
         let manager = Arc::clone(&self.manager);
@@ -251,6 +302,7 @@ impl Agents for AgentsService {
                         let _ = tx.send(Err(shutting_down())).await;
                     }
                 }
+                drop(slot);
             }
             .instrument(span),
         );
@@ -261,11 +313,15 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::GetValuesRequest>,
     ) -> Result<Response<pb::Values>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let meta = metadata_session(request.metadata())?;
         let (id, sel) =
             convert::values_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
-        let values = self.manager.values(caller, &id, sel).map_err(to_status)?;
+        let values = self
+            .manager
+            .off_runtime(move |m| m.values(caller, &id, sel))
+            .await
+            .map_err(to_status)?;
         Ok(Response::new(convert::values(values)))
     }
 
@@ -273,13 +329,14 @@ impl Agents for AgentsService {
         &self,
         request: Request<pb::GetHistoryRequest>,
     ) -> Result<Response<pb::History>, Status> {
-        let caller = caller(&self.manager, request.metadata())?;
+        let caller = caller(&self.manager, &request)?;
         let meta = metadata_session(request.metadata())?;
         let (id, limit) =
             convert::history_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
         let entries = self
             .manager
-            .history(caller, &id, limit)
+            .off_runtime(move |m| m.history(caller, &id, limit))
+            .await
             .map_err(to_status)?;
         Ok(Response::new(convert::history(entries)))
     }
@@ -332,7 +389,7 @@ async fn interact_loop(
 /// A snapshot now and one per `interval`, until the session is deleted
 /// (ends with NOT_FOUND) or the client goes away.
 async fn watch_loop(
-    manager: &SessionManager,
+    manager: &Arc<SessionManager>,
     caller: Caller,
     id: &str,
     interval: Duration,
@@ -347,7 +404,8 @@ async fn watch_loop(
     }
     loop {
         ticker.tick().await;
-        match manager.get(caller, id) {
+        let owned = id.to_string();
+        match manager.off_runtime(move |m| m.get(caller, &owned)).await {
             Ok(info) => {
                 if tx.send(Ok(convert::session_info(info))).await.is_err() {
                     return;
@@ -361,6 +419,30 @@ async fn watch_loop(
     }
 }
 
+/// How the gRPC server runs: stream buffers, connection limits and the
+/// stream budget shared with the REST event streams.
+#[derive(Debug, Clone)]
+pub struct GrpcOptions {
+    /// Buffered replies per `Interact` stream.
+    pub stream_buffer: usize,
+    /// Connection limits of the port.
+    pub limits: ConnLimits,
+    /// Concurrent `Watch` streams per caller.
+    pub streams: Arc<StreamLimiter>,
+}
+
+impl GrpcOptions {
+    /// Default connection limits with this stream buffer.
+    pub fn new(stream_buffer: usize) -> Self {
+        let limits = ConnLimits::default();
+        Self {
+            stream_buffer,
+            streams: StreamLimiter::new(limits.max_streams_per_key),
+            limits,
+        }
+    }
+}
+
 /// `Agents` (with the body-size limit of the manager), health and
 /// reflection v1, ready for a tonic server. Health reports `mcapi.v1.Agents`
 /// NOT_SERVING while stored sessions are recovered and after shutdown
@@ -368,6 +450,15 @@ async fn watch_loop(
 pub async fn router(
     manager: Arc<SessionManager>,
     stream_buffer: usize,
+    stopping: watch::Receiver<bool>,
+) -> Result<Routes, ServeError> {
+    router_with(manager, &GrpcOptions::new(stream_buffer), stopping).await
+}
+
+/// As [`router`], with the `Watch` streams counted against `opts.streams`.
+pub async fn router_with(
+    manager: Arc<SessionManager>,
+    opts: &GrpcOptions,
     stopping: watch::Receiver<bool>,
 ) -> Result<Routes, ServeError> {
     let max_message = manager.limits().max_body_bytes;
@@ -398,8 +489,9 @@ pub async fn router(
                 .await;
         }
     });
-    let agents = AgentsServer::new(AgentsService::new(manager, stream_buffer, stopping))
-        .max_decoding_message_size(max_message);
+    let service = AgentsService::new(manager, opts.stream_buffer, stopping)
+        .with_streams(Arc::clone(&opts.streams));
+    let agents = AgentsServer::new(service).max_decoding_message_size(max_message);
     let reflection = tonic_reflection::server::Builder::configure()
         .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
         .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
@@ -421,15 +513,32 @@ pub async fn serve(
     serve_on(listener, manager, stream_buffer, shutdown).await
 }
 
-/// As [`serve`], on a listener the caller bound (tests bind port 0).
+/// As [`serve`], on a listener the caller bound (tests bind port 0), with
+/// the default connection limits.
 pub async fn serve_on(
     listener: TcpListener,
     manager: Arc<SessionManager>,
     stream_buffer: usize,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), ServeError> {
+    serve_with(listener, manager, GrpcOptions::new(stream_buffer), shutdown).await
+}
+
+/// As [`serve_on`], with these options: at most `max_connections`
+/// connections, each with its HTTP/2 preface due within the header-read
+/// timeout, HTTP/2 and TCP keep-alive, `http2_max_streams` calls per
+/// connection, the request timeout (in [`guard`]); keys checked and
+/// `Observe` batches counted before decoding ([`guard`]); a panicking
+/// method answers INTERNAL.
+pub async fn serve_with(
+    listener: TcpListener,
+    manager: Arc<SessionManager>,
+    opts: GrpcOptions,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), ServeError> {
     let (stop_tx, stop_rx) = watch::channel(false);
-    let routes = router(manager, stream_buffer, stop_rx).await?;
+    let guard = guard::GuardLayer::new(Arc::clone(&manager), opts.limits.request_timeout());
+    let routes = router_with(manager, &opts, stop_rx).await?;
     if let Ok(addr) = listener.local_addr() {
         tracing::info!(%addr, "gRPC listening");
     }
@@ -439,10 +548,19 @@ pub async fn serve_on(
         // Ends Interact and Watch streams, which would hold the drain up.
         let _ = stop_tx.send(true);
     };
+    let limits = &opts.limits;
+    let layers = tower::ServiceBuilder::new()
+        .layer(grpc_panic_layer())
+        .layer(guard);
     tonic::transport::Server::builder()
-        .tcp_nodelay(true)
+        .max_concurrent_streams(limits.http2_max_streams)
+        .http2_keepalive_interval(Some(Duration::from_millis(limits.http2_keepalive_ms)))
+        .http2_keepalive_timeout(Some(Duration::from_millis(
+            limits.http2_keepalive_timeout_ms,
+        )))
+        .layer(layers)
         .add_routes(routes)
-        .serve_with_incoming_shutdown(TcpListenerStream::new(listener), signal)
+        .serve_with_incoming_shutdown(limited_incoming(listener, limits), signal)
         .await?;
     Ok(())
 }

@@ -18,15 +18,15 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use metrics_exporter_prometheus::PrometheusHandle;
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use serde_json::Value;
 use utoipa::OpenApi;
 use utoipa_swagger_ui::SwaggerUi;
 
 use crate::api::error::{ApiError, ErrorBody};
 use crate::api::openapi::{
-    BadRequest, BearerAuth, NotFound, ObserveBatchReply, ObserveReply, ObserveRequest,
-    PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized, Unavailable,
+    BadRequest, BearerAuth, InternalError, NotFound, ObserveBatchReply, ObserveReply,
+    ObserveRequest, PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized, Unavailable,
 };
 use crate::service::{
     Caller, CreateSession, HistoryEntry, ObservationIn, ServiceError, SessionInfo, SessionManager,
@@ -253,7 +253,7 @@ pub(crate) fn query<T>(q: Result<Query<T>, QueryRejection>) -> Result<T, ApiErro
     ),
     components(
         schemas(ErrorBody, ObserveBatchReply, SseEvent),
-        responses(BadRequest, Unauthorized, NotFound, PayloadTooLarge, TooManyRequests, Unavailable)
+        responses(BadRequest, Unauthorized, NotFound, PayloadTooLarge, TooManyRequests, InternalError, Unavailable)
     ),
     modifiers(&BearerAuth),
     security(("api_key" = []), ()),
@@ -293,6 +293,10 @@ pub fn router(state: AppState) -> Router {
         .merge(crate::api::dashboard::routes()) // the page at `/` and the events stream
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(body_limit))
+        // `mcapi serve` sets the timeout (`conn::RequestTimeout`).
+        .layer(middleware::from_fn(crate::api::conn::request_timeout))
+        // A panicking handler answers 500 `internal`, and is recorded.
+        .layer(crate::api::conn::rest_panic_layer())
         .layer(middleware::from_fn(record_request))
         .with_state(state)
 }
@@ -304,14 +308,31 @@ async fn not_found(method: axum::http::Method, uri: axum::http::Uri) -> ApiError
     )))
 }
 
-/// Request latency by route and status.
+/// The `method` label: one of a fixed set, so clients cannot create series.
+fn method_label(method: &axum::http::Method) -> &'static str {
+    use axum::http::Method as M;
+    match *method {
+        M::GET => "GET",
+        M::POST => "POST",
+        M::DELETE => "DELETE",
+        M::PUT => "PUT",
+        M::PATCH => "PATCH",
+        M::HEAD => "HEAD",
+        M::OPTIONS => "OPTIONS",
+        _ => "other",
+    }
+}
+
+/// Request latency by method, route and status, every label from a bounded
+/// set: the method from [`method_label`], the route as declared (or
+/// `unmatched`), the status code.
 async fn record_request(req: Request, next: Next) -> Response {
     let started = Instant::now();
     let route = req
         .extensions()
         .get::<MatchedPath>()
         .map_or_else(|| "unmatched".to_string(), |p| p.as_str().to_string());
-    let method = req.method().to_string();
+    let method = method_label(req.method());
     let response = next.run(req).await;
     let status = response.status().as_u16().to_string();
     metrics::histogram!(
@@ -341,10 +362,9 @@ async fn healthz() -> &'static str {
         (status = 200, description = "Ready: sessions recovered.", body = String, content_type = "text/plain", example = "ready"),
         (status = 503, description = "Still recovering the stored sessions.", body = String, content_type = "text/plain", example = "recovering")))]
 async fn readyz(State(state): State<AppState>) -> Response {
-    if state.manager.is_ready() {
-        "ready".into_response()
-    } else {
-        (StatusCode::SERVICE_UNAVAILABLE, "recovering").into_response()
+    match state.manager.readiness() {
+        Ok(()) => "ready".into_response(),
+        Err(why) => (StatusCode::SERVICE_UNAVAILABLE, why).into_response(),
     }
 }
 
@@ -440,11 +460,11 @@ async fn list_sessions(
     q: Result<Query<ListQuery>, QueryRejection>,
 ) -> Result<Json<SessionPage>, ApiError> {
     let q = query(q)?;
-    Ok(Json(state.manager.list(
-        caller,
-        q.after.as_deref(),
-        q.limit,
-    )?))
+    let page = state
+        .manager
+        .off_runtime(move |m| m.list(caller, q.after.as_deref(), q.limit))
+        .await?;
+    Ok(Json(page))
 }
 
 /// Get a session
@@ -456,13 +476,19 @@ async fn list_sessions(
         (status = 200, description = "The session.", body = SessionInfo),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 async fn get_session(
     State(state): State<AppState>,
     Auth(caller): Auth,
     Path(id): Path<String>,
 ) -> Result<Json<SessionInfo>, ApiError> {
-    Ok(Json(state.manager.get(caller, &id)?))
+    Ok(Json(
+        state
+            .manager
+            .off_runtime(move |m| m.get(caller, &id))
+            .await?,
+    ))
 }
 
 /// Delete a session
@@ -507,6 +533,7 @@ struct ObserveBatch {
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
         (status = 413, response = PayloadTooLarge),
+        (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 async fn observe(
     State(state): State<AppState>,
@@ -535,6 +562,22 @@ async fn observe(
     }
 }
 
+/// JSON of a large answer, encoded where the call ran (off the runtime).
+fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
+    serde_json::to_vec(value).map_err(|e| ServiceError::Internal(format!("encoding JSON: {e}")))
+}
+
+fn json_response(body: Vec<u8>) -> Response {
+    (
+        [(
+            axum::http::header::CONTENT_TYPE,
+            axum::http::HeaderValue::from_static("application/json"),
+        )],
+        body,
+    )
+        .into_response()
+}
+
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
 #[into_params(parameter_in = Query)]
 #[serde(deny_unknown_fields)]
@@ -558,15 +601,22 @@ struct ValuesQuery {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 413, response = PayloadTooLarge),
+        (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 async fn values(
     State(state): State<AppState>,
     Auth(caller): Auth,
     Path(id): Path<String>,
     q: Result<Query<ValuesQuery>, QueryRejection>,
-) -> Result<Json<Values>, ApiError> {
+) -> Result<Response, ApiError> {
     let sel = ValueSelection::parse(query(q)?.include.as_deref())?;
-    Ok(Json(state.manager.values(caller, &id, sel)?))
+    // Tables of up to --max-response-bytes: encoded on the blocking pool too.
+    let json = state
+        .manager
+        .off_runtime(move |m| encode(&m.values(caller, &id, sel)?))
+        .await?;
+    Ok(json_response(json))
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -589,14 +639,20 @@ struct HistoryQuery {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 413, response = PayloadTooLarge),
+        (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 async fn history(
     State(state): State<AppState>,
     Auth(caller): Auth,
     Path(id): Path<String>,
     q: Result<Query<HistoryQuery>, QueryRejection>,
-) -> Result<Json<Vec<HistoryEntry>>, ApiError> {
+) -> Result<Response, ApiError> {
     let q = query(q)?;
     let limit = q.limit.map(NonZeroUsize::get);
-    Ok(Json(state.manager.history(caller, &id, limit)?))
+    let json = state
+        .manager
+        .off_runtime(move |m| encode(&m.history(caller, &id, limit)?))
+        .await?;
+    Ok(json_response(json))
 }

@@ -26,6 +26,15 @@ pub enum ServiceError {
     /// The request body is larger than the server accepts.
     #[error("{0}")]
     PayloadTooLarge(String),
+    /// A per-key quota (sessions, estimated bytes) would be exceeded.
+    #[error("{0}")]
+    QuotaExceeded(String),
+    /// The session's update panicked: it is quarantined (never served
+    /// half-updated) and answers this until it is deleted.
+    #[error(
+        "session `{0}` failed while applying an update and is quarantined; its state is not served. Delete it and create it again"
+    )]
+    SessionFailed(String),
     /// The session limit is reached.
     #[error("the server already holds its maximum of {0} sessions")]
     TooManySessions(usize),
@@ -43,6 +52,13 @@ pub enum ServiceError {
     /// A fault of the server, not the client's; details are logged, not sent.
     #[error("internal error")]
     Internal(String),
+    /// The caller already holds its maximum of concurrent watch streams
+    /// (REST events, gRPC `Watch`).
+    #[error("{0}")]
+    TooManyStreams(String),
+    /// The request did not finish within the server's request timeout.
+    #[error("{0}")]
+    RequestTimeout(String),
 }
 
 impl ServiceError {

@@ -3,14 +3,20 @@
 //! limits, and the tick loop that runs policy updates off the request path.
 
 pub mod auth;
+pub mod cost;
 pub mod durable;
 pub mod error;
 pub mod limits;
+mod recovery;
 pub mod session;
 pub mod spec;
+pub mod table;
 pub mod tick;
 
-use std::collections::{BTreeMap, HashMap};
+#[cfg(test)]
+mod fault_tests;
+
+use std::collections::HashMap;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Weak};
 use std::time::{Duration, Instant, SystemTime, UNIX_EPOCH};
@@ -23,8 +29,10 @@ use crate::algo::{Agent, Basis, CuriousAgent, PlanningModel};
 use crate::store::Store;
 
 pub use auth::{ApiKeys, Caller};
+pub use cost::SessionCost;
 pub use error::ServiceError;
-pub use limits::Limits;
+pub use limits::{Limits, Usage};
+pub use recovery::RecoveryReport;
 pub use session::{
     Durability, HistoryEntry, Learner, ObservationIn, Session, SessionRef, StepOut, TickCuriosity,
 };
@@ -32,6 +40,7 @@ pub use spec::{
     BasisSummary, CreateSession, CuriosityConfig, EffectiveConfig, ModelInput, ModelSummary,
     SessionConfig, UpdateMode,
 };
+use table::SessionTable;
 use tick::{Job, TickPool};
 
 /// Number of virtual shards in session ids (fixed forever, DESIGN.md).
@@ -61,6 +70,9 @@ pub struct SessionInfo {
     pub agent: EffectiveConfig,
     /// Statistics of the learner.
     pub stats: SessionStats,
+    /// The session's estimated memory and per-observation CPU time, as
+    /// checked against the server's budgets when it was created.
+    pub cost: SessionCost,
     /// The curiosity channel, for a session with one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curiosity: Option<CuriosityInfo>,
@@ -287,7 +299,7 @@ impl ManagerOptions {
 
 /// The session manager: owns sessions, shared models and the tick pool.
 pub struct SessionManager {
-    sessions: RwLock<BTreeMap<String, SessionRef>>,
+    sessions: RwLock<SessionTable>,
     models: Mutex<HashMap<String, (Weak<PlanningModel>, Built)>>,
     limits: Limits,
     pool: TickPool,
@@ -299,6 +311,59 @@ pub struct SessionManager {
     ready: AtomicBool,
     /// Held while a session is reloaded after a storage failure.
     reloading: Mutex<()>,
+    /// Bounds the planning models being built at once (a PVF basis costs an
+    /// eigendecomposition).
+    builds: BuildSlots,
+}
+
+/// A counting semaphore for model builds: at most `slots` at once, and at
+/// most `queue` more waiting; beyond that a create is refused with 503
+/// instead of piling up blocking threads.
+struct BuildSlots {
+    state: Mutex<(usize, usize)>,
+    freed: parking_lot::Condvar,
+    slots: usize,
+    queue: usize,
+}
+
+struct BuildSlot<'a>(&'a BuildSlots);
+
+impl BuildSlots {
+    fn new(slots: usize) -> Self {
+        Self {
+            state: Mutex::new((0, 0)),
+            freed: parking_lot::Condvar::new(),
+            slots: slots.max(1),
+            queue: 8 * slots.max(1),
+        }
+    }
+
+    /// Waits for a slot (blocking: call off the async runtime).
+    fn acquire(&self) -> Result<BuildSlot<'_>, ServiceError> {
+        let mut st = self.state.lock();
+        if st.0 >= self.slots {
+            if st.1 >= self.queue {
+                return Err(ServiceError::Unavailable(format!(
+                    "{} sessions are being created and {} more wait; retry shortly",
+                    st.0, st.1
+                )));
+            }
+            st.1 += 1;
+            while st.0 >= self.slots {
+                self.freed.wait(&mut st);
+            }
+            st.1 -= 1;
+        }
+        st.0 += 1;
+        Ok(BuildSlot(self))
+    }
+}
+
+impl Drop for BuildSlot<'_> {
+    fn drop(&mut self) {
+        self.0.state.lock().0 -= 1;
+        self.0.freed.notify_one();
+    }
 }
 
 /// What the model summaries of sessions sharing a planning model take from
@@ -344,7 +409,7 @@ impl SessionManager {
             .duration_since(UNIX_EPOCH)
             .map_or(0, |d| d.as_nanos() as u64);
         Ok(Self {
-            sessions: RwLock::new(BTreeMap::new()),
+            sessions: RwLock::new(SessionTable::default()),
             models: Mutex::new(HashMap::new()),
             limits,
             pool,
@@ -354,6 +419,7 @@ impl SessionManager {
             keys,
             ready,
             reloading: Mutex::new(()),
+            builds: BuildSlots::new(workers),
         })
     }
 
@@ -398,7 +464,9 @@ impl SessionManager {
         {
             return Ok((ctx, built.clone()));
         }
-        // Built outside the lock: PVFs cost an eigendecomposition.
+        // Built outside the lock (PVFs cost an eigendecomposition), a few at
+        // a time.
+        let _slot = self.builds.acquire()?;
         let (model, basis_spec) = input.build(limits, curious)?;
         let basis = Basis::build(&basis_spec, &model)?;
         let built = Built {
@@ -433,6 +501,40 @@ impl SessionManager {
         self.ready.load(Ordering::Acquire)
     }
 
+    /// Whether the server can serve its API fully (`/readyz`): `Err` with
+    /// the reason while stored sessions are recovered, or while the store
+    /// cannot write after a storage fault (it recovers by itself).
+    pub fn readiness(&self) -> Result<(), String> {
+        if !self.is_ready() {
+            return Err("recovering the stored sessions".into());
+        }
+        let Some(d) = &self.durability else {
+            return Ok(());
+        };
+        let health = d.store.health();
+        metrics::gauge!("mcapi_store_healthy").set(if health.is_ok() { 1.0 } else { 0.0 });
+        health.map_err(|why| {
+            format!(
+                "the session store {} cannot write after a storage fault ({why}); it is reopened automatically once the fault clears",
+                d.store.path().display()
+            )
+        })
+    }
+
+    /// `Ok` unless the store is down after a storage fault: writes fail
+    /// then at once, before anything is applied.
+    fn store_writable(&self) -> Result<(), ServiceError> {
+        match &self.durability {
+            Some(d) => d.store.health().map_err(|why| {
+                ServiceError::Storage(format!(
+                    "the store {} cannot write after a storage fault ({why}); it is reopened automatically once the fault clears",
+                    d.store.path().display()
+                ))
+            }),
+            None => Ok(()),
+        }
+    }
+
     /// Builds the agent of a session (fresh, or the base of a recovery).
     fn build(
         &self,
@@ -440,15 +542,10 @@ impl SessionManager {
         agent: &SessionConfig,
         limits: &Limits,
     ) -> Result<(Learner, ModelSummary, EffectiveConfig), ServiceError> {
+        limits.check_config(agent)?;
         let (ctx, built) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
         let model = ctx.model();
         let history = agent.history.unwrap_or(spec::DEFAULT_HISTORY);
-        if history > limits.max_history {
-            return Err(ServiceError::LimitExceeded(format!(
-                "`agent.history` is {history}; the limit is {}",
-                limits.max_history
-            )));
-        }
         let params = agent.params().check(model.n_stimuli(), self.fresh_u64())?;
         let config = EffectiveConfig {
             eta: params.eta,
@@ -499,7 +596,19 @@ impl SessionManager {
         }
         let model_text = self.durability.as_ref().map(|_| req.model.to_string());
         let input = ModelInput::parse(req.model)?;
+        let owner = caller.owner();
+        // Refused early when the key's quota of sessions is used up.
+        self.limits.check_cost(
+            &SessionCost {
+                bytes: 0,
+                tick_us: 0,
+            },
+            self.sessions.read().usage(&owner),
+        )?;
         let (learner, summary, config) = self.build(&input, &req.agent, &self.limits)?;
+        let cost = cost::estimate(&summary, &config);
+        self.limits
+            .check_cost(&cost, self.sessions.read().usage(&owner))?;
         let id = format!("s{:04x}.{}", self.fresh_u64() % SHARDS, ulid::Ulid::new());
         if let (Some(d), Some(model)) = (&self.durability, model_text) {
             let record = durable::SessionRecord {
@@ -530,142 +639,25 @@ impl SessionManager {
         ));
         {
             let mut sessions = self.sessions.write();
-            if sessions.len() >= self.limits.max_sessions {
+            // Checked again under the lock: concurrent creates see each other.
+            let refused = if sessions.len() >= self.limits.max_sessions {
+                Some(ServiceError::TooManySessions(self.limits.max_sessions))
+            } else {
+                self.limits.check_cost(&cost, sessions.usage(&owner)).err()
+            };
+            if let Some(e) = refused {
                 drop(sessions);
                 // Undo the stored record; the client sees the limit.
                 if let Some(commit) = session.delete() {
                     let _ = commit.wait_blocking();
                 }
-                return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+                return Err(e);
             }
             sessions.insert(id.clone(), Arc::clone(&session));
             metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
         }
         tracing::info!(session = %id, states = session.model.states, "session created");
         Ok(info_of(&session))
-    }
-
-    /// Loads every stored session: snapshot, then the log after it, then
-    /// one policy update; sessions are rebuilt in parallel. Marks the
-    /// manager ready when done. Any record that does not decode or fit its
-    /// model fails the whole recovery: the server must not start on
-    /// silently wrong state.
-    pub fn recover(&self) -> Result<RecoveryReport, ServiceError> {
-        use rayon::prelude::*;
-        let Some(d) = &self.durability else {
-            self.ready.store(true, Ordering::Release);
-            return Ok(RecoveryReport::default());
-        };
-        let started = std::time::Instant::now();
-        let stored = d
-            .store
-            .sessions()
-            .map_err(|e| ServiceError::Storage(e.to_string()))?;
-        let recovered: Vec<Result<(SessionRef, u64), String>> = stored
-            .into_par_iter()
-            .map(|s| self.recover_one(d, s))
-            .collect();
-        let mut report = RecoveryReport::default();
-        let mut sessions = self.sessions.write();
-        for r in recovered {
-            let (session, replayed) = r.map_err(|e| {
-                ServiceError::Storage(format!(
-                    "the store {} holds a session that cannot be recovered (corrupt, or written by an incompatible mcapi): {e}",
-                    d.store.path().display()
-                ))
-            })?;
-            report.sessions += 1;
-            report.replayed += replayed;
-            sessions.insert(session.id.clone(), session);
-        }
-        metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
-        drop(sessions);
-        report.seconds = started.elapsed().as_secs_f64();
-        self.ready.store(true, Ordering::Release);
-        Ok(report)
-    }
-
-    fn recover_one(
-        &self,
-        d: &Durability,
-        stored: crate::store::StoredSession,
-    ) -> Result<(SessionRef, u64), String> {
-        let id = stored.id;
-        let ctx = |e: String| format!("session `{id}`: {e}");
-        let record: durable::SessionRecord = serde_json::from_slice(&stored.record)
-            .map_err(|e| ctx(format!("its record does not decode: {e}")))?;
-        let model: serde_json::Value = serde_json::from_str(&record.model)
-            .map_err(|e| ctx(format!("its model does not decode: {e}")))?;
-        let input = ModelInput::parse(model).map_err(|e| ctx(e.to_string()))?;
-        let c = &record.config;
-        let agent_cfg = SessionConfig {
-            eta: Some(c.eta),
-            gamma: Some(c.gamma),
-            priorities: Some(c.priorities.clone()),
-            stimulus_rate: Some(c.stimulus_rate),
-            optimistic_sd: Some(c.optimistic_sd),
-            ridge: Some(c.ridge),
-            epsilon: Some(c.epsilon),
-            seed: Some(c.seed),
-            update_mode: Some(c.update_mode),
-            history: Some(c.history),
-            curiosity: c.curiosity.clone(),
-        };
-        // Limits are for new sessions: one created under looser limits is
-        // recovered anyway (and said so), not refused with the whole store.
-        let built = match self.build(&input, &agent_cfg, &self.limits) {
-            Err(ServiceError::LimitExceeded(why)) => {
-                tracing::warn!(session = %id, limit = %why, "a stored session exceeds the current limits; recovered anyway");
-                self.build(&input, &agent_cfg, &Limits::unlimited())
-            }
-            built => built,
-        };
-        let (mut learner, summary, config) = built.map_err(|e| ctx(e.to_string()))?;
-        let mut history = std::collections::VecDeque::new();
-        let mut after = None;
-        if let Some((seq, bytes)) = &stored.snapshot {
-            let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(&ctx)?;
-            learner = restore(&learner, snap.learner).map_err(|e| ctx(e.to_string()))?;
-            history = snap.history.iter().map(session::RingTick::from).collect();
-            after = Some(*seq);
-        }
-        let mut next_seq = after.map_or(0, |s| s + 1);
-        let mut replayed = 0u64;
-        d.store
-            .for_each_entry(&id, after, |seq, bytes| {
-                if seq != next_seq {
-                    return Err(crate::store::StoreError::Failed(ctx(format!(
-                        "log entry {next_seq} is missing (found {seq})"
-                    ))));
-                }
-                let entry = durable::decode_entry(bytes, &format!("log entry {seq}"))
-                    .map_err(|e| crate::store::StoreError::Failed(ctx(e)))?;
-                durable::replay(&mut learner, &mut history, config.history, &entry).map_err(
-                    |e| crate::store::StoreError::Failed(ctx(format!("log entry {seq}: {e}"))),
-                )?;
-                next_seq += 1;
-                replayed += 1;
-                Ok(())
-            })
-            .map_err(|e| e.to_string())?;
-        if learner.needs_plan() {
-            learner.plan().map_err(|e| ctx(e.to_string()))?;
-        }
-        let since_snapshot = next_seq - after.map_or(0, |s| s + 1);
-        let session = Session::resume(
-            id.clone(),
-            learner,
-            summary,
-            config,
-            Some(d.clone()),
-            session::Resumed {
-                owner: record.owner,
-                history,
-                seq: next_seq,
-                since_snapshot,
-            },
-        );
-        Ok((Arc::new(session), replayed))
     }
 
     /// The session with this id, whoever owns it (for tests and tools).
@@ -678,14 +670,50 @@ impl SessionManager {
     }
 
     /// The session with this id if `caller` may see it; another key's
-    /// session is `NotFound`, exactly like a missing one.
+    /// session is `NotFound`, exactly like a missing one. A quarantined
+    /// session is [`ServiceError::SessionFailed`] (see [`Session::is_failed`]).
+    /// A session whose commit failed is first rolled back to its durable
+    /// state (reloaded, see [`SessionManager::visible_session`]).
     pub fn session_for(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
-        let session = self.session(id)?;
-        if caller.may_see(session.owner.as_ref()) {
-            Ok(session)
-        } else {
-            Err(ServiceError::NotFound(id.to_string()))
+        let session = self.visible_session(caller, id)?;
+        if session.is_failed() {
+            return Err(ServiceError::SessionFailed(id.to_string()));
         }
+        Ok(session)
+    }
+
+    /// [`SessionManager::session_for`], quarantined sessions included (for
+    /// `delete`). A session whose commit failed is first rolled back to its
+    /// durable state (reloaded), so nothing that was not made durable is
+    /// ever served; while that cannot be done, `Storage`.
+    pub fn visible_session(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
+        let session = self.session(id)?;
+        if !caller.may_see(session.owner.as_ref()) {
+            return Err(ServiceError::NotFound(id.to_string()));
+        }
+        if !session.is_stale() {
+            return Ok(session);
+        }
+        self.reload(&session).map_err(|e| {
+            ServiceError::Storage(format!(
+                "session `{id}` cannot be rolled back to its durable state after a storage failure ({e})"
+            ))
+        })?;
+        self.session(id)
+    }
+
+    /// Runs a synchronous service call on the blocking pool, so no reader
+    /// (value tables, history, listing) holds a session lock or copies a
+    /// large table on an async runtime thread.
+    pub async fn off_runtime<T, F>(self: &Arc<Self>, call: F) -> Result<T, ServiceError>
+    where
+        F: FnOnce(&SessionManager) -> Result<T, ServiceError> + Send + 'static,
+        T: Send + 'static,
+    {
+        let manager = Arc::clone(self);
+        tokio::task::spawn_blocking(move || call(&manager))
+            .await
+            .map_err(|e| ServiceError::Internal(format!("a blocking service call failed: {e}")))?
     }
 
     /// Details of a session.
@@ -709,13 +737,8 @@ impl SessionManager {
             ));
         }
         let sessions = self.sessions.read();
-        let range = match after {
-            Some(a) => {
-                sessions.range::<str, _>((std::ops::Bound::Excluded(a), std::ops::Bound::Unbounded))
-            }
-            None => sessions.range::<str, _>(..),
-        };
-        let page: Vec<SessionRef> = range
+        let page: Vec<SessionRef> = sessions
+            .after(after)
             .filter(|(_, s)| caller.may_see(s.owner.as_ref()))
             .take(limit + 1)
             .map(|(_, s)| Arc::clone(s))
@@ -738,24 +761,41 @@ impl SessionManager {
         Ok(SessionPage { sessions, next })
     }
 
-    /// Deletes a session and, with a store, its stored data (durably,
-    /// before this returns).
+    /// Deletes a session and, with a store, its stored data. The deletion is
+    /// committed before anything is removed: if the commit fails, the
+    /// session stays and is served as before (the client gets
+    /// `storage_unavailable` and may retry); once it returns `Ok`, the
+    /// session is gone, restarts included.
     #[tracing::instrument(level = "debug", skip(self))]
     pub async fn delete(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
-        self.session_for(caller, id)?;
-        let session = {
-            let mut sessions = self.sessions.write();
-            let session = sessions
-                .remove(id)
-                .ok_or_else(|| ServiceError::NotFound(id.to_string()))?;
-            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
-            session
-        };
-        if let Some(commit) = session.delete() {
-            commit
+        let session = self.visible_session(caller, id)?;
+        self.store_writable()?;
+        let result = match session.begin_delete()? {
+            Some(commit) => commit
                 .wait()
                 .await
-                .map_err(|e| ServiceError::Storage(e.to_string()))?;
+                .map_err(|e| ServiceError::Storage(e.to_string())),
+            None => Ok(()),
+        };
+        // A reload during the commit may have replaced the session in the
+        // map; the delete ends on both.
+        let current = self.session(id).ok().filter(|s| !Arc::ptr_eq(s, &session));
+        if let Err(e) = result {
+            session.end_delete(false);
+            if let Some(s) = current {
+                s.end_delete(false);
+            }
+            tracing::warn!(session = %id, error = %e, "session not deleted: its deletion was not committed");
+            return Err(e);
+        }
+        {
+            let mut sessions = self.sessions.write();
+            sessions.remove(id);
+            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        }
+        session.end_delete(true);
+        if let Some(s) = current {
+            s.end_delete(true);
         }
         tracing::info!(session = %id, "session deleted");
         Ok(())
@@ -780,16 +820,15 @@ impl SessionManager {
                 self.limits.max_batch
             )));
         }
-        let mut session = self.session_for(caller, id)?;
-        if session.is_stale() {
-            // An earlier reload after a storage failure did not succeed.
-            self.reload(&session).map_err(|e| {
-                ServiceError::Unavailable(format!(
-                    "session `{id}` cannot be reloaded after a storage failure ({e}); retry"
-                ))
-            })?;
-            session = self.session_for(caller, id)?;
-        }
+        // Rolled back first if an earlier commit failed.
+        let session = self.session_for(caller, id)?;
+        self.limits.check_batch_cost(
+            batch.len(),
+            &cost::estimate(&session.model, &session.config),
+        )?;
+        // While the store cannot write, nothing is applied: the client gets
+        // `storage_unavailable` at once and retries.
+        self.store_writable()?;
         let result = self.observe_on(&session, batch).await;
         if let Err(ServiceError::Storage(detail)) = &result {
             // The observations are applied in memory but not durable, and
@@ -802,44 +841,6 @@ impl SessionManager {
             }
         }
         result
-    }
-
-    /// Replaces a session whose commit failed by a fresh recovery of its
-    /// durable state (snapshot and log, as at start), then lets the store
-    /// accept its writes again ([`crate::store::Write::Resume`]). The old
-    /// session is marked stale first, so nothing is applied to it while
-    /// this runs. A no-op if the session was deleted or already replaced.
-    pub fn reload(&self, session: &SessionRef) -> Result<(), String> {
-        let Some(d) = &self.durability else {
-            return Ok(());
-        };
-        session.mark_stale();
-        let _one_at_a_time = self.reloading.lock();
-        let current = |sessions: &BTreeMap<String, SessionRef>| {
-            sessions
-                .get(&session.id)
-                .is_some_and(|s| Arc::ptr_eq(s, session))
-        };
-        if !current(&self.sessions.read()) {
-            return Ok(());
-        }
-        let stored = d
-            .store
-            .session(&session.id)
-            .map_err(|e| e.to_string())?
-            .ok_or_else(|| format!("session `{}` is not in the store", session.id))?;
-        let (fresh, replayed) = self.recover_one(d, stored)?;
-        // Queued before the fresh session can submit anything, so the
-        // store readmits exactly the writes that continue the durable state.
-        drop(d.store.submit(vec![crate::store::Write::Resume {
-            id: Arc::from(session.id.as_str()),
-        }]));
-        let mut sessions = self.sessions.write();
-        if current(&sessions) {
-            sessions.insert(session.id.clone(), fresh);
-        }
-        tracing::info!(session = %session.id, replayed, "session reloaded from its durable state");
-        Ok(())
     }
 
     async fn observe_on(
@@ -871,13 +872,30 @@ impl SessionManager {
                     batch,
                     reply: tx,
                 })?;
+                // The pool drains its queue before it stops, so a reply
+                // that never comes means the job itself failed.
                 rx.await
-                    .map_err(|_| ServiceError::Unavailable("the server is shutting down".into()))?
+                    .map_err(|_| ServiceError::Internal("a tick job ended without a reply".into()))?
                     .durable()
                     .await?
             }
             UpdateMode::Async => {
-                let observed = session.observe(&batch, false);
+                // Observing alone recomputes R for every pair and, with a
+                // curiosity channel, learns each signal sample: beyond the
+                // inline budget that runs on the blocking pool.
+                let observe_ns = cost::observe_us(&session.model, &session.config)
+                    .saturating_mul(1000)
+                    .saturating_mul(n);
+                let observed = if observe_ns <= self.inline_plan_ns.max(50_000) {
+                    session.observe(&batch, false)
+                } else {
+                    let session = Arc::clone(&session);
+                    tokio::task::spawn_blocking(move || session.observe(&batch, false))
+                        .await
+                        .map_err(|e| {
+                            ServiceError::Internal(format!("an observation task failed: {e}"))
+                        })?
+                };
                 if inline && observed.result.is_ok() {
                     let started = Instant::now();
                     match session.plan_if_needed() {
@@ -908,6 +926,7 @@ impl SessionManager {
         sel: ValueSelection,
     ) -> Result<Values, ServiceError> {
         let session = self.session_for(caller, id)?;
+        self.check_values_size(&session, sel)?;
         let st = session.state.lock();
         let agent = st.learner.agent();
         let model = agent.planning_model().model();
@@ -947,6 +966,41 @@ impl SessionManager {
         })
     }
 
+    /// Refuses value tables whose JSON would exceed
+    /// [`Limits::max_response_bytes`], before anything is built (about 24
+    /// bytes per number, and per name for `policy`).
+    fn check_values_size(
+        &self,
+        session: &Session,
+        sel: ValueSelection,
+    ) -> Result<(), ServiceError> {
+        let m = &session.model;
+        let cells = m.states.saturating_mul(m.actions.len());
+        let longest = m.actions.iter().map(String::len).max().unwrap_or(0);
+        let mut bytes = 0usize;
+        if sel.v {
+            bytes = bytes.saturating_add(m.states.saturating_mul(24));
+        }
+        if sel.policy {
+            bytes = bytes.saturating_add(m.states.saturating_mul(longest + 4));
+        }
+        for table in [sel.q, sel.r] {
+            if table {
+                bytes = bytes.saturating_add(cells.saturating_mul(24));
+            }
+        }
+        if sel.xi {
+            bytes = bytes.saturating_add(cells.saturating_mul(m.stimuli.len() * 24 + 4));
+        }
+        if bytes > self.limits.max_response_bytes {
+            return Err(ServiceError::LimitExceeded(format!(
+                "the value tables asked for (`include`) would take about {bytes} bytes; the limit of one response is {} (--max-response-bytes): ask for fewer tables",
+                self.limits.max_response_bytes
+            )));
+        }
+        Ok(())
+    }
+
     /// The most recent `limit` ticks of a session's history, oldest first.
     pub fn history(
         &self,
@@ -955,7 +1009,18 @@ impl SessionManager {
         limit: Option<usize>,
     ) -> Result<Vec<HistoryEntry>, ServiceError> {
         let session = self.session_for(caller, id)?;
-        Ok(session.history(limit.unwrap_or(usize::MAX)))
+        let limit = limit.unwrap_or(usize::MAX).min(session.config.history);
+        // About 24 bytes per number: D, the stimulus, and the fixed fields.
+        let entry = (2 * session.model.stimuli.len() + 12) * 24;
+        let bytes = limit.saturating_mul(entry);
+        if bytes > self.limits.max_response_bytes {
+            return Err(ServiceError::LimitExceeded(format!(
+                "{limit} history entries would take about {bytes} bytes; the limit of one response is {} (--max-response-bytes): ask for at most {} with `limit`",
+                self.limits.max_response_bytes,
+                self.limits.max_response_bytes / entry
+            )));
+        }
+        Ok(session.history(limit))
     }
 
     /// Stops the tick loop after draining its queue; with a store, writes
@@ -979,17 +1044,6 @@ impl SessionManager {
     }
 }
 
-/// What `recover` did.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
-pub struct RecoveryReport {
-    /// Sessions recovered.
-    pub sessions: u64,
-    /// Log entries replayed.
-    pub replayed: u64,
-    /// Wall time.
-    pub seconds: f64,
-}
-
 fn info_of(session: &Session) -> SessionInfo {
     let st = session.state.lock();
     let agent = st.learner.agent();
@@ -1010,6 +1064,7 @@ fn info_of(session: &Session) -> SessionInfo {
             factorisation_reuses: stats.reuses,
             factorisations: stats.factorisations,
         },
+        cost: cost::estimate(&session.model, &session.config),
         curiosity: st.learner.curious().map(CuriosityInfo::of),
     }
 }
@@ -1026,29 +1081,5 @@ fn prefix(field: &'static str, e: crate::algo::AlgoError) -> ServiceError {
             .into()
         }
         e => ServiceError::field(field, e),
-    }
-}
-
-/// A recovered learner: `base` (built from the session record) resumed from
-/// a snapshot of the same kind.
-fn restore(base: &Learner, snap: durable::LearnerSnapshot) -> Result<Learner, String> {
-    let ctx = Arc::clone(base.agent().planning_model());
-    let params = base.agent().params().clone();
-    match (snap, base.curious()) {
-        (durable::LearnerSnapshot::Plain(s), None) => Agent::restore(ctx, params, s)
-            .map(Learner::Plain)
-            .map_err(|e| e.to_string()),
-        (durable::LearnerSnapshot::Curious(s), Some(c)) => {
-            let channel = c.channel();
-            CuriousAgent::restore(ctx, params, channel.params(), channel.signal_dim(), *s)
-                .map(|a| Learner::Curious(Box::new(a)))
-                .map_err(|e| e.to_string())
-        }
-        (durable::LearnerSnapshot::Plain(_), Some(_)) => {
-            Err("its snapshot has no curiosity channel, its record one".into())
-        }
-        (durable::LearnerSnapshot::Curious(_), None) => {
-            Err("its snapshot has a curiosity channel, its record none".into())
-        }
     }
 }

@@ -371,6 +371,11 @@ pub struct SessionState {
     since_snapshot: u64,
     /// Set by `delete`: the session takes no more observations.
     deleted: bool,
+    /// Set while a delete's commit is in flight: no observation or
+    /// snapshot is queued after the delete; cleared if the commit fails.
+    deleting: bool,
+    /// Policy updates to fail on purpose (tests of the failure path).
+    fail_plans: u32,
 }
 
 /// Where a session's observations are made durable.
@@ -436,6 +441,13 @@ pub struct Session {
     /// server started.
     last_observed_ns: AtomicU64,
     history_cap: usize,
+    /// Set when an update panicked (a bug, not a client's mistake): the
+    /// state may be half-updated, so the session is quarantined and answers
+    /// [`ServiceError::SessionFailed`] until it is deleted.
+    failed: AtomicBool,
+    /// Test hook: the next update of this kind panics (see [`Update`]).
+    #[cfg(test)]
+    pub(crate) panic_next: std::sync::atomic::AtomicU8,
 }
 
 /// Nanoseconds since the process's first call, plus one (never 0).
@@ -476,12 +488,59 @@ impl Session {
                 seq: resumed.seq,
                 since_snapshot: resumed.since_snapshot,
                 deleted: false,
+                deleting: false,
+                fail_plans: 0,
             }),
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
             last_observed_ns: AtomicU64::new(0),
+            failed: AtomicBool::new(false),
+            #[cfg(test)]
+            panic_next: std::sync::atomic::AtomicU8::new(0),
         }
+    }
+
+    /// Whether an update of this session panicked (it is quarantined).
+    pub fn is_failed(&self) -> bool {
+        self.failed.load(Ordering::Acquire)
+    }
+
+    /// Runs `update` on the locked state, catching a panic: the session is
+    /// then quarantined ([`Session::is_failed`]) and the caller gets
+    /// [`ServiceError::SessionFailed`] instead of a dead worker or a
+    /// half-updated state served to the next request.
+    fn guarded<T>(
+        &self,
+        st: &mut SessionState,
+        kind: Update,
+        update: impl FnOnce(&mut SessionState) -> Result<T, ServiceError>,
+    ) -> Result<T, ServiceError> {
+        #[cfg(test)]
+        let inject = self
+            .panic_next
+            .compare_exchange(kind as u8, 0, Ordering::AcqRel, Ordering::Acquire)
+            .is_ok();
+        #[cfg(not(test))]
+        let _ = kind;
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            #[cfg(test)]
+            if inject {
+                panic!("injected by a test");
+            }
+            update(st)
+        }));
+        outcome.unwrap_or_else(|panic| {
+            self.failed.store(true, Ordering::Release);
+            let what = panic
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_default();
+            tracing::error!(session = %self.id, panic = %what, "an update panicked; the session is quarantined");
+            metrics::counter!("mcapi_session_panics_total").increment(1);
+            Err(ServiceError::SessionFailed(self.id.clone()))
+        })
     }
 
     /// Time since the last applied observation; `None` if none since the
@@ -534,6 +593,12 @@ impl Session {
                 commit: None,
             };
         }
+        if self.is_failed() {
+            return Observed {
+                result: Err(ServiceError::SessionFailed(self.id.clone())),
+                commit: None,
+            };
+        }
         if self.stale.load(Ordering::Acquire) {
             return Observed {
                 result: Err(ServiceError::Unavailable(format!(
@@ -543,11 +608,25 @@ impl Session {
                 commit: None,
             };
         }
+        if st.deleting {
+            return Observed {
+                result: Err(ServiceError::Unavailable(format!(
+                    "session `{}` is being deleted; retry",
+                    self.id
+                ))),
+                commit: None,
+            };
+        }
         let started = Instant::now();
         let mut out = Vec::with_capacity(batch.len());
         let mut log = Vec::new();
         let log_to = self.durability.as_ref().map(|_| &mut log);
-        let result = st.apply_all(batch, plan, self.history_cap, &mut out, log_to);
+        // The observations applied before a panic stay applied and logged:
+        // the log then holds a consistent prefix, which a restart recovers.
+        let cap = self.history_cap;
+        let result = self.guarded(&mut st, Update::Observe, |st| {
+            st.apply_all(batch, plan, cap, &mut out, log_to)
+        });
         if !out.is_empty() {
             self.last_observed_ns.store(clock_ns(), Ordering::Relaxed);
         }
@@ -590,12 +669,74 @@ impl Session {
         })
     }
 
+    /// Starts deleting the session: queues the deletion of its stored data
+    /// and, until [`Self::end_delete`], refuses observations (nothing is
+    /// queued after the delete). Nothing is removed yet: if the commit
+    /// fails, the session goes on as before. `None` without a store.
+    pub fn begin_delete(&self) -> Result<Option<Commit>, ServiceError> {
+        let mut st = self.state.lock();
+        if st.deleted {
+            return Err(ServiceError::NotFound(self.id.clone()));
+        }
+        if self.is_stale() {
+            return Err(ServiceError::Storage(format!(
+                "session `{}` is being rolled back to its durable state after a storage failure",
+                self.id
+            )));
+        }
+        if st.deleting {
+            return Err(ServiceError::Unavailable(format!(
+                "session `{}` is already being deleted; retry",
+                self.id
+            )));
+        }
+        st.deleting = true;
+        Ok(self.durability.as_ref().map(|d| {
+            d.store.submit(vec![Write::Delete {
+                id: Arc::from(self.id.as_str()),
+            }])
+        }))
+    }
+
+    /// Ends a delete: `deleted` once its commit is durable (the session
+    /// takes nothing more), otherwise the session is served again.
+    pub fn end_delete(&self, deleted: bool) {
+        let mut st = self.state.lock();
+        st.deleting = false;
+        st.deleted |= deleted;
+    }
+
+    /// Whether a delete of this session is in flight.
+    pub fn is_deleting(&self) -> bool {
+        self.state.lock().deleting
+    }
+
+    /// Marks a reloaded session as being deleted, as the session it
+    /// replaces was (the delete in flight ends on it).
+    pub(super) fn inherit_deleting(&self) {
+        self.state.lock().deleting = true;
+    }
+
+    /// Makes the next `n` policy updates of observations fail with
+    /// `AlgoError::Numerical` after the observation was applied, as a
+    /// numerical breakdown of the planner would (for tests of that path;
+    /// no request reaches it).
+    #[doc(hidden)]
+    pub fn fail_next_plans(&self, n: u32) {
+        self.state.lock().fail_plans = n;
+    }
+
     /// Writes a snapshot now (at clean shutdown), unless nothing changed
     /// since the last one.
     pub fn snapshot(&self) -> Option<Commit> {
         let d = self.durability.as_ref()?;
         let mut st = self.state.lock();
-        if st.deleted || self.is_stale() || st.since_snapshot == 0 {
+        if st.deleted
+            || st.deleting
+            || self.is_stale()
+            || self.is_failed()
+            || st.since_snapshot == 0
+        {
             return None;
         }
         match st.snapshot_write(&self.id) {
@@ -611,11 +752,11 @@ impl Session {
     /// loop's work for async sessions).
     pub fn plan_if_needed(&self) -> Result<bool, ServiceError> {
         let mut st = self.state.lock();
-        if !st.learner.needs_plan() {
+        if self.is_failed() || !st.learner.needs_plan() {
             return Ok(false);
         }
         let started = Instant::now();
-        st.learner.plan()?;
+        self.guarded(&mut st, Update::Plan, |st| Ok(st.learner.plan()?))?;
         drop(st);
         self.record_plan_cost(started, 1);
         Ok(true)
@@ -703,7 +844,11 @@ impl SessionState {
             // The action whose pair this observation updates, resolved now.
             let advised_before = self.learner.agent().advised_action();
             match self.apply(obs, plan, history_cap) {
-                Ok((step, taken)) => {
+                Ok(Applied {
+                    step,
+                    taken,
+                    plan_failed,
+                }) => {
                     if let Some(log) = log.as_deref_mut() {
                         log.push(LogEntry {
                             state: obs.state as u32,
@@ -721,6 +866,12 @@ impl SessionState {
                                 .as_ref()
                                 .map(|x| (obs.signal_source.unwrap_or(0) as u32, x.clone())),
                         });
+                    }
+                    if let Some(e) = plan_failed {
+                        // The observation is applied (Ξ, D, the tick) and
+                        // logged above, so memory and log agree; the reply
+                        // is the planner's error.
+                        return Err(e.into());
                     }
                     out.push(step);
                 }
@@ -740,12 +891,15 @@ impl SessionState {
         Ok(())
     }
 
+    /// Applies one observation. An error means nothing was applied; a
+    /// failed policy update after the observation was applied is
+    /// [`Applied::plan_failed`], so the caller logs the observation.
     fn apply(
         &mut self,
         obs: &ObservationIn,
         plan: bool,
         history_cap: usize,
-    ) -> Result<(StepOut, Option<usize>), ServiceError> {
+    ) -> Result<Applied, ServiceError> {
         let model = self.learner.agent().planning_model().model();
         let action_taken = match &obs.action_taken {
             None => None,
@@ -784,14 +938,20 @@ impl SessionState {
         let observed = self.learner.observe(&observation, signal)?;
         // Algorithm 1 lines 8-10, as `Agent::step`: act even if planning
         // failed, so the agent stays consistent.
-        let planned = (plan && self.learner.needs_plan()).then(|| self.learner.plan());
+        let planned = (plan && self.learner.needs_plan()).then(|| {
+            if self.fail_plans > 0 {
+                self.fail_plans -= 1;
+                return Err(AlgoError::Numerical(
+                    "injected policy update failure".into(),
+                ));
+            }
+            self.learner.plan()
+        });
         let action = self
             .learner
             .act()
             .ok_or_else(|| ServiceError::Internal("no state after an observation".into()))?;
-        if let Some(planned) = planned {
-            planned?;
-        }
+        let plan_failed = planned.and_then(Result::err);
         let agent = self.learner.agent();
         let drive = agent.drive().vector().to_vec();
         if obs.stimulus.is_some() {
@@ -808,8 +968,8 @@ impl SessionState {
             );
             push_tick(&mut self.history, history_cap, tick);
         }
-        Ok((
-            StepOut {
+        Ok(Applied {
+            step: StepOut {
                 tick: observed.tick,
                 action: agent.planning_model().model().actions()[action].clone(),
                 action_index: action,
@@ -818,13 +978,34 @@ impl SessionState {
                 policy_version: agent.policy_version(),
                 curiosity: observed.curiosity,
             },
-            action_taken,
-        ))
+            taken: action_taken,
+            plan_failed,
+        })
     }
+}
+
+/// One applied observation.
+struct Applied {
+    /// The reply.
+    step: StepOut,
+    /// The action the client reported taking, if any.
+    taken: Option<usize>,
+    /// The policy update after it failed (the observation stays applied).
+    plan_failed: Option<AlgoError>,
 }
 
 /// A shared handle.
 pub type SessionRef = Arc<Session>;
+
+/// The two ways a session's state changes, for [`Session::guarded`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub(crate) enum Update {
+    /// Observations applied (and, in lockstep, their plans).
+    Observe = 1,
+    /// An async-mode policy update.
+    Plan = 2,
+}
 
 #[cfg(test)]
 mod tests {

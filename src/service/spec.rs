@@ -176,9 +176,12 @@ impl ModelInput {
         }
     }
 
-    /// A key identifying the model and basis, for sharing built models.
+    /// A key identifying the model and basis, for sharing built models: the
+    /// SHA-256 of a canonical rendering, so a large posted model is not kept
+    /// twice.
     pub fn cache_key(&self) -> String {
-        match self {
+        use sha2::Digest;
+        let text = match self {
             Self::Preset { name, basis } => format!("preset:{name}:{basis:?}"),
             Self::Grid {
                 lines,
@@ -187,7 +190,11 @@ impl ModelInput {
                 basis,
             } => format!("grid:{lines:?}:{sources:?}:{stimuli:?}:{basis:?}"),
             Self::Spec(spec) => format!("spec:{}", serde_json::to_string(spec).unwrap_or_default()),
-        }
+        };
+        sha2::Sha256::digest(text.as_bytes())
+            .iter()
+            .map(|b| format!("{b:02x}"))
+            .collect()
     }
 
     /// Builds and validates the model and picks its basis; with
@@ -199,6 +206,7 @@ impl ModelInput {
     ) -> Result<(EnvModel, BasisSpec), ServiceError> {
         let (model, basis) = match self {
             Self::Preset { name, basis } => {
+                limits.check_name("model.preset", name)?;
                 let preset = match name.as_str() {
                     "hallway" => hallway(),
                     "three_room" => three_room(),
@@ -216,10 +224,13 @@ impl ModelInput {
                 sources,
                 stimuli,
                 basis,
-            } => (
-                grid_model(lines, sources, stimuli.as_deref(), limits)?,
-                basis.clone(),
-            ),
+            } => {
+                limits.check_grid(lines, sources, stimuli.as_deref())?;
+                (
+                    grid_model(lines, sources, stimuli.as_deref(), limits)?,
+                    basis.clone(),
+                )
+            }
             Self::Spec(spec) => {
                 limits.check_model_spec(spec)?;
                 (EnvModel::from_spec(spec)?, spec.basis.clone())

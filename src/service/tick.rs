@@ -140,7 +140,13 @@ fn worker(shared: &Shared) {
                 shared.ready.wait(&mut q);
             }
         };
-        run(job);
+        // A panic is caught where a session's state is updated (the session
+        // is then quarantined); this catch keeps the worker alive whatever
+        // else panics, so lockstep requests never wait for a dead pool.
+        if std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| run(job))).is_err() {
+            tracing::error!("a tick job panicked; the worker goes on");
+            metrics::counter!("mcapi_tick_panics_total").increment(1);
+        }
         let mut q = shared.queue.lock();
         q.running -= 1;
         let n = q.jobs.len() + q.running;

@@ -31,6 +31,18 @@
 //! service has reloaded the session from what is durable and sent
 //! [`Write::Resume`]. Later records therefore never depend on lost ones.
 //!
+//! Storage faults are survived without a restart. redb latches the first
+//! real I/O error of a `Database` (ENOSPC included): every later call on it,
+//! reads too, fails with `StorageError::PreviousIo` until it is closed and
+//! opened again. So after a commit fails with an I/O error the writer thread
+//! closes the database at once (readers then get [`StoreError::Unavailable`]
+//! instead of the latched error), and reopens it with backoff: at the next
+//! write after the backoff, or by itself when nothing is written (the health
+//! probe). A reopen counts only once a probe commit succeeds on the new
+//! handle; until then [`Store::health`] says why the store cannot write, and
+//! every write fails at once. Opening repairs the file to its last commit, so
+//! nothing acknowledged is lost and nothing unacknowledged appears.
+//!
 //! Chunks, not one record per observation: a B-tree entry per 20-byte
 //! observation cost about 140 bytes of file, and the file's size is what
 //! opening it (integrity check) and recovery cost.
@@ -40,10 +52,10 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU32, Ordering};
 use std::thread::JoinHandle;
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
-use crossbeam_channel::{Receiver, Sender, unbounded};
-use parking_lot::Mutex;
+use crossbeam_channel::{Receiver, RecvTimeoutError, Sender, unbounded};
+use parking_lot::{Mutex, RwLock};
 use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
 use thiserror::Error;
 use tokio::sync::oneshot;
@@ -62,6 +74,8 @@ const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
 const SESSIONS: TableDefinition<&str, &[u8]> = TableDefinition::new("sessions");
 const SNAPSHOTS: TableDefinition<&str, (u64, &[u8])> = TableDefinition::new("snapshots");
 const LOG: TableDefinition<(u128, u64), &[u8]> = TableDefinition::new("log");
+/// The health probe's scratch table (empty between probes).
+const PROBE: TableDefinition<&str, &[u8]> = TableDefinition::new("probe");
 
 /// The log's key of a session: the 128 bits of the ULID in its id
 /// (`s<shard>.<ULID>`), or a 128-bit hash of the id for other ids. A number
@@ -85,6 +99,18 @@ pub const CHUNK: u64 = 64;
 
 /// Most writes folded into one transaction.
 const MAX_GROUP: usize = 8192;
+
+/// First wait before reopening the database after a storage fault; doubled
+/// after every failed attempt up to [`MAX_BACKOFF`], reset by a successful
+/// commit of real writes.
+const MIN_BACKOFF: Duration = Duration::from_millis(50);
+/// Longest wait between two reopening attempts.
+const MAX_BACKOFF: Duration = Duration::from_secs(1);
+/// How long a reopen waits for readers to let go of the failed handle
+/// (redb holds the file lock until the last one is dropped).
+const RELEASE_WAIT: Duration = Duration::from_secs(2);
+/// What the health probe writes (and removes again) after a reopen.
+const PROBE_BYTES: usize = 256 * 1024;
 
 /// What can go wrong with the store.
 #[derive(Debug, Clone, Error)]
@@ -119,6 +145,10 @@ pub enum StoreError {
     /// A read or write failed while running.
     #[error("store failure: {0}")]
     Failed(String),
+    /// The store cannot write after a storage fault (a full or failing
+    /// disk); it is reopened automatically once the fault clears.
+    #[error("the store is unavailable after a storage fault ({0}); it is reopened automatically")]
+    Unavailable(String),
     /// An earlier write of this session failed; its writes are refused
     /// until it is reloaded ([`Write::Resume`]).
     #[error(
@@ -130,8 +160,51 @@ pub enum StoreError {
     Closed,
 }
 
-fn failed(e: impl std::fmt::Display) -> StoreError {
-    StoreError::Failed(e.to_string())
+/// Whether a redb error leaves the `Database` unusable until it is closed and
+/// opened again: an I/O error is latched (every later call answers
+/// `PreviousIo`), and a failed commit may discard the allocator state (every
+/// later write transaction answers `Corrupted`, "reopen the database to
+/// repair it").
+fn needs_reopen(e: &redb::Error) -> bool {
+    matches!(
+        e,
+        redb::Error::Io(_)
+            | redb::Error::PreviousIo
+            | redb::Error::DatabaseClosed
+            | redb::Error::Corrupted(_)
+            | redb::Error::TransactionPoisoned
+            | redb::Error::LockPoisoned(_)
+            | redb::Error::Backend(_)
+    )
+}
+
+/// A failure of the database while running, classified: a fault that needs
+/// a reopen, or another failure.
+#[derive(Debug)]
+struct DbFailure {
+    reopen: bool,
+    message: String,
+}
+
+impl DbFailure {
+    fn of(e: impl Into<redb::Error>) -> Self {
+        let e: redb::Error = e.into();
+        Self {
+            reopen: needs_reopen(&e),
+            message: e.to_string(),
+        }
+    }
+
+    fn injected() -> Self {
+        Self {
+            reopen: false,
+            message: "injected commit failure".into(),
+        }
+    }
+
+    fn into_store_error(self) -> StoreError {
+        StoreError::Failed(self.message)
+    }
 }
 
 /// One write.
@@ -187,12 +260,46 @@ impl Write {
 }
 
 /// What the writer thread shares with the store's handle.
-#[derive(Debug, Default)]
+#[derive(Default)]
 struct Shared {
     /// Sessions whose log has a hole (a commit with their writes failed).
     broken: Mutex<HashSet<Arc<str>>>,
     /// Commits to fail on purpose (tests of the failure path).
     fail_next: AtomicU32,
+    /// The open database; `None` after a storage fault until the writer
+    /// has reopened it. Readers clone the handle for one read.
+    db: RwLock<Option<Arc<Database>>>,
+    /// Why the store cannot write, while it cannot.
+    fault: Mutex<Option<String>>,
+}
+
+impl Shared {
+    /// The open database, or why there is none.
+    fn db(&self) -> Result<Arc<Database>, StoreError> {
+        if let Some(db) = self.db.read().as_ref() {
+            return Ok(Arc::clone(db));
+        }
+        let why = self
+            .fault
+            .lock()
+            .clone()
+            .unwrap_or_else(|| "the database is being reopened".into());
+        Err(StoreError::Unavailable(why))
+    }
+
+    fn set_fault(&self, why: &str) {
+        let mut fault = self.fault.lock();
+        if fault.is_none() {
+            metrics::gauge!("mcapi_store_healthy").set(0.0);
+        }
+        *fault = Some(why.to_string());
+    }
+
+    fn clear_fault(&self) {
+        if self.fault.lock().take().is_some() {
+            metrics::gauge!("mcapi_store_healthy").set(1.0);
+        }
+    }
 }
 
 struct Pending {
@@ -229,7 +336,6 @@ pub struct StoredSession {
 
 /// The store: a redb database and its writer thread.
 pub struct Store {
-    db: Arc<Database>,
     path: PathBuf,
     shared: Arc<Shared>,
     tx: Mutex<Option<Sender<Pending>>>,
@@ -251,95 +357,59 @@ impl Store {
             reason: format!("cannot create the data directory: {e}"),
         })?;
         let path = dir.join(FILE_NAME);
-        let corrupt = |reason: String| StoreError::Corrupt {
-            path: path.clone(),
-            reason,
-        };
-        let existed = path.metadata().map(|m| m.len() > 0).unwrap_or(false);
-        let db = Database::builder()
-            .set_check_integrity_on_open(true)
-            .create(&path)
-            .map_err(|e| match e {
-                redb::DatabaseError::DatabaseAlreadyOpen => StoreError::Io {
-                    path: path.clone(),
-                    reason: "already open in another process (is another mcapi running on this data directory?)".into(),
-                },
-                redb::DatabaseError::Storage(redb::StorageError::Io(io))
-                    if io.kind() != std::io::ErrorKind::InvalidData =>
-                {
-                    StoreError::Io {
-                    path: path.clone(),
-                        reason: io.to_string(),
-                    }
-                }
-                other => corrupt(other.to_string()),
-            })?;
-        let mut write = db.begin_write().map_err(|e| corrupt(e.to_string()))?;
-        write.set_two_phase_commit(true);
-        {
-            let mut meta = write.open_table(META).map_err(|e| corrupt(e.to_string()))?;
-            let found = meta
-                .get("format_version")
-                .map_err(|e| corrupt(e.to_string()))?
-                .map(|v| v.value());
-            match found {
-                Some(FORMAT_VERSION) => {}
-                Some(2) => {
-                    let started = Instant::now();
-                    let records = tag_format_2_records(&write)
-                        .map_err(|e| corrupt(format!("upgrading from format version 2: {e}")))?;
-                    meta.insert("format_version", FORMAT_VERSION)
-                        .map_err(|e| corrupt(e.to_string()))?;
-                    tracing::info!(
-                        path = %path.display(),
-                        records,
-                        seconds = started.elapsed().as_secs_f64(),
-                        "store upgraded from format version 2 to {FORMAT_VERSION}"
-                    );
-                }
-                Some(found) => {
-                    return Err(StoreError::Version {
-                        path: path.clone(),
-                        found,
-                    });
-                }
-                None if existed => {
-                    return Err(corrupt("the format version record is missing".into()));
-                }
-                None => {
-                    meta.insert("format_version", FORMAT_VERSION)
-                        .map_err(|e| corrupt(e.to_string()))?;
-                }
-            }
-            write
-                .open_table(SESSIONS)
-                .map_err(|e| corrupt(e.to_string()))?;
-            write
-                .open_table(SNAPSHOTS)
-                .map_err(|e| corrupt(e.to_string()))?;
-            write.open_table(LOG).map_err(|e| corrupt(e.to_string()))?;
-        }
-        write.commit().map_err(|e| corrupt(e.to_string()))?;
-
-        let db = Arc::new(db);
+        let db = open_database(&path)?;
         let (tx, rx) = unbounded::<Pending>();
-        let writer_db = Arc::clone(&db);
         let shared = Arc::new(Shared::default());
+        *shared.db.write() = Some(Arc::new(db));
         let writer_shared = Arc::clone(&shared);
+        let writer_path = path.clone();
         let writer = std::thread::Builder::new()
             .name("mcapi-store".into())
-            .spawn(move || writer(&writer_db, &rx, &writer_shared))
+            .spawn(move || Writer::new(writer_path, writer_shared).run(&rx))
             .map_err(|e| StoreError::Io {
                 path: path.clone(),
                 reason: format!("starting the writer thread: {e}"),
             })?;
         Ok(Self {
-            db,
             path,
             shared,
             tx: Mutex::new(Some(tx)),
             writer: Mutex::new(Some(writer)),
         })
+    }
+
+    /// Whether the store can write: `Err` with the reason while it cannot
+    /// (after a storage fault, until the database is reopened and a probe
+    /// commit succeeds).
+    pub fn health(&self) -> Result<(), String> {
+        match self.shared.fault.lock().as_ref() {
+            Some(why) => Err(why.clone()),
+            None => Ok(()),
+        }
+    }
+
+    /// The open database for one read, or [`StoreError::Unavailable`].
+    fn db(&self) -> Result<Arc<Database>, StoreError> {
+        self.shared.db()
+    }
+
+    /// A failed read: an I/O error (latched by redb) is reported to the
+    /// writer, which reopens the database, so a failing read does not wait
+    /// for the next write to be noticed.
+    fn read_failed(&self, e: impl Into<redb::Error>) -> StoreError {
+        let e: redb::Error = e.into();
+        // Only an I/O error: a read that finds a damaged page fails alone.
+        if matches!(e, redb::Error::Io(_) | redb::Error::PreviousIo) {
+            self.shared.set_fault(&e.to_string());
+            // An empty write wakes the writer, which sees the fault.
+            if let Some(tx) = self.tx.lock().as_ref() {
+                let _ = tx.send(Pending {
+                    writes: Vec::new(),
+                    done: None,
+                });
+            }
+        }
+        StoreError::Failed(e.to_string())
     }
 
     /// The store file.
@@ -380,13 +450,14 @@ impl Store {
 
     /// One stored session: its record and newest snapshot, if it exists.
     pub fn session(&self, id: &str) -> Result<Option<StoredSession>, StoreError> {
-        let read = self.db.begin_read().map_err(failed)?;
-        let sessions = read.open_table(SESSIONS).map_err(failed)?;
-        let Some(record) = sessions.get(id).map_err(failed)? else {
+        let failed = |e: redb::Error| self.read_failed(e);
+        let read = self.db()?.begin_read().map_err(|e| failed(e.into()))?;
+        let sessions = read.open_table(SESSIONS).map_err(|e| failed(e.into()))?;
+        let Some(record) = sessions.get(id).map_err(|e| failed(e.into()))? else {
             return Ok(None);
         };
-        let snapshots = read.open_table(SNAPSHOTS).map_err(failed)?;
-        let snapshot = snapshots.get(id).map_err(failed)?.map(|v| {
+        let snapshots = read.open_table(SNAPSHOTS).map_err(|e| failed(e.into()))?;
+        let snapshot = snapshots.get(id).map_err(|e| failed(e.into()))?.map(|v| {
             let (seq, bytes) = v.value();
             (seq, bytes.to_vec())
         });
@@ -399,17 +470,21 @@ impl Store {
 
     /// Every stored session: its record and newest snapshot.
     pub fn sessions(&self) -> Result<Vec<StoredSession>, StoreError> {
-        let read = self.db.begin_read().map_err(failed)?;
-        let sessions = read.open_table(SESSIONS).map_err(failed)?;
-        let snapshots = read.open_table(SNAPSHOTS).map_err(failed)?;
+        let failed = |e: redb::Error| self.read_failed(e);
+        let read = self.db()?.begin_read().map_err(|e| failed(e.into()))?;
+        let sessions = read.open_table(SESSIONS).map_err(|e| failed(e.into()))?;
+        let snapshots = read.open_table(SNAPSHOTS).map_err(|e| failed(e.into()))?;
         let mut out = Vec::new();
-        for row in sessions.iter().map_err(failed)? {
-            let (id, record) = row.map_err(failed)?;
+        for row in sessions.iter().map_err(|e| failed(e.into()))? {
+            let (id, record) = row.map_err(|e| failed(e.into()))?;
             let id = id.value().to_string();
-            let snapshot = snapshots.get(id.as_str()).map_err(failed)?.map(|v| {
-                let (seq, bytes) = v.value();
-                (seq, bytes.to_vec())
-            });
+            let snapshot = snapshots
+                .get(id.as_str())
+                .map_err(|e| failed(e.into()))?
+                .map(|v| {
+                    let (seq, bytes) = v.value();
+                    (seq, bytes.to_vec())
+                });
             out.push(StoredSession {
                 id,
                 record: record.value().to_vec(),
@@ -427,8 +502,9 @@ impl Store {
         after: Option<u64>,
         mut f: impl FnMut(u64, &[u8]) -> Result<(), StoreError>,
     ) -> Result<(), StoreError> {
-        let read = self.db.begin_read().map_err(failed)?;
-        let log = read.open_table(LOG).map_err(failed)?;
+        let failed = |e: redb::Error| self.read_failed(e);
+        let read = self.db()?.begin_read().map_err(|e| failed(e.into()))?;
+        let log = read.open_table(LOG).map_err(|e| failed(e.into()))?;
         let start = after.map_or(0, |a| a.saturating_add(1));
         if after == Some(u64::MAX) {
             return Ok(());
@@ -436,13 +512,14 @@ impl Store {
         let key = log_key(id);
         for row in log
             .range((key, start / CHUNK)..=(key, u64::MAX))
-            .map_err(failed)?
+            .map_err(|e| failed(e.into()))?
         {
-            let (_, chunk) = row.map_err(failed)?;
+            let (_, chunk) = row.map_err(|e| failed(e.into()))?;
             let mut rest = chunk.value();
             while !rest.is_empty() {
-                let (seq, entry, tail) = split_entry(rest).ok_or_else(|| {
-                    StoreError::Failed(format!("a log chunk of session `{id}` is malformed"))
+                let (seq, entry, tail) = split_entry(rest).ok_or_else(|| StoreError::Corrupt {
+                    path: self.path.clone(),
+                    reason: format!("a log chunk of session `{id}` is malformed"),
                 })?;
                 rest = tail;
                 if seq >= start {
@@ -470,16 +547,144 @@ impl Drop for Store {
     }
 }
 
-fn writer(db: &Database, rx: &Receiver<Pending>, shared: &Shared) {
-    while let Ok(first) = rx.recv() {
-        let mut group = vec![first];
-        let mut writes = group[0].writes.len();
-        while writes < MAX_GROUP
-            && let Ok(next) = rx.try_recv()
+/// Opens (or creates) the database file, checking its integrity and format
+/// version (upgrading a format-2 file); at start and at every reopen.
+fn open_database(path: &Path) -> Result<Database, StoreError> {
+    let corrupt = |reason: String| StoreError::Corrupt {
+        path: path.to_path_buf(),
+        reason,
+    };
+    // An I/O error (a full disk) is not damage: it is reported as such, at
+    // start and at a reopen after a storage fault.
+    let failed = |e: redb::Error| match e {
+        redb::Error::Io(io)
+            if !matches!(
+                io.kind(),
+                std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
+            ) =>
         {
-            writes += next.writes.len();
-            group.push(next);
+            StoreError::Io {
+                path: path.to_path_buf(),
+                reason: io.to_string(),
+            }
         }
+        redb::Error::PreviousIo => StoreError::Io {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        },
+        other => corrupt(other.to_string()),
+    };
+    let existed = path.metadata().map(|m| m.len() > 0).unwrap_or(false);
+    let db = Database::builder()
+        .set_check_integrity_on_open(true)
+        .create(path)
+        .map_err(|e| match e {
+            redb::DatabaseError::DatabaseAlreadyOpen => StoreError::Io {
+                path: path.to_path_buf(),
+                reason: "already open in another process (is another mcapi running on this data directory?)".into(),
+            },
+            other => failed(other.into()),
+        })?;
+    let mut write = db.begin_write().map_err(|e| failed(e.into()))?;
+    write.set_two_phase_commit(true);
+    {
+        let mut meta = write.open_table(META).map_err(|e| failed(e.into()))?;
+        let found = meta
+            .get("format_version")
+            .map_err(|e| failed(e.into()))?
+            .map(|v| v.value());
+        match found {
+            Some(FORMAT_VERSION) => {}
+            Some(2) => {
+                let started = Instant::now();
+                let records = tag_format_2_records(&write)
+                    .map_err(|e| corrupt(format!("upgrading from format version 2: {e}")))?;
+                meta.insert("format_version", FORMAT_VERSION)
+                    .map_err(|e| failed(e.into()))?;
+                tracing::info!(
+                    path = %path.display(),
+                    records,
+                    seconds = started.elapsed().as_secs_f64(),
+                    "store upgraded from format version 2 to {FORMAT_VERSION}"
+                );
+            }
+            Some(found) => {
+                return Err(StoreError::Version {
+                    path: path.to_path_buf(),
+                    found,
+                });
+            }
+            None if existed => {
+                return Err(corrupt("the format version record is missing".into()));
+            }
+            None => {
+                meta.insert("format_version", FORMAT_VERSION)
+                    .map_err(|e| failed(e.into()))?;
+            }
+        }
+        write.open_table(SESSIONS).map_err(|e| failed(e.into()))?;
+        write.open_table(SNAPSHOTS).map_err(|e| failed(e.into()))?;
+        write.open_table(LOG).map_err(|e| failed(e.into()))?;
+    }
+    write.commit().map_err(|e| failed(e.into()))?;
+    Ok(db)
+}
+
+/// The writer thread: group commits, and the database's recovery after a
+/// storage fault.
+struct Writer {
+    path: PathBuf,
+    shared: Arc<Shared>,
+    /// While the store is down: when to try reopening next.
+    retry_at: Option<Instant>,
+    /// The wait before the next attempt.
+    backoff: Duration,
+}
+
+impl Writer {
+    fn new(path: PathBuf, shared: Arc<Shared>) -> Self {
+        Self {
+            path,
+            shared,
+            retry_at: None,
+            backoff: MIN_BACKOFF,
+        }
+    }
+
+    fn run(mut self, rx: &Receiver<Pending>) {
+        loop {
+            // While the store is down, wake up to retry even without writes:
+            // the health probe.
+            let first = match self.retry_at {
+                None => match rx.recv() {
+                    Ok(p) => p,
+                    Err(_) => break,
+                },
+                Some(at) => match rx.recv_timeout(at.saturating_duration_since(Instant::now())) {
+                    Ok(p) => p,
+                    Err(RecvTimeoutError::Timeout) => {
+                        self.try_reopen();
+                        continue;
+                    }
+                    Err(RecvTimeoutError::Disconnected) => break,
+                },
+            };
+            let mut group = vec![first];
+            let mut writes = group[0].writes.len();
+            while writes < MAX_GROUP
+                && let Ok(next) = rx.try_recv()
+            {
+                writes += next.writes.len();
+                group.push(next);
+            }
+            self.process(group, writes);
+        }
+        // Closed: let go of the database (the file lock) with the writer.
+        self.shared.db.write().take();
+    }
+
+    fn process(&mut self, mut group: Vec<Pending>, writes: usize) {
+        let shared = Arc::clone(&self.shared);
         // In queue order: a `Resume` readmits its session's later writes;
         // writes extending a broken session are refused.
         let mut refused: Vec<(usize, Arc<str>)> = Vec::new();
@@ -487,7 +692,7 @@ fn writer(db: &Database, rx: &Receiver<Pending>, shared: &Shared) {
             let mut broken = shared.broken.lock();
             for (i, p) in group.iter().enumerate() {
                 for w in &p.writes {
-                    if let Write::Resume { id } | Write::Delete { id } = w {
+                    if let Write::Resume { id } = w {
                         broken.remove(id);
                     }
                 }
@@ -507,24 +712,69 @@ fn writer(db: &Database, rx: &Receiver<Pending>, shared: &Shared) {
                 let _ = done.send(Err(StoreError::Broken(Arc::clone(id))));
             }
         }
-        let started = Instant::now();
-        let injected = shared
-            .fail_next
-            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
-            .is_ok();
-        let result = if injected {
-            Err(StoreError::Failed("injected commit failure".into()))
+        // A reader found a fault the writer has not seen: reopen now.
+        if self.retry_at.is_none() && shared.fault.lock().is_some() {
+            self.down(None);
+        }
+        if self.retry_at.is_some_and(|at| Instant::now() >= at) {
+            self.try_reopen();
+        }
+        let result = if group.iter().all(|p| p.writes.is_empty()) {
+            // Nothing to commit (a wake-up, or every write refused).
+            Ok(())
+        } else if self.retry_at.is_some() {
+            // Down: fail at once rather than on the latched handle.
+            Err(shared.db().err().unwrap_or_else(|| {
+                StoreError::Unavailable("the database is being reopened".into())
+            }))
         } else {
-            commit(db, &group)
+            let started = Instant::now();
+            let injected = shared
+                .fail_next
+                .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
+                .is_ok();
+            let outcome = if injected {
+                Err(DbFailure::injected())
+            } else {
+                match shared.db() {
+                    Ok(db) => commit(&db, &group),
+                    Err(e) => Err(DbFailure {
+                        reopen: true,
+                        message: e.to_string(),
+                    }),
+                }
+            };
+            metrics::histogram!("mcapi_store_commit_seconds")
+                .record(started.elapsed().as_secs_f64());
+            metrics::histogram!("mcapi_store_commit_writes").record(writes as f64);
+            match outcome {
+                Ok(()) => {
+                    self.backoff = MIN_BACKOFF;
+                    Ok(())
+                }
+                Err(f) => {
+                    tracing::error!(error = %f.message, writes, reopen = f.reopen, "store commit failed");
+                    if f.reopen {
+                        self.down(Some(&f.message));
+                    }
+                    Err(f.into_store_error())
+                }
+            }
         };
-        metrics::histogram!("mcapi_store_commit_seconds").record(started.elapsed().as_secs_f64());
-        metrics::histogram!("mcapi_store_commit_writes").record(writes as f64);
-        if let Err(e) = &result {
-            tracing::error!(error = %e, writes, "store commit failed");
+        if result.is_err() {
             let mut broken = shared.broken.lock();
             for w in group.iter().flat_map(|p| &p.writes) {
                 if let Some(id) = w.extends() {
                     broken.insert(Arc::clone(id));
+                }
+            }
+        } else {
+            // A deleted session's writes are no longer refused (its id is
+            // never reused); only once the delete is durable.
+            let mut broken = shared.broken.lock();
+            for w in group.iter().flat_map(|p| &p.writes) {
+                if let Write::Delete { id } = w {
+                    broken.remove(id);
                 }
             }
         }
@@ -534,6 +784,111 @@ fn writer(db: &Database, rx: &Receiver<Pending>, shared: &Shared) {
             }
         }
     }
+
+    /// The database failed and must be reopened: closes it now (readers get
+    /// `Unavailable` instead of the latched error) and schedules a reopen.
+    fn down(&mut self, why: Option<&str>) {
+        if let Some(why) = why {
+            self.shared.set_fault(why);
+        }
+        let taken = self.shared.db.write().take();
+        if let Some(db) = taken {
+            self.release(db);
+        }
+        if self.retry_at.is_none() {
+            // Doubled here too: a store whose reopen succeeds but whose
+            // next commit fails again retries less and less often.
+            self.retry_at = Some(Instant::now() + self.backoff);
+            self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
+        }
+    }
+
+    /// Closes a handle once the readers still holding it are done (redb
+    /// holds the file lock until its last handle is dropped).
+    fn release(&self, mut db: Arc<Database>) {
+        let deadline = Instant::now() + RELEASE_WAIT;
+        loop {
+            match Arc::try_unwrap(db) {
+                Ok(db) => {
+                    if let Err(e) = db.close() {
+                        tracing::warn!(error = %e, "closing the failed store handle");
+                    }
+                    return;
+                }
+                Err(shared) if Instant::now() < deadline => {
+                    db = shared;
+                    std::thread::sleep(Duration::from_millis(1));
+                }
+                Err(_) => {
+                    tracing::warn!(
+                        "a reader still holds the failed store handle; reopening anyway"
+                    );
+                    return;
+                }
+            }
+        }
+    }
+
+    /// One reopen attempt: open the file (redb repairs it to its last
+    /// commit), then a probe commit on the new handle. On success the store
+    /// is healthy again; on failure the next attempt waits twice as long.
+    fn try_reopen(&mut self) {
+        let started = Instant::now();
+        let attempt = open_database(&self.path).and_then(|db| {
+            probe(&db).map_err(|f| {
+                StoreError::Failed(format!("the probe commit failed: {}", f.message))
+            })?;
+            Ok(db)
+        });
+        match attempt {
+            Ok(db) => {
+                *self.shared.db.write() = Some(Arc::new(db));
+                self.retry_at = None;
+                self.shared.clear_fault();
+                metrics::counter!("mcapi_store_reopens_total").increment(1);
+                tracing::info!(
+                    path = %self.path.display(),
+                    seconds = started.elapsed().as_secs_f64(),
+                    "store reopened after a storage fault"
+                );
+            }
+            Err(e) => {
+                self.shared.set_fault(&e.to_string());
+                self.retry_at = Some(Instant::now() + self.backoff);
+                tracing::warn!(error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store cannot be reopened yet");
+                self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
+            }
+        }
+    }
+}
+
+/// The health probe: on a freshly opened handle, a durable commit of
+/// [`PROBE_BYTES`] of new data, then a second one that removes it. A reopen
+/// alone proves little: redb reuses the free pages inside its file, so a
+/// small commit can succeed on a full disk while the next real one fails
+/// again. Writing more than a small store's free pages needs the disk; a
+/// large store whose free pages hold the probe can also take real commits
+/// until they run out (and the fault, with a longer backoff, returns).
+fn probe(db: &Database) -> Result<(), DbFailure> {
+    let blob = vec![0u8; PROBE_BYTES];
+    for keep in [true, false] {
+        let mut txn = db.begin_write().map_err(DbFailure::of)?;
+        txn.set_durability(Durability::Immediate)
+            .map_err(DbFailure::of)?;
+        txn.set_two_phase_commit(true);
+        {
+            let mut table = txn.open_table(PROBE).map_err(DbFailure::of)?;
+            if keep {
+                table
+                    .insert("probe", blob.as_slice())
+                    .map_err(DbFailure::of)?;
+            } else {
+                table.remove("probe").map_err(DbFailure::of)?;
+            }
+        }
+        txn.commit().map_err(DbFailure::of)?;
+    }
+    Ok(())
 }
 
 /// The 2 → 3 upgrade: prefixes every snapshot and log record with
@@ -597,55 +952,58 @@ fn split_entry(chunk: &[u8]) -> Option<(u64, &[u8], &[u8])> {
     (rest.len() >= len).then(|| (u64::from_le_bytes(*seq), &rest[..len], &rest[len..]))
 }
 
-fn commit(db: &Database, group: &[Pending]) -> Result<(), StoreError> {
-    let mut txn = db.begin_write().map_err(failed)?;
-    txn.set_durability(Durability::Immediate).map_err(failed)?;
+fn commit(db: &Database, group: &[Pending]) -> Result<(), DbFailure> {
+    let mut txn = db.begin_write().map_err(DbFailure::of)?;
+    txn.set_durability(Durability::Immediate)
+        .map_err(DbFailure::of)?;
     // Two-phase: a damaged newest commit is then reported as corruption
     // instead of being taken for a torn write and silently rolled back
     // (which would lose acknowledged observations). Costs a second sync.
     txn.set_two_phase_commit(true);
     {
-        let mut sessions = txn.open_table(SESSIONS).map_err(failed)?;
-        let mut snapshots = txn.open_table(SNAPSHOTS).map_err(failed)?;
-        let mut log = txn.open_table(LOG).map_err(failed)?;
+        let mut sessions = txn.open_table(SESSIONS).map_err(DbFailure::of)?;
+        let mut snapshots = txn.open_table(SNAPSHOTS).map_err(DbFailure::of)?;
+        let mut log = txn.open_table(LOG).map_err(DbFailure::of)?;
         for write in group.iter().flat_map(|p| &p.writes) {
             match write {
                 Write::Session { id, record } => {
-                    sessions.insert(&**id, record.as_slice()).map_err(failed)?;
+                    sessions
+                        .insert(&**id, record.as_slice())
+                        .map_err(DbFailure::of)?;
                 }
                 Write::Append { id, seq, entry } => {
                     let at = (log_key(id), seq / CHUNK);
                     let mut chunk = log
                         .get(at)
-                        .map_err(failed)?
+                        .map_err(DbFailure::of)?
                         .map(|v| v.value().to_vec())
                         .unwrap_or_default();
                     push_entry(&mut chunk, *seq, entry);
-                    log.insert(at, chunk.as_slice()).map_err(failed)?;
+                    log.insert(at, chunk.as_slice()).map_err(DbFailure::of)?;
                 }
                 Write::Snapshot { id, seq, snapshot } => {
                     snapshots
                         .insert(&**id, (*seq, snapshot.as_slice()))
-                        .map_err(failed)?;
+                        .map_err(DbFailure::of)?;
                     // Chunks wholly at or before `seq`; a partial chunk
                     // stays, and reads skip its covered records.
                     let key = log_key(id);
                     let whole = (seq.saturating_add(1)) / CHUNK;
                     log.retain_in((key, 0)..(key, whole), |_, _| false)
-                        .map_err(failed)?;
+                        .map_err(DbFailure::of)?;
                 }
                 Write::Resume { .. } => {}
                 Write::Delete { id } => {
-                    sessions.remove(&**id).map_err(failed)?;
-                    snapshots.remove(&**id).map_err(failed)?;
+                    sessions.remove(&**id).map_err(DbFailure::of)?;
+                    snapshots.remove(&**id).map_err(DbFailure::of)?;
                     let key = log_key(id);
                     log.retain_in((key, 0)..=(key, u64::MAX), |_, _| false)
-                        .map_err(failed)?;
+                        .map_err(DbFailure::of)?;
                 }
             }
         }
     }
-    txn.commit().map_err(failed)
+    txn.commit().map_err(DbFailure::of)
 }
 
 #[cfg(test)]
@@ -755,7 +1113,7 @@ mod tests {
         assert_eq!(after.first().map(|e| e.0), Some(cut + 1));
         assert_eq!(after.len() as u64, n - cut - 1);
         // The first chunk is gone; the second (partly covered) is kept.
-        let read = store.db.begin_read().expect("read");
+        let read = store.db().expect("db").begin_read().expect("read");
         let log = read.open_table(LOG).expect("log");
         assert_eq!(log.len().expect("len"), 3);
     }
@@ -897,7 +1255,7 @@ mod tests {
         // Upgraded once: reopening does not tag again.
         let store = Store::open(dir.path()).expect("reopen");
         assert_eq!(entries(&store, "a", Some(CHUNK + 1)), want);
-        let read = store.db.begin_read().expect("read");
+        let read = store.db().expect("db").begin_read().expect("read");
         let meta = read.open_table(META).expect("meta");
         let v = meta.get("format_version").expect("get").map(|v| v.value());
         assert_eq!(v, Some(FORMAT_VERSION));

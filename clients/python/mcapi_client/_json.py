@@ -16,6 +16,7 @@ from .types import (
     ModelSummary,
     SessionInfo,
     SessionPage,
+    SessionCost,
     SessionStats,
     SessionSummary,
     Step,
@@ -151,6 +152,11 @@ def session_info(d: Json) -> SessionInfo:
             factorisations=int(s["factorisations"]),
         ),
         curiosity=curiosity_info(d.get("curiosity")),
+        cost=(
+            None
+            if d.get("cost") is None
+            else SessionCost(bytes=int(d["cost"]["bytes"]), tick_us=int(d["cost"]["tick_us"]))
+        ),
     )
 
 

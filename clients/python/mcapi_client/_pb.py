@@ -21,6 +21,7 @@ from .types import (
     Observation,
     SessionInfo,
     SessionPage,
+    SessionCost,
     SessionStats,
     SessionSummary,
     Step,
@@ -199,6 +200,11 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
             factorisations=stats.factorisations,
         ),
         curiosity=curiosity_info(m.curiosity) if m.HasField("curiosity") else None,
+        cost=(
+            SessionCost(bytes=m.cost.bytes, tick_us=m.cost.tick_us)
+            if m.HasField("cost")
+            else None
+        ),
     )
 
 

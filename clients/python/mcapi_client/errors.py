@@ -30,6 +30,9 @@ __all__ = [
     "LimitExceeded",
     "PayloadTooLarge",
     "TooManySessions",
+    "TooManyStreams",
+    "QuotaExceeded",
+    "SessionFailed",
     "Unavailable",
     "TransportError",
     "Timeout",
@@ -122,9 +125,22 @@ class TooManySessions(LimitExceeded):
     """The server holds its maximum number of sessions (HTTP 429, ``too_many_sessions``)."""
 
 
+class TooManyStreams(LimitExceeded):
+    """The caller (its API key, or its address without keys) already holds the
+    server's maximum of open event and ``Watch`` streams (HTTP 429,
+    ``too_many_streams``); close one first."""
+
+
+class QuotaExceeded(LimitExceeded):
+    """The caller's API key (or, without keys, all clients together) would
+    exceed its quota of sessions or of their estimated memory (HTTP 429,
+    ``quota_exceeded``); delete sessions first."""
+
+
 class Unavailable(McapiError):
-    """The server cannot serve now: stopping, or its queue is full (HTTP 503,
-    gRPC UNAVAILABLE). Worth retrying later."""
+    """The server cannot serve now: stopping, its queue is full, or the request
+    did not finish within its request timeout (HTTP 503, gRPC UNAVAILABLE or
+    DEADLINE_EXCEEDED with ``request_timeout``). Worth retrying later."""
 
 
 class TransportError(Unavailable):
@@ -139,6 +155,11 @@ class Timeout(McapiError):
 
 class InternalError(McapiError):
     """A fault of the server, not the caller's (HTTP 500, gRPC INTERNAL)."""
+
+
+class SessionFailed(InternalError):
+    """An update of the session failed inside the server and the session is
+    quarantined (HTTP 500, ``session_failed``): delete it and create it again."""
 
 
 # The server's stable codes (src/api/error.rs) with their class and HTTP status.
@@ -161,6 +182,10 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "limit_exceeded": (LimitExceeded, 413),
     "payload_too_large": (PayloadTooLarge, 413),
     "too_many_sessions": (TooManySessions, 429),
+    "too_many_streams": (TooManyStreams, 429),
+    "quota_exceeded": (QuotaExceeded, 429),
+    "session_failed": (SessionFailed, 500),
+    "request_timeout": (Unavailable, 503),
     "unavailable": (Unavailable, 503),
     "storage_unavailable": (Unavailable, 503),
     "numerical_failure": (InternalError, 500),

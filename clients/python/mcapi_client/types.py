@@ -350,6 +350,20 @@ class AgentOptions:
 
 
 @dataclass(frozen=True, slots=True)
+class SessionCost:
+    """What a session costs the server, as estimated when it was created and
+    checked against the server's budgets (README, "Limits and quotas").
+
+    Attributes:
+        bytes: Memory the session may hold at most.
+        tick_us: Worst-case CPU time of one lockstep observation, in µs.
+    """
+
+    bytes: int
+    tick_us: int
+
+
+@dataclass(frozen=True, slots=True)
 class SessionStats:
     """Statistics of a session's learner.
 
@@ -386,6 +400,8 @@ class SessionInfo:
         stats: Learner statistics.
         curiosity: The curiosity channel's state; ``None`` for a session
             without one.
+        cost: The session's estimated memory and per-observation CPU time
+            (``None`` from a server that does not report it).
     """
 
     id: str
@@ -397,6 +413,7 @@ class SessionInfo:
     agent: AgentConfig
     stats: SessionStats
     curiosity: CuriosityInfo | None = None
+    cost: SessionCost | None = None
 
     def drive_by_stimulus(self) -> dict[str, float]:
         """The drive keyed by stimulus name, e.g. ``{"food": 0.6, "rest": 0.8}``."""

@@ -228,3 +228,18 @@ def test_grid_models_carry_their_layout_on_both_transports(
     assert all(0 <= r < rest.layout.rows and 0 <= c < rest.layout.cols for r, c in rest.layout.cells)
     assert len(set(rest.layout.cells)) == rest.states, "one cell per state"
     assert grpc_client.create_session("hallway").model.layout is None
+
+
+def test_both_transports_report_the_same_session_cost(client: Client, grpc_client: GrpcClient) -> None:
+    # The server's estimate of memory and per-observation CPU time is part of
+    # a session's info; it depends only on the model and configuration.
+    via_rest = client.create_session(models.hallway(), seed=5, history=1000)
+    via_grpc = grpc_client.create_session(models.hallway(), seed=5, history=1000)
+    assert via_rest.cost is not None and via_grpc.cost is not None
+    assert via_rest.cost == via_grpc.cost
+    assert via_rest.cost.bytes > 0 and via_rest.cost.tick_us >= 1
+    longer = client.create_session(models.hallway(), seed=5, history=5000)
+    assert longer.cost is not None and longer.cost.bytes > via_rest.cost.bytes
+    for s in (via_rest, longer):
+        client.delete_session(s.id)
+    grpc_client.delete_session(via_grpc.id)

@@ -462,6 +462,7 @@ pub fn session_info(info: SessionInfo) -> pb::SessionInfo {
         model,
         agent,
         stats: s,
+        cost,
         curiosity,
     } = info;
     pb::SessionInfo {
@@ -474,6 +475,10 @@ pub fn session_info(info: SessionInfo) -> pb::SessionInfo {
         agent: Some(effective_config(agent)),
         stats: Some(stats(s)),
         curiosity: curiosity.map(curiosity_info),
+        cost: Some(pb::SessionCost {
+            bytes: cost.bytes,
+            tick_us: cost.tick_us,
+        }),
     }
 }
 

@@ -170,7 +170,7 @@ class SessionStats(_message.Message):
     def __init__(self, lstdq_error: _Optional[float] = ..., lambda1_estimate: _Optional[float] = ..., condition_1_holds: _Optional[bool] = ..., constant_stimuli: _Optional[_Iterable[int]] = ..., factorisation_reuses: _Optional[int] = ..., factorisations: _Optional[int] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("id", "tick", "drive", "policy_version", "state", "model", "agent", "stats", "curiosity")
+    __slots__ = ("id", "tick", "drive", "policy_version", "state", "model", "agent", "stats", "curiosity", "cost")
     ID_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
     DRIVE_FIELD_NUMBER: _ClassVar[int]
@@ -180,6 +180,7 @@ class SessionInfo(_message.Message):
     AGENT_FIELD_NUMBER: _ClassVar[int]
     STATS_FIELD_NUMBER: _ClassVar[int]
     CURIOSITY_FIELD_NUMBER: _ClassVar[int]
+    COST_FIELD_NUMBER: _ClassVar[int]
     id: str
     tick: int
     drive: _containers.RepeatedScalarFieldContainer[float]
@@ -189,7 +190,16 @@ class SessionInfo(_message.Message):
     agent: EffectiveConfig
     stats: SessionStats
     curiosity: CuriosityInfo
-    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., policy_version: _Optional[int] = ..., state: _Optional[int] = ..., model: _Optional[_Union[ModelSummary, _Mapping]] = ..., agent: _Optional[_Union[EffectiveConfig, _Mapping]] = ..., stats: _Optional[_Union[SessionStats, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ...) -> None: ...
+    cost: SessionCost
+    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., policy_version: _Optional[int] = ..., state: _Optional[int] = ..., model: _Optional[_Union[ModelSummary, _Mapping]] = ..., agent: _Optional[_Union[EffectiveConfig, _Mapping]] = ..., stats: _Optional[_Union[SessionStats, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ..., cost: _Optional[_Union[SessionCost, _Mapping]] = ...) -> None: ...
+
+class SessionCost(_message.Message):
+    __slots__ = ("bytes", "tick_us")
+    BYTES_FIELD_NUMBER: _ClassVar[int]
+    TICK_US_FIELD_NUMBER: _ClassVar[int]
+    bytes: int
+    tick_us: int
+    def __init__(self, bytes: _Optional[int] = ..., tick_us: _Optional[int] = ...) -> None: ...
 
 class CuriosityInfo(_message.Message):
     __slots__ = ("samples", "epsilon", "active_source", "active_samples", "all_explained", "modules")
