@@ -134,6 +134,10 @@ fn bounds_are_the_limits_of_the_server() {
         max_batch: 99,
         max_history: 555,
         max_features: 321,
+        max_name_bytes: 17,
+        max_curiosity_window: 77,
+        max_roc_centres: 9,
+        max_signal_sources: 12,
         ..Limits::default()
     };
     let d = doc(&limits);
@@ -146,6 +150,13 @@ fn bounds_are_the_limits_of_the_server() {
         full["properties"]["next"]["items"]["items"]["maximum"],
         1233
     );
+    assert_eq!(full["properties"]["actions"]["items"]["maxLength"], 17);
+    assert_eq!(full["properties"]["state_names"]["items"]["maxLength"], 17);
+    let params = &schema(&d, "CuriosityParams")["properties"];
+    assert_eq!(params["tau"]["maximum"], 77);
+    assert_eq!(params["lag"]["maximum"], 77);
+    assert_eq!(params["max_centres"]["maximum"], 9);
+    assert_eq!(params["max_sources"]["maximum"], 12);
     let grid = schema(&d, "GridModel");
     assert_eq!(
         grid["properties"]["sources"]["additionalProperties"]["maximum"],
@@ -161,6 +172,7 @@ fn bounds_are_the_limits_of_the_server() {
     assert_eq!(config["properties"]["history"]["maximum"], 555);
     assert_eq!(config["properties"]["priorities"]["maxItems"], 7);
     let obs = schema(&d, "Observation");
+    assert_eq!(obs["properties"]["signal_source"]["maximum"], 11);
     assert_eq!(obs["properties"]["state"]["maximum"], 1233);
     assert_eq!(obs["properties"]["stimulus"]["maxItems"], 7);
     assert_eq!(obs["properties"]["stimulus"]["items"]["maximum"], 1e12);

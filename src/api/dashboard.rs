@@ -228,6 +228,7 @@ struct EndEvent<'a> {
         (status = 401, response = crate::api::openapi::Unauthorized),
         (status = 404, response = crate::api::openapi::NotFound),
         (status = 429, response = crate::api::openapi::TooManyRequests),
+        (status = 500, response = crate::api::openapi::InternalError),
         (status = 503, response = crate::api::openapi::Unavailable)))]
 pub async fn events(
     State(state): State<AppState>,

@@ -32,7 +32,7 @@ use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
 use utoipa::openapi::{ContentBuilder, OpenApi, Ref, RefOr, Response, ResponseBuilder};
 use utoipa::{Modify, OpenApi as _, PartialSchema, ToResponse, ToSchema};
 
-use crate::algo::curiosity::{MAX_SIGNAL_DIM, MAX_SOURCES_LIMIT};
+use crate::algo::curiosity::{MAX_CENTRES, MAX_SIGNAL_DIM, MAX_SOURCES_LIMIT, MAX_WINDOW};
 use crate::algo::error::MAX_STIMULUS;
 use crate::service::Limits;
 
@@ -136,16 +136,29 @@ fn closed(description: &str) -> ObjectBuilder {
         .description(Some(description))
 }
 
-/// A name (action, stimulus): at least one character that is not white space.
-fn name(description: &str) -> ObjectBuilder {
+/// A name (action, stimulus, state) of at most `max_bytes` bytes of UTF-8.
+/// `maxLength` counts characters: an ASCII name may have `max_bytes` of
+/// them, others fewer (the server counts bytes and answers 413 beyond).
+fn name(max_bytes: usize, description: &str) -> ObjectBuilder {
     typed(Type::String, false)
-        .pattern(Some(format!("[^{WHITE_SPACE}]")))
-        .description(Some(description))
+        .max_length(Some(max_bytes))
+        .description(Some(format!(
+            "{description} (limit: at most {max_bytes} bytes of UTF-8)"
+        )))
+}
+
+/// A [`name`] with at least one character that is not white space.
+fn non_blank_name(max_bytes: usize, description: &str) -> ObjectBuilder {
+    name(max_bytes, description).pattern(Some(format!("[^{WHITE_SPACE}]")))
 }
 
 /// Every request-body schema, by component name, for these limits.
 pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     let max_pairs = limits.max_pairs as u64;
+    let max_name = limits.max_name_bytes;
+    let max_window = limits.max_curiosity_window.min(MAX_WINDOW) as u64;
+    let max_centres = limits.max_roc_centres.min(MAX_CENTRES) as u64;
+    let max_sources = limits.max_signal_sources.min(MAX_SOURCES_LIMIT) as u64;
     let max_state = max_pairs.saturating_sub(1);
     let max_stimuli = limits.max_stimuli;
     let stimulus = || {
@@ -159,14 +172,20 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     let limits_note = format!(
         "Bounds marked (limit) are this server's limits (`mcapi serve --help`): at most \
          {} state-action pairs, {} transitions, {} features, {} stimulus dimensions, \
-         {} observations per batch, {} history entries, {} sessions.",
+         {}-byte names, {} observations per batch, {} history entries, {} sessions. \
+         Beyond the schema, a session's estimated memory (at most {} bytes) and CPU time \
+         per observation (at most {} µs) are checked at creation (413), and what an API \
+         key holds against its quota (429).",
         limits.max_pairs,
         limits.max_transitions,
         limits.max_features,
         limits.max_stimuli,
+        limits.max_name_bytes,
         limits.max_batch,
         limits.max_history,
-        limits.max_sessions
+        limits.max_sessions,
+        limits.max_session_bytes,
+        limits.max_tick_us
     );
 
     // serde ignores other keys next to the tag of a unit variant, so this
@@ -241,7 +260,7 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             false,
             "the action's index in `actions`",
         ))
-        .item(typed(Type::String, false).description(Some("one of the names in `actions`")))
+        .item(name(max_name, "one of the names in `actions`"))
         .description(Some("An action, by index or by name."));
 
     let successor = ArrayBuilder::new()
@@ -277,7 +296,7 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
 
     let names_of = |what: &str, max: usize, unique: bool| {
         array(
-            name(&format!("the name of a{what}")),
+            non_blank_name(max_name, &format!("the name of a{what}")),
             1,
             max,
             false,
@@ -327,7 +346,7 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             .property(
                 "state_names",
                 array(
-                    typed(Type::String, false),
+                    name(max_name, "a state's display name"),
                     1,
                     limits.max_pairs,
                     true,
@@ -453,7 +472,12 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     )
     .property(
         "max_centres",
-        integer(2, U64_MAX, false, "N_max, ROC centres (default 3)"),
+        integer(
+            2,
+            max_centres,
+            false,
+            "N_max, ROC centres (default 3; limit)",
+        ),
     )
     .property(
         "beta",
@@ -468,18 +492,18 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         "tau",
         integer(
             1,
-            U64_MAX,
+            max_window,
             false,
-            &format!("τ, the error window (default 20) {window}"),
+            &format!("τ, the error window (default 20; limit) {window}"),
         ),
     )
     .property(
         "lag",
         integer(
             1,
-            U64_MAX,
+            max_window,
             false,
-            &format!("L of Eq. 7 (default 20) {window}"),
+            &format!("L of Eq. 7 (default 20; limit) {window}"),
         ),
     )
     .property(
@@ -585,9 +609,9 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         "max_sources",
         integer(
             1,
-            MAX_SOURCES_LIMIT as u64,
+            max_sources,
             false,
-            "signal sources are 0..max_sources (default 64)",
+            "signal sources are 0..max_sources (default 64; limit)",
         ),
     );
     let curiosity = closed(
@@ -753,9 +777,9 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         "signal_source",
         integer(
             0,
-            (MAX_SOURCES_LIMIT - 1) as u64,
+            max_sources.saturating_sub(1),
             true,
-            "the signal's source, below the channel's `max_sources`; default 0",
+            "the signal's source, below the channel's `max_sources` (limit); default 0",
         ),
     )
     .required("state")
@@ -967,25 +991,35 @@ error_responses! {
     /// 413.
     PayloadTooLarge = (
         "A limit of the server is exceeded: the body's size (`payload_too_large`) or a \
-         count the limits bound (`limit_exceeded`: model pairs, transitions, features, \
-         stimulus dimensions, name lengths, batch length and cost, history length, curiosity \
-         windows, the session's estimated memory or per-observation CPU time, a response's size).",
+         size the limits bound (`limit_exceeded`: model pairs, transitions, features, \
+         stimulus dimensions, name bytes, curiosity windows, batch length or its \
+         estimated CPU time, history length, a session's estimated memory or CPU time per \
+         observation, the size of a response of value tables or history).",
         "limit_exceeded",
         "`model` states x actions is 300000; the limit is 200000"
     );
     /// 429.
     TooManyRequests = (
-        "The server holds its maximum number of sessions (`too_many_sessions`), the API key \
-         its quota of sessions or of their estimated memory (`quota_exceeded`), or the caller \
-         its maximum of open event and Watch streams (`too_many_streams`).",
+        "The server holds its maximum number of sessions (`too_many_sessions`), the API \
+         key its quota of sessions or estimated memory (`quota_exceeded`), or the caller \
+         its maximum of open event streams (`too_many_streams`).",
         "too_many_sessions",
         "the server already holds its maximum of 250000 sessions"
     );
+    /// 500.
+    InternalError = (
+        "The session's policy update failed numerically (`numerical_failure`; the \
+         observation was applied and logged, do not resend it) or the session is \
+         quarantined after a fault of the server (`session_failed`: delete it and create \
+         it again).",
+        "session_failed",
+        "session `s0001.01J0000000000000000000000` failed while applying an update and is quarantined; its state is not served. Delete it and create it again"
+    );
     /// 503.
     Unavailable = (
-        "The server is recovering its sessions, stopping, its tick queue is full, or its \
-         store failed (`unavailable`, `storage_unavailable`); the request had no effect \
-         and may be retried.",
+        "The server is recovering its sessions, stopping, its tick queue is full, its \
+         store failed, or the request took longer than the server's request timeout \
+         (`unavailable`, `storage_unavailable`, `request_timeout`); may be retried.",
         "unavailable",
         "the server is recovering its stored sessions; retry shortly"
     );

@@ -25,8 +25,8 @@ use utoipa_swagger_ui::SwaggerUi;
 
 use crate::api::error::{ApiError, ErrorBody};
 use crate::api::openapi::{
-    BadRequest, BearerAuth, NotFound, ObserveBatchReply, ObserveReply, ObserveRequest,
-    PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized, Unavailable,
+    BadRequest, BearerAuth, InternalError, NotFound, ObserveBatchReply, ObserveReply,
+    ObserveRequest, PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized, Unavailable,
 };
 use crate::service::{
     Caller, CreateSession, HistoryEntry, ObservationIn, ServiceError, SessionInfo, SessionManager,
@@ -253,7 +253,7 @@ pub(crate) fn query<T>(q: Result<Query<T>, QueryRejection>) -> Result<T, ApiErro
     ),
     components(
         schemas(ErrorBody, ObserveBatchReply, SseEvent),
-        responses(BadRequest, Unauthorized, NotFound, PayloadTooLarge, TooManyRequests, Unavailable)
+        responses(BadRequest, Unauthorized, NotFound, PayloadTooLarge, TooManyRequests, InternalError, Unavailable)
     ),
     modifiers(&BearerAuth),
     security(("api_key" = []), ()),
@@ -476,6 +476,7 @@ async fn list_sessions(
         (status = 200, description = "The session.", body = SessionInfo),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 async fn get_session(
     State(state): State<AppState>,
@@ -532,6 +533,7 @@ struct ObserveBatch {
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
         (status = 413, response = PayloadTooLarge),
+        (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 async fn observe(
     State(state): State<AppState>,
@@ -599,6 +601,8 @@ struct ValuesQuery {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 413, response = PayloadTooLarge),
+        (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 async fn values(
     State(state): State<AppState>,
@@ -635,6 +639,8 @@ struct HistoryQuery {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 413, response = PayloadTooLarge),
+        (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 async fn history(
     State(state): State<AppState>,
