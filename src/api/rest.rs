@@ -18,7 +18,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::get;
 use axum::{Json, Router};
 use metrics_exporter_prometheus::PrometheusHandle;
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 use serde_json::Value;
 use utoipa::OpenApi;
 use utoipa_swagger_ui::SwaggerUi;
@@ -563,7 +563,7 @@ async fn observe(
 }
 
 /// JSON of a large answer, encoded where the call ran (off the runtime).
-fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
+fn encode<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
     serde_json::to_vec(value).map_err(|e| ServiceError::Internal(format!("encoding JSON: {e}")))
 }
 
