@@ -994,18 +994,22 @@ fn grpc_observe_bodies(ids: Vec<String>) -> impl Strategy<Value = Vec<u8>> {
         0..ids.len(),
         prop::collection::vec(
             (
-                prop_oneof![0u64..60, any::<u64>()],
-                prop::option::of(prop::collection::vec(
-                    prop_oneof![-10.0f64..10.0, any::<f64>()],
-                    0..6,
-                )),
+                prop_oneof![4 => 0u64..60, 1 => any::<u64>()],
+                prop::option::of(prop_oneof![
+                    // The hallway's and the maze's stimulus lengths, mostly.
+                    3 => prop::collection::vec(-10.0f64..10.0, 2..=3),
+                    1 => prop::collection::vec(any::<f64>(), 0..6),
+                ]),
                 prop::option::of(prop_oneof![0u32..6, any::<u32>()]),
-                prop::collection::vec(any::<f64>(), 0..3),
+                prop_oneof![
+                    3 => Just(Vec::new()),
+                    1 => prop::collection::vec(any::<f64>(), 0..3),
+                ],
                 prop::option::of(any::<u32>()),
             ),
-            0..20,
+            0..6,
         ),
-        any::<bool>(),
+        prop::bool::weighted(0.1),
     )
         .prop_map(move |(i, obs, foreign)| {
             pb::ObserveRequest {
