@@ -52,7 +52,7 @@ contract: build
 	bash tools/contract.sh
 
 # The generative fuzzer (tests/fuzz.rs) for longer than `unit` runs it:
-# FUZZ_CASES cases per test (unit: 1500). A failure prints its FUZZ_SEED.
+# FUZZ_CASES cases per test (unit: 5000). A failure prints its FUZZ_SEED.
 FUZZ_CASES ?= 20000
 fuzz:
 	PROPTEST_CASES=$(FUZZ_CASES) $(CARGO) test --locked --test fuzz -- --nocapture
