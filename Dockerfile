@@ -3,64 +3,64 @@
 #   docker build -t mcapi .
 #   docker run --rm -p 8080:8080 -p 50051:50051 -v mcapi-data:/data mcapi
 #
-# Linted by `make lint-docker` (tools/hadolint.sh); the Docker engine is not
-# needed for that.
+# `make container-test` (tools/container-test.sh) builds this file with
+# podman and runs the image: REST and gRPC sessions, SIGTERM and SIGKILL
+# with a restart on the same volume, the health check, a read-only root
+# filesystem. `make lint-docker` runs hadolint on it.
+#
+# Reproducible builds: pass the commit time, e.g.
+#   docker build --build-arg SOURCE_DATE_EPOCH=$(git log -1 --format=%ct) \
+#                --build-arg REVISION=$(git rev-parse HEAD) -t mcapi .
+# BuildKit then clamps file and image times to it; with podman/buildah add
+# `--timestamp "$SOURCE_DATE_EPOCH"`.
 
 # Builder and runtime share one Debian release (bookworm), so the binary links
 # against the same glibc it runs on. Keep RUST_VERSION at or above the
-# toolchain the project is tested with.
+# toolchain the project is tested with (rust-toolchain or CI).
 ARG RUST_VERSION=1.95
 ARG DEBIAN_RELEASE=bookworm
+ARG CARGO_CHEF_VERSION=0.1.78
 
 # ---------------------------------------------------------------------------
-# Builder
+# Dependency caching with cargo-chef: `prepare` reads every manifest of the
+# workspace into recipe.json, `cook` builds the dependencies from it alone.
+# The cooked layer is rebuilt only when a manifest or Cargo.lock changes,
+# and no list of targets is written here to drift from Cargo.toml.
 # ---------------------------------------------------------------------------
-FROM rust:${RUST_VERSION}-slim-${DEBIAN_RELEASE} AS builder
-
-# The slim image already has gcc and libc6-dev for linking; protobuf is
-# compiled by protox (pure Rust) in build.rs, so no system protoc is needed.
+FROM rust:${RUST_VERSION}-slim-${DEBIAN_RELEASE} AS chef
+ARG CARGO_CHEF_VERSION
+RUN cargo install --locked --quiet cargo-chef --version "${CARGO_CHEF_VERSION}" \
+    && rm -rf "${CARGO_HOME}/registry"
 WORKDIR /build
 
-# 1. Dependencies only: the manifest, the lock file, the build script and the
-#    .proto files it compiles, with stub targets. This layer is rebuilt only
-#    when one of those changes, not on every edit of src/.
-#    benches/tick.rs must exist for cargo to accept the manifest's [[bench]].
-COPY Cargo.toml Cargo.lock build.rs ./
-COPY proto ./proto
-RUN mkdir -p src benches \
-    && echo 'fn main() {}' > src/main.rs \
-    && : > src/lib.rs \
-    && echo 'fn main() {}' > benches/tick.rs \
-    && cargo build --release --locked \
-    && rm -rf src benches \
-        target/release/mcapi target/release/mcapi.d \
-        target/release/.fingerprint/mcapi-* \
-        target/release/deps/mcapi-* target/release/deps/libmcapi-*
+FROM chef AS planner
+COPY . .
+RUN cargo chef prepare --recipe-path recipe.json
 
-# 2. The crate itself. assets/ and data/ are compiled into the binary
-#    (include_bytes!/include_str!), benches/ is needed by the manifest.
-COPY assets ./assets
-COPY data ./data
-COPY benches ./benches
-COPY src ./src
-RUN cargo build --release --locked \
-    && install -D -m 0755 target/release/mcapi /out/mcapi
+FROM chef AS builder
+# protobuf is compiled by protox (pure Rust) in a build script, so no system
+# protoc is needed; the slim image's gcc and libc6-dev do the linking.
+COPY --from=planner /build/recipe.json recipe.json
+RUN cargo chef cook --release --locked --recipe-path recipe.json --bin mcapi
+COPY . .
+ARG SOURCE_DATE_EPOCH
+RUN cargo build --release --locked --bin mcapi \
+    && install -D -m 0755 target/release/mcapi /out/mcapi \
+    && /out/mcapi --version
 
 # ---------------------------------------------------------------------------
-# Runtime
+# Runtime: Debian slim, the binary and an unprivileged user. No compiler,
+# no package cache, no curl (the binary is its own health probe).
 # ---------------------------------------------------------------------------
 FROM debian:${DEBIAN_RELEASE}-slim AS runtime
-
-LABEL org.opencontainers.image.title="mcapi" \
-      org.opencontainers.image.description="Hosts motivated reinforcement-learning agents (MCA-PI) as sessions" \
-      org.opencontainers.image.licenses="MIT OR Apache-2.0"
 
 # A fixed, unprivileged uid/gid (10001) so volume ownership is predictable.
 RUN groupadd --system --gid 10001 mcapi \
     && useradd --system --no-log-init --uid 10001 --gid mcapi \
         --home-dir /data --no-create-home --shell /usr/sbin/nologin mcapi \
     && mkdir -p /data \
-    && chown mcapi:mcapi /data
+    && chown mcapi:mcapi /data \
+    && rm -rf /var/log/apt /var/log/dpkg.log /var/cache/debconf/*-old /var/lib/dpkg/*-old
 
 COPY --from=builder /out/mcapi /usr/local/bin/mcapi
 
@@ -88,3 +88,15 @@ HEALTHCHECK --interval=30s --timeout=5s --start-period=15s --retries=3 \
 STOPSIGNAL SIGTERM
 ENTRYPOINT ["mcapi"]
 CMD ["serve"]
+
+# Labels last, so a new revision rebuilds only this metadata layer.
+ARG VERSION=unknown
+ARG REVISION=unknown
+ARG SOURCE_DATE_EPOCH
+LABEL org.opencontainers.image.title="mcapi" \
+      org.opencontainers.image.description="Hosts motivated reinforcement-learning agents (MCA-PI) as sessions over REST and gRPC" \
+      org.opencontainers.image.licenses="MIT OR Apache-2.0" \
+      org.opencontainers.image.version="${VERSION}" \
+      org.opencontainers.image.revision="${REVISION}" \
+      org.opencontainers.image.source="https://github.com/mcapi/mcapi" \
+      org.opencontainers.image.created="${SOURCE_DATE_EPOCH}"
