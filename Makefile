@@ -1,9 +1,14 @@
 # `make test` is what CI runs (.ci/run): formatting, lints, every test.
 CARGO ?= cargo
 
-.PHONY: test lint-docker fmt-check clippy unit build release bench figures peers clean python-test e2e contract fuzz
+.PHONY: test lint-docker check-links fmt-check clippy unit build release bench figures peers clean \
+	python-venv python-test e2e contract fuzz container-test container-bench
 
-test: lint-docker fmt-check clippy unit contract python-test e2e
+test: lint-docker check-links fmt-check clippy unit contract python-test e2e container-test
+
+# Every relative link in the repository's Markdown resolves (no link out of it).
+check-links:
+	bash tools/check_links.sh
 
 # hadolint on the Dockerfile (installs a pinned hadolint into .venv-tools/).
 lint-docker:
@@ -35,11 +40,13 @@ build:
 PYTHON ?= python3
 PY_CLIENT := clients/python
 MCAPI_BIN ?= $(CURDIR)/target/debug/mcapi
-python-test: build
+python-venv:
 	test -x $(PY_CLIENT)/.venv/bin/python || $(PYTHON) -m venv $(PY_CLIENT)/.venv
 	rm -rf $(PY_CLIENT)/build  # setuptools would pack stale files left there
 	$(PY_CLIENT)/.venv/bin/python -m pip install --quiet --disable-pip-version-check \
 	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[test,gymnasium,plot]'
+
+python-test: build python-venv
 	cd $(PY_CLIENT) && MCAPI_BIN=$(MCAPI_BIN) .venv/bin/pytest
 
 # The REST contract (issue 12): schemathesis (pinned, installed into
@@ -71,6 +78,29 @@ e2e: build
 	  cd $(E2E) && npm ci --no-audit --no-fund --loglevel=error && \
 	  CHROMIUM="$(CHROMIUM)" MCAPI_BIN="$(MCAPI_BIN)" node dashboard.mjs; \
 	fi
+
+# The container image (issue 13, tools/container-test.sh): built with podman
+# from the Dockerfile on locally made base images, then run with a read-only
+# root filesystem and a volume, driven over REST and gRPC, stopped with
+# SIGTERM and killed with SIGKILL; every acknowledged observation must
+# survive. About 10 minutes from scratch (the image's release build). Runs
+# wherever podman is installed (.ci/run installs podman, runc and
+# debootstrap) and needs root; skipped with a message otherwise.
+container-test: python-venv
+	@if ! command -v podman >/dev/null 2>&1; then \
+	  echo "container-test skipped: podman not installed (apt-get install podman runc debootstrap)"; \
+	elif [ "$$(id -u)" -ne 0 ] && ! sudo -n true 2>/dev/null; then \
+	  echo "container-test skipped: rootful podman needs root or passwordless sudo"; \
+	elif [ "$$(id -u)" -ne 0 ]; then \
+	  sudo -n env "PATH=$$PATH" bash tools/container-test.sh; \
+	else \
+	  bash tools/container-test.sh; \
+	fi
+
+# Start-to-ready time of the container with 10,000 stored sessions, and the
+# image size (BENCHMARKS.md); after container-test built the image.
+container-bench: python-venv
+	bash tools/container-bench.sh
 
 # Criterion benches of the core tick.
 bench:

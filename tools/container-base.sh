@@ -69,8 +69,8 @@ if ! have "$DEBIAN_IMAGE"; then
 fi
 
 if ! have "$RUST_IMAGE"; then
-  rustc_bin=$(rustup which rustc --toolchain "$RUST_VERSION" 2>/dev/null || command -v rustc)
-  toolchain=$(cd "$(dirname "$(readlink -f "$rustc_bin")")/.." && pwd)
+  # The real toolchain directory (not rustup's proxies in ~/.cargo/bin).
+  toolchain=$(readlink -f "$(rustc --print sysroot)")
   have_version=$("$toolchain/bin/rustc" --version | awk '{print $2}')
   case "$have_version" in
     "$RUST_VERSION"|"$RUST_VERSION".*) ;;

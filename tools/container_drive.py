@@ -16,7 +16,9 @@ moment and then ask ``verify`` whether everything acknowledged survived.
 ledger's (``--exact``, after a clean stop) or exceed it by at most the one
 observation that may have been applied but not yet acknowledged when the
 server was killed; when the ticks are equal the drive must be bit-identical.
-Exit 0 on success, 1 with a message per failing session otherwise.
+It then takes the server's tick, drive and state into the ledger, so a later
+``drive`` goes on from there. Exit 0 on success, 1 with a message per
+failing session otherwise.
 """
 
 from __future__ import annotations
@@ -85,7 +87,10 @@ def drive(args: argparse.Namespace) -> int:
                     if s["state"] is None:
                         state, stimulus = rng.randrange(WORLD.states), None
                     else:
-                        state = WORLD.sample_next(s["state"], s["action"], rng)
+                        action = s.get("action")
+                        if action is None:  # resynced from the server: any action
+                            action = rng.randrange(len(WORLD.actions))
+                        state = WORLD.sample_next(s["state"], action, rng)
                         stimulus = WORLD.stimulus(state, noise_sd=2.0, rng=rng)
                     if s["transport"] == "rest":
                         step = rest.observe(sid, state, stimulus)
@@ -124,12 +129,39 @@ def verify(args: argparse.Namespace) -> int:
                     failures.append(
                         f"{sid} over {name}: drive {info.drive} != acknowledged {s['drive']}"
                     )
+                # The server is the truth from here on (it may hold one
+                # observation more than was acknowledged).
+                s.update(tick=info.tick, drive=info.drive, state=info.state, action=None)
+    save(args.ledger, ledger)
     for f in failures:
         print("FAIL", f)
     ticks = sum(s["tick"] for s in ledger["sessions"].values())
     print(f"verified {len(ledger['sessions'])} sessions, {ticks} acknowledged ticks in all"
           + ("" if failures else ": all present"))
     return 1 if failures else 0
+
+
+def populate(args: argparse.Namespace) -> int:
+    """Creates ``--sessions`` hallway sessions with ``--steps`` observations
+    each, over REST from 16 threads (for the start-to-ready benchmark)."""
+    from concurrent.futures import ThreadPoolExecutor
+
+    def one(i: int) -> int:
+        rng = random.Random(i)
+        with Client(args.http) as rest:
+            info = rest.create_session(WORLD, seed=i)
+            state = rng.randrange(WORLD.states)
+            step = rest.observe(info.id, state)
+            for _ in range(args.steps):
+                state = WORLD.sample_next(state, step.action_index, rng)
+                step = rest.observe(info.id, state, WORLD.stimulus(state))
+            return step.tick
+
+    start = time.monotonic()
+    with ThreadPoolExecutor(16) as pool:
+        ticks = sum(pool.map(one, range(args.sessions)))
+    print(f"created {args.sessions} sessions ({ticks} ticks) in {time.monotonic() - start:.1f} s")
+    return 0
 
 
 def wait_ready(args: argparse.Namespace) -> int:
@@ -152,7 +184,7 @@ def wait_ready(args: argparse.Namespace) -> int:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    for name in ("create", "drive", "verify", "wait-ready"):
+    for name in ("create", "drive", "verify", "populate", "wait-ready"):
         p = sub.add_parser(name)
         p.add_argument("--http", default="http://127.0.0.1:8080")
         p.add_argument("--grpc", default="127.0.0.1:50051")
@@ -163,7 +195,13 @@ def main() -> int:
         p.add_argument("--exact", action="store_true")
         p.add_argument("--timeout", type=float, default=60.0)
     args = parser.parse_args()
-    run = {"create": create, "drive": drive, "verify": verify, "wait-ready": wait_ready}
+    run = {
+        "create": create,
+        "drive": drive,
+        "verify": verify,
+        "populate": populate,
+        "wait-ready": wait_ready,
+    }
     return run[args.command](args)
 
 
