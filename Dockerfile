@@ -8,11 +8,12 @@
 # with a restart on the same volume, the health check, a read-only root
 # filesystem. `make lint-docker` runs hadolint on it.
 #
-# Reproducible builds: pass the commit time, e.g.
+# Reproducible builds: pass the commit time, version and revision, e.g.
 #   docker build --build-arg SOURCE_DATE_EPOCH=$(git log -1 --format=%ct) \
-#                --build-arg REVISION=$(git rev-parse HEAD) -t mcapi .
-# BuildKit then clamps file and image times to it; with podman/buildah add
-# `--timestamp "$SOURCE_DATE_EPOCH"`.
+#                --build-arg VERSION=0.1.0 --build-arg REVISION=$(git rev-parse HEAD) -t mcapi .
+# BuildKit (0.11+) takes the image's creation time from SOURCE_DATE_EPOCH
+# (and the files' times too with `--output type=image,rewrite-timestamp=true`);
+# podman/buildah do both with `--timestamp "$SOURCE_DATE_EPOCH"`.
 
 # Builder and runtime share one Debian release (bookworm), so the binary links
 # against the same glibc it runs on. Keep RUST_VERSION at or above the
@@ -43,7 +44,6 @@ FROM chef AS builder
 COPY --from=planner /build/recipe.json recipe.json
 RUN cargo chef cook --release --locked --recipe-path recipe.json --bin mcapi
 COPY . .
-ARG SOURCE_DATE_EPOCH
 RUN cargo build --release --locked --bin mcapi \
     && install -D -m 0755 target/release/mcapi /out/mcapi \
     && /out/mcapi --version
