@@ -27,6 +27,7 @@ from mcapi_client import (
     UnknownRoute,
     models,
 )
+from mcapi_client._protocol import Request
 from mcapi_client.errors import ERROR_CODES, error_for
 
 UNKNOWN_ID = "s0000.01AAAAAAAAAAAAAAAAAAAAAAAA"
@@ -131,9 +132,9 @@ def test_bad_queries(mc: Client | GrpcClient) -> None:
 
 
 def test_rest_only_errors(client: Client) -> None:
-    e = _raises(UnknownRoute, "unknown_route", 404, lambda: client._request("GET", "/v2/nothing"))
+    e = _raises(UnknownRoute, "unknown_route", 404, lambda: client._send(Request("GET", "/v2/nothing")))
     assert isinstance(e, NotFound)
-    _raises(BadRequest, "bad_request", 400, lambda: client._request("POST", "/v1/sessions", json=[1]))
+    _raises(BadRequest, "bad_request", 400, lambda: client._send(Request("POST", "/v1/sessions", json=[1])))
 
 
 def test_limits(tmp_path_factory: pytest.TempPathFactory) -> None:
