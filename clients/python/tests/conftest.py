@@ -8,6 +8,9 @@ redb``, ``--api-key``) are detected from ``mcapi serve --help``.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import inspect
 import os
 import re
 import signal
@@ -15,15 +18,16 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 
-from mcapi_client import Client, GrpcClient
+from mcapi_client import AsyncClient, AsyncGrpcClient, Client, GrpcClient
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
@@ -171,3 +175,65 @@ def examples_path() -> Iterator[Path]:
         yield path
     finally:
         sys.path.remove(str(path))
+
+
+class Blocking:
+    """An asyncio client driven from synchronous test code: each coroutine
+    method runs to completion on the client's own event loop, so a test
+    written against the blocking clients runs unchanged over the async ones."""
+
+    def __init__(self, make: Callable[[], Any]) -> None:
+        self._loop = asyncio.new_event_loop()
+
+        async def create() -> Any:
+            return make()  # grpc.aio channels belong to the loop they are made in
+
+        self.client = self._loop.run_until_complete(create())
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self.client, name)
+        if not inspect.iscoroutinefunction(attr):
+            return attr
+
+        def call(*args: Any, **kwargs: Any) -> Any:
+            return self._loop.run_until_complete(attr(*args, **kwargs))
+
+        return call
+
+    def close(self) -> None:
+        """Closes the client, then its loop."""
+        self._loop.run_until_complete(self.client.aclose())
+        self._loop.close()
+
+
+CLIENT_KINDS = ["rest", "grpc", "async-rest", "async-grpc"]
+"""The four clients: REST and gRPC, blocking and asyncio."""
+
+
+@contextlib.contextmanager
+def open_client(kind: str, server: Server, **kw: Any) -> Iterator[Any]:
+    """A client of ``server`` of one of :data:`CLIENT_KINDS`; the async ones
+    wrapped in :class:`Blocking`."""
+    if kind == "rest":
+        with Client(server.http_url, **kw) as c:
+            yield c
+    elif kind == "grpc":
+        with GrpcClient(server.grpc_target, **kw) as g:
+            yield g
+    else:
+        if kind == "async-rest":
+            wrapped = Blocking(lambda: AsyncClient(server.http_url, **kw))
+        else:
+            wrapped = Blocking(lambda: AsyncGrpcClient(server.grpc_target, **kw))
+        try:
+            yield wrapped
+        finally:
+            wrapped.close()
+
+
+@pytest.fixture(params=CLIENT_KINDS)
+def any_client(request: pytest.FixtureRequest, server: Server) -> Iterator[Any]:
+    """Each of the four clients in turn (async ones made blocking): a test
+    using it runs over REST and gRPC, blocking and asyncio."""
+    with open_client(request.param, server) as c:
+        yield c

@@ -9,7 +9,7 @@ from http import HTTPStatus
 from typing import Any
 
 import pytest
-from conftest import REPO_ROOT, Server, start_server
+from conftest import CLIENT_KINDS, REPO_ROOT, Server, open_client, start_server
 
 from mcapi_client import (
     BadRequest,
@@ -61,15 +61,11 @@ def test_unknown_codes_fall_back_on_the_status() -> None:
 Transport = Callable[[str], Any]
 
 
-@pytest.fixture(params=["rest", "grpc"])
+@pytest.fixture(params=CLIENT_KINDS)
 def mc(request: pytest.FixtureRequest, server: Server) -> Iterator[Client | GrpcClient]:
-    """The REST client, then the gRPC client: each test runs over both."""
-    if request.param == "rest":
-        with Client(server.http_url) as c:
-            yield c
-    else:
-        with GrpcClient(server.grpc_target) as g:
-            yield g
+    """Each client, REST and gRPC, blocking and asyncio: each test runs over all four."""
+    with open_client(request.param, server) as c:
+        yield c
 
 
 def _raises(cls: type[McapiError], code: str, status: int, fn: Callable[[], object]) -> McapiError:
