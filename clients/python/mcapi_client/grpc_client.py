@@ -651,11 +651,19 @@ class AsyncGrpcClient:
 
     async def ready(self, timeout: float = 1.0) -> bool:
         """Whether the channel connects within ``timeout`` seconds."""
-        try:
-            await asyncio.wait_for(self._channel.channel_ready(), timeout)
-        except asyncio.TimeoutError:
-            return False
-        return True
+        # Polled rather than awaited with grpc.aio's channel_ready(): that
+        # leaves a connectivity watch pending in gRPC's core when it times
+        # out, whose completion later lands on this event loop, perhaps
+        # closed by then ("Event loop is closed" in another loop's callback).
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            state = self._channel.get_state(try_to_connect=True)
+            if state == grpc.ChannelConnectivity.READY:
+                return True
+            if loop.time() >= deadline:
+                return False
+            await asyncio.sleep(min(0.01, max(0.0, deadline - loop.time())))
 
     async def create_session(
         self,
