@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import inspect
 import os
 import re
@@ -18,11 +19,11 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Coroutine, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import httpx
 import pytest
@@ -162,7 +163,8 @@ def grpc_client(server: Server) -> Iterator[GrpcClient]:
 
 @pytest.fixture
 def anyio_backend() -> str:
-    """AsyncClient tests run on asyncio."""
+    """AsyncClient tests run on asyncio (a loop per test: REST only, see
+    :func:`run_async` for grpc.aio)."""
     return "asyncio"
 
 
@@ -177,18 +179,44 @@ def examples_path() -> Iterator[Path]:
         sys.path.remove(str(path))
 
 
+# grpc.aio delivers a call's completions to the event loop the call was made
+# in, even after it is cancelled; a completion arriving once that loop is
+# closed raises "Event loop is closed" inside whichever loop handles gRPC's
+# events next (grpc/grpc#25364). So every test using grpc.aio runs on this one
+# loop, closed only at exit, rather than on a loop per test.
+_SHARED_LOOP: asyncio.AbstractEventLoop | None = None
+
+T = TypeVar("T")
+
+
+def run_async(coro: Coroutine[Any, Any, T]) -> T:
+    """Runs a coroutine to completion on the tests' one shared event loop."""
+    global _SHARED_LOOP
+    if _SHARED_LOOP is None:
+        _SHARED_LOOP = asyncio.new_event_loop()
+    return _SHARED_LOOP.run_until_complete(coro)
+
+
+def async_test(fn: Callable[..., Coroutine[Any, Any, None]]) -> Callable[..., None]:
+    """An ``async def`` test run on the shared loop (fixtures as usual)."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> None:
+        run_async(fn(*args, **kwargs))
+
+    return run
+
+
 class Blocking:
     """An asyncio client driven from synchronous test code: each coroutine
-    method runs to completion on the client's own event loop, so a test
-    written against the blocking clients runs unchanged over the async ones."""
+    method runs to completion on the shared event loop, so a test written
+    against the blocking clients runs unchanged over the async ones."""
 
     def __init__(self, make: Callable[[], Any]) -> None:
-        self._loop = asyncio.new_event_loop()
-
         async def create() -> Any:
             return make()  # grpc.aio channels belong to the loop they are made in
 
-        self.client = self._loop.run_until_complete(create())
+        self.client = run_async(create())
 
     def __getattr__(self, name: str) -> Any:
         attr = getattr(self.client, name)
@@ -196,14 +224,13 @@ class Blocking:
             return attr
 
         def call(*args: Any, **kwargs: Any) -> Any:
-            return self._loop.run_until_complete(attr(*args, **kwargs))
+            return run_async(attr(*args, **kwargs))
 
         return call
 
     def close(self) -> None:
-        """Closes the client, then its loop."""
-        self._loop.run_until_complete(self.client.aclose())
-        self._loop.close()
+        """Closes the client."""
+        run_async(self.client.aclose())
 
 
 CLIENT_KINDS = ["rest", "grpc", "async-rest", "async-grpc"]

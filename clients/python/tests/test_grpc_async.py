@@ -1,6 +1,6 @@
 """The asyncio gRPC client (grpc.aio) against the real server: every method,
 the Interact and Watch streams, the error mapping, and the same answers as
-the blocking client."""
+the blocking client. The tests run on the shared loop of conftest.run_async."""
 
 from __future__ import annotations
 
@@ -9,7 +9,7 @@ import random
 import socket
 
 import pytest
-from conftest import Server
+from conftest import Server, async_test
 
 from mcapi_client import (
     AsyncGrpcClient,
@@ -22,11 +22,10 @@ from mcapi_client import (
     models,
 )
 
-pytestmark = pytest.mark.anyio
-
 UNKNOWN_ID = "s0000.01AAAAAAAAAAAAAAAAAAAAAAAA"
 
 
+@async_test
 async def test_every_method(server: Server) -> None:
     world = models.hallway()
     async with AsyncGrpcClient(server.grpc_target) as mc:
@@ -60,6 +59,7 @@ async def test_every_method(server: Server) -> None:
         assert not await dead.ready(timeout=0.3)
 
 
+@async_test
 async def test_same_answers_as_the_blocking_client(server: Server) -> None:
     """Twin sessions, one per client, fed the same observations, agree on every
     step, value table and history entry; a fresh async client (no cached
@@ -87,6 +87,7 @@ async def test_same_answers_as_the_blocking_client(server: Server) -> None:
             assert (await fresh.history(b_id, limit=3)) == blocking.history(a_id, limit=3)
 
 
+@async_test
 async def test_interact_step_loop_and_pipelined_replay(server: Server) -> None:
     world = models.hallway()
     rng = random.Random(5)
@@ -115,6 +116,7 @@ async def test_interact_step_loop_and_pipelined_replay(server: Server) -> None:
         assert (await mc.get_session(looped_id)).tick == 299
 
 
+@async_test
 async def test_interact_errors_end_the_stream(server: Server) -> None:
     async with AsyncGrpcClient(server.grpc_target) as mc:
         sid = (await mc.create_session("hallway")).id
@@ -137,6 +139,7 @@ async def test_interact_errors_end_the_stream(server: Server) -> None:
             stream.send(1)
 
 
+@async_test
 async def test_watch_snapshots_until_deleted_or_cancelled(server: Server) -> None:
     async with AsyncGrpcClient(server.grpc_target) as mc:
         sid = (await mc.create_session("hallway", seed=1)).id
@@ -177,6 +180,7 @@ async def test_watch_snapshots_until_deleted_or_cancelled(server: Server) -> Non
             mc.watch(other, interval=0.001)
 
 
+@async_test
 async def test_concurrent_sessions_over_one_channel(server: Server) -> None:
     """Eight sessions driven at once over one channel give the steps of the
     same runs one after another over the blocking client."""
@@ -203,6 +207,7 @@ async def test_concurrent_sessions_over_one_channel(server: Server) -> None:
             assert together[seed] == blocking.observe_batch(sid, plan(seed))
 
 
+@async_test
 async def test_unreachable_server_and_timeouts() -> None:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -5,7 +5,6 @@ belongs."""
 
 from __future__ import annotations
 
-import asyncio
 import json
 import math
 import random
@@ -14,7 +13,7 @@ from fractions import Fraction
 from typing import Any
 
 import pytest
-from conftest import Server, open_client
+from conftest import Server, open_client, run_async
 
 from mcapi_client import (
     AgentOptions,
@@ -292,4 +291,4 @@ def test_the_interact_streams_take_numpy(server: Server) -> None:
                     out.append(await stream.step(s, np.zeros(2), np.int64(2)))
             return out
 
-    assert asyncio.run(run()) == plain_steps
+    assert run_async(run()) == plain_steps
