@@ -180,10 +180,11 @@ def examples_path() -> Iterator[Path]:
 
 
 # grpc.aio delivers a call's completions to the event loop the call was made
-# in, even after it is cancelled; a completion arriving once that loop is
-# closed raises "Event loop is closed" inside whichever loop handles gRPC's
-# events next (grpc/grpc#25364). So every test using grpc.aio runs on this one
-# loop, closed only at exit, rather than on a loop per test.
+# in, even after the call is cancelled (gRPC's core completes it later); a
+# completion arriving once that loop is closed raises "Event loop is closed"
+# inside whichever loop handles gRPC's events next, which fails the test
+# running then. So every test using grpc.aio runs on this one loop, closed
+# only at exit, rather than on a loop per test.
 _SHARED_LOOP: asyncio.AbstractEventLoop | None = None
 
 T = TypeVar("T")
