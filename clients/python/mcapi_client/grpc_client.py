@@ -608,7 +608,10 @@ class AsyncGrpcClient:
 
     Create it inside the event loop that uses it (``grpc.aio`` channels
     belong to one loop), as ``async with AsyncGrpcClient(...) as mc:``, or
-    call :meth:`aclose`.
+    call :meth:`aclose`. ``grpc.aio`` completes a cancelled stream's call on
+    its loop a moment later; a program that closes that loop at once and then
+    runs another (two ``asyncio.run`` in one process) may see gRPC log
+    "Event loop is closed" from the second loop.
     """
 
     def __init__(
