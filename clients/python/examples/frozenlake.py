@@ -15,7 +15,7 @@ The drive turns towards whichever stimulus the agent received least
 recently, so it fetches food, then water, then food again, despite the ice.
 This prints the visits to each source per window of ticks and the drive.
 
-    pip install 'mcapi-client[gymnasium]'
+    pip install 'mcapi-client[rest,gymnasium]'
     cargo run --release -- serve          # in another terminal
     python examples/frozenlake.py --steps 3000
 """
@@ -64,7 +64,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         import gymnasium
     except ImportError:
-        print("this example needs gymnasium: pip install 'mcapi-client[gymnasium]'")
+        print("this example needs gymnasium: pip install 'mcapi-client[rest,gymnasium]'")
         return 2
 
     env = gymnasium.make("FrozenLake-v1", map_name=args.map, is_slippery=True)

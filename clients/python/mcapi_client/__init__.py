@@ -6,9 +6,11 @@ environment model, then tells the session each state the agent arrives in
 and the stimulus it received there, and the session answers with the next
 action, the drive and the reward.
 
-- :class:`Client` and :class:`AsyncClient`: the REST API (httpx).
-- :class:`GrpcClient`: the gRPC API, with :meth:`GrpcClient.interact` (a
-  bidirectional stream for high-rate loops) and :meth:`GrpcClient.watch`.
+- :class:`Client` and :class:`AsyncClient`: the REST API (httpx; the
+  ``rest`` extra).
+- :class:`GrpcClient` and :class:`AsyncGrpcClient`: the gRPC API (grpcio;
+  the ``grpc`` extra), with ``interact`` (a bidirectional stream for
+  high-rate loops) and ``watch``.
 - :mod:`mcapi_client.models`: model builders (hallway, grid maps, transition
   tables, Gymnasium toy-text environments).
 - :mod:`mcapi_client.errors`: :class:`McapiError` and its subclasses, one per
@@ -18,6 +20,13 @@ action, the drive and the reward.
   samples sent with observations; see :class:`CuriosityConfig`,
   :class:`TickCuriosity` and :class:`CuriosityInfo`.
 
+The core (types, models, errors) needs no third-party package; each
+transport is imported when first used, and without its extra installed that
+raises an :class:`ImportError` naming the extra
+(``pip install 'mcapi-client[rest]'``, ``'mcapi-client[grpc]'``). Every
+method takes numpy integer and float scalars and arrays where it takes
+numbers.
+
     from mcapi_client import Client, models
 
     world = models.hallway()
@@ -26,6 +35,11 @@ action, the drive and the reward.
         step = mc.observe(session.id, state=25)
         step = mc.observe(session.id, state=26, stimulus=world.stimulus(26))
 """
+
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
 
 from . import models
 from .errors import (
@@ -38,18 +52,16 @@ from .errors import (
     McapiError,
     NotFound,
     PayloadTooLarge,
+    QuotaExceeded,
+    SessionFailed,
     Timeout,
     TooManySessions,
     TooManyStreams,
-    QuotaExceeded,
-    SessionFailed,
     TransportError,
     Unauthenticated,
     Unavailable,
     UnknownRoute,
 )
-from .grpc_client import GrpcClient, Interaction, Watch
-from .rest import AsyncClient, Client
 from .types import (
     AgentConfig,
     AgentOptions,
@@ -61,15 +73,52 @@ from .types import (
     HistoryEntry,
     ModelSummary,
     Observation,
+    SessionCost,
     SessionInfo,
     SessionPage,
-    SessionCost,
     SessionStats,
     SessionSummary,
     Step,
     TickCuriosity,
     Values,
 )
+
+if TYPE_CHECKING:
+    from .grpc_client import (
+        AsyncGrpcClient,
+        AsyncInteraction,
+        AsyncWatch,
+        GrpcClient,
+        Interaction,
+        Watch,
+    )
+    from .rest import AsyncClient, Client
+
+# The transports, imported on first use (each needs its extra).
+_TRANSPORTS = {
+    "Client": "rest",
+    "AsyncClient": "rest",
+    "GrpcClient": "grpc_client",
+    "AsyncGrpcClient": "grpc_client",
+    "Interaction": "grpc_client",
+    "AsyncInteraction": "grpc_client",
+    "Watch": "grpc_client",
+    "AsyncWatch": "grpc_client",
+}
+
+
+def __getattr__(name: str) -> Any:
+    module = _TRANSPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_TRANSPORTS))
+
 
 __version__ = "0.1.0"
 """The version of this package."""
@@ -78,8 +127,11 @@ __all__ = [
     "Client",
     "AsyncClient",
     "GrpcClient",
+    "AsyncGrpcClient",
     "Interaction",
+    "AsyncInteraction",
     "Watch",
+    "AsyncWatch",
     "models",
     "McapiError",
     "BadRequest",

@@ -1,12 +1,26 @@
-"""Conversions between the gRPC messages and the typed results (one place)."""
+"""The gRPC API without I/O: conversions between the messages and the typed
+results (one place), each call as the RPCs it makes (:class:`GrpcProtocol`),
+and the error of a failed RPC (:func:`rpc_error`).
+
+:class:`~mcapi_client.GrpcClient` and :class:`~mcapi_client.AsyncGrpcClient`
+run the same operations (:mod:`mcapi_client._sansio`), sending each
+:class:`Call` over a blocking or a ``grpc.aio`` channel. This module needs
+protobuf (the stubs' messages) but not grpcio.
+"""
 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
+from ._normalise import as_float, as_opt_int
 from ._proto.mcapi.v1 import agents_pb2 as pb
+from ._sansio import Op, SessionCache
+from .errors import McapiError, Timeout, TransportError, error_for
+from .models import ModelLike, model_json
 from .types import (
     ActionRef,
     AgentConfig,
@@ -19,17 +33,27 @@ from .types import (
     HistoryEntry,
     ModelSummary,
     Observation,
+    ObservationLike,
+    SessionCost,
     SessionInfo,
     SessionPage,
-    SessionCost,
     SessionStats,
     SessionSummary,
     Step,
     TickCuriosity,
     UpdateMode,
     Values,
+    as_observation,
     check_signal,
 )
+
+SESSION_METADATA = "x-mcapi-session"
+"""Metadata key naming the session a call concerns."""
+
+ERROR_CODE_TRAILER = "x-mcapi-error-code"
+"""Trailer carrying the server's stable error code."""
+
+Metadata = tuple[tuple[str, str], ...]
 
 _UPDATE_MODES: dict[str, int] = {"lockstep": pb.UPDATE_MODE_LOCKSTEP, "async": pb.UPDATE_MODE_ASYNC}
 _UPDATE_MODE_NAMES: dict[int, UpdateMode] = {
@@ -41,18 +65,19 @@ _UPDATE_MODE_NAMES: dict[int, UpdateMode] = {
 def create_request(model: dict[str, Any], agent: AgentOptions) -> pb.CreateSessionRequest:
     """``CreateSession``: the model travels as the JSON the REST API takes."""
     cfg = pb.SessionConfig()
+    # AgentOptions holds plain ints and floats (numpy values were converted).
     for name in ("eta", "gamma", "optimistic_sd", "ridge", "epsilon", "seed", "history"):
         value = getattr(agent, name)
         if value is not None:
             setattr(cfg, name, value)
     if agent.priorities is not None:
-        cfg.priorities.extend(float(p) for p in agent.priorities)
+        cfg.priorities.extend(agent.priorities)
     if agent.stimulus_rate == "sample_mean":
         cfg.stimulus_rate_rule = pb.STIMULUS_RATE_RULE_SAMPLE_MEAN
     elif isinstance(agent.stimulus_rate, str):
         raise ValueError(f"unknown stimulus_rate {agent.stimulus_rate!r} (use 'sample_mean' or a number)")
     elif agent.stimulus_rate is not None:
-        cfg.stimulus_rate_constant = float(agent.stimulus_rate)
+        cfg.stimulus_rate_constant = agent.stimulus_rate
     if agent.update_mode is not None:
         if agent.update_mode not in _UPDATE_MODES:
             raise ValueError(f"unknown update_mode {agent.update_mode!r} (use 'lockstep' or 'async')")
@@ -66,38 +91,44 @@ def create_request(model: dict[str, Any], agent: AgentOptions) -> pb.CreateSessi
     return pb.CreateSessionRequest(model_json=json.dumps(model), agent=cfg)
 
 
-def observation(
-    state: int,
-    stimulus: Sequence[float] | None,
-    action_taken: ActionRef | None,
-    session_id: str = "",
-    signal: Sequence[float] | None = None,
-    signal_source: int | None = None,
-) -> pb.Observation:
-    """One observation message (``session_id`` empty: the metadata names it)."""
-    msg = pb.Observation(session_id=session_id, state=state)
-    if stimulus is not None:
-        msg.stimulus.values.extend(float(x) for x in stimulus)
+def observation_message(obs: Observation, session_id: str = "") -> pb.Observation:
+    """One observation message (``session_id`` empty: the metadata names it).
+
+    Non-finite stimulus values are sent as they are: the server answers them
+    (``non_finite_number``).
+    """
+    msg = pb.Observation(session_id=session_id, state=obs.state)
+    if obs.stimulus is not None:
+        msg.stimulus.values.extend(obs.stimulus)
         msg.stimulus.SetInParent()  # an empty stimulus is still sent as given
-    if isinstance(action_taken, str):
-        msg.action_name = action_taken
-    elif action_taken is not None:
-        msg.action_index = int(action_taken)
-    if signal is not None:
-        msg.signal.extend(float(x) for x in check_signal(signal))
-    if signal_source is not None:
-        msg.signal_source = signal_source
+    if isinstance(obs.action_taken, str):
+        msg.action_name = obs.action_taken
+    elif obs.action_taken is not None:
+        msg.action_index = obs.action_taken
+    if obs.signal is not None:
+        msg.signal.extend(check_signal(obs.signal))
+    if obs.signal_source is not None:
+        msg.signal_source = obs.signal_source
     return msg
 
 
-def observations(obs: Iterable[Observation]) -> list[pb.Observation]:
+def observation(
+    state: Any,
+    stimulus: Any,
+    action_taken: ActionRef | None,
+    session_id: str = "",
+    signal: Any = None,
+    signal_source: Any = None,
+) -> pb.Observation:
+    """One observation message from its parts (see :class:`~mcapi_client.Observation`)."""
+    return observation_message(
+        Observation(state, stimulus, action_taken, signal, signal_source), session_id
+    )
+
+
+def observations(obs: Iterable[ObservationLike]) -> list[pb.Observation]:
     """Batch entries as messages."""
-    return [
-        observation(
-            o.state, o.stimulus, o.action_taken, signal=o.signal, signal_source=o.signal_source
-        )
-        for o in obs
-    ]
+    return [observation_message(as_observation(o)) for o in obs]
 
 
 def tick_curiosity(m: pb.TickCuriosity) -> TickCuriosity:
@@ -272,3 +303,148 @@ def history(m: pb.History, actions: Sequence[str]) -> list[HistoryEntry]:
         )
         for e in m.entries
     ]
+
+
+def include_tables(include: str | Iterable[str] | None) -> list[str]:
+    """The ``include`` tables as a list: ``["v", "q"]`` from ``"v,q"`` or ``["v", "q"]``."""
+    parts = [include] if isinstance(include, str) else list(include or [])
+    return [t.strip() for part in parts for t in part.split(",") if t.strip()]
+
+
+def watch_request(session_id: str, interval: object) -> pb.WatchRequest:
+    """``Watch`` every ``interval`` seconds.
+
+    Raises:
+        ValueError: The interval is not between 0.01 and 3600 s.
+    """
+    seconds = as_float(interval, "interval")
+    interval_ms = round(seconds * 1000) if math.isfinite(seconds) else 0
+    if not 10 <= interval_ms <= 3_600_000:
+        raise ValueError(f"interval {seconds} s is not between 0.01 and 3600")
+    return pb.WatchRequest(session_id=session_id, interval_ms=interval_ms)
+
+
+def rpc_error(e: BaseException) -> McapiError:
+    """The :class:`McapiError` for a failed RPC or stream: a ``grpc.RpcError``
+    of a blocking call or a ``grpc.aio.AioRpcError``, read by duck typing
+    (``code()``, ``details()``, ``trailing_metadata()``)."""
+    code = _call(e, "code")
+    name = getattr(code, "name", None) or "UNKNOWN"
+    message = _call(e, "details") or str(e)
+    stable = None
+    for key, value in _call(e, "trailing_metadata") or ():
+        if key == ERROR_CODE_TRAILER:
+            stable = value if isinstance(value, str) else value.decode()
+    if stable is None:
+        # No answer from mcapi itself: the network or the client gave up.
+        if name == "UNAVAILABLE":
+            return TransportError(message, code="transport_error", grpc_code=name)
+        if name == "DEADLINE_EXCEEDED":
+            return Timeout(message, code="timeout", grpc_code=name)
+        if name == "CANCELLED":
+            return McapiError(message, code="cancelled", grpc_code=name)
+    return error_for(stable, message, grpc_code=name)
+
+
+def _call(e: BaseException, method: str) -> Any:
+    fn = getattr(e, method, None)
+    return fn() if callable(fn) else None
+
+
+def watch_ends(err: McapiError, seen: int, cancelled: bool) -> bool:
+    """Whether an error ends a ``Watch`` iteration quietly: the watch was
+    cancelled, or its session deleted after at least one snapshot."""
+    return cancelled or err.code == "cancelled" or (seen > 0 and err.code == "not_found")
+
+
+@dataclass(frozen=True, slots=True)
+class Call:
+    """One unary RPC to make.
+
+    Attributes:
+        rpc: The method of ``mcapi.v1.Agents`` (``"GetSession"``).
+        request: The request message.
+        session_id: The session it concerns, sent as ``x-mcapi-session``
+            metadata; ``None`` for calls of no one session.
+    """
+
+    rpc: str
+    request: Any
+    session_id: str | None = None
+
+
+class GrpcProtocol:
+    """The gRPC calls as operations, the metadata they carry, and the shape
+    (states, action names) per session that the value tables and history
+    entries need."""
+
+    def __init__(self, api_key: str | None) -> None:
+        self._auth: Metadata = (
+            (("authorization", f"Bearer {api_key}"),) if api_key is not None else ()
+        )
+        self._shapes: SessionCache[tuple[int, list[str]]] = SessionCache()
+
+    def metadata(self, session_id: str | None = None) -> Metadata:
+        """The metadata of a call: the session (routers read it), the API key."""
+        if session_id is None:
+            return self._auth
+        return ((SESSION_METADATA, session_id), *self._auth)
+
+    def _remember(self, info: SessionInfo) -> SessionInfo:
+        self._shapes.put(info.id, (info.model.states, info.model.actions))
+        return info
+
+    def create_session(self, model: ModelLike, agent: AgentOptions) -> Op[Call, SessionInfo]:
+        """``CreateSession``: the model travels as the JSON the REST API takes."""
+        reply = yield Call("CreateSession", create_request(model_json(model), agent))
+        return self._remember(session_info(reply))
+
+    def get_session(self, session_id: str) -> Op[Call, SessionInfo]:
+        """``GetSession``."""
+        reply = yield Call("GetSession", pb.GetSessionRequest(session_id=session_id), session_id)
+        return self._remember(session_info(reply))
+
+    def list_sessions(self, after: str | None, limit: object) -> Op[Call, SessionPage]:
+        """``ListSessions``."""
+        request = pb.ListSessionsRequest(after=after, limit=as_opt_int(limit, "limit"))
+        return session_page((yield Call("ListSessions", request)))
+
+    def delete_session(self, session_id: str) -> Op[Call, None]:
+        """``DeleteSession``."""
+        yield Call("DeleteSession", pb.DeleteSessionRequest(session_id=session_id), session_id)
+        self._shapes.drop(session_id)
+
+    def observe(self, session_id: str, obs: Observation) -> Op[Call, Step]:
+        """``Observe`` with one observation."""
+        request = pb.ObserveRequest(session_id=session_id, observations=[observation_message(obs)])
+        reply = yield Call("Observe", request, session_id)
+        return step(reply.steps[0])
+
+    def observe_batch(
+        self, session_id: str, obs: Iterable[ObservationLike]
+    ) -> Op[Call, list[Step]]:
+        """``Observe`` with a batch."""
+        request = pb.ObserveRequest(session_id=session_id, observations=observations(obs))
+        reply = yield Call("Observe", request, session_id)
+        return [step(s) for s in reply.steps]
+
+    def values(self, session_id: str, include: str | Iterable[str] | None) -> Op[Call, Values]:
+        """``GetValues``, then the session when its shape is not known yet."""
+        request = pb.GetValuesRequest(session_id=session_id, include=include_tables(include))
+        reply = yield Call("GetValues", request, session_id)
+        states, actions = yield from self._shape(session_id)
+        return values(reply, states, len(actions))
+
+    def history(self, session_id: str, limit: object) -> Op[Call, list[HistoryEntry]]:
+        """``GetHistory``, then the session when its action names are not known yet."""
+        request = pb.GetHistoryRequest(session_id=session_id, limit=as_opt_int(limit, "limit"))
+        reply = yield Call("GetHistory", request, session_id)
+        _, actions = yield from self._shape(session_id)
+        return history(reply, actions)
+
+    def _shape(self, session_id: str) -> Op[Call, tuple[int, list[str]]]:
+        shape = self._shapes.get(session_id)
+        if shape is None:
+            info = yield from self.get_session(session_id)
+            shape = (info.model.states, info.model.actions)
+        return shape

@@ -1,6 +1,8 @@
-"""The gRPC client: :class:`GrpcClient`, with the REST client's operations,
-the bidirectional :meth:`~GrpcClient.interact` stream for high-rate loops and
-the :meth:`~GrpcClient.watch` stream of snapshots.
+"""The gRPC clients: :class:`GrpcClient` (blocking) and its asyncio twin
+:class:`AsyncGrpcClient` (``grpc.aio``), with the REST client's operations,
+the bidirectional ``interact`` stream for high-rate loops and the ``watch``
+stream of snapshots. Needs the ``grpc`` extra (``pip install
+'mcapi-client[grpc]'``: grpcio and protobuf).
 
     from mcapi_client import GrpcClient, models
 
@@ -13,31 +15,53 @@ the :meth:`~GrpcClient.watch` stream of snapshots.
                 state = ...                              # apply step.action
                 step = stream.step(state, world.stimulus(state))
 
+    async with AsyncGrpcClient("127.0.0.1:50051") as mc:
+        session = await mc.create_session(world, seed=7)
+        async with mc.interact(session.id) as stream:
+            step = await stream.step(25)
+
 Each call names its session in the ``x-mcapi-session`` metadata (routers
 read it; the server checks it against the message), and sends the API key as
 ``authorization: Bearer <key>``. Errors are the same
 :class:`~mcapi_client.McapiError` subclasses as over REST, read from the
-status and the ``x-mcapi-error-code`` trailer.
+status and the ``x-mcapi-error-code`` trailer. Both clients run the same
+operations of :mod:`mcapi_client._pb` (messages built and read once);
+numbers may be numpy scalars and vectors numpy arrays.
 """
 
 from __future__ import annotations
 
+import asyncio
 import queue
-from collections.abc import Iterable, Iterator, Sequence
+from collections.abc import AsyncIterator, Iterable, Iterator, Sequence
 from types import TracebackType
 from typing import Any
 
-import grpc
+try:
+    import google.protobuf  # noqa: F401  (the stubs' messages)
+    import grpc
+    import grpc.aio
+except ImportError as e:  # pragma: no cover - exercised in a subprocess by tests/test_package.py
+    raise ImportError(
+        "the gRPC clients (mcapi_client.GrpcClient, AsyncGrpcClient) need grpcio and protobuf: "
+        "install the `grpc` extra, pip install 'mcapi-client[grpc]'",
+        name=e.name,
+    ) from e
 
 from . import _pb
+from ._normalise import FloatLike, FloatsLike, IntLike
+from ._pb import ERROR_CODE_TRAILER, SESSION_METADATA, Call, Metadata, rpc_error
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
-from .errors import McapiError, Timeout, TransportError, Unavailable, error_for
-from .rest import ModelLike, agent_options, model_json
+from ._sansio import adrive, drive
+from .errors import Unavailable
+from .models import ModelLike
 from .types import (
     ActionRef,
+    AgentOptions,
     CuriosityLike,
     HistoryEntry,
+    Observation,
     ObservationLike,
     SessionInfo,
     SessionPage,
@@ -46,45 +70,68 @@ from .types import (
     StimulusRate,
     UpdateMode,
     Values,
-    as_observation,
 )
 
-__all__ = ["GrpcClient", "Interaction", "Watch", "DEFAULT_TARGET", "SESSION_METADATA"]
+__all__ = [
+    "GrpcClient",
+    "Interaction",
+    "Watch",
+    "AsyncGrpcClient",
+    "AsyncInteraction",
+    "AsyncWatch",
+    "DEFAULT_TARGET",
+    "SESSION_METADATA",
+    "ERROR_CODE_TRAILER",
+    "rpc_error",
+]
 
 DEFAULT_TARGET = "127.0.0.1:50051"
 """Where ``mcapi serve`` listens for gRPC by default."""
 
-SESSION_METADATA = "x-mcapi-session"
-"""Metadata key naming the session a call concerns."""
 
-ERROR_CODE_TRAILER = "x-mcapi-error-code"
-"""Trailer carrying the server's stable error code."""
-
-_Metadata = tuple[tuple[str, str], ...]
+def _channel_options(options: Sequence[tuple[str, Any]]) -> list[tuple[str, Any]]:
+    return [("grpc.max_receive_message_length", 64 << 20), *options]
 
 
-def rpc_error(e: grpc.RpcError) -> McapiError:
-    """The :class:`McapiError` for a failed gRPC call or stream."""
-    code = e.code() if isinstance(e, grpc.Call) else None
-    name = code.name if code is not None else "UNKNOWN"
-    message = (e.details() if isinstance(e, grpc.Call) else None) or str(e)
-    stable = None
-    if isinstance(e, grpc.Call):
-        for key, value in e.trailing_metadata() or ():
-            if key == ERROR_CODE_TRAILER:
-                stable = value if isinstance(value, str) else value.decode()
-    if stable is None:
-        # No answer from mcapi itself: the network or the client gave up.
-        if code == grpc.StatusCode.UNAVAILABLE:
-            return TransportError(message, code="transport_error", grpc_code=name)
-        if code == grpc.StatusCode.DEADLINE_EXCEEDED:
-            return Timeout(message, code="timeout", grpc_code=name)
-        if code == grpc.StatusCode.CANCELLED:
-            return McapiError(message, code="cancelled", grpc_code=name)
-    return error_for(stable, message, grpc_code=name)
+def _stream_ended() -> Unavailable:
+    return Unavailable("the server ended the stream before replying", code="stream_closed")
 
 
-class Interaction:
+class _Stream:
+    """What both ``Interact`` streams count and check, with no I/O."""
+
+    def __init__(self, session_id: str) -> None:
+        self.session_id = session_id
+        self._sent = 0
+        self._received = 0
+        self._half_closed = False
+        self._closed = False
+
+    @property
+    def pending(self) -> int:
+        """Observations sent whose steps have not been received yet."""
+        return self._sent - self._received
+
+    def _message(
+        self,
+        state: IntLike,
+        stimulus: FloatsLike | None,
+        action_taken: ActionRef | None,
+        signal: FloatsLike | None,
+        signal_source: IntLike | None,
+    ) -> pb.Observation:
+        if self._half_closed:
+            raise RuntimeError("this interaction no longer accepts observations")
+        return _pb.observation_message(
+            Observation(state, stimulus, action_taken, signal, signal_source)
+        )
+
+    def _expect_reply(self) -> None:
+        if self.pending == 0:
+            raise RuntimeError("no observation is waiting for its step; send one first")
+
+
+class Interaction(_Stream):
     """One ``Interact`` stream: observations in, one step out per observation, in order.
 
     Get one from :meth:`GrpcClient.interact` and use it as a context manager.
@@ -104,13 +151,9 @@ class Interaction:
     before it stay applied.
     """
 
-    def __init__(self, stub: pb_grpc.AgentsStub, session_id: str, metadata: _Metadata) -> None:
-        self.session_id = session_id
+    def __init__(self, stub: pb_grpc.AgentsStub, session_id: str, metadata: Metadata) -> None:
+        super().__init__(session_id)
         self._outbox: queue.SimpleQueue[pb.Observation | None] = queue.SimpleQueue()
-        self._sent = 0
-        self._received = 0
-        self._half_closed = False
-        self._closed = False
         self._call = stub.Interact(self._requests(), metadata=metadata)
 
     def _requests(self) -> Iterator[pb.Observation]:
@@ -120,19 +163,14 @@ class Interaction:
                 return
             yield msg
 
-    @property
-    def pending(self) -> int:
-        """Observations sent whose steps have not been received yet."""
-        return self._sent - self._received
-
     def send(
         self,
-        state: int,
-        stimulus: Sequence[float] | None = None,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
-        signal: Sequence[float] | None = None,
-        signal_source: int | None = None,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
     ) -> None:
         """Queues one observation without waiting for its step.
 
@@ -146,25 +184,16 @@ class Interaction:
                 channel (``stimulus`` is then the extrinsic part only).
             signal_source: The signal's source (server default 0).
         """
-        if self._half_closed:
-            raise RuntimeError("this interaction no longer accepts observations")
-        self._outbox.put(
-            _pb.observation(
-                state, stimulus, action_taken, signal=signal, signal_source=signal_source
-            )
-        )
+        self._outbox.put(self._message(state, stimulus, action_taken, signal, signal_source))
         self._sent += 1
 
     def recv(self) -> Step:
         """Waits for the step of the oldest observation not yet answered."""
-        if self.pending == 0:
-            raise RuntimeError("no observation is waiting for its step; send one first")
+        self._expect_reply()
         try:
             msg = next(self._call)
         except StopIteration:
-            raise Unavailable(
-                "the server ended the stream before replying", code="stream_closed"
-            ) from None
+            raise _stream_ended() from None
         except grpc.RpcError as e:
             raise rpc_error(e) from e
         self._received += 1
@@ -172,12 +201,12 @@ class Interaction:
 
     def step(
         self,
-        state: int,
-        stimulus: Sequence[float] | None = None,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
-        signal: Sequence[float] | None = None,
-        signal_source: int | None = None,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
     ) -> Step:
         """Sends one observation and returns its step (the next action);
         arguments as :meth:`send`."""
@@ -239,10 +268,8 @@ class Watch:
             msg = next(self._call)
         except grpc.RpcError as e:
             err = rpc_error(e)
-            if self._cancelled or err.code == "cancelled":
+            if _pb.watch_ends(err, self._seen, self._cancelled):
                 raise StopIteration from None
-            if self._seen and err.code == "not_found":
-                raise StopIteration from None  # deleted while watched
             raise err from e
         self._seen += 1
         return _pb.session_info(msg)
@@ -283,7 +310,7 @@ class GrpcClient:
         options: Sequence[tuple[str, Any]] = (),
     ) -> None:
         self.target = target
-        opts = [("grpc.max_receive_message_length", 64 << 20), *options]
+        opts = _channel_options(options)
         self._channel = (
             grpc.secure_channel(target, credentials, options=opts)
             if credentials is not None
@@ -291,12 +318,7 @@ class GrpcClient:
         )
         self._stub = pb_grpc.AgentsStub(self._channel)  # type: ignore[no-untyped-call]
         self._timeout = timeout
-        self._auth: _Metadata = (
-            (("authorization", f"Bearer {api_key}"),) if api_key is not None else ()
-        )
-        # (states, action names) per session, to make per-pair value tables
-        # dense and to name the actions of history entries.
-        self._shapes: dict[str, tuple[int, list[str]]] = {}
+        self._protocol = _pb.GrpcProtocol(api_key)
 
     def close(self) -> None:
         """Closes the channel (and with it any open stream)."""
@@ -308,23 +330,13 @@ class GrpcClient:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _metadata(self, session_id: str | None = None) -> _Metadata:
-        if session_id is None:
-            return self._auth
-        return ((SESSION_METADATA, session_id), *self._auth)
-
-    def _unary(self, method: Any, request: Any, session_id: str | None = None) -> Any:
+    def _send(self, call: Call) -> Any:
+        method = getattr(self._stub, call.rpc)
+        metadata = self._protocol.metadata(call.session_id)
         try:
-            return method(request, metadata=self._metadata(session_id), timeout=self._timeout)
+            return method(call.request, metadata=metadata, timeout=self._timeout)
         except grpc.RpcError as e:
             raise rpc_error(e) from e
-
-    def _remember(self, info: SessionInfo) -> SessionInfo:
-        self._shapes.pop(info.id, None)
-        self._shapes[info.id] = (info.model.states, info.model.actions)
-        while len(self._shapes) > 1024:
-            del self._shapes[next(iter(self._shapes))]
-        return info
 
     def ready(self, timeout: float = 1.0) -> bool:
         """Whether the channel connects within ``timeout`` seconds."""
@@ -338,45 +350,40 @@ class GrpcClient:
         self,
         model: ModelLike,
         *,
-        eta: float | None = None,
-        gamma: float | None = None,
-        priorities: Sequence[float] | None = None,
-        stimulus_rate: StimulusRate | None = None,
-        optimistic_sd: float | None = None,
-        ridge: float | None = None,
-        epsilon: float | None = None,
-        seed: int | None = None,
+        eta: FloatLike | None = None,
+        gamma: FloatLike | None = None,
+        priorities: FloatsLike | None = None,
+        stimulus_rate: StimulusRate | FloatLike | None = None,
+        optimistic_sd: FloatLike | None = None,
+        ridge: FloatLike | None = None,
+        epsilon: FloatLike | None = None,
+        seed: IntLike | None = None,
         update_mode: UpdateMode | None = None,
-        history: int | None = None,
+        history: IntLike | None = None,
         curiosity: CuriosityLike | None = None,
     ) -> SessionInfo:
         """Creates a session; arguments as :meth:`mcapi_client.Client.create_session`."""
-        agent = agent_options(
+        agent = AgentOptions(
             eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
             optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
             update_mode=update_mode, history=history, curiosity=curiosity,
         )
-        request = _pb.create_request(model_json(model), agent)
-        return self._remember(_pb.session_info(self._unary(self._stub.CreateSession, request)))
+        return drive(self._protocol.create_session(model, agent), self._send)
 
     def get_session(self, session_id: str) -> SessionInfo:
         """A session's drive, tick, policy version, model, configuration and statistics."""
-        request = pb.GetSessionRequest(session_id=session_id)
-        return self._remember(
-            _pb.session_info(self._unary(self._stub.GetSession, request, session_id))
-        )
+        return drive(self._protocol.get_session(session_id), self._send)
 
-    def list_sessions(self, after: str | None = None, limit: int | None = None) -> SessionPage:
+    def list_sessions(self, after: str | None = None, limit: IntLike | None = None) -> SessionPage:
         """One page of sessions in id order.
 
         Args:
             after: Start after this id (the ``next`` of the previous page).
             limit: Page size, 1 to 1000 (server default 100).
         """
-        request = pb.ListSessionsRequest(after=after, limit=limit)
-        return _pb.session_page(self._unary(self._stub.ListSessions, request))
+        return drive(self._protocol.list_sessions(after, limit), self._send)
 
-    def iter_sessions(self, page_size: int = 100) -> Iterator[SessionSummary]:
+    def iter_sessions(self, page_size: IntLike = 100) -> Iterator[SessionSummary]:
         """Every session in id order, fetching pages of ``page_size`` as needed."""
         after: str | None = None
         while True:
@@ -388,19 +395,17 @@ class GrpcClient:
 
     def delete_session(self, session_id: str) -> None:
         """Deletes a session."""
-        request = pb.DeleteSessionRequest(session_id=session_id)
-        self._unary(self._stub.DeleteSession, request, session_id)
-        self._shapes.pop(session_id, None)
+        drive(self._protocol.delete_session(session_id), self._send)
 
     def observe(
         self,
         session_id: str,
-        state: int,
-        stimulus: Sequence[float] | None = None,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
-        signal: Sequence[float] | None = None,
-        signal_source: int | None = None,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
     ) -> Step:
         """Reports one observation (unary ``Observe``) and returns the next
         action; arguments as :meth:`mcapi_client.Client.observe`.
@@ -408,27 +413,14 @@ class GrpcClient:
         For a loop of many observations, :meth:`interact` saves a round of
         call set-up per tick.
         """
-        request = pb.ObserveRequest(
-            session_id=session_id,
-            observations=[
-                _pb.observation(
-                    state, stimulus, action_taken, signal=signal, signal_source=signal_source
-                )
-            ],
-        )
-        reply = self._unary(self._stub.Observe, request, session_id)
-        return _pb.step(reply.steps[0])
+        obs = Observation(state, stimulus, action_taken, signal, signal_source)
+        return drive(self._protocol.observe(session_id, obs), self._send)
 
     def observe_batch(
         self, session_id: str, observations: Iterable[ObservationLike]
     ) -> list[Step]:
         """Applies observations in order; one step each (see the REST client)."""
-        request = pb.ObserveRequest(
-            session_id=session_id,
-            observations=_pb.observations(as_observation(o) for o in observations),
-        )
-        reply = self._unary(self._stub.Observe, request, session_id)
-        return [_pb.step(s) for s in reply.steps]
+        return drive(self._protocol.observe_batch(session_id, observations), self._send)
 
     def values(self, session_id: str, include: str | Iterable[str] | None = None) -> Values:
         """Value tables of a session, shaped as the REST client returns them.
@@ -438,40 +430,333 @@ class GrpcClient:
             include: Tables among ``v``, ``q``, ``policy``, ``r``, ``xi``, or
                 ``all``; default ``v`` and ``policy``.
         """
-        tables = [include] if isinstance(include, str) else list(include or [])
-        tables = [t.strip() for part in tables for t in part.split(",") if t.strip()]
-        request = pb.GetValuesRequest(session_id=session_id, include=tables)
-        reply = self._unary(self._stub.GetValues, request, session_id)
-        states, actions = self._shape(session_id)
-        return _pb.values(reply, states, len(actions))
+        return drive(self._protocol.values(session_id, include), self._send)
 
-    def history(self, session_id: str, limit: int | None = None) -> list[HistoryEntry]:
+    def history(self, session_id: str, limit: IntLike | None = None) -> list[HistoryEntry]:
         """The most recent ticks of a session (at most ``limit``), oldest first
         (``GetHistory``); the same entries as :meth:`mcapi_client.Client.history`."""
-        request = pb.GetHistoryRequest(session_id=session_id, limit=limit)
-        reply = self._unary(self._stub.GetHistory, request, session_id)
-        return _pb.history(reply, self._shape(session_id)[1])
-
-    def _shape(self, session_id: str) -> tuple[int, list[str]]:
-        shape = self._shapes.get(session_id)
-        if shape is None:
-            info = self.get_session(session_id)
-            shape = (info.model.states, info.model.actions)
-        return shape
+        return drive(self._protocol.history(session_id, limit), self._send)
 
     def interact(self, session_id: str) -> Interaction:
         """Opens an ``Interact`` stream on a session; see :class:`Interaction`."""
-        return Interaction(self._stub, session_id, self._metadata(session_id))
+        return Interaction(self._stub, session_id, self._protocol.metadata(session_id))
 
-    def watch(self, session_id: str, interval: float = 1.0) -> Watch:
+    def watch(self, session_id: str, interval: FloatLike = 1.0) -> Watch:
         """Snapshots of a session every ``interval`` seconds (0.01 to 3600),
         the first at once; see :class:`Watch`.
 
         Raises:
             ValueError: The interval is out of range.
         """
-        interval_ms = round(interval * 1000)
-        if not 10 <= interval_ms <= 3_600_000:
-            raise ValueError(f"interval {interval} s is not between 0.01 and 3600")
-        request = pb.WatchRequest(session_id=session_id, interval_ms=interval_ms)
-        return Watch(self._stub.Watch(request, metadata=self._metadata(session_id)))
+        request = _pb.watch_request(session_id, interval)
+        return Watch(self._stub.Watch(request, metadata=self._protocol.metadata(session_id)))
+
+
+class AsyncInteraction(_Stream):
+    """One ``Interact`` stream under asyncio; :class:`Interaction`'s twin.
+
+    Get one from :meth:`AsyncGrpcClient.interact` and use it with ``async
+    with``. :meth:`send` queues an observation and returns at once (like
+    ``asyncio.StreamWriter.write``, it is not awaited); :meth:`recv` and
+    :meth:`step` are awaited, and ``async for`` yields the replies to the
+    observations sent so far:
+
+        async with client.interact(session_id) as stream:
+            step = await stream.step(3)
+            for obs in logged:
+                stream.send(obs.state, obs.stimulus)
+            steps = [s async for s in stream]
+
+    Errors end the stream as in :class:`Interaction`.
+    """
+
+    def __init__(self, stub: pb_grpc.AgentsStub, session_id: str, metadata: Metadata) -> None:
+        super().__init__(session_id)
+        self._outbox: asyncio.Queue[pb.Observation | None] = asyncio.Queue()
+        self._call = stub.Interact(self._requests(), metadata=metadata)
+
+    async def _requests(self) -> AsyncIterator[pb.Observation]:
+        while True:
+            msg = await self._outbox.get()
+            if msg is None:
+                return
+            yield msg
+
+    def send(
+        self,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
+        action_taken: ActionRef | None = None,
+        *,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
+    ) -> None:
+        """Queues one observation without waiting for its step (not awaited);
+        arguments as :meth:`Interaction.send`."""
+        self._outbox.put_nowait(self._message(state, stimulus, action_taken, signal, signal_source))
+        self._sent += 1
+
+    async def recv(self) -> Step:
+        """Waits for the step of the oldest observation not yet answered."""
+        self._expect_reply()
+        try:
+            msg = await self._call.read()
+        except grpc.RpcError as e:
+            raise rpc_error(e) from e
+        if msg is grpc.aio.EOF:
+            raise _stream_ended()
+        self._received += 1
+        return _pb.step(msg)
+
+    async def step(
+        self,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
+        action_taken: ActionRef | None = None,
+        *,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
+    ) -> Step:
+        """Sends one observation and returns its step (the next action);
+        arguments as :meth:`Interaction.send`."""
+        self.send(state, stimulus, action_taken, signal=signal, signal_source=signal_source)
+        return await self.recv()
+
+    def __aiter__(self) -> AsyncInteraction:
+        return self
+
+    async def __anext__(self) -> Step:
+        """The next reply to an observation sent; stops when none is pending."""
+        if self.pending == 0:
+            raise StopAsyncIteration
+        return await self.recv()
+
+    def close(self) -> None:
+        """Ends the stream: no more observations, unreceived steps are dropped."""
+        if self._closed:
+            return
+        self._closed = True
+        if not self._half_closed:
+            self._half_closed = True
+            self._outbox.put_nowait(None)
+        self._call.cancel()
+
+    async def __aenter__(self) -> AsyncInteraction:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+
+class AsyncWatch:
+    """Snapshots of a session under asyncio (``async for``); :class:`Watch`'s twin.
+
+    Iteration ends when the session is deleted or :meth:`cancel` is called;
+    use it with ``async with`` so the stream is cancelled when you stop.
+    """
+
+    def __init__(self, call: Any) -> None:
+        self._call = call
+        self._seen = 0
+        self._cancelled = False
+
+    def __aiter__(self) -> AsyncWatch:
+        return self
+
+    async def __anext__(self) -> SessionInfo:
+        """The next snapshot (waits for the interval)."""
+        if self._cancelled:
+            raise StopAsyncIteration
+        try:
+            msg = await self._call.read()
+        except asyncio.CancelledError:
+            if self._cancelled or self._call.cancelled():
+                raise StopAsyncIteration from None
+            raise
+        except grpc.RpcError as e:
+            err = rpc_error(e)
+            if _pb.watch_ends(err, self._seen, self._cancelled):
+                raise StopAsyncIteration from None
+            raise err from e
+        if msg is grpc.aio.EOF:
+            raise StopAsyncIteration
+        self._seen += 1
+        return _pb.session_info(msg)
+
+    def cancel(self) -> None:
+        """Stops the stream."""
+        self._cancelled = True
+        self._call.cancel()
+
+    async def __aenter__(self) -> AsyncWatch:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.cancel()
+
+
+class AsyncGrpcClient:
+    """An asyncio client of the mcapi gRPC API over ``grpc.aio``, with the
+    methods of :class:`GrpcClient` (awaited) and the same results and errors.
+
+    Args:
+        target: ``host:port`` of the server's gRPC listener.
+        api_key: Sent as ``authorization: Bearer <key>`` metadata.
+        timeout: Seconds per unary call (streams have none).
+        credentials: TLS channel credentials; plaintext when ``None``.
+        options: Extra channel options.
+
+    Create it inside the event loop that uses it (``grpc.aio`` channels
+    belong to one loop), as ``async with AsyncGrpcClient(...) as mc:``, or
+    call :meth:`aclose`. ``grpc.aio`` completes a cancelled stream's call on
+    its loop a moment later; a program that closes that loop at once and then
+    runs another (two ``asyncio.run`` in one process) may see gRPC log
+    "Event loop is closed" from the second loop.
+    """
+
+    def __init__(
+        self,
+        target: str = DEFAULT_TARGET,
+        api_key: str | None = None,
+        timeout: float | None = 30.0,
+        *,
+        credentials: grpc.ChannelCredentials | None = None,
+        options: Sequence[tuple[str, Any]] = (),
+    ) -> None:
+        self.target = target
+        opts = _channel_options(options)
+        self._channel = (
+            grpc.aio.secure_channel(target, credentials, options=opts)
+            if credentials is not None
+            else grpc.aio.insecure_channel(target, options=opts)
+        )
+        self._stub = pb_grpc.AgentsStub(self._channel)  # type: ignore[no-untyped-call]
+        self._timeout = timeout
+        self._protocol = _pb.GrpcProtocol(api_key)
+
+    async def aclose(self) -> None:
+        """Closes the channel (and with it any open stream)."""
+        await self._channel.close()
+
+    async def __aenter__(self) -> AsyncGrpcClient:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        await self.aclose()
+
+    async def _send(self, call: Call) -> Any:
+        method = getattr(self._stub, call.rpc)
+        metadata = self._protocol.metadata(call.session_id)
+        try:
+            return await method(call.request, metadata=metadata, timeout=self._timeout)
+        except grpc.RpcError as e:
+            raise rpc_error(e) from e
+
+    async def ready(self, timeout: float = 1.0) -> bool:
+        """Whether the channel connects within ``timeout`` seconds."""
+        # Polled rather than awaited with grpc.aio's channel_ready(): that
+        # leaves a connectivity watch pending in gRPC's core when it times
+        # out, whose completion later lands on this event loop, perhaps
+        # closed by then ("Event loop is closed" in another loop's callback).
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout
+        while True:
+            state = self._channel.get_state(try_to_connect=True)
+            if state == grpc.ChannelConnectivity.READY:
+                return True
+            if loop.time() >= deadline:
+                return False
+            await asyncio.sleep(min(0.01, max(0.0, deadline - loop.time())))
+
+    async def create_session(
+        self,
+        model: ModelLike,
+        *,
+        eta: FloatLike | None = None,
+        gamma: FloatLike | None = None,
+        priorities: FloatsLike | None = None,
+        stimulus_rate: StimulusRate | FloatLike | None = None,
+        optimistic_sd: FloatLike | None = None,
+        ridge: FloatLike | None = None,
+        epsilon: FloatLike | None = None,
+        seed: IntLike | None = None,
+        update_mode: UpdateMode | None = None,
+        history: IntLike | None = None,
+        curiosity: CuriosityLike | None = None,
+    ) -> SessionInfo:
+        """Creates a session; arguments as :meth:`mcapi_client.Client.create_session`."""
+        agent = AgentOptions(
+            eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
+            optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
+            update_mode=update_mode, history=history, curiosity=curiosity,
+        )
+        return await adrive(self._protocol.create_session(model, agent), self._send)
+
+    async def get_session(self, session_id: str) -> SessionInfo:
+        """A session's details; see :meth:`GrpcClient.get_session`."""
+        return await adrive(self._protocol.get_session(session_id), self._send)
+
+    async def list_sessions(
+        self, after: str | None = None, limit: IntLike | None = None
+    ) -> SessionPage:
+        """One page of sessions in id order; see :meth:`GrpcClient.list_sessions`."""
+        return await adrive(self._protocol.list_sessions(after, limit), self._send)
+
+    async def iter_sessions(self, page_size: IntLike = 100) -> AsyncIterator[SessionSummary]:
+        """Every session in id order (``async for``), a page at a time."""
+        after: str | None = None
+        while True:
+            page = await self.list_sessions(after=after, limit=page_size)
+            for s in page.sessions:
+                yield s
+            if page.next is None:
+                return
+            after = page.next
+
+    async def delete_session(self, session_id: str) -> None:
+        """Deletes a session."""
+        await adrive(self._protocol.delete_session(session_id), self._send)
+
+    async def observe(
+        self,
+        session_id: str,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
+        action_taken: ActionRef | None = None,
+        *,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
+    ) -> Step:
+        """Reports one observation (unary ``Observe``); see :meth:`GrpcClient.observe`."""
+        obs = Observation(state, stimulus, action_taken, signal, signal_source)
+        return await adrive(self._protocol.observe(session_id, obs), self._send)
+
+    async def observe_batch(
+        self, session_id: str, observations: Iterable[ObservationLike]
+    ) -> list[Step]:
+        """Applies observations in order; see :meth:`GrpcClient.observe_batch`."""
+        return await adrive(self._protocol.observe_batch(session_id, observations), self._send)
+
+    async def values(
+        self, session_id: str, include: str | Iterable[str] | None = None
+    ) -> Values:
+        """Value tables; see :meth:`GrpcClient.values`."""
+        return await adrive(self._protocol.values(session_id, include), self._send)
+
+    async def history(self, session_id: str, limit: IntLike | None = None) -> list[HistoryEntry]:
+        """Recent ticks, oldest first; see :meth:`GrpcClient.history`."""
+        return await adrive(self._protocol.history(session_id, limit), self._send)
+
+    def interact(self, session_id: str) -> AsyncInteraction:
+        """Opens an ``Interact`` stream on a session; see :class:`AsyncInteraction`."""
+        return AsyncInteraction(self._stub, session_id, self._protocol.metadata(session_id))
+
+    def watch(self, session_id: str, interval: FloatLike = 1.0) -> AsyncWatch:
+        """Snapshots of a session every ``interval`` seconds (0.01 to 3600),
+        the first at once; see :class:`AsyncWatch`.
+
+        Raises:
+            ValueError: The interval is out of range.
+        """
+        request = _pb.watch_request(session_id, interval)
+        return AsyncWatch(self._stub.Watch(request, metadata=self._protocol.metadata(session_id)))

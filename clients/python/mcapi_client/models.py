@@ -16,6 +16,11 @@ the examples drive their agents.
 Models are checked here by the server's rules (every state has an available
 action; probabilities in (0, 1] summing to 1 within 1e-9), so a mistake is a
 ``ValueError`` naming the place before anything is sent.
+
+Numbers may be numpy scalars and tables numpy arrays (a Gymnasium ``P``
+built with numpy, a transition table of ``numpy.int64`` states and
+``numpy.float64`` probabilities): a model holds plain ``int`` and ``float``
+once built. Next states must be integers (``operator.index``), not floats.
 """
 
 from __future__ import annotations
@@ -25,7 +30,9 @@ import math
 import random
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, Union
+from typing import Any, Literal, SupportsIndex, Union
+
+from ._normalise import as_float, as_int, is_int_like, plain
 
 __all__ = [
     "PROBABILITY_TOLERANCE",
@@ -34,6 +41,8 @@ __all__ = [
     "Successors",
     "Model",
     "GridModel",
+    "ModelLike",
+    "model_json",
     "hallway",
     "grid",
     "from_transition_table",
@@ -49,12 +58,12 @@ GRID_ACTIONS: tuple[str, ...] = ("left", "right", "north", "south", "stay")
 Successors = tuple[tuple[int, float], ...]
 """The successors of a state-action pair: ``((next_state, probability), ...)``."""
 
-TableEntry = Union[None, int, Mapping[int, float], Iterable[Sequence[float]]]
+TableEntry = Union[None, SupportsIndex, Mapping[Any, Any], Iterable[Any]]
 """One cell of a transition table: ``None`` (action unavailable), a next
 state (deterministic), or successors as ``{next: p}`` or ``[(next, p), ...]``."""
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, init=False)
 class Source:
     """A stimulus source: arriving in ``state`` delivers stimulus dimension ``dim``.
 
@@ -65,6 +74,10 @@ class Source:
 
     state: int
     dim: int
+
+    def __init__(self, state: SupportsIndex, dim: SupportsIndex) -> None:
+        object.__setattr__(self, "state", as_int(state, "source state"))
+        object.__setattr__(self, "dim", as_int(dim, "source dimension"))
 
 
 def _check_names(kind: str, names: Sequence[str]) -> None:
@@ -104,6 +117,22 @@ class Model:
     basis: Mapping[str, Any] | None = None
 
     def __post_init__(self) -> None:
+        # Plain Python values whatever was given (numpy scalars and arrays).
+        put = object.__setattr__
+        put(self, "states", as_int(self.states, "states"))
+        put(self, "actions", tuple(self.actions))
+        put(self, "stimuli", tuple(self.stimuli))
+        put(self, "table", tuple(
+            tuple(None if cell is None else _plain_cell(s, a, cell) for a, cell in enumerate(row))
+            for s, row in enumerate(self.table)
+        ))
+        put(self, "sources", tuple(
+            src if isinstance(src, Source) else Source(*src) for src in self.sources
+        ))
+        if self.state_names is not None:
+            put(self, "state_names", tuple(self.state_names))
+        if self.basis is not None:
+            put(self, "basis", plain(dict(self.basis)))
         if self.states < 1:
             raise ValueError("`states` must be at least 1")
         _check_names("actions", self.actions)
@@ -166,22 +195,23 @@ class Model:
         """Number of stored transitions (non-zero entries of P)."""
         return sum(len(cell) for row in self.table for cell in row if cell is not None)
 
-    def available_actions(self, state: int) -> list[int]:
+    def available_actions(self, state: SupportsIndex) -> list[int]:
         """Indices of the actions available in ``state``."""
-        return [a for a, cell in enumerate(self.table[state]) if cell is not None]
+        return [a for a, cell in enumerate(self.table[as_int(state, "state")]) if cell is not None]
 
-    def successors(self, state: int, action: int) -> Successors:
+    def successors(self, state: SupportsIndex, action: SupportsIndex) -> Successors:
         """The successors of (state, action) as ``((next, p), ...)``.
 
         Raises:
             ValueError: The action is not available in the state.
         """
+        state, action = as_int(state, "state"), as_int(action, "action")
         cell = self.table[state][action]
         if cell is None:
             raise ValueError(f"action `{self.actions[action]}` is not available in state {state}")
         return cell
 
-    def sample_next(self, state: int, action: int, rng: random.Random) -> int:
+    def sample_next(self, state: SupportsIndex, action: SupportsIndex, rng: random.Random) -> int:
         """Draws the next state of (state, action) from P(. | state, action)."""
         cell = self.successors(state, action)
         u = rng.random()
@@ -194,7 +224,7 @@ class Model:
 
     def stimulus(
         self,
-        state: int,
+        state: SupportsIndex,
         *,
         magnitude: float = 6.0,
         noise_sd: float = 0.0,
@@ -210,6 +240,8 @@ class Model:
             noise_sd: Standard deviation of the Gaussian noise (2 in the paper).
             rng: Random source of the noise (needed when ``noise_sd > 0``).
         """
+        state = as_int(state, "state")
+        magnitude = as_float(magnitude, "magnitude")
         xi = [0.0] * len(self.stimuli)
         for src in self.sources:
             if src.state == state:
@@ -217,13 +249,15 @@ class Model:
                 if noise_sd > 0.0:
                     if rng is None:
                         raise ValueError("pass `rng` to draw noise")
-                    noise = rng.gauss(0.0, noise_sd)
+                    noise = float(rng.gauss(0.0, noise_sd))
                 xi[src.dim] = magnitude + noise
         return xi
 
-    def source_states(self, stimulus: str | int) -> list[int]:
+    def source_states(self, stimulus: str | SupportsIndex) -> list[int]:
         """The states delivering a stimulus dimension, given by name or index."""
-        dim = self.stimuli.index(stimulus) if isinstance(stimulus, str) else stimulus
+        dim = (
+            self.stimuli.index(stimulus) if isinstance(stimulus, str) else as_int(stimulus, "stimulus")
+        )
         return [src.state for src in self.sources if src.dim == dim]
 
     def with_basis(self, basis: Mapping[str, Any] | None) -> Model:
@@ -294,8 +328,41 @@ class GridModel(Model):
         return ["".join(row) for row in out]
 
 
+def _plain_cell(s: int, a: int, cell: Iterable[Any]) -> Successors:
+    """A table cell of :class:`Model` as ``((int, float), ...)``."""
+    where = f"state {s}, action {a}"
+    if not isinstance(cell, Iterable) or isinstance(cell, (str, bytes)):
+        raise ValueError(f"{where}: {cell!r} is not a tuple of (next_state, probability) pairs")
+    out = []
+    for pair in cell:
+        try:
+            t, p = pair
+        except (TypeError, ValueError):
+            raise ValueError(f"{where}: {pair!r} is not a (next_state, probability) pair") from None
+        out.append((_next_state(t, where), _probability(p, where)))
+    return tuple(out)
+
+
+def _next_state(t: object, where: str) -> int:
+    try:
+        return as_int(t, "next state")
+    except TypeError:
+        raise ValueError(f"{where}: next state {t!r} is not an integer") from None
+
+
+def _probability(p: object, where: str) -> float:
+    try:
+        return as_float(p, "probability")
+    except TypeError:
+        raise ValueError(f"{where}: probability {p!r} is not a number") from None
+
+
+StatesLike = Union[SupportsIndex, Iterable[SupportsIndex]]
+"""One state, or several (a list, a numpy array)."""
+
+
 def _sources(
-    sources: Mapping[str, int | Sequence[int]], stimuli: Sequence[str] | None
+    sources: Mapping[str, StatesLike], stimuli: Sequence[str] | None
 ) -> tuple[tuple[str, ...], tuple[Source, ...]]:
     """Stimulus names and sources from ``{stimulus name: state(s)}``."""
     names = tuple(stimuli) if stimuli is not None else tuple(sources)
@@ -304,14 +371,17 @@ def _sources(
         if name not in names:
             raise ValueError(f"source `{name}` is not one of the stimuli {list(names)}")
         dim = names.index(name)
-        for s in [states] if isinstance(states, int) else states:
-            out.append(Source(state=int(s), dim=dim))
+        group: Iterable[Any] = [states] if is_int_like(states) else states  # type: ignore[assignment]
+        if not isinstance(group, Iterable) or isinstance(group, (str, bytes)):
+            raise TypeError(f"source `{name}`: {states!r} is not a state or a list of states")
+        for s in group:
+            out.append(Source(state=s, dim=dim))
     return names, tuple(out)
 
 
 def hallway(
-    states: int = 50,
-    sources: Mapping[str, int | Sequence[int]] | None = None,
+    states: SupportsIndex = 50,
+    sources: Mapping[str, StatesLike] | None = None,
     *,
     basis: Mapping[str, Any] | None = None,
 ) -> Model:
@@ -324,6 +394,7 @@ def hallway(
             rest at 40, as in the paper and the server's ``hallway`` preset.
         basis: Optional basis for the server (default: indicator).
     """
+    states = as_int(states, "states")
     if states < 1:
         raise ValueError("`states` must be at least 1")
     names, srcs = _sources(sources if sources is not None else {"food": 10, "rest": 40}, None)
@@ -347,7 +418,7 @@ def hallway(
 
 def grid(
     map_lines: Sequence[str] | str,
-    sources: Mapping[str, int],
+    sources: Mapping[str, SupportsIndex],
     *,
     stimuli: Sequence[str] | None = None,
     basis: Mapping[str, Any] | None = None,
@@ -394,10 +465,11 @@ def grid(
         raise ValueError("grid map has no free cell")
     if not sources:
         raise ValueError("`sources`: map at least one mark to a stimulus dimension")
-    n = max(sources.values()) + 1
+    dims_of = {mark: as_int(dim, f"sources[{mark!r}]") for mark, dim in sources.items()}
+    n = max(dims_of.values()) + 1
     dims: list[str | None] = [None] * n
     srcs = []
-    for mark, dim in sources.items():
+    for mark, dim in dims_of.items():
         if len(mark) != 1:
             raise ValueError(f"`sources`: key `{mark}` must be one character")
         states_of_mark = [s for m, s in marks if m == mark]
@@ -445,32 +517,35 @@ def _successors(entry: TableEntry, where: str) -> Successors | None:
     """Normalises one table cell: merges repeated next states, drops zero probabilities."""
     if entry is None:
         return None
-    if isinstance(entry, bool):
-        raise ValueError(f"{where}: {entry!r} is not a next state")
-    if isinstance(entry, int):
-        return ((entry, 1.0),)
-    pairs = entry.items() if isinstance(entry, Mapping) else entry
+    if is_int_like(entry):
+        return ((as_int(entry, "next state"), 1.0),)
+    if isinstance(entry, Mapping):
+        pairs: Iterable[Any] = entry.items()
+    elif isinstance(entry, Iterable) and not isinstance(entry, (str, bytes)):
+        pairs = entry
+    else:
+        raise ValueError(f"{where}: {entry!r} is not a next state or a list of successors")
     merged: dict[int, float] = {}
     for pair in pairs:
         try:
             t, p = pair
         except (TypeError, ValueError):
             raise ValueError(f"{where}: {pair!r} is not a (next_state, probability) pair") from None
-        p = float(p)
+        t, p = _next_state(t, where), _probability(p, where)
         if not math.isfinite(p) or p < 0.0:
             raise ValueError(f"{where}: probability {p} is not in (0, 1]")
         if p == 0.0:
             continue
-        merged[int(t)] = merged.get(int(t), 0.0) + p
+        merged[t] = merged.get(t, 0.0) + p
     if not merged:
         raise ValueError(f"{where} has no successor with a positive probability")
     return tuple(merged.items())
 
 
 def from_transition_table(
-    table: Sequence[Any] | Mapping[int, Any],
+    table: Sequence[Any] | Mapping[Any, Any] | Any,
     actions: Sequence[str],
-    sources: Mapping[str, int | Sequence[int]],
+    sources: Mapping[str, StatesLike],
     *,
     stimuli: Sequence[str] | None = None,
     state_names: Sequence[str] | None = None,
@@ -482,7 +557,9 @@ def from_transition_table(
     index or name to cell (missing actions are unavailable). A cell is
     ``None`` (unavailable), a next state (deterministic), or the successors as
     ``{next: p}`` or ``[(next, p), ...]``; a next state listed twice has its
-    probabilities added, and zero probabilities are dropped.
+    probabilities added, and zero probabilities are dropped. Numbers may be
+    numpy scalars and rows numpy arrays (a 2-d array of next states is a
+    deterministic table).
 
     Args:
         table: One row per state (a sequence, or a mapping from 0..n-1).
@@ -513,8 +590,9 @@ def from_transition_table(
         if isinstance(row, Mapping):
             for key, entry in row.items():
                 a = actions.index(key) if isinstance(key, str) and key in actions else key
-                if not isinstance(a, int) or not 0 <= a < len(actions):
+                if not is_int_like(a) or not 0 <= as_int(a, "action") < len(actions):
                     raise ValueError(f"state {s}: `{key}` is not one of the actions {list(actions)}")
+                a = as_int(a, "action")
                 cells[a] = _successors(entry, f"state {s}, action `{actions[a]}`")
         else:
             row = list(row)
@@ -546,7 +624,7 @@ _GYM_ACTIONS: dict[str, tuple[str, ...]] = {
 
 def from_gymnasium(
     env: Any,
-    sources: Mapping[str, int | Sequence[int]],
+    sources: Mapping[str, StatesLike],
     *,
     stimuli: Sequence[str] | None = None,
     actions: Sequence[str] | None = None,
@@ -604,12 +682,14 @@ def from_gymnasium(
         row: dict[int, list[tuple[int, float]]] = {}
         for a, outcomes in P[s].items() if isinstance(P[s], Mapping) else enumerate(P[s]):
             pairs = []
+            where = f"P[{s}][{a}]"
             for outcome in outcomes:
                 p, t, _reward, done = outcome[:4]
-                pairs.append((int(t), float(p)))
+                t, p = _next_state(t, where), _probability(p, where)
+                pairs.append((t, p))
                 if done and p > 0:
-                    terminal.add(int(t))
-            row[int(a)] = pairs
+                    terminal.add(t)
+            row[as_int(a, "action")] = pairs
         rows.append(row)
     if on_terminated == "restart" and terminal:
         dist = getattr(base, "initial_state_distrib", None)
@@ -618,7 +698,7 @@ def from_gymnasium(
                 f"{type(base).__name__} has no `initial_state_distrib` to restart from; "
                 "pass on_terminated='keep'"
             )
-        start = [(s, float(p)) for s, p in enumerate(dist) if p > 0]
+        start = [(s, _probability(p, "initial_state_distrib")) for s, p in enumerate(dist) if p > 0]
         for s in terminal:
             rows[s] = {a: list(start) for a in range(n_actions)}
     elif on_terminated not in ("restart", "keep"):
@@ -645,3 +725,22 @@ def from_gymnasium(
         sources=srcs,
         basis=basis,
     )
+
+
+ModelLike = Union[Model, Mapping[str, Any], str]
+"""A model to create a session from: a :class:`Model`, the model's JSON as a
+mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
+"sources": {...}}``; numpy values allowed), or a preset name
+(``"hallway"``, ``"three_room"``)."""
+
+
+def model_json(model: ModelLike) -> dict[str, Any]:
+    """The ``model`` JSON of a create request (REST's body, gRPC's ``model_json``)."""
+    if isinstance(model, Model):
+        return model.to_json()
+    if isinstance(model, str):
+        return {"preset": model}
+    if isinstance(model, Mapping):
+        out: dict[str, Any] = plain(dict(model))
+        return out
+    raise TypeError(f"not a model: {type(model).__name__}")

@@ -1,5 +1,6 @@
 """The REST clients: :class:`Client` (blocking) and :class:`AsyncClient` (asyncio),
-over httpx, with the same methods and results.
+over httpx, with the same methods and results. Needs the ``rest`` extra
+(``pip install 'mcapi-client[rest]'``).
 
     from mcapi_client import Client, models
 
@@ -8,23 +9,37 @@ over httpx, with the same methods and results.
         step = mc.observe(session.id, state=25)            # first: state only
         step = mc.observe(session.id, state=26, stimulus=[0.0, 0.0])
         print(step.action, step.drive)
+
+Both clients run the same operations of :mod:`mcapi_client._protocol`,
+which build each request and read each reply; a client only sends the
+request over httpx. Numbers may be numpy scalars and vectors numpy arrays.
 """
 
 from __future__ import annotations
 
-from collections.abc import AsyncIterator, Iterable, Iterator, Mapping, Sequence
-from typing import Any, Union
-from urllib.parse import quote
+from collections.abc import AsyncIterator, Iterable, Iterator, Mapping
+from typing import Any
 
-import httpx
+try:
+    import httpx
+except ImportError as e:  # pragma: no cover - exercised in a subprocess by tests/test_package.py
+    raise ImportError(
+        "the REST clients (mcapi_client.Client, AsyncClient) need httpx: "
+        "install the `rest` extra, pip install 'mcapi-client[rest]'",
+        name=e.name,
+    ) from e
 
-from . import _json
-from .errors import McapiError, Timeout, TransportError, error_for
-from .models import Model
+from ._normalise import FloatsLike, IntLike
+from ._protocol import READY, Request, RestProtocol, read_reply
+from ._protocol import headers as request_headers
+from ._sansio import adrive, drive
+from .errors import McapiError, Timeout, TransportError
+from .models import ModelLike
 from .types import (
     ActionRef,
     AgentOptions,
     CuriosityLike,
+    FloatLike,
     HistoryEntry,
     Observation,
     ObservationLike,
@@ -35,8 +50,6 @@ from .types import (
     StimulusRate,
     UpdateMode,
     Values,
-    as_curiosity,
-    as_observation,
 )
 
 __all__ = ["Client", "AsyncClient", "DEFAULT_URL", "ModelLike"]
@@ -44,111 +57,11 @@ __all__ = ["Client", "AsyncClient", "DEFAULT_URL", "ModelLike"]
 DEFAULT_URL = "http://127.0.0.1:8080"
 """Where ``mcapi serve`` listens for REST by default."""
 
-ModelLike = Union[Model, Mapping[str, Any], str]
-"""A model to create a session from: a :class:`~mcapi_client.models.Model`,
-the model's JSON as a mapping (a full model, ``{"preset": "hallway"}`` or
-``{"grid": [...], "sources": {...}}``), or a preset name (``"hallway"``,
-``"three_room"``)."""
 
-
-def model_json(model: ModelLike) -> dict[str, Any]:
-    """The ``model`` JSON of a create request."""
-    if isinstance(model, Model):
-        return model.to_json()
-    if isinstance(model, str):
-        return {"preset": model}
-    if isinstance(model, Mapping):
-        return dict(model)
-    raise TypeError(f"not a model: {type(model).__name__}")
-
-
-def _headers(api_key: str | None, extra: Mapping[str, str] | None) -> dict[str, str]:
-    headers = {"accept": "application/json", **(extra or {})}
-    if api_key is not None:
-        headers["authorization"] = f"Bearer {api_key}"
-    return headers
-
-
-def _raise_for(response: httpx.Response) -> None:
-    if response.is_success:
-        return
-    try:
-        body = response.json()
-    except ValueError:
-        body = None
-    code, message = _json.error_fields(body)
-    raise error_for(
-        code,
-        message or response.text or response.reason_phrase,
-        status=response.status_code,
-    )
-
-
-def _wrap_transport(e: httpx.HTTPError, url: str) -> McapiError:
+def _transport_error(e: httpx.HTTPError, url: str) -> McapiError:
     if isinstance(e, httpx.TimeoutException):
         return Timeout(f"{url}: {e or type(e).__name__}", code="timeout")
     return TransportError(f"{url}: {e or type(e).__name__}", code="transport_error")
-
-
-# Sessions whose action names a client keeps (to name history entries).
-_ACTION_CACHE = 1024
-
-
-def _remember_actions(cache: dict[str, list[str]], info: SessionInfo) -> None:
-    cache.pop(info.id, None)
-    cache[info.id] = info.model.actions
-    while len(cache) > _ACTION_CACHE:
-        del cache[next(iter(cache))]
-
-
-def _path(session_id: str, tail: str = "") -> str:
-    return f"/v1/sessions/{quote(session_id, safe='')}{tail}"
-
-
-def _observation(
-    state: int,
-    stimulus: Sequence[float] | None,
-    action_taken: ActionRef | None,
-    signal: Sequence[float] | None,
-    signal_source: int | None,
-) -> dict[str, object]:
-    return Observation(state, stimulus, action_taken, signal, signal_source).to_json()
-
-
-def agent_options(
-    *,
-    eta: float | None,
-    gamma: float | None,
-    priorities: Sequence[float] | None,
-    stimulus_rate: StimulusRate | None,
-    optimistic_sd: float | None,
-    ridge: float | None,
-    epsilon: float | None,
-    seed: int | None,
-    update_mode: UpdateMode | None,
-    history: int | None,
-    curiosity: CuriosityLike | None,
-) -> AgentOptions:
-    """The :class:`AgentOptions` of ``create_session``'s keyword arguments."""
-    return AgentOptions(
-        eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
-        optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
-        update_mode=update_mode, history=history,
-        curiosity=None if curiosity is None else as_curiosity(curiosity),
-    )
-
-
-def _batch(observations: Iterable[ObservationLike]) -> dict[str, object]:
-    return {"observations": [as_observation(o).to_json() for o in observations]}
-
-
-def _list_params(after: str | None, limit: int | None) -> dict[str, str | int]:
-    params: dict[str, str | int] = {}
-    if after is not None:
-        params["after"] = after
-    if limit is not None:
-        params["limit"] = limit
-    return params
 
 
 class Client:
@@ -177,12 +90,11 @@ class Client:
         self.base_url = base_url.rstrip("/")
         self._http = httpx.Client(
             base_url=self.base_url,
-            headers=_headers(api_key, headers),
+            headers=request_headers(api_key, headers),
             timeout=timeout,
             transport=transport,
         )
-        # Action names per session, to name the actions of history entries.
-        self._actions: dict[str, list[str]] = {}
+        self._protocol = RestProtocol()
 
     def close(self) -> None:
         """Closes the connection pool."""
@@ -194,29 +106,19 @@ class Client:
     def __exit__(self, *exc: object) -> None:
         self.close()
 
-    def _request(
-        self,
-        method: str,
-        path: str,
-        *,
-        params: Mapping[str, str | int] | None = None,
-        json: object = None,
-    ) -> Any:
+    def _send(self, request: Request) -> Any:
         try:
-            response = self._http.request(method, path, params=params, json=json)
+            response = self._http.request(
+                request.method, request.path, params=request.params, json=request.json
+            )
         except httpx.HTTPError as e:
-            raise _wrap_transport(e, self.base_url + path) from e
-        _raise_for(response)
-        return response.json() if response.content else None
-
-    def _remember(self, info: SessionInfo) -> SessionInfo:
-        _remember_actions(self._actions, info)
-        return info
+            raise _transport_error(e, self.base_url + request.path) from e
+        return read_reply(response.status_code, response.content, response.reason_phrase)
 
     def ready(self) -> bool:
         """Whether the server answers ``/readyz`` with 200 (up and recovered)."""
         try:
-            return self._http.get("/readyz").status_code == 200
+            return self._http.request(READY.method, READY.path).status_code == 200
         except httpx.HTTPError:
             return False
 
@@ -224,19 +126,21 @@ class Client:
         self,
         model: ModelLike,
         *,
-        eta: float | None = None,
-        gamma: float | None = None,
-        priorities: Sequence[float] | None = None,
-        stimulus_rate: StimulusRate | None = None,
-        optimistic_sd: float | None = None,
-        ridge: float | None = None,
-        epsilon: float | None = None,
-        seed: int | None = None,
+        eta: FloatLike | None = None,
+        gamma: FloatLike | None = None,
+        priorities: FloatsLike | None = None,
+        stimulus_rate: StimulusRate | FloatLike | None = None,
+        optimistic_sd: FloatLike | None = None,
+        ridge: FloatLike | None = None,
+        epsilon: FloatLike | None = None,
+        seed: IntLike | None = None,
         update_mode: UpdateMode | None = None,
-        history: int | None = None,
+        history: IntLike | None = None,
         curiosity: CuriosityLike | None = None,
     ) -> SessionInfo:
         """Creates a session on a model; unset agent options take the server's defaults.
+
+        Numbers may be numpy scalars and ``priorities`` a numpy array.
 
         Args:
             model: A :class:`~mcapi_client.models.Model`, the model's JSON, or a preset name.
@@ -261,30 +165,27 @@ class Client:
         Returns:
             The new session, with its effective configuration (seed included).
         """
-        agent = agent_options(
+        agent = AgentOptions(
             eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
             optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
             update_mode=update_mode, history=history, curiosity=curiosity,
         )
-        body = {"model": model_json(model), "agent": agent.to_json()}
-        return self._remember(_json.session_info(self._request("POST", "/v1/sessions", json=body)))
+        return drive(self._protocol.create_session(model, agent), self._send)
 
     def get_session(self, session_id: str) -> SessionInfo:
         """A session's drive, tick, policy version, model, configuration and statistics."""
-        return self._remember(_json.session_info(self._request("GET", _path(session_id))))
+        return drive(self._protocol.get_session(session_id), self._send)
 
-    def list_sessions(self, after: str | None = None, limit: int | None = None) -> SessionPage:
+    def list_sessions(self, after: str | None = None, limit: IntLike | None = None) -> SessionPage:
         """One page of sessions in id order.
 
         Args:
             after: Start after this id (the ``next`` of the previous page).
             limit: Page size, 1 to 1000 (server default 100).
         """
-        return _json.session_page(
-            self._request("GET", "/v1/sessions", params=_list_params(after, limit))
-        )
+        return drive(self._protocol.list_sessions(after, limit), self._send)
 
-    def iter_sessions(self, page_size: int = 100) -> Iterator[SessionSummary]:
+    def iter_sessions(self, page_size: IntLike = 100) -> Iterator[SessionSummary]:
         """Every session in id order, fetching pages of ``page_size`` as needed."""
         after: str | None = None
         while True:
@@ -296,20 +197,22 @@ class Client:
 
     def delete_session(self, session_id: str) -> None:
         """Deletes a session."""
-        self._request("DELETE", _path(session_id))
-        self._actions.pop(session_id, None)
+        drive(self._protocol.delete_session(session_id), self._send)
 
     def observe(
         self,
         session_id: str,
-        state: int,
-        stimulus: Sequence[float] | None = None,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
-        signal: Sequence[float] | None = None,
-        signal_source: int | None = None,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
     ) -> Step:
         """Reports one observation and returns the next action.
+
+        Numbers may be numpy scalars (``state=np.int64(3)``) and vectors
+        numpy arrays.
 
         Args:
             session_id: The session.
@@ -325,13 +228,8 @@ class Client:
             signal_source: The signal's source, e.g. 0 = book, 1 = music
                 (server default 0); only with ``signal``.
         """
-        return _json.step(
-            self._request(
-                "POST",
-                _path(session_id, "/observations"),
-                json=_observation(state, stimulus, action_taken, signal, signal_source),
-            )
-        )
+        obs = Observation(state, stimulus, action_taken, signal, signal_source)
+        return drive(self._protocol.observe(session_id, obs), self._send)
 
     def observe_batch(
         self, session_id: str, observations: Iterable[ObservationLike]
@@ -342,10 +240,7 @@ class Client:
         a ``signal``), a mapping or a tuple. On an error at observation i,
         the i before it stay applied and the error's message says so.
         """
-        reply = self._request(
-            "POST", _path(session_id, "/observations"), json=_batch(observations)
-        )
-        return [_json.step(s) for s in reply["steps"]]
+        return drive(self._protocol.observe_batch(session_id, observations), self._send)
 
     def values(
         self, session_id: str, include: str | Iterable[str] | None = None
@@ -358,22 +253,15 @@ class Client:
                 ``all`` (as a list or a comma-separated string); default
                 ``v`` and ``policy``.
         """
-        inc = _json.include_param(include)
-        params = {"include": inc} if inc is not None else None
-        return _json.values(self._request("GET", _path(session_id, "/values"), params=params))
+        return drive(self._protocol.values(session_id, include), self._send)
 
-    def history(self, session_id: str, limit: int | None = None) -> list[HistoryEntry]:
+    def history(self, session_id: str, limit: IntLike | None = None) -> list[HistoryEntry]:
         """The most recent ticks of a session (at most ``limit``), oldest first.
 
         Each entry has the full stimulus received (with a curiosity channel,
         xi_cur last) and, for a curious session, the channel at that tick.
         """
-        params = {"limit": limit} if limit is not None else None
-        entries = self._request("GET", _path(session_id, "/history"), params=params)
-        actions = self._actions.get(session_id)
-        if actions is None:
-            actions = self.get_session(session_id).model.actions
-        return _json.history(entries, actions)
+        return drive(self._protocol.history(session_id, limit), self._send)
 
 
 class AsyncClient:
@@ -401,11 +289,11 @@ class AsyncClient:
         self.base_url = base_url.rstrip("/")
         self._http = httpx.AsyncClient(
             base_url=self.base_url,
-            headers=_headers(api_key, headers),
+            headers=request_headers(api_key, headers),
             timeout=timeout,
             transport=transport,
         )
-        self._actions: dict[str, list[str]] = {}
+        self._protocol = RestProtocol()
 
     async def aclose(self) -> None:
         """Closes the connection pool."""
@@ -417,29 +305,19 @@ class AsyncClient:
     async def __aexit__(self, *exc: object) -> None:
         await self.aclose()
 
-    async def _request(
-        self,
-        method: str,
-        path: str,
-        *,
-        params: Mapping[str, str | int] | None = None,
-        json: object = None,
-    ) -> Any:
+    async def _send(self, request: Request) -> Any:
         try:
-            response = await self._http.request(method, path, params=params, json=json)
+            response = await self._http.request(
+                request.method, request.path, params=request.params, json=request.json
+            )
         except httpx.HTTPError as e:
-            raise _wrap_transport(e, self.base_url + path) from e
-        _raise_for(response)
-        return response.json() if response.content else None
-
-    def _remember(self, info: SessionInfo) -> SessionInfo:
-        _remember_actions(self._actions, info)
-        return info
+            raise _transport_error(e, self.base_url + request.path) from e
+        return read_reply(response.status_code, response.content, response.reason_phrase)
 
     async def ready(self) -> bool:
         """Whether the server answers ``/readyz`` with 200 (up and recovered)."""
         try:
-            return (await self._http.get("/readyz")).status_code == 200
+            return (await self._http.request(READY.method, READY.path)).status_code == 200
         except httpx.HTTPError:
             return False
 
@@ -447,42 +325,37 @@ class AsyncClient:
         self,
         model: ModelLike,
         *,
-        eta: float | None = None,
-        gamma: float | None = None,
-        priorities: Sequence[float] | None = None,
-        stimulus_rate: StimulusRate | None = None,
-        optimistic_sd: float | None = None,
-        ridge: float | None = None,
-        epsilon: float | None = None,
-        seed: int | None = None,
+        eta: FloatLike | None = None,
+        gamma: FloatLike | None = None,
+        priorities: FloatsLike | None = None,
+        stimulus_rate: StimulusRate | FloatLike | None = None,
+        optimistic_sd: FloatLike | None = None,
+        ridge: FloatLike | None = None,
+        epsilon: FloatLike | None = None,
+        seed: IntLike | None = None,
         update_mode: UpdateMode | None = None,
-        history: int | None = None,
+        history: IntLike | None = None,
         curiosity: CuriosityLike | None = None,
     ) -> SessionInfo:
         """Creates a session; see :meth:`Client.create_session`."""
-        agent = agent_options(
+        agent = AgentOptions(
             eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
             optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
             update_mode=update_mode, history=history, curiosity=curiosity,
         )
-        body = {"model": model_json(model), "agent": agent.to_json()}
-        return self._remember(
-            _json.session_info(await self._request("POST", "/v1/sessions", json=body))
-        )
+        return await adrive(self._protocol.create_session(model, agent), self._send)
 
     async def get_session(self, session_id: str) -> SessionInfo:
         """A session's details; see :meth:`Client.get_session`."""
-        return self._remember(_json.session_info(await self._request("GET", _path(session_id))))
+        return await adrive(self._protocol.get_session(session_id), self._send)
 
     async def list_sessions(
-        self, after: str | None = None, limit: int | None = None
+        self, after: str | None = None, limit: IntLike | None = None
     ) -> SessionPage:
         """One page of sessions in id order; see :meth:`Client.list_sessions`."""
-        return _json.session_page(
-            await self._request("GET", "/v1/sessions", params=_list_params(after, limit))
-        )
+        return await adrive(self._protocol.list_sessions(after, limit), self._send)
 
-    async def iter_sessions(self, page_size: int = 100) -> AsyncIterator[SessionSummary]:
+    async def iter_sessions(self, page_size: IntLike = 100) -> AsyncIterator[SessionSummary]:
         """Every session in id order (``async for``), a page at a time."""
         after: str | None = None
         while True:
@@ -495,52 +368,35 @@ class AsyncClient:
 
     async def delete_session(self, session_id: str) -> None:
         """Deletes a session."""
-        await self._request("DELETE", _path(session_id))
-        self._actions.pop(session_id, None)
+        await adrive(self._protocol.delete_session(session_id), self._send)
 
     async def observe(
         self,
         session_id: str,
-        state: int,
-        stimulus: Sequence[float] | None = None,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
-        signal: Sequence[float] | None = None,
-        signal_source: int | None = None,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
     ) -> Step:
         """Reports one observation; see :meth:`Client.observe`."""
-        return _json.step(
-            await self._request(
-                "POST",
-                _path(session_id, "/observations"),
-                json=_observation(state, stimulus, action_taken, signal, signal_source),
-            )
-        )
+        obs = Observation(state, stimulus, action_taken, signal, signal_source)
+        return await adrive(self._protocol.observe(session_id, obs), self._send)
 
     async def observe_batch(
         self, session_id: str, observations: Iterable[ObservationLike]
     ) -> list[Step]:
         """Applies observations in order; see :meth:`Client.observe_batch`."""
-        reply = await self._request(
-            "POST", _path(session_id, "/observations"), json=_batch(observations)
-        )
-        return [_json.step(s) for s in reply["steps"]]
+        return await adrive(self._protocol.observe_batch(session_id, observations), self._send)
 
     async def values(
         self, session_id: str, include: str | Iterable[str] | None = None
     ) -> Values:
         """Value tables; see :meth:`Client.values`."""
-        inc = _json.include_param(include)
-        params = {"include": inc} if inc is not None else None
-        return _json.values(
-            await self._request("GET", _path(session_id, "/values"), params=params)
-        )
+        return await adrive(self._protocol.values(session_id, include), self._send)
 
-    async def history(self, session_id: str, limit: int | None = None) -> list[HistoryEntry]:
+    async def history(self, session_id: str, limit: IntLike | None = None) -> list[HistoryEntry]:
         """Recent ticks, oldest first; see :meth:`Client.history`."""
-        params = {"limit": limit} if limit is not None else None
-        entries = await self._request("GET", _path(session_id, "/history"), params=params)
-        actions = self._actions.get(session_id)
-        if actions is None:
-            actions = (await self.get_session(session_id)).model.actions
-        return _json.history(entries, actions)
+        return await adrive(self._protocol.history(session_id, limit), self._send)
+

@@ -4,18 +4,39 @@ Both transports return these same dataclasses, so a program can switch from
 :class:`~mcapi_client.Client` to :class:`~mcapi_client.GrpcClient` without
 touching the code that reads the results. Drives are plain ``list[float]``
 in the order of the model's ``stimuli``; actions come with their names.
+
+The inputs (:class:`Observation`, :class:`AgentOptions`,
+:class:`CuriosityConfig`) take numpy scalars and arrays as well as Python
+numbers (:data:`IntLike`, :data:`FloatLike`, :data:`FloatsLike`) and hold
+plain ``int``, ``float`` and ``list`` once built; a bool where a number
+belongs is a ``TypeError``.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any, Literal, Union
+from typing import Any, Literal, SupportsIndex, Union
 
+from ._normalise import (
+    FloatLike,
+    FloatsLike,
+    IntLike,
+    as_float,
+    as_int,
+    as_opt_float,
+    as_opt_floats,
+    as_opt_int,
+    is_int_like,
+    plain,
+)
 from .errors import error_for
 
 __all__ = [
+    "IntLike",
+    "FloatLike",
+    "FloatsLike",
     "UpdateMode",
     "StimulusRate",
     "ActionRef",
@@ -47,21 +68,28 @@ StimulusRate = Union[Literal["sample_mean"], float]
 """The learning rate of the stimulus function: the named rule
 ``"sample_mean"`` (rate 1/n(s, a)) or a constant in (0, 1]."""
 
-ActionRef = Union[str, int]
-"""An action by name (``"left"``) or by index into the model's actions."""
+ActionRef = Union[str, SupportsIndex]
+"""An action by name (``"left"``) or by index into the model's actions (an
+``int`` or a numpy integer)."""
 
 
-def _finite(name: str, xs: Sequence[float]) -> list[float]:
-    """``xs`` as floats; JSON has no NaN or infinity, so they are refused here
-    with the error the server would give."""
-    out = [float(x) for x in xs]
-    for i, x in enumerate(out):
+def as_action(a: object, name: str = "action_taken") -> str | int:
+    """An action reference as a plain ``str`` or ``int``."""
+    if isinstance(a, str):
+        return str(a)
+    return as_int(a, name)
+
+
+def _finite(name: str, xs: list[float]) -> list[float]:
+    """``xs``, checked finite: JSON has no NaN or infinity, so they are
+    refused here with the error the server would give."""
+    for i, x in enumerate(xs):
         if not math.isfinite(x):
             raise error_for("non_finite_number", f"`{name}[{i}]` is {x}, not a finite number")
-    return out
+    return list(xs)
 
 
-def check_signal(signal: Sequence[float]) -> Sequence[float]:
+def check_signal(signal: list[float]) -> list[float]:
     """``signal``, refused when empty: REST would refuse it, while gRPC cannot
     tell an empty signal from none, so both transports refuse it here."""
     if len(signal) == 0:
@@ -72,7 +100,7 @@ def check_signal(signal: Sequence[float]) -> Sequence[float]:
     return signal
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, init=False)
 class CuriosityConfig:
     """A session's curiosity channel (the paper's section on curiosity-driven
     learning; ALGORITHM.md section 7 of the server).
@@ -92,7 +120,11 @@ class CuriosityConfig:
     """
 
     signal_dim: int
-    params: dict[str, Any] | None = None
+    params: dict[str, Any] | None
+
+    def __init__(self, signal_dim: IntLike, params: Mapping[str, Any] | None = None) -> None:
+        object.__setattr__(self, "signal_dim", as_int(signal_dim, "curiosity.signal_dim"))
+        object.__setattr__(self, "params", None if params is None else plain(dict(params)))
 
     def to_json(self) -> dict[str, object]:
         """The ``agent.curiosity`` object of a REST create request."""
@@ -102,7 +134,7 @@ class CuriosityConfig:
         return out
 
 
-CuriosityLike = Union[CuriosityConfig, Mapping[str, Any], int]
+CuriosityLike = Union[CuriosityConfig, Mapping[str, Any], SupportsIndex]
 """A curiosity channel to create a session with: a :class:`CuriosityConfig`,
 its JSON (``{"signal_dim": 2, "params": {...}}``), or just the signal
 dimension (every constant at its default)."""
@@ -114,16 +146,13 @@ def as_curiosity(c: CuriosityLike) -> CuriosityConfig:
         return c
     if isinstance(c, bool):
         raise TypeError("curiosity: give the signal dimension or a CuriosityConfig, not a bool")
-    if isinstance(c, int):
-        return CuriosityConfig(signal_dim=c)
+    if is_int_like(c):
+        return CuriosityConfig(signal_dim=c)  # type: ignore[arg-type]
     if isinstance(c, Mapping):
         unknown = set(c) - {"signal_dim", "params"}
         if unknown:
             raise TypeError(f"unknown curiosity keys: {sorted(unknown)}")
-        params = c.get("params")
-        return CuriosityConfig(
-            signal_dim=int(c["signal_dim"]), params=None if params is None else dict(params)
-        )
+        return CuriosityConfig(signal_dim=c["signal_dim"], params=c.get("params"))
     raise TypeError(f"not a curiosity channel: {c!r}")
 
 
@@ -299,11 +328,13 @@ class AgentConfig:
     curiosity: CuriosityConfig | None = None
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, init=False)
 class AgentOptions:
     """The agent configuration a client asks for; ``None`` takes the server's default.
 
-    Clients build this from the keyword arguments of ``create_session``.
+    Clients build this from the keyword arguments of ``create_session``;
+    numbers may be numpy scalars, ``priorities`` a numpy array, ``curiosity``
+    anything :data:`CuriosityLike`. The fields hold plain Python values.
 
     Attributes:
         eta: MCA rate, 0 < eta <= 0.5 (default 0.01).
@@ -321,17 +352,50 @@ class AgentOptions:
             have one entry more than the model's stimuli.
     """
 
-    eta: float | None = None
-    gamma: float | None = None
-    priorities: Sequence[float] | None = None
-    stimulus_rate: StimulusRate | None = None
-    optimistic_sd: float | None = None
-    ridge: float | None = None
-    epsilon: float | None = None
-    seed: int | None = None
-    update_mode: UpdateMode | None = None
-    history: int | None = None
-    curiosity: CuriosityConfig | None = None
+    eta: float | None
+    gamma: float | None
+    priorities: list[float] | None
+    stimulus_rate: StimulusRate | None
+    optimistic_sd: float | None
+    ridge: float | None
+    epsilon: float | None
+    seed: int | None
+    update_mode: UpdateMode | None
+    history: int | None
+    curiosity: CuriosityConfig | None
+
+    def __init__(
+        self,
+        eta: FloatLike | None = None,
+        gamma: FloatLike | None = None,
+        priorities: FloatsLike | None = None,
+        stimulus_rate: Literal["sample_mean"] | FloatLike | None = None,
+        optimistic_sd: FloatLike | None = None,
+        ridge: FloatLike | None = None,
+        epsilon: FloatLike | None = None,
+        seed: IntLike | None = None,
+        update_mode: UpdateMode | None = None,
+        history: IntLike | None = None,
+        curiosity: CuriosityLike | None = None,
+    ) -> None:
+        rate: StimulusRate | None = (
+            stimulus_rate if isinstance(stimulus_rate, str) or stimulus_rate is None
+            else as_float(stimulus_rate, "stimulus_rate")
+        )
+        for name, value in (
+            ("eta", as_opt_float(eta, "eta")),
+            ("gamma", as_opt_float(gamma, "gamma")),
+            ("priorities", as_opt_floats(priorities, "priorities")),
+            ("stimulus_rate", rate),
+            ("optimistic_sd", as_opt_float(optimistic_sd, "optimistic_sd")),
+            ("ridge", as_opt_float(ridge, "ridge")),
+            ("epsilon", as_opt_float(epsilon, "epsilon")),
+            ("seed", as_opt_int(seed, "seed")),
+            ("update_mode", update_mode),
+            ("history", as_opt_int(history, "history")),
+            ("curiosity", None if curiosity is None else as_curiosity(curiosity)),
+        ):
+            object.__setattr__(self, name, value)
 
     def to_json(self) -> dict[str, object]:
         """The ``agent`` object of a REST create request (unset fields left out)."""
@@ -518,9 +582,13 @@ class HistoryEntry:
     curiosity: TickCuriosity | None = None
 
 
-@dataclass(frozen=True, slots=True)
+@dataclass(frozen=True, slots=True, init=False)
 class Observation:
     """One observation, for batches (``observe_batch``) and streams.
+
+    Takes numpy scalars and arrays as well as Python numbers (``state`` a
+    ``numpy.int64``, ``stimulus`` a 1-d array, ...) and holds plain
+    ``int``, ``float`` and ``list`` values.
 
     Attributes:
         state: The state the agent is in now.
@@ -537,10 +605,26 @@ class Observation:
     """
 
     state: int
-    stimulus: Sequence[float] | None = None
-    action_taken: ActionRef | None = None
-    signal: Sequence[float] | None = None
-    signal_source: int | None = None
+    stimulus: list[float] | None
+    action_taken: str | int | None
+    signal: list[float] | None
+    signal_source: int | None
+
+    def __init__(
+        self,
+        state: IntLike,
+        stimulus: FloatsLike | None = None,
+        action_taken: ActionRef | None = None,
+        signal: FloatsLike | None = None,
+        signal_source: IntLike | None = None,
+    ) -> None:
+        object.__setattr__(self, "state", as_int(state, "state"))
+        object.__setattr__(self, "stimulus", as_opt_floats(stimulus, "stimulus"))
+        object.__setattr__(
+            self, "action_taken", None if action_taken is None else as_action(action_taken)
+        )
+        object.__setattr__(self, "signal", as_opt_floats(signal, "signal"))
+        object.__setattr__(self, "signal_source", as_opt_int(signal_source, "signal_source"))
 
     def to_json(self) -> dict[str, object]:
         """The observation as the REST API takes it."""
@@ -573,7 +657,7 @@ def as_observation(obs: ObservationLike) -> Observation:
         if unknown:
             raise TypeError(f"unknown observation keys: {sorted(unknown)}")
         return Observation(
-            state=int(obs["state"]),  # type: ignore[call-overload]
+            state=obs["state"],  # type: ignore[arg-type]
             stimulus=obs.get("stimulus"),  # type: ignore[arg-type]
             action_taken=obs.get("action_taken"),  # type: ignore[arg-type]
             signal=obs.get("signal"),  # type: ignore[arg-type]

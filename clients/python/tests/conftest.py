@@ -8,6 +8,10 @@ redb``, ``--api-key``) are detected from ``mcapi serve --help``.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
+import functools
+import inspect
 import os
 import re
 import signal
@@ -15,15 +19,16 @@ import socket
 import subprocess
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Coroutine, Iterator, Sequence
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+from typing import Any, TypeVar
 
 import httpx
 import pytest
 
-from mcapi_client import Client, GrpcClient
+from mcapi_client import AsyncClient, AsyncGrpcClient, Client, GrpcClient
 
 REPO_ROOT = Path(__file__).resolve().parents[3]
 PACKAGE_ROOT = Path(__file__).resolve().parents[1]
@@ -158,7 +163,8 @@ def grpc_client(server: Server) -> Iterator[GrpcClient]:
 
 @pytest.fixture
 def anyio_backend() -> str:
-    """AsyncClient tests run on asyncio."""
+    """AsyncClient tests run on asyncio (a loop per test: REST only, see
+    :func:`run_async` for grpc.aio)."""
     return "asyncio"
 
 
@@ -171,3 +177,91 @@ def examples_path() -> Iterator[Path]:
         yield path
     finally:
         sys.path.remove(str(path))
+
+
+# grpc.aio delivers a call's completions to the event loop the call was made
+# in, even after the call is cancelled (gRPC's core completes it later); a
+# completion arriving once that loop is closed raises "Event loop is closed"
+# inside whichever loop handles gRPC's events next, which fails the test
+# running then. So every test using grpc.aio runs on this one loop, closed
+# only at exit, rather than on a loop per test.
+_SHARED_LOOP: asyncio.AbstractEventLoop | None = None
+
+T = TypeVar("T")
+
+
+def run_async(coro: Coroutine[Any, Any, T]) -> T:
+    """Runs a coroutine to completion on the tests' one shared event loop."""
+    global _SHARED_LOOP
+    if _SHARED_LOOP is None:
+        _SHARED_LOOP = asyncio.new_event_loop()
+    return _SHARED_LOOP.run_until_complete(coro)
+
+
+def async_test(fn: Callable[..., Coroutine[Any, Any, None]]) -> Callable[..., None]:
+    """An ``async def`` test run on the shared loop (fixtures as usual)."""
+
+    @functools.wraps(fn)
+    def run(*args: Any, **kwargs: Any) -> None:
+        run_async(fn(*args, **kwargs))
+
+    return run
+
+
+class Blocking:
+    """An asyncio client driven from synchronous test code: each coroutine
+    method runs to completion on the shared event loop, so a test written
+    against the blocking clients runs unchanged over the async ones."""
+
+    def __init__(self, make: Callable[[], Any]) -> None:
+        async def create() -> Any:
+            return make()  # grpc.aio channels belong to the loop they are made in
+
+        self.client = run_async(create())
+
+    def __getattr__(self, name: str) -> Any:
+        attr = getattr(self.client, name)
+        if not inspect.iscoroutinefunction(attr):
+            return attr
+
+        def call(*args: Any, **kwargs: Any) -> Any:
+            return run_async(attr(*args, **kwargs))
+
+        return call
+
+    def close(self) -> None:
+        """Closes the client."""
+        run_async(self.client.aclose())
+
+
+CLIENT_KINDS = ["rest", "grpc", "async-rest", "async-grpc"]
+"""The four clients: REST and gRPC, blocking and asyncio."""
+
+
+@contextlib.contextmanager
+def open_client(kind: str, server: Server, **kw: Any) -> Iterator[Any]:
+    """A client of ``server`` of one of :data:`CLIENT_KINDS`; the async ones
+    wrapped in :class:`Blocking`."""
+    if kind == "rest":
+        with Client(server.http_url, **kw) as c:
+            yield c
+    elif kind == "grpc":
+        with GrpcClient(server.grpc_target, **kw) as g:
+            yield g
+    else:
+        if kind == "async-rest":
+            wrapped = Blocking(lambda: AsyncClient(server.http_url, **kw))
+        else:
+            wrapped = Blocking(lambda: AsyncGrpcClient(server.grpc_target, **kw))
+        try:
+            yield wrapped
+        finally:
+            wrapped.close()
+
+
+@pytest.fixture(params=CLIENT_KINDS)
+def any_client(request: pytest.FixtureRequest, server: Server) -> Iterator[Any]:
+    """Each of the four clients in turn (async ones made blocking): a test
+    using it runs over REST and gRPC, blocking and asyncio."""
+    with open_client(request.param, server) as c:
+        yield c

@@ -7,9 +7,9 @@ from collections.abc import Iterator
 
 import httpx
 import pytest
-from conftest import Server, start_server, supports_api_keys
+from conftest import Server, run_async, start_server, supports_api_keys
 
-from mcapi_client import Client, GrpcClient, NotFound, Unauthenticated
+from mcapi_client import AsyncClient, AsyncGrpcClient, Client, GrpcClient, NotFound, Unauthenticated
 
 # The server refuses keys shorter than 16 characters.
 KEY_A, KEY_B = "test-key-a-0123456789", "test-key-b-0123456789"
@@ -90,3 +90,30 @@ def test_a_key_sees_only_its_own_sessions(keyed_server: Server) -> None:
                 fn()
             assert (e.value.code, e.value.status) == ("not_found", 404)
         assert a.get_session(mine).tick == 0, "the other key's attempts changed nothing"
+
+
+def test_the_async_clients_send_the_key(keyed_server: Server) -> None:
+    async def run() -> None:
+        async with AsyncClient(keyed_server.http_url) as anonymous:
+            with pytest.raises(Unauthenticated) as e:
+                await anonymous.create_session("hallway")
+            assert (e.value.code, e.value.status) == ("unauthenticated", 401)
+        async with AsyncGrpcClient(keyed_server.grpc_target, api_key="wrong") as wrong:
+            with pytest.raises(Unauthenticated) as e:
+                await wrong.list_sessions()
+            assert e.value.grpc_code == "UNAUTHENTICATED"
+        async with AsyncClient(keyed_server.http_url, api_key=KEY_A) as a, AsyncGrpcClient(
+            keyed_server.grpc_target, api_key=KEY_A
+        ) as g:
+            sid = (await a.create_session("hallway")).id
+            async with g.interact(sid) as stream:
+                assert (await stream.step(3)).tick == 0
+            assert (await g.get_session(sid)).tick == 0
+        async with AsyncGrpcClient(keyed_server.grpc_target, api_key=KEY_B) as other:
+            with pytest.raises(NotFound):
+                await other.get_session(sid)
+            async with other.interact(sid) as stream:
+                with pytest.raises(NotFound):
+                    await stream.step(4, [0.0, 0.0])
+
+    run_async(run())

@@ -21,17 +21,11 @@ from mcapi_client import (
     _pb,
 )
 from mcapi_client._proto.mcapi.v1 import agents_pb2 as pb
-from mcapi_client.rest import agent_options
 from mcapi_client.types import AgentOptions, as_curiosity, as_observation
 
 
 def _options(**kw: object) -> AgentOptions:
-    base: dict[str, object] = dict(
-        eta=None, gamma=None, priorities=None, stimulus_rate=None, optimistic_sd=None,
-        ridge=None, epsilon=None, seed=None, update_mode=None, history=None, curiosity=None,
-    )
-    base.update(kw)
-    return agent_options(**base)  # type: ignore[arg-type]
+    return AgentOptions(**kw)  # type: ignore[arg-type]
 
 
 def test_observation_json_carries_the_signal() -> None:

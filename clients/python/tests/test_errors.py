@@ -9,7 +9,7 @@ from http import HTTPStatus
 from typing import Any
 
 import pytest
-from conftest import REPO_ROOT, Server, start_server
+from conftest import CLIENT_KINDS, REPO_ROOT, Server, open_client, start_server
 
 from mcapi_client import (
     BadRequest,
@@ -27,6 +27,7 @@ from mcapi_client import (
     UnknownRoute,
     models,
 )
+from mcapi_client._protocol import Request
 from mcapi_client.errors import ERROR_CODES, error_for
 
 UNKNOWN_ID = "s0000.01AAAAAAAAAAAAAAAAAAAAAAAA"
@@ -60,15 +61,11 @@ def test_unknown_codes_fall_back_on_the_status() -> None:
 Transport = Callable[[str], Any]
 
 
-@pytest.fixture(params=["rest", "grpc"])
+@pytest.fixture(params=CLIENT_KINDS)
 def mc(request: pytest.FixtureRequest, server: Server) -> Iterator[Client | GrpcClient]:
-    """The REST client, then the gRPC client: each test runs over both."""
-    if request.param == "rest":
-        with Client(server.http_url) as c:
-            yield c
-    else:
-        with GrpcClient(server.grpc_target) as g:
-            yield g
+    """Each client, REST and gRPC, blocking and asyncio: each test runs over all four."""
+    with open_client(request.param, server) as c:
+        yield c
 
 
 def _raises(cls: type[McapiError], code: str, status: int, fn: Callable[[], object]) -> McapiError:
@@ -131,9 +128,9 @@ def test_bad_queries(mc: Client | GrpcClient) -> None:
 
 
 def test_rest_only_errors(client: Client) -> None:
-    e = _raises(UnknownRoute, "unknown_route", 404, lambda: client._request("GET", "/v2/nothing"))
+    e = _raises(UnknownRoute, "unknown_route", 404, lambda: client._send(Request("GET", "/v2/nothing")))
     assert isinstance(e, NotFound)
-    _raises(BadRequest, "bad_request", 400, lambda: client._request("POST", "/v1/sessions", json=[1]))
+    _raises(BadRequest, "bad_request", 400, lambda: client._send(Request("POST", "/v1/sessions", json=[1])))
 
 
 def test_limits(tmp_path_factory: pytest.TempPathFactory) -> None:

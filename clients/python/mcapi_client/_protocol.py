@@ -1,0 +1,168 @@
+"""The REST API without I/O: each call as the requests it makes and the typed
+result (or :class:`~mcapi_client.McapiError`) it reads from the replies.
+
+:class:`RestProtocol` holds what a client remembers between calls (the
+action names of the sessions it saw, to name history entries); its methods
+return operations (:data:`~mcapi_client._sansio.Op`) that
+:class:`~mcapi_client.Client` and :class:`~mcapi_client.AsyncClient` run
+with :func:`~mcapi_client._sansio.drive` and
+:func:`~mcapi_client._sansio.adrive`, doing only the HTTP themselves. It
+needs no HTTP library: the core of the package imports it without httpx.
+
+    op = RestProtocol().get_session("s1.X")
+    request = next(op)              # Request(method="GET", path="/v1/sessions/s1.X", ...)
+    op.send(read_reply(200, body, "OK"))  # -> StopIteration(SessionInfo(...))
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from typing import Any
+from urllib.parse import quote
+
+from . import _json
+from ._normalise import as_opt_int
+from ._sansio import Op, SessionCache
+from .errors import error_for
+from .models import ModelLike, model_json
+from .types import (
+    AgentOptions,
+    HistoryEntry,
+    Observation,
+    ObservationLike,
+    SessionInfo,
+    SessionPage,
+    Step,
+    Values,
+    as_observation,
+)
+
+__all__ = ["Request", "RestProtocol", "READY", "headers", "read_reply", "session_path"]
+
+
+@dataclass(frozen=True, slots=True)
+class Request:
+    """One HTTP request to make.
+
+    Attributes:
+        method: ``"GET"``, ``"POST"`` or ``"DELETE"``.
+        path: The path under the base URL, its session id percent-encoded.
+        params: The query parameters, if any.
+        json: The JSON body, plain Python values only; ``None``: no body.
+    """
+
+    method: str
+    path: str
+    params: dict[str, str | int] | None = None
+    json: Any = None
+
+
+READY = Request("GET", "/readyz")
+"""Readiness: up and recovered when it answers 200 (no error body to read)."""
+
+
+def headers(api_key: str | None, extra: Mapping[str, str] | None) -> dict[str, str]:
+    """The headers of every request: JSON, the API key as a bearer token, ``extra``."""
+    out = {"accept": "application/json", **(extra or {})}
+    if api_key is not None:
+        out["authorization"] = f"Bearer {api_key}"
+    return out
+
+
+def session_path(session_id: str, tail: str = "") -> str:
+    """``/v1/sessions/<id><tail>``, the id one path segment whatever it contains."""
+    return f"/v1/sessions/{quote(session_id, safe='')}{tail}"
+
+
+def read_reply(status: int, content: bytes, reason: str) -> Any:
+    """The JSON body of a reply (``None`` when empty).
+
+    Raises:
+        McapiError: The status is not 2xx: the subclass of the body's
+            ``code``, else of the status.
+    """
+    if 200 <= status < 300:
+        return json.loads(content) if content else None
+    try:
+        body = json.loads(content)
+    except ValueError:
+        body = None
+    code, message = _json.error_fields(body)
+    text = content.decode("utf-8", errors="replace")
+    raise error_for(code, message or text or reason, status=status)
+
+
+def _list_params(after: str | None, limit: object) -> dict[str, str | int]:
+    params: dict[str, str | int] = {}
+    if after is not None:
+        params["after"] = after
+    n = as_opt_int(limit, "limit")
+    if n is not None:
+        params["limit"] = n
+    return params
+
+
+class RestProtocol:
+    """The REST calls as operations, and the action names per session they need."""
+
+    def __init__(self) -> None:
+        self._actions: SessionCache[list[str]] = SessionCache()
+
+    def _remember(self, info: SessionInfo) -> SessionInfo:
+        self._actions.put(info.id, info.model.actions)
+        return info
+
+    def create_session(self, model: ModelLike, agent: AgentOptions) -> Op[Request, SessionInfo]:
+        """``POST /v1/sessions``."""
+        body = {"model": model_json(model), "agent": agent.to_json()}
+        reply = yield Request("POST", "/v1/sessions", json=body)
+        return self._remember(_json.session_info(reply))
+
+    def get_session(self, session_id: str) -> Op[Request, SessionInfo]:
+        """``GET /v1/sessions/{id}``."""
+        reply = yield Request("GET", session_path(session_id))
+        return self._remember(_json.session_info(reply))
+
+    def list_sessions(self, after: str | None, limit: object) -> Op[Request, SessionPage]:
+        """``GET /v1/sessions?after=&limit=``."""
+        reply = yield Request("GET", "/v1/sessions", params=_list_params(after, limit))
+        return _json.session_page(reply)
+
+    def delete_session(self, session_id: str) -> Op[Request, None]:
+        """``DELETE /v1/sessions/{id}``."""
+        yield Request("DELETE", session_path(session_id))
+        self._actions.drop(session_id)
+
+    def observe(self, session_id: str, observation: Observation) -> Op[Request, Step]:
+        """``POST /v1/sessions/{id}/observations`` with one observation."""
+        body = observation.to_json()
+        reply = yield Request("POST", session_path(session_id, "/observations"), json=body)
+        return _json.step(reply)
+
+    def observe_batch(
+        self, session_id: str, observations: Iterable[ObservationLike]
+    ) -> Op[Request, list[Step]]:
+        """``POST /v1/sessions/{id}/observations`` with a batch."""
+        body = {"observations": [as_observation(o).to_json() for o in observations]}
+        reply = yield Request("POST", session_path(session_id, "/observations"), json=body)
+        return [_json.step(s) for s in reply["steps"]]
+
+    def values(self, session_id: str, include: str | Iterable[str] | None) -> Op[Request, Values]:
+        """``GET /v1/sessions/{id}/values?include=``."""
+        inc = _json.include_param(include)
+        params: dict[str, str | int] | None = {"include": inc} if inc is not None else None
+        reply = yield Request("GET", session_path(session_id, "/values"), params=params)
+        return _json.values(reply)
+
+    def history(self, session_id: str, limit: object) -> Op[Request, list[HistoryEntry]]:
+        """``GET /v1/sessions/{id}/history?limit=``, then the session when its
+        action names are not known yet."""
+        n = as_opt_int(limit, "limit")
+        params: dict[str, str | int] | None = {"limit": n} if n is not None else None
+        entries = yield Request("GET", session_path(session_id, "/history"), params=params)
+        actions = self._actions.get(session_id)
+        if actions is None:
+            actions = (yield from self.get_session(session_id)).model.actions
+        return _json.history(entries, actions)
