@@ -35,7 +35,7 @@ OUT=target/container
 NAME=mcapi-ct-$$
 VOL=mcapi-ct-$$
 mkdir -p "$OUT"
-rm -f "$OUT"/ledger.json
+rm -f "$OUT"/ledger.json "$OUT"/podman.log "$OUT"/compose.log
 
 log() { printf '[container-test %4ds] %s\n' "$SECONDS" "$*"; }
 fail() {
@@ -70,12 +70,19 @@ VERSION=$(cargo metadata --no-deps --format-version 1 --locked \
 log "build $IMAGE (mcapi $VERSION, revision $REVISION, SOURCE_DATE_EPOCH=$SOURCE_DATE_EPOCH)"
 build_start=$SECONDS
 # The machine's CA bundle is mounted into RUN steps so cargo trusts the
-# network's TLS (a proxy's CA on some CI machines).
+# network's TLS (a proxy's CA on some CI machines). The labels are passed
+# both ways: as build arguments (what the Dockerfile's LABEL uses, and all
+# Docker needs) and as --label, because buildah's layer cache ignores ARG
+# values in LABEL: after a commit that changes no compiled input (the
+# binary is byte-identical), it would reuse the previous image, labels,
+# creation time and all.
 if ! podman_ build --format docker --network host \
     -v /etc/ssl/certs:/etc/ssl/certs:ro "${PODMAN_ULIMITS[@]}" \
     --timestamp "$SOURCE_DATE_EPOCH" \
     --build-arg SOURCE_DATE_EPOCH="$SOURCE_DATE_EPOCH" \
     --build-arg VERSION="$VERSION" --build-arg REVISION="$REVISION" \
+    --label org.opencontainers.image.version="$VERSION" \
+    --label org.opencontainers.image.revision="$REVISION" \
     -t "$IMAGE" . >"$OUT/build.log" 2>&1; then
   tail -40 "$OUT/build.log"
   fail "podman build (full log: $OUT/build.log)"
@@ -85,9 +92,11 @@ log "built in $((SECONDS - build_start)) s"
 # ---------------------------------------------------------------------------
 log "image checks"
 podman_ image inspect "$IMAGE" >"$OUT/image.json"
-podman_ run --rm "${PODMAN_ULIMITS[@]}" "$IMAGE" --version >"$OUT/version.txt"
+# (podman logs that it cannot reach systemd to schedule health checks on a
+# machine without systemd: podman.log, not the console.)
+podman_ run --rm "${PODMAN_ULIMITS[@]}" "$IMAGE" --version >"$OUT/version.txt" 2>>"$OUT/podman.log"
 podman_ run --rm "${PODMAN_ULIMITS[@]}" --entrypoint /bin/sh "$IMAGE" -c \
-  'for t in cc gcc ld cargo rustc make curl wget; do command -v "$t" || true; done' >"$OUT/tools.txt"
+  'for t in cc gcc ld cargo rustc make curl wget; do command -v "$t" || true; done' >"$OUT/tools.txt" 2>>"$OUT/podman.log"
 "$PY" - "$OUT" "$VERSION" "$REVISION" "$SOURCE_DATE_EPOCH" "$MAX_IMAGE_MB" <<'PYEOF' || fail "image checks"
 import datetime, json, sys
 out, version, revision, epoch, max_mb = sys.argv[1:]
@@ -104,7 +113,7 @@ def check(ok, what):
     if not ok:
         problems.append(what)
 check(cfg.get("User") == "10001:10001", f"runs as 10001:10001 (User={cfg.get('User')!r})")
-hc = image.get("HealthCheck") or cfg.get("Healthcheck") or {}
+hc = image.get("Healthcheck") or cfg.get("Healthcheck") or {}
 check("healthcheck" in " ".join(hc.get("Test", [])), f"health check {hc.get('Test')}")
 check(printed == ["mcapi", version], f"`mcapi --version` prints {' '.join(printed)!r}, Cargo.toml says {version}")
 check(labels.get("org.opencontainers.image.version") == version, f"version label {labels.get('org.opencontainers.image.version')!r}")
@@ -128,7 +137,7 @@ log "run with a read-only root filesystem, volume $VOL at /data, REST on $HTTP, 
 podman_ run -d --name "$NAME" "${PODMAN_ULIMITS[@]}" \
   --read-only --read-only-tmpfs=false -v "$VOL:/data" \
   -p "127.0.0.1:$HTTP_PORT:8080" -p "127.0.0.1:$GRPC_PORT:50051" \
-  "$IMAGE" >/dev/null
+  "$IMAGE" >/dev/null 2>>"$OUT/podman.log"
 ready=$(drive wait-ready --timeout 60) || fail "not ready"
 log "ready after ${ready} s"
 
@@ -144,14 +153,14 @@ log "sessions driven over REST and gRPC"
 
 # ---------------------------------------------------------------------------
 stop_start=$SECONDS
-podman_ stop -t 30 "$NAME" >/dev/null
+podman_ stop -t 30 "$NAME" >/dev/null 2>>"$OUT/podman.log"
 code=$(podman_ inspect --format '{{.State.ExitCode}}' "$NAME")
 [ "$code" = 0 ] || fail "exit code $code after SIGTERM (137 would mean it was killed after the timeout)"
 [ $((SECONDS - stop_start)) -lt 20 ] || fail "SIGTERM took $((SECONDS - stop_start)) s"
 podman_ logs "$NAME" 2>&1 | grep -q '"mcapi stopped"' || fail "no 'mcapi stopped' in the log after SIGTERM"
 log "SIGTERM: clean exit (code 0) in $((SECONDS - stop_start)) s"
 
-podman_ start "$NAME" >/dev/null
+podman_ start "$NAME" >/dev/null 2>>"$OUT/podman.log"
 drive wait-ready --timeout 60 >/dev/null || fail "not ready after the restart"
 drive verify --exact || fail "state lost over a clean stop"
 
@@ -160,21 +169,21 @@ drive drive --until-error >"$OUT/drive_until_kill.log" 2>&1 &
 driver=$!
 before=$("$PY" -c 'import json,sys; print(sum(s["tick"] for s in json.load(open(sys.argv[1]))["sessions"].values()))' "$OUT/ledger.json")
 sleep 4
-podman_ kill -s KILL "$NAME" >/dev/null
+podman_ kill -s KILL "$NAME" >/dev/null 2>>"$OUT/podman.log"
 wait "$driver" || { cat "$OUT/drive_until_kill.log"; fail "the driver failed"; }
 after=$("$PY" -c 'import json,sys; print(sum(s["tick"] for s in json.load(open(sys.argv[1]))["sessions"].values()))' "$OUT/ledger.json")
 [ "$after" -gt "$before" ] || fail "no observation acknowledged before the kill"
 code=$(podman_ inspect --format '{{.State.ExitCode}}' "$NAME")
 log "SIGKILL mid-stream after $((after - before)) more acknowledged observations (exit code $code)"
 
-podman_ start "$NAME" >/dev/null
+podman_ start "$NAME" >/dev/null 2>>"$OUT/podman.log"
 ready=$(drive wait-ready --timeout 60) || fail "not ready after SIGKILL"
 log "restarted on the same volume, ready after ${ready} s"
 drive verify || fail "acknowledged observations lost to SIGKILL"
 drive drive --steps 5
 log "sessions go on after recovery"
-podman_ stop -t 30 "$NAME" >/dev/null
-podman_ rm -f -t 0 "$NAME" >/dev/null
+podman_ stop -t 30 "$NAME" >/dev/null 2>>"$OUT/podman.log"
+podman_ rm -f -t 0 "$NAME" >/dev/null 2>>"$OUT/podman.log"
 
 # ---------------------------------------------------------------------------
 # compose.yaml as a user runs it (podman-compose, pinned, in .venv-tools/):
@@ -211,6 +220,7 @@ from mcapi_client import Client
 with Client(sys.argv[1], api_key=sys.argv[2]) as c:
     s = c.create_session("hallway", seed=1)
     c.observe(s.id, 3)
+    c.observe(s.id, 4, [0.0, 0.0])
     print(s.id)' "$HTTP" "$key") || fail "compose: create with the key"
 compose down || fail "podman-compose down"
 compose up -d || fail "podman-compose up again"
@@ -219,6 +229,7 @@ drive wait-ready --timeout 60 >/dev/null || fail "compose: not ready after down/
 import sys
 from mcapi_client import Client
 with Client(sys.argv[1], api_key=sys.argv[2]) as c:
-    assert c.get_session(sys.argv[3]).tick == 1' "$HTTP" "$key" "$sid" || fail "compose: the session did not survive down/up"
+    info = c.get_session(sys.argv[3])
+    assert (info.tick, info.state) == (1, 4), info' "$HTTP" "$key" "$sid" || fail "compose: the session did not survive down/up"
 log "compose.yaml: keys from the env file, the session kept in the named volume over down/up"
 log "passed (image $(cat "$OUT/image_size_mb.txt") MB)"

@@ -96,8 +96,10 @@ def drive(args: argparse.Namespace) -> int:
                         step = rest.observe(sid, state, stimulus)
                     else:
                         step = streams[sid].step(state, stimulus)
-                    if step.tick != s["tick"] + 1:
-                        print(f"{sid}: acknowledged tick {step.tick}, expected {s['tick'] + 1}")
+                    # The first observation (the state alone) is no tick.
+                    expected = s["tick"] + (0 if s["state"] is None else 1)
+                    if step.tick != expected:
+                        print(f"{sid}: acknowledged tick {step.tick}, expected {expected}")
                         return 1
                     s.update(tick=step.tick, drive=step.drive, state=state, action=step.action_index)
                     save(args.ledger, ledger)
