@@ -36,10 +36,10 @@ for v in empty full; do
   podman_ create --name "$NAME-$v" "${PODMAN_ULIMITS[@]}" --read-only --read-only-tmpfs=false \
     -v "$NAME-$v:/data" -p "127.0.0.1:$PORT:8080" "$IMAGE" >/dev/null
 done
-podman_ start "$NAME-full" >/dev/null
+podman_ start "$NAME-full" >/dev/null 2>>"$OUT/podman.log"
 wait_ready >/dev/null
 "$PY" tools/container_drive.py populate --http "$HTTP" --sessions "$SESSIONS" --steps "$STEPS"
-podman_ stop -t 30 "$NAME-full" >/dev/null
+podman_ stop -t 30 "$NAME-full" >/dev/null 2>>"$OUT/podman.log"
 size=$(du -sh "$(podman_ volume inspect --format '{{.Mountpoint}}' "$NAME-full")" | cut -f1)
 echo "volume with $SESSIONS sessions: $size"
 
@@ -47,11 +47,11 @@ echo "volume with $SESSIONS sessions: $size"
 for i in $(seq "$RUNS"); do
   for v in empty full; do
     t0=$(date +%s.%N)
-    podman_ start "$NAME-$v" >/dev/null
+    podman_ start "$NAME-$v" >/dev/null 2>>"$OUT/podman.log"
     wait_ready >/dev/null
     t1=$(date +%s.%N)
     awk -v v="$v" -v a="$t0" -v b="$t1" 'BEGIN { printf "%s %.3f\n", v, b - a }'
-    podman_ stop -t 30 "$NAME-$v" >/dev/null
+    podman_ stop -t 30 "$NAME-$v" >/dev/null 2>>"$OUT/podman.log"
   done
 done | tee "$OUT/start_to_ready.txt"
 "$PY" - "$OUT/start_to_ready.txt" <<'PYEOF'

@@ -29,7 +29,7 @@ source tools/podman.sh
 
 PY=${PY:-clients/python/.venv/bin/python}
 IMAGE=${IMAGE:-localhost/mcapi:test}
-MAX_IMAGE_MB=${MAX_IMAGE_MB:-150}
+MAX_IMAGE_MB=${MAX_IMAGE_MB:-120}
 PODMAN_COMPOSE_VERSION=1.6.0
 OUT=target/container
 NAME=mcapi-ct-$$

@@ -31,7 +31,7 @@ import sys
 import time
 from typing import Any
 
-from mcapi_client import Client, GrpcClient, McapiError, models
+from mcapi_client import Client, GrpcClient, McapiError, Observation, models
 
 WORLD = models.hallway()
 
@@ -154,10 +154,12 @@ def populate(args: argparse.Namespace) -> int:
             info = rest.create_session(WORLD, seed=i)
             state = rng.randrange(WORLD.states)
             step = rest.observe(info.id, state)
-            for _ in range(args.steps):
+            batch = []
+            for _ in range(args.steps):  # a walk, ignoring the advice after the first
                 state = WORLD.sample_next(state, step.action_index, rng)
-                step = rest.observe(info.id, state, WORLD.stimulus(state))
-            return step.tick
+                batch.append(Observation(state=state, stimulus=WORLD.stimulus(state)))
+            steps = rest.observe_batch(info.id, batch)
+            return steps[-1].tick if steps else step.tick
 
     start = time.monotonic()
     with ThreadPoolExecutor(16) as pool:
