@@ -10,34 +10,16 @@
 //! features by one block per action: φ(s,a) = e_a ⊗ v(s), k·|A| features.
 
 use nalgebra::{DMatrix, SymmetricEigen};
-use serde::{Deserialize, Serialize};
 
 use super::error::{AlgoError, Result};
 use super::model::EnvModel;
+use super::spec::BasisSpec;
 
 /// Pair counts up to this use the indicator basis by default (DESIGN.md).
 pub const INDICATOR_DEFAULT_MAX_PAIRS: usize = 2000;
 
 /// Number of PVFs used when the default falls back to `proto_value`.
 pub const DEFAULT_PVF_K: usize = 30;
-
-/// A basis as a client names it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum BasisSpec {
-    /// Φ = I over valid pairs.
-    Indicator,
-    /// The k smoothest proto-value functions.
-    ProtoValue {
-        /// Number of eigenvectors per action block.
-        k: usize,
-    },
-    /// `state_features[s]` is v(s), the same length k for every state.
-    Custom {
-        /// One row of k features per state.
-        state_features: Vec<Vec<f64>>,
-    },
-}
 
 impl BasisSpec {
     /// The default basis: indicator when |S||A| <= 2000, else 30 PVFs.

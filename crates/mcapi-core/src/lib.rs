@@ -17,24 +17,26 @@
 pub mod agent;
 pub mod basis;
 pub mod curiosity;
-pub mod curious;
+pub mod curious_agent;
 pub mod drive;
 pub mod error;
 pub mod lstdq;
 pub mod model;
 pub mod params;
+pub mod spec;
 pub mod stimulus;
 
 pub use agent::{Agent, AgentSnapshot, Observation, ObserveOutcome, RngState, Step};
-pub use basis::{Basis, BasisSpec};
+pub use basis::Basis;
 pub use curiosity::{
     CuriosityChannel, CuriosityParams, CuriosityStep, Eq6Source, Signals, ValidCuriosityParams,
 };
-pub use curious::{
+pub use curious_agent::{
     CuriousAgent, CuriousObservation, CuriousObserved, CuriousSnapshot, CuriousStep,
 };
 pub use drive::Drive;
 pub use error::AlgoError;
 pub use lstdq::{PlanOutcome, Planner, PlanningModel};
-pub use model::{EnvModel, GridMap, ModelSpec, Preset, Source};
+pub use model::{EnvModel, GridMap, Preset, Source};
 pub use params::{AgentParams, StimulusRate, ValidParams};
+pub use spec::{ActionRef, BasisSpec, ModelSpec, TransitionSpec};

@@ -841,8 +841,8 @@ fn invert_if_regular(a: &DMatrix<f64>) -> Option<DMatrix<f64>> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::basis::BasisSpec;
     use crate::model::{hallway, names};
+    use crate::spec::BasisSpec;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
 

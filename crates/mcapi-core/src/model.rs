@@ -13,59 +13,13 @@ use std::ops::Range;
 
 use serde::{Deserialize, Serialize};
 
-use super::basis::BasisSpec;
 use super::error::{AlgoError, Result};
+use super::spec::{ActionRef, ModelSpec, TransitionSpec};
 
 /// Probabilities of one pair must sum to 1 within this tolerance (DESIGN.md).
 pub const PROBABILITY_TOLERANCE: f64 = 1e-9;
 
 const NONE: u32 = u32::MAX;
-
-/// An action as named in a posted transition: its index or its name.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(untagged)]
-pub enum ActionRef {
-    /// Index into `actions`.
-    Index(usize),
-    /// One of the names in `actions`.
-    Name(String),
-}
-
-/// One row of the sparse stochastic encoding: the successors of a pair.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct TransitionSpec {
-    /// Source state s.
-    pub state: usize,
-    /// Action a, by index or name.
-    pub action: ActionRef,
-    /// `[[s', p], ...]` with p in (0, 1] summing to 1.
-    pub next: Vec<(usize, f64)>,
-}
-
-/// An environment model as a client posts it (DESIGN.md, "Environment model").
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct ModelSpec {
-    /// Number of states |S|; states are `0..states`.
-    pub states: usize,
-    /// Optional display names of the states.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub state_names: Option<Vec<String>>,
-    /// Action names, e.g. `["left", "right", "stay"]`.
-    pub actions: Vec<String>,
-    /// Deterministic encoding: `next[s][a] = s'`, `null` where unavailable.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub next: Option<Vec<Vec<Option<usize>>>>,
-    /// Stochastic sparse encoding; a pair not listed is unavailable.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub transitions: Option<Vec<TransitionSpec>>,
-    /// Names of the n stimulus dimensions.
-    pub stimuli: Vec<String>,
-    /// Feature basis; the default depends on the model's size.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub basis: Option<BasisSpec>,
-}
 
 /// A validated environment model with valid-pair indexing and sparse P.
 #[derive(Debug, Clone, PartialEq)]

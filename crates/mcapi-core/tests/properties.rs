@@ -27,10 +27,11 @@
 use std::cell::Cell;
 use std::sync::Arc;
 
-use mcapi_core::basis::{Basis, BasisSpec, proto_value_functions};
+use mcapi_core::basis::{Basis, proto_value_functions};
 use mcapi_core::drive::{Drive, norm};
 use mcapi_core::lstdq::{Planner, PlannerStats, PlanningModel, TIE_TOLERANCE};
-use mcapi_core::model::{ActionRef, EnvModel, GridMap, ModelSpec, TransitionSpec};
+use mcapi_core::model::{EnvModel, GridMap};
+use mcapi_core::spec::{ActionRef, BasisSpec, ModelSpec, TransitionSpec};
 use mcapi_core::{Agent, AgentParams, AlgoError, Observation, StimulusRate};
 use nalgebra::{DMatrix, DVector, SymmetricEigen};
 use proptest::prelude::{

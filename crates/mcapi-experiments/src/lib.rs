@@ -10,6 +10,7 @@
 //! progress bar on stderr.
 
 pub mod curiosity;
+pub mod dominance;
 pub mod metrics;
 pub mod paper;
 pub mod plots;

@@ -13,7 +13,7 @@ use mcapi_core::{
     ValidParams,
 };
 
-use super::metrics::DominanceTracker;
+use super::dominance::DominanceTracker;
 
 /// Magnitude of a source's stimulus on its own dimension.
 pub const SOURCE_STIMULUS: f64 = 6.0;

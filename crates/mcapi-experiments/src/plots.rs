@@ -21,7 +21,7 @@ use plotters::style::text_anchor::{HPos, Pos, VPos};
 
 use mcapi_core::model::GridMap;
 
-use super::curiosity::{CuriosityRecord, Room, STIMULI};
+use super::curiosity::room::{CuriosityRecord, Room, STIMULI};
 use super::paper::{Experiment, ExperimentKind, Snapshot, TrialRecord};
 
 const FONT: &str = "sans-serif";

@@ -7,7 +7,7 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
-use mcapi_core::model::ModelSpec;
+use mcapi_core::spec::ModelSpec;
 use mcapi_core::{BasisSpec, EnvModel};
 
 use super::cost::SessionCost;

@@ -10,7 +10,7 @@ use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 
 use crate::store::{Commit, Store, Write};
-use mcapi_core::model::ActionRef;
+use mcapi_core::spec::ActionRef;
 use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation, PlanOutcome};
 
 use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};

@@ -7,7 +7,8 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
-use mcapi_core::model::{GridMap, ModelSpec, grid_preset, hallway, three_room};
+use mcapi_core::model::{GridMap, grid_preset, hallway, three_room};
+use mcapi_core::spec::ModelSpec;
 use mcapi_core::{AgentParams, BasisSpec, CuriosityParams, EnvModel, StimulusRate};
 
 use super::error::ServiceError;

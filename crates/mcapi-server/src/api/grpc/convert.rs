@@ -15,8 +15,8 @@ use crate::service::{
     Values,
 };
 use mcapi_core::StimulusRate;
-use mcapi_core::model::ActionRef;
 use mcapi_core::params::StimulusRateName;
+use mcapi_core::spec::ActionRef;
 
 use super::pb;
 
