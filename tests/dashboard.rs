@@ -12,7 +12,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use mcapi_core::model::{Preset, three_room};
-use mcapi_server::api::rest::{AppState, router};
+use mcapi_server::api::{AppState, router};
 use mcapi_server::service::{ApiKeys, Limits, ManagerOptions, SessionManager};
 use serde_json::{Value, json};
 

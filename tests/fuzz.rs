@@ -25,7 +25,7 @@ use axum::body::Body;
 use axum::http::Request;
 use http_body_util::BodyExt;
 use mcapi_server::api::grpc::{pb, serve_on};
-use mcapi_server::api::rest::{AppState, router};
+use mcapi_server::api::{AppState, router};
 use mcapi_server::service::{Limits, SessionManager};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestCaseError, TestRunner};

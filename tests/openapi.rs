@@ -12,7 +12,7 @@ use axum::body::Body;
 use axum::http::{Request, StatusCode};
 use http_body_util::BodyExt;
 use mcapi_server::api::openapi::document;
-use mcapi_server::api::rest::{AppState, router};
+use mcapi_server::api::{AppState, router};
 use mcapi_server::service::{Limits, MAX_PAGE, SessionManager};
 use serde_json::{Value, json};
 use tower::ServiceExt;

@@ -7,7 +7,7 @@ use std::sync::Arc;
 
 use mcapi_core::model::hallway;
 use mcapi_core::{Agent, AgentParams, Basis, Observation, PlanningModel};
-use mcapi_server::api::rest::{AppState, router};
+use mcapi_server::api::{AppState, router};
 use mcapi_server::service::{Limits, SessionManager};
 use serde_json::{Value, json};
 

@@ -18,8 +18,8 @@ use tokio::task::JoinHandle;
 use crate::api::conn::{RequestTimeout, serve_http};
 use crate::api::dashboard::Stopping;
 use crate::api::grpc::GrpcOptions;
-use crate::api::rest::{self, AppState};
 use crate::api::streams::StreamLimiter;
+use crate::api::{AppState, router};
 use crate::config::{ServeConfig, StoreKind};
 use crate::service::SessionManager;
 use crate::store::Store;
@@ -68,7 +68,7 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     limits.warn_on_fd_limit();
     // One budget of watch streams per caller for both transports.
     let streams = StreamLimiter::new(limits.max_streams_per_key);
-    let app = rest::router(state)
+    let app = router(state)
         // Ends the dashboard's event streams at shutdown.
         .layer(axum::Extension(Stopping(stop_rx.clone())))
         .layer(axum::Extension(Arc::clone(&streams)))

@@ -37,7 +37,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tracing::Instrument;
 
 use crate::api::error::{ApiError, ErrorBody, classify, public_message};
-use crate::api::rest::{AppState, Auth, query};
+use crate::api::extract::{AppState, Auth, query};
 use crate::api::streams::StreamLimiter;
 use crate::service::{Caller, HistoryEntry, ServiceError, SessionManager, ValueSelection};
 
@@ -223,13 +223,13 @@ struct EndEvent<'a> {
     params(("id" = String, Path, description = "The session's id, as `POST /v1/sessions` returned it."), EventsQuery),
     responses(
         (status = 200, description = "`session`, `tick`, `values` and `end` events; the schema is one event's",
-            content_type = "text/event-stream", body = crate::api::openapi::SseEvent),
-        (status = 400, response = crate::api::openapi::BadRequest),
-        (status = 401, response = crate::api::openapi::Unauthorized),
-        (status = 404, response = crate::api::openapi::NotFound),
-        (status = 429, response = crate::api::openapi::TooManyRequests),
-        (status = 500, response = crate::api::openapi::InternalError),
-        (status = 503, response = crate::api::openapi::Unavailable)))]
+            content_type = "text/event-stream", body = crate::api::schemas::SseEvent),
+        (status = 400, response = crate::api::schemas::BadRequest),
+        (status = 401, response = crate::api::schemas::Unauthorized),
+        (status = 404, response = crate::api::schemas::NotFound),
+        (status = 429, response = crate::api::schemas::TooManyRequests),
+        (status = 500, response = crate::api::schemas::InternalError),
+        (status = 503, response = crate::api::schemas::Unavailable)))]
 pub async fn events(
     State(state): State<AppState>,
     Auth(caller): Auth,

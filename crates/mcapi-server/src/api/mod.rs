@@ -4,7 +4,13 @@
 pub mod conn;
 pub mod dashboard;
 pub mod error;
+pub mod extract;
 pub mod grpc;
 pub mod openapi;
 pub mod rest;
+pub mod router;
+pub mod schemas;
 pub mod streams;
+
+pub use extract::AppState;
+pub use router::router;

@@ -441,6 +441,12 @@ impl ModelInput {
     }
 }
 
+/// `$ref` to the stimulus-rate schema, which the OpenAPI document writes out
+/// by hand (`crate::api::schemas`).
+fn stimulus_rate_ref() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+    utoipa::openapi::Ref::from_schema_name("StimulusRate").into()
+}
+
 /// The effective configuration of a session, every field set.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct EffectiveConfig {
@@ -451,7 +457,7 @@ pub struct EffectiveConfig {
     /// ρ.
     pub priorities: Vec<f64>,
     /// Ξ learning rate.
-    #[schema(schema_with = crate::api::openapi::stimulus_rate_ref)]
+    #[schema(schema_with = stimulus_rate_ref)]
     pub stimulus_rate: StimulusRate,
     /// σ of Ξ's initialisation.
     pub optimistic_sd: f64,
