@@ -652,7 +652,7 @@ pub fn assert_session_matches(
     let history = history.as_array().expect("history");
     let keep = expected_history
         .len()
-        .min(mcapi_server::service::spec::DEFAULT_HISTORY);
+        .min(mcapi_server::service::agent_config::DEFAULT_HISTORY);
     let want = &expected_history[expected_history.len() - keep..];
     assert_eq!(history.len(), want.len(), "{ctx}: history length");
     for (got, want) in history.iter().zip(want) {

@@ -11,11 +11,10 @@
 //! server (PostgreSQL's `work_mem` and etcd's request quotas play the same
 //! role), not to predict latency. `benches/tick.rs` measures real ticks.
 
-use serde::{Deserialize, Serialize};
-
 use mcapi_core::curiosity::{MAX_LIBRARY, expanded_dim};
 
-use super::spec::{CuriosityConfig, EffectiveConfig, ModelSummary};
+use super::agent_config::{CuriosityConfig, EffectiveConfig};
+use super::wire::{ModelSummary, SessionCost};
 
 /// Nanoseconds per counted operation: scalar loops on this kind of machine
 /// run at about one operation per nanosecond (a hallway tick counts about
@@ -35,18 +34,6 @@ const MAX_SWEEPS: f64 = 20_000.0;
 
 /// States up to which a stochastic model falls back to a dense solve.
 const DENSE_FALLBACK_MAX_STATES: f64 = 2048.0;
-
-/// The estimated cost of one session.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct SessionCost {
-    /// Memory the session may hold at most: its learner, planner, history
-    /// ring, curiosity channel and (counted in full, although sessions on one
-    /// model share it) its planning model.
-    pub bytes: u64,
-    /// Worst-case CPU time of one observation in lockstep mode (observe
-    /// plus one policy update), in microseconds.
-    pub tick_us: u64,
-}
 
 fn mul(a: u64, b: u64) -> u64 {
     a.saturating_mul(b)
@@ -191,7 +178,8 @@ fn curiosity(c: &CuriosityConfig) -> (u64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::service::spec::{BasisSummary, UpdateMode};
+    use crate::service::agent_config::UpdateMode;
+    use crate::service::wire::BasisSummary;
     use mcapi_core::CuriosityParams;
 
     fn summary(states: usize, actions: usize, n: usize, deterministic: bool) -> ModelSummary {

@@ -15,16 +15,14 @@
 //! what this version writes, [`RECORD_V2`] for records written under store
 //! format 2 (which the store tags when it upgrades the file). Both decode.
 
-use std::collections::VecDeque;
-
 use serde::{Deserialize, Serialize};
 
 pub use crate::store::RECORD_V2;
 use mcapi_core::{AgentSnapshot, CuriousSnapshot};
 
-use super::error::ServiceError;
-use super::session::{Learner, RingTick, TickCuriosity, push_tick};
-use super::spec::EffectiveConfig;
+use super::agent_config::EffectiveConfig;
+use super::error::{DecodeError, DecodeFault, ServiceError};
+use super::wire::TickCuriosity;
 
 /// The encoding byte of the records this version writes.
 pub const RECORD_V3: u8 = 3;
@@ -131,20 +129,27 @@ pub fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
         .map_err(|e| ServiceError::Internal(format!("encoding a record: {e}")))
 }
 
-fn split<'a>(bytes: &'a [u8], what: &str) -> Result<(u8, &'a [u8]), String> {
-    match bytes.split_first() {
-        Some((&v, rest)) if v == RECORD_V2 || v == RECORD_V3 => Ok((v, rest)),
-        Some((v, _)) => Err(format!("{what} has unknown record version {v}")),
-        None => Err(format!("{what} is empty")),
-    }
+fn split<'a>(bytes: &'a [u8], what: &str) -> Result<(u8, &'a [u8]), DecodeError> {
+    let fault = match bytes.split_first() {
+        Some((&v, rest)) if v == RECORD_V2 || v == RECORD_V3 => return Ok((v, rest)),
+        Some((&v, _)) => DecodeFault::Version(v),
+        None => DecodeFault::Empty,
+    };
+    Err(DecodeError {
+        what: what.to_string(),
+        fault,
+    })
 }
 
-fn postcard_decode<'a, T: Deserialize<'a>>(bytes: &'a [u8], what: &str) -> Result<T, String> {
-    postcard::from_bytes(bytes).map_err(|e| format!("{what} does not decode: {e}"))
+fn postcard_decode<'a, T: Deserialize<'a>>(bytes: &'a [u8], what: &str) -> Result<T, DecodeError> {
+    postcard::from_bytes(bytes).map_err(|e| DecodeError {
+        what: what.to_string(),
+        fault: e.into(),
+    })
 }
 
 /// Decodes a log entry of either record version.
-pub fn decode_entry(bytes: &[u8], what: &str) -> Result<LogEntry, String> {
+pub fn decode_entry(bytes: &[u8], what: &str) -> Result<LogEntry, DecodeError> {
     match split(bytes, what)? {
         (RECORD_V2, rest) => {
             let e: LogEntryV2 = postcard_decode(rest, what)?;
@@ -163,7 +168,7 @@ pub fn decode_entry(bytes: &[u8], what: &str) -> Result<LogEntry, String> {
 }
 
 /// Decodes a snapshot of either record version.
-pub fn decode_snapshot(bytes: &[u8], what: &str) -> Result<SnapshotRecord, String> {
+pub fn decode_snapshot(bytes: &[u8], what: &str) -> Result<SnapshotRecord, DecodeError> {
     match split(bytes, what)? {
         (RECORD_V2, rest) => {
             let s: SnapshotRecordV2 = postcard_decode(rest, what)?;
@@ -189,49 +194,10 @@ pub fn decode_snapshot(bytes: &[u8], what: &str) -> Result<SnapshotRecord, Strin
     }
 }
 
-/// Applies one logged observation to a recovering learner and its history
-/// ring: Ξ, visits, D, the curiosity channel and the tick change exactly as
-/// they did live.
-pub fn replay(
-    learner: &mut Learner,
-    history: &mut VecDeque<RingTick>,
-    history_cap: usize,
-    entry: &LogEntry,
-) -> Result<(), String> {
-    let obs = mcapi_core::Observation {
-        state: entry.state as usize,
-        stimulus: entry.stimulus.as_deref(),
-        action_taken: entry.taken.map(|a| a as usize),
-    };
-    let signal = entry
-        .signal
-        .as_ref()
-        .map(|(source, x)| (*source as usize, x.as_slice()));
-    let out = learner.observe(&obs, signal).map_err(|e| e.to_string())?;
-    learner
-        .set_advised_action(entry.advised as usize)
-        .map_err(|e| e.to_string())?;
-    if entry.stimulus.is_some() {
-        let tick = RingTick::new(
-            out.tick,
-            obs.state,
-            entry.advised as usize,
-            learner.agent().drive().vector(),
-            entry.stimulus.as_deref(),
-            out.xi_cur,
-            out.reward,
-            entry.lstdq_error,
-            out.curiosity,
-        );
-        push_tick(history, history_cap, tick);
-    }
-    learner.resume_policy_version(entry.policy_version);
-    Ok(())
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::service::history::RingTick;
 
     fn entry(signal: Option<(u32, Vec<f64>)>) -> LogEntry {
         LogEntry {
@@ -271,7 +237,10 @@ mod tests {
         assert_eq!(decode_entry(&bytes, "entry").expect("decode"), entry(None));
         bytes[0] = 9;
         let err = decode_entry(&bytes, "entry").expect_err("version 9");
-        assert!(err.contains("unknown record version 9"), "{err}");
+        assert!(
+            err.to_string().contains("unknown record version 9"),
+            "{err}"
+        );
         assert!(decode_entry(&[], "entry").is_err());
     }
 

@@ -10,9 +10,9 @@ use serde::{Deserialize, Serialize};
 use mcapi_core::spec::ModelSpec;
 use mcapi_core::{BasisSpec, EnvModel};
 
-use super::cost::SessionCost;
+use super::agent_config::SessionConfig;
 use super::error::ServiceError;
-use super::spec::SessionConfig;
+use super::wire::SessionCost;
 
 /// Caps on what clients may ask of the server.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]

@@ -4,104 +4,17 @@
 
 use std::collections::BTreeMap;
 
-use serde::{Deserialize, Serialize};
+use serde::Deserialize;
 use serde_json::Value;
 
 use mcapi_core::model::{GridMap, grid_preset, hallway, three_room};
 use mcapi_core::spec::ModelSpec;
-use mcapi_core::{AgentParams, BasisSpec, CuriosityParams, EnvModel, StimulusRate};
+use mcapi_core::{BasisSpec, EnvModel};
 
+use super::agent_config::CURIOSITY_DIMENSION;
 use super::error::ServiceError;
 use super::limits::Limits;
-
-/// How a session's reply relates to its policy update.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(rename_all = "snake_case")]
-pub enum UpdateMode {
-    /// Reply after exactly one LSTDQ update (Algorithm 1 to the letter).
-    #[default]
-    Lockstep,
-    /// Reply at once with the newest policy; the tick loop catches up.
-    Async,
-}
-
-/// Default length of the history ring buffer.
-pub const DEFAULT_HISTORY: usize = 256;
-
-/// Agent configuration of a session; every field is optional.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct SessionConfig {
-    /// MCA rate η (Eq. 1), 0 < η <= 0.5; default 0.01.
-    pub eta: Option<f64>,
-    /// Discount γ in [0, 1); default 0.95.
-    pub gamma: Option<f64>,
-    /// Priorities ρ in (0, 1], one per stimulus; default all 1.
-    pub priorities: Option<Vec<f64>>,
-    /// `"sample_mean"` (default) or a constant rate in (0, 1].
-    #[schema(value_type = Option<Object>)]
-    pub stimulus_rate: Option<StimulusRate>,
-    /// σ of the optimistic initialisation of Ξ; default 0.3.
-    pub optimistic_sd: Option<f64>,
-    /// Ridge added to A only when singular; default 1e-6.
-    pub ridge: Option<f64>,
-    /// ε-greedy exploration; default 0.
-    pub epsilon: Option<f64>,
-    /// Seed of the session's RNG; drawn at random when absent and returned.
-    pub seed: Option<u64>,
-    /// `lockstep` (default) or `async`.
-    pub update_mode: Option<UpdateMode>,
-    /// Number of recent ticks kept for `/history`; default 256.
-    pub history: Option<usize>,
-    /// A curiosity channel (ALGORITHM.md §7): the server appends a stimulus
-    /// dimension `curiosity`, last, and computes it from raw `signal`s.
-    pub curiosity: Option<CuriosityConfig>,
-}
-
-/// Name of the stimulus dimension a curiosity channel adds.
-pub const CURIOSITY_DIMENSION: &str = "curiosity";
-
-/// A session's curiosity channel (ALGORITHM.md §7).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct CuriosityConfig {
-    /// Dimension m of the raw signal x(t) (2 for the paper's Eq. 6).
-    pub signal_dim: usize,
-    /// The channel's constants (§7); each defaults to the paper's or the
-    /// reproduction's value (`g` = 800, `dt` = 0.08, δ = 0.3, ...).
-    #[serde(default)]
-    #[schema(value_type = Object)]
-    pub params: CuriosityParams,
-}
-
-impl SessionConfig {
-    /// The algorithm's part.
-    pub fn params(&self) -> AgentParams {
-        AgentParams {
-            eta: self.eta,
-            gamma: self.gamma,
-            priorities: self.priorities.clone(),
-            stimulus_rate: self.stimulus_rate,
-            optimistic_sd: self.optimistic_sd,
-            ridge: self.ridge,
-            epsilon: self.epsilon,
-            seed: self.seed,
-        }
-    }
-}
-
-/// A request to create a session.
-#[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct CreateSession {
-    /// An environment model, `{"preset": "hallway" | "three_room"}`, or
-    /// `{"grid": [...], "sources": {"a": 0, ...}}`.
-    #[schema(value_type = Object)]
-    pub model: Value,
-    /// Agent configuration.
-    #[serde(default)]
-    pub agent: SessionConfig,
-}
+use super::wire::GridLayout;
 
 /// A model in one of its three forms, parsed.
 #[derive(Debug, Clone, PartialEq)]
@@ -328,104 +241,6 @@ fn grid_model(
     Ok(grid.model(names)?)
 }
 
-/// The basis of a session: its kind and, for feature bases, k per action.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct BasisSummary {
-    /// `indicator`, `proto_value` or `custom`.
-    pub kind: String,
-    /// State features per action block (0 for `indicator`).
-    pub k: usize,
-}
-
-impl BasisSummary {
-    /// Summarises a basis choice.
-    pub fn of(spec: &BasisSpec) -> Self {
-        let (kind, k) = match spec {
-            BasisSpec::Indicator => ("indicator", 0),
-            BasisSpec::ProtoValue { k } => ("proto_value", *k),
-            BasisSpec::Custom { state_features } => {
-                ("custom", state_features.first().map_or(0, Vec::len))
-            }
-        };
-        Self {
-            kind: kind.into(),
-            k,
-        }
-    }
-}
-
-/// What a session's model looks like, returned at creation and by `get`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct ModelSummary {
-    /// Number of states.
-    pub states: usize,
-    /// Action names.
-    pub actions: Vec<String>,
-    /// Stimulus names.
-    pub stimuli: Vec<String>,
-    /// Valid state-action pairs.
-    pub pairs: usize,
-    /// Stored transitions.
-    pub transitions: usize,
-    /// Whether every pair has one successor.
-    pub deterministic: bool,
-    /// The basis in use.
-    pub basis: BasisSummary,
-    /// Number of features.
-    pub features: usize,
-    /// Where each state lies on the map, for grid models (grid form and the
-    /// `three_room` preset); absent for other models.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub layout: Option<GridLayout>,
-}
-
-/// The map of a grid model: its size, the cell of each state and the marked
-/// cells (the stimulus sources), for drawing values over the map.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct GridLayout {
-    /// Map height in cells.
-    pub rows: usize,
-    /// Map width in cells.
-    pub cols: usize,
-    /// `[row, col]` of each state, indexed by state.
-    pub cells: Vec<[usize; 2]>,
-    /// Marked cells in row-major order: the mark and its state.
-    pub marks: Vec<GridMark>,
-}
-
-/// A marked cell of a grid map.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct GridMark {
-    /// The mark character.
-    pub mark: String,
-    /// The state of the marked cell.
-    pub state: usize,
-}
-
-impl GridLayout {
-    /// The layout of a parsed map.
-    pub fn of(grid: &GridMap) -> Self {
-        Self {
-            rows: grid.rows(),
-            cols: grid.cols(),
-            cells: (0..grid.states())
-                .map(|s| {
-                    let (r, c) = grid.cell_of(s);
-                    [r, c]
-                })
-                .collect(),
-            marks: grid
-                .marks()
-                .iter()
-                .map(|&(mark, state)| GridMark {
-                    mark: mark.to_string(),
-                    state,
-                })
-                .collect(),
-        }
-    }
-}
-
 impl ModelInput {
     /// The map layout of a grid-form model or the `three_room` preset
     /// (`None` for other models, or a map that does not parse).
@@ -439,39 +254,4 @@ impl ModelInput {
         };
         Some(GridLayout::of(&grid))
     }
-}
-
-/// `$ref` to the stimulus-rate schema, which the OpenAPI document writes out
-/// by hand (`crate::api::schemas`).
-fn stimulus_rate_ref() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
-    utoipa::openapi::Ref::from_schema_name("StimulusRate").into()
-}
-
-/// The effective configuration of a session, every field set.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct EffectiveConfig {
-    /// η.
-    pub eta: f64,
-    /// γ.
-    pub gamma: f64,
-    /// ρ.
-    pub priorities: Vec<f64>,
-    /// Ξ learning rate.
-    #[schema(schema_with = stimulus_rate_ref)]
-    pub stimulus_rate: StimulusRate,
-    /// σ of Ξ's initialisation.
-    pub optimistic_sd: f64,
-    /// Ridge λ.
-    pub ridge: f64,
-    /// ε.
-    pub epsilon: f64,
-    /// The seed (drawn by the server when not given).
-    pub seed: u64,
-    /// Update mode.
-    pub update_mode: UpdateMode,
-    /// History length.
-    pub history: usize,
-    /// The curiosity channel, every parameter set; absent without one.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub curiosity: Option<CuriosityConfig>,
 }

@@ -21,7 +21,8 @@ use parking_lot::{Condvar, Mutex};
 use tokio::sync::oneshot;
 
 use super::error::ServiceError;
-use super::session::{ObservationIn, Observed, Session, SessionRef};
+use super::session::{Observed, Session, SessionRef};
+use super::wire::ObservationIn;
 
 /// Work for the pool.
 pub enum Job {

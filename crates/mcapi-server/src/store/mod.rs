@@ -495,13 +495,16 @@ impl Store {
     }
 
     /// Calls `f(seq, entry)` for each log entry of session `id` after
-    /// sequence number `after`, in order.
-    pub fn for_each_entry(
+    /// sequence number `after`, in order. The first error stops the read:
+    /// the visitor's own, or the store's (converted with `E::from`), so a
+    /// caller's errors stay its own type and never pass through
+    /// [`StoreError`].
+    pub fn for_each_entry<E: From<StoreError>>(
         &self,
         id: &str,
         after: Option<u64>,
-        mut f: impl FnMut(u64, &[u8]) -> Result<(), StoreError>,
-    ) -> Result<(), StoreError> {
+        mut f: impl FnMut(u64, &[u8]) -> Result<(), E>,
+    ) -> Result<(), E> {
         let failed = |e: redb::Error| self.read_failed(e);
         let read = self.db()?.begin_read().map_err(|e| failed(e.into()))?;
         let log = read.open_table(LOG).map_err(|e| failed(e.into()))?;
@@ -1020,7 +1023,7 @@ mod tests {
         store
             .for_each_entry(s, after, |seq, e| {
                 out.push((seq, e.to_vec()));
-                Ok(())
+                Ok::<(), StoreError>(())
             })
             .expect("read log");
         out

@@ -7,7 +7,7 @@
 
 use std::time::Duration;
 
-use crate::service::spec::{GridLayout, GridMark};
+use crate::service::wire::{GridLayout, GridMark};
 use crate::service::{
     BasisSummary, CreateSession, CuriosityConfig, CuriosityInfo, EffectiveConfig, FrozenModuleInfo,
     HistoryEntry, ModelSummary, ObservationIn, ServiceError, SessionConfig, SessionInfo,
