@@ -75,7 +75,7 @@ e2e: build
 # Criterion benches of the core tick (crates/mcapi-experiments/benches/tick.rs:
 # the core stepped by the experiments' simulated world).
 bench:
-	$(CARGO) bench -p mcapi-experiments --bench tick
+	$(CARGO) bench --bench tick
 
 # The numpy peer of the tick benchmark (creates its own venv).
 peers:
