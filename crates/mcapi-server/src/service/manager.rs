@@ -634,6 +634,7 @@ impl SessionManager {
         if report.skipped > 0 {
             tracing::warn!(
                 skipped = report.skipped,
+                ids = ?report.skipped_ids,
                 store = %d.store.path().display(),
                 "stored sessions skipped at recovery"
             );
