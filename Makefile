@@ -31,10 +31,10 @@ fmt-check:
 	$(CARGO) fmt --all -- --check
 
 clippy:
-	$(CARGO) clippy --all-targets --locked -- -D warnings
+	$(CARGO) clippy --workspace --all-targets --locked -- -D warnings
 
 unit:
-	$(CARGO) test --all-targets --locked
+	$(CARGO) test --workspace --all-targets --locked
 
 release:
 	$(CARGO) build --release --locked
@@ -43,7 +43,7 @@ release:
 # unify features, so a plain `cargo build` would rebuild much of the tree):
 # after `unit` this is a no-op.
 build:
-	$(CARGO) test --all-targets --locked --no-run
+	$(CARGO) test --workspace --all-targets --locked --no-run
 
 # The Python client (clients/python) against the debug binary (the one `unit`
 # already built, so `make test` compiles no release build): a venv in
@@ -124,7 +124,8 @@ container-test: python-venv container-base
 container-bench: python-venv
 	bash tools/container-bench.sh
 
-# Criterion benches of the core tick.
+# Criterion benches of the core tick (crates/mcapi-experiments/benches/tick.rs:
+# the core stepped by the experiments' simulated world).
 bench:
 	$(CARGO) bench --bench tick
 

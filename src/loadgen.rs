@@ -55,9 +55,9 @@ use tokio::task::JoinSet;
 use tokio_stream::wrappers::ReceiverStream;
 use tonic::transport::{Channel, Endpoint};
 
-use crate::api::grpc::SESSION_METADATA;
-use crate::api::grpc::pb;
-use crate::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_proto as pb;
+use mcapi_proto::SESSION_METADATA;
+use mcapi_proto::agents_client::AgentsClient;
 
 /// `mcapi loadgen` options.
 #[derive(Debug, Clone, Args)]

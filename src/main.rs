@@ -5,12 +5,14 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
+mod loadgen;
+
 use clap::{Args, Parser, Subcommand};
-use mcapi::config::{LogFormat, ServeConfig};
-use mcapi::experiments::curiosity;
-use mcapi::experiments::run::results_table;
-use mcapi::experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
-use mcapi::{server, telemetry};
+use mcapi_experiments::curiosity;
+use mcapi_experiments::run::results_table;
+use mcapi_experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
+use mcapi_server::config::{LogFormat, ServeConfig};
+use mcapi_server::{server, telemetry};
 
 /// Motivated reinforcement-learning agents (MCA-PI, Kompella et al. 2014).
 #[derive(Debug, Parser)]
@@ -29,7 +31,7 @@ enum Command {
     /// Exit 0 if the server's health endpoint answers 200 (for container health checks).
     Healthcheck(HealthcheckArgs),
     /// Load-test a running server over real sockets (REST, gRPC, memory) and print the results.
-    Loadgen(mcapi::loadgen::LoadgenArgs),
+    Loadgen(loadgen::LoadgenArgs),
 }
 
 #[derive(Debug, Args)]
@@ -94,7 +96,7 @@ fn main() -> ExitCode {
             experiment(args)
         }
         Command::Healthcheck(args) => healthcheck(&args),
-        Command::Loadgen(args) => mcapi::loadgen::run(args),
+        Command::Loadgen(args) => loadgen::run(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -17,7 +17,7 @@ use std::net::TcpStream;
 use std::time::{Duration, Instant};
 
 use common::{Launch, Server, grpc_request, rest, rest_create};
-use mcapi::api::grpc::pb;
+use mcapi_server::api::grpc::pb;
 use prost::bytes::{Buf, BufMut, Bytes};
 use serde_json::{Value, json};
 use tonic::Code;
@@ -599,14 +599,14 @@ async fn a_panicking_rest_handler_answers_500_for_its_request_alone() {
             }),
         )
         .route("/ok", get(|| async { "ok" }))
-        .layer(mcapi::api::conn::rest_panic_layer());
+        .layer(mcapi_server::api::conn::rest_panic_layer());
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
         .await
         .expect("bind");
     let addr = listener.local_addr().expect("addr");
-    let limits = mcapi::api::conn::ConnLimits::default();
+    let limits = mcapi_server::api::conn::ConnLimits::default();
     tokio::spawn(async move {
-        mcapi::api::conn::serve_http(listener, app, &limits, std::future::pending()).await;
+        mcapi_server::api::conn::serve_http(listener, app, &limits, std::future::pending()).await;
     });
     // One client: the same kept-alive connection serves the next request.
     let client = reqwest::Client::new();
@@ -672,7 +672,7 @@ async fn a_panicking_grpc_method_answers_internal_for_its_call_alone() {
     let addr = listener.local_addr().expect("addr");
     tokio::spawn(
         tonic::transport::Server::builder()
-            .layer(mcapi::api::conn::grpc_panic_layer())
+            .layer(mcapi_server::api::conn::grpc_panic_layer())
             .add_routes(routes)
             .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
     );

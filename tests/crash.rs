@@ -24,9 +24,9 @@ use common::{
     free_port, grpc_create, grpc_request, http_client, log_events, params, rest, rest_create,
     rest_get, rest_list_all, step_state, stimulus,
 };
-use mcapi::algo::AgentParams;
-use mcapi::api::grpc::pb;
-use mcapi::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_core::AgentParams;
+use mcapi_server::api::grpc::pb;
+use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};

@@ -18,12 +18,12 @@ mod common;
 use std::sync::Arc;
 
 use common::{Launch, Server, http_client, rest};
-use mcapi::algo::model::hallway;
-use mcapi::algo::{
+use mcapi_core::model::hallway;
+use mcapi_core::{
     AgentParams, Basis, CuriosityParams, CuriousAgent, CuriousObservation, CuriousStep, Eq6Source,
     PlanningModel, Signals,
 };
-use mcapi::api::grpc::pb;
+use mcapi_server::api::grpc::pb;
 use reqwest::Method;
 use serde_json::{Value, json};
 use tonic::Code;

@@ -11,9 +11,9 @@ use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
-use mcapi::algo::model::{Preset, three_room};
-use mcapi::api::rest::{AppState, router};
-use mcapi::service::{ApiKeys, Limits, ManagerOptions, SessionManager};
+use mcapi_core::model::{Preset, three_room};
+use mcapi_server::api::{AppState, router};
+use mcapi_server::service::{ApiKeys, Limits, ManagerOptions, SessionManager};
 use serde_json::{Value, json};
 
 const KEY_A: &str = "dashboard-key-a-0123456789";

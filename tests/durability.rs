@@ -40,9 +40,9 @@ use common::{
     check_session, core_agent, free_port, grpc_create, grpc_request, http_client, log_events,
     params, rest, rest_create, rest_get, rest_list_all, step_state, stimulus,
 };
-use mcapi::algo::{Agent, AgentParams, Observation};
-use mcapi::api::grpc::pb;
-use mcapi::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_core::{Agent, AgentParams, Observation};
+use mcapi_server::api::grpc::pb;
+use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use redb::{ReadableDatabase, ReadableTable, ReadableTableMetadata, TableHandle};
@@ -1625,11 +1625,11 @@ fn short_or_empty_keys_are_refused_and_never_echoed() {
 /// store still recovers: no hole in the log.
 #[test]
 fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
-    use mcapi::service::{
+    use mcapi_server::service::{
         Caller, CreateSession, Limits, ManagerOptions, ObservationIn, ServiceError, SessionConfig,
         SessionManager,
     };
-    use mcapi::store::Store;
+    use mcapi_server::store::Store;
     use std::sync::Arc;
 
     // Plain threads: `create` and `shutdown` block on the store.
@@ -1711,10 +1711,10 @@ fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
 
 /// A manager on the store in `dir`, recovered; `snapshot_every` as given.
 fn in_process(
-    store: std::sync::Arc<mcapi::store::Store>,
+    store: std::sync::Arc<mcapi_server::store::Store>,
     snapshot_every: u64,
-) -> mcapi::service::SessionManager {
-    use mcapi::service::{Limits, ManagerOptions, SessionManager};
+) -> mcapi_server::service::SessionManager {
+    use mcapi_server::service::{Limits, ManagerOptions, SessionManager};
     let manager = SessionManager::with_options(ManagerOptions {
         store: Some(store),
         snapshot_every,
@@ -1726,8 +1726,8 @@ fn in_process(
     manager
 }
 
-fn hallway_session(manager: &mcapi::service::SessionManager, seed: u64) -> String {
-    use mcapi::service::{Caller, CreateSession, SessionConfig};
+fn hallway_session(manager: &mcapi_server::service::SessionManager, seed: u64) -> String {
+    use mcapi_server::service::{Caller, CreateSession, SessionConfig};
     manager
         .create(
             Caller::Anyone,
@@ -1743,8 +1743,8 @@ fn hallway_session(manager: &mcapi::service::SessionManager, seed: u64) -> Strin
         .id
 }
 
-fn observation(state: usize, first: bool) -> mcapi::service::ObservationIn {
-    mcapi::service::ObservationIn {
+fn observation(state: usize, first: bool) -> mcapi_server::service::ObservationIn {
+    mcapi_server::service::ObservationIn {
         state,
         stimulus: (!first).then(|| stimulus(state).to_vec()),
         action_taken: None,
@@ -1759,8 +1759,8 @@ fn observation(state: usize, first: bool) -> mcapi::service::ObservationIn {
 /// untouched).
 #[test]
 fn a_delete_whose_commit_fails_keeps_the_session_and_its_retry_deletes_it() {
-    use mcapi::service::{Caller, ServiceError};
-    use mcapi::store::Store;
+    use mcapi_server::service::{Caller, ServiceError};
+    use mcapi_server::store::Store;
     use std::sync::Arc;
 
     let rt = tokio::runtime::Runtime::new().expect("runtime");
@@ -1821,9 +1821,9 @@ fn a_delete_whose_commit_fails_keeps_the_session_and_its_retry_deletes_it() {
 /// exactly as it was served (tick, D, Ξ, history), then goes on.
 #[test]
 fn a_lockstep_observation_whose_plan_fails_is_logged() {
-    use mcapi::algo::AlgoError;
-    use mcapi::service::{Caller, ServiceError, ValueSelection};
-    use mcapi::store::Store;
+    use mcapi_core::AlgoError;
+    use mcapi_server::service::{Caller, ServiceError, ValueSelection};
+    use mcapi_server::store::Store;
     use std::sync::Arc;
 
     let rt = tokio::runtime::Runtime::new().expect("runtime");
@@ -1904,10 +1904,10 @@ fn a_lockstep_observation_whose_plan_fails_is_logged() {
 /// looser limits still recovers them all.
 #[test]
 fn tighter_limits_at_restart_keep_the_stored_sessions() {
-    use mcapi::service::{
+    use mcapi_server::service::{
         Caller, CreateSession, Limits, ManagerOptions, ServiceError, SessionConfig, SessionManager,
     };
-    use mcapi::store::Store;
+    use mcapi_server::store::Store;
     use std::sync::Arc;
 
     let data = tempfile::tempdir().expect("data dir");

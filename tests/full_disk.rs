@@ -28,9 +28,9 @@ use common::{
     grpc_request, http_client, log_events, params, rest, rest_create, rest_get, rest_list_all,
     step_state, stimulus,
 };
-use mcapi::algo::AgentParams;
-use mcapi::api::grpc::pb;
-use mcapi::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_core::AgentParams;
+use mcapi_server::api::grpc::pb;
+use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use reqwest::Method;

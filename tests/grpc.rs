@@ -6,12 +6,12 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use mcapi::algo::model::hallway;
-use mcapi::algo::{Agent, AgentParams, Basis, BasisSpec, Observation, PlanningModel};
-use mcapi::api::grpc::pb::agents_client::AgentsClient;
-use mcapi::api::grpc::pb::observation::ActionTaken;
-use mcapi::api::grpc::{SESSION_METADATA, ServeError, pb, serve_on};
-use mcapi::service::{Limits, SessionManager};
+use mcapi_core::model::hallway;
+use mcapi_core::{Agent, AgentParams, Basis, BasisSpec, Observation, PlanningModel};
+use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_server::api::grpc::pb::observation::ActionTaken;
+use mcapi_server::api::grpc::{SESSION_METADATA, ServeError, pb, serve_on};
+use mcapi_server::service::{Limits, SessionManager};
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, oneshot};
 use tokio::task::JoinHandle;

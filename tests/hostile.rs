@@ -12,9 +12,9 @@ mod common;
 use std::time::Duration;
 
 use common::{Launch, Server};
-use mcapi::api::grpc::SESSION_METADATA;
-use mcapi::api::grpc::pb;
-use mcapi::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_server::api::grpc::SESSION_METADATA;
+use mcapi_server::api::grpc::pb;
+use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use reqwest::Method;
 use serde_json::{Value, json};
 use tonic::transport::Channel;

@@ -11,9 +11,9 @@ use std::sync::Arc;
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
 use http_body_util::BodyExt;
-use mcapi::api::openapi::document;
-use mcapi::api::rest::{AppState, router};
-use mcapi::service::{Limits, MAX_PAGE, SessionManager};
+use mcapi_server::api::openapi::document;
+use mcapi_server::api::{AppState, router};
+use mcapi_server::service::{Limits, MAX_PAGE, SessionManager};
 use serde_json::{Value, json};
 use tower::ServiceExt;
 
@@ -179,7 +179,7 @@ fn bounds_are_the_limits_of_the_server() {
     assert_eq!(obs["properties"]["stimulus"]["items"]["minimum"], -1e12);
     assert_eq!(
         obs["properties"]["signal"]["maxItems"],
-        mcapi::algo::curiosity::MAX_SIGNAL_DIM
+        mcapi_core::curiosity::MAX_SIGNAL_DIM
     );
     let create = schema(&d, "CreateSession");
     assert!(
@@ -208,11 +208,11 @@ fn bounds_are_the_limits_of_the_server() {
     assert_eq!(events[1]["name"], "interval_ms");
     assert_eq!(
         events[1]["schema"]["minimum"],
-        mcapi::api::dashboard::MIN_INTERVAL_MS
+        mcapi_server::api::dashboard::MIN_INTERVAL_MS
     );
     assert_eq!(
         events[1]["schema"]["maximum"],
-        mcapi::api::dashboard::MAX_INTERVAL_MS
+        mcapi_server::api::dashboard::MAX_INTERVAL_MS
     );
 }
 

@@ -3,9 +3,9 @@
 //! actions and drives over both transports in lockstep mode.
 
 use clap::Parser;
-use mcapi::api::grpc::pb;
-use mcapi::api::grpc::pb::agents_client::AgentsClient;
-use mcapi::config::ServeConfig;
+use mcapi_server::api::grpc::pb;
+use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_server::config::ServeConfig;
 use serde_json::{Value, json};
 
 #[derive(Parser)]
@@ -40,7 +40,9 @@ async fn rest_and_grpc_give_identical_trajectories() {
         data.path().to_str().expect("utf-8 path"),
     ])
     .serve;
-    let running = mcapi::server::start(&cfg).await.expect("server starts");
+    let running = mcapi_server::server::start(&cfg)
+        .await
+        .expect("server starts");
     let base = format!("http://{}", running.http_addr);
     let http = reqwest::Client::new();
     let mut grpc = AgentsClient::connect(format!("http://{}", running.grpc_addr))

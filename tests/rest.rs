@@ -5,10 +5,10 @@
 use std::net::SocketAddr;
 use std::sync::Arc;
 
-use mcapi::algo::model::hallway;
-use mcapi::algo::{Agent, AgentParams, Basis, Observation, PlanningModel};
-use mcapi::api::rest::{AppState, router};
-use mcapi::service::{Limits, SessionManager};
+use mcapi_core::model::hallway;
+use mcapi_core::{Agent, AgentParams, Basis, Observation, PlanningModel};
+use mcapi_server::api::{AppState, router};
+use mcapi_server::service::{Limits, SessionManager};
 use serde_json::{Value, json};
 
 struct Server {
@@ -20,7 +20,7 @@ async fn start(limits: Limits) -> Server {
     let manager = Arc::new(SessionManager::new(limits, 2).expect("manager"));
     let state = AppState {
         manager: Arc::clone(&manager),
-        metrics: mcapi::telemetry::prometheus(),
+        metrics: mcapi_server::telemetry::prometheus(),
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
         .await
@@ -468,7 +468,7 @@ async fn many_concurrent_sessions() {
         assert_eq!(
             server
                 .manager
-                .get(mcapi::service::Caller::Anyone, &id)
+                .get(mcapi_server::service::Caller::Anyone, &id)
                 .expect("session")
                 .tick,
             100

@@ -13,11 +13,11 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use mcapi::algo::model::hallway;
-use mcapi::algo::{Agent, AgentParams, Basis, Observation, PlanningModel};
-use mcapi::api::grpc::SESSION_METADATA;
-use mcapi::api::grpc::pb;
-use mcapi::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_core::model::hallway;
+use mcapi_core::{Agent, AgentParams, Basis, Observation, PlanningModel};
+use mcapi_server::api::grpc::SESSION_METADATA;
+use mcapi_server::api::grpc::pb;
+use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use serde_json::{Value, json};
 use tonic::transport::Channel;
 
@@ -652,7 +652,7 @@ pub fn assert_session_matches(
     let history = history.as_array().expect("history");
     let keep = expected_history
         .len()
-        .min(mcapi::service::spec::DEFAULT_HISTORY);
+        .min(mcapi_server::service::agent_config::DEFAULT_HISTORY);
     let want = &expected_history[expected_history.len() - keep..];
     assert_eq!(history.len(), want.len(), "{ctx}: history length");
     for (got, want) in history.iter().zip(want) {

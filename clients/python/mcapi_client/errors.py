@@ -1,7 +1,7 @@
 """Errors raised by the clients.
 
 Every error the server reports carries a stable snake_case ``code`` (the table
-in the server's ``src/api/error.rs``); REST sends it in the JSON body
+in the server's ``crates/mcapi-server/src/api/error.rs``); REST sends it in the JSON body
 ``{"code", "message"}``, gRPC in the ``x-mcapi-error-code`` trailer. Both
 clients raise the same :class:`McapiError` subclass for the same code, with the
 same ``code``, the HTTP ``status`` the code maps to and the server's
@@ -162,7 +162,7 @@ class SessionFailed(InternalError):
     quarantined (HTTP 500, ``session_failed``): delete it and create it again."""
 
 
-# The server's stable codes (src/api/error.rs) with their class and HTTP status.
+# The server's stable codes (crates/mcapi-server/src/api/error.rs) with their class and HTTP status.
 ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "bad_request": (BadRequest, 400),
     "invalid_model": (InvalidModel, 400),

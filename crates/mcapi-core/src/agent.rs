@@ -1,0 +1,758 @@
+//! Algorithm 1 (MCA-PI) as an [`Agent`]: one observation in, one action out.
+//!
+//! A tick (ALGORITHM.md §2): the agent in s_t took a_t (the action it advised,
+//! or the one the caller reports it took), arrived in s_{t+1} and received
+//! ξ(t+1). [`Agent::observe`] applies line 5 (Ξ), lines 6-7 (D, Eqs. 1-2)
+//! and Eq. 3 (r); [`Agent::plan`] applies line 8 (R = |ΞΛD|) and line 9 (one
+//! LSTDQ evaluation and one greedy improvement); [`Agent::act`] returns
+//! a_{t+1} = π_{t+1}(s_{t+1}), or a uniformly random valid action with
+//! probability ε (exploration, our addition). [`Agent::step`] does all three,
+//! Algorithm 1 to the letter. The split lets a server answer before planning.
+
+use std::sync::Arc;
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use super::drive::Drive;
+use super::error::{AlgoError, MAX_STIMULUS, Result};
+use super::lstdq::{PlanOutcome, Planner, PlannerStats, PlanningModel};
+use super::params::ValidParams;
+use super::stimulus::StimulusFunction;
+
+/// What the caller reports at a tick.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Observation<'a> {
+    /// s_{t+1}, the state the agent is in now.
+    pub state: usize,
+    /// ξ(t+1); absent on the first observation only.
+    pub stimulus: Option<&'a [f64]>,
+    /// a_t if it differs from the advised action (index into the model's actions).
+    pub action_taken: Option<usize>,
+}
+
+impl<'a> Observation<'a> {
+    /// The first observation: a state only.
+    pub fn first(state: usize) -> Self {
+        Self {
+            state,
+            stimulus: None,
+            action_taken: None,
+        }
+    }
+
+    /// A later observation with the stimulus received on arrival.
+    pub fn new(state: usize, stimulus: &'a [f64]) -> Self {
+        Self {
+            state,
+            stimulus: Some(stimulus),
+            action_taken: None,
+        }
+    }
+}
+
+/// What [`Agent::observe`] did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ObserveOutcome {
+    /// Ticks so far (observations that carried a stimulus).
+    pub tick: u64,
+    /// |r| with r = D·Λξ (Eq. 3); 0 on the first observation.
+    pub reward: f64,
+}
+
+/// The reply to one observation.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Step {
+    /// Tick after this observation.
+    pub tick: u64,
+    /// Index of the next action a_{t+1}.
+    pub action: usize,
+    /// |r| of this tick (Eq. 3).
+    pub reward: f64,
+    /// The planning step this tick ran (None on the first observation).
+    pub plan: Option<PlanOutcome>,
+}
+
+/// Position of a ChaCha8 stream: enough to resume it exactly.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+pub struct RngState {
+    /// The 32-byte key.
+    pub seed: [u8; 32],
+    /// Stream number.
+    pub stream: u64,
+    /// Words consumed so far.
+    pub word_pos: u128,
+}
+
+impl RngState {
+    fn of(rng: &ChaCha8Rng) -> Self {
+        Self {
+            seed: rng.get_seed(),
+            stream: rng.get_stream(),
+            word_pos: rng.get_word_pos(),
+        }
+    }
+
+    fn resume(&self) -> ChaCha8Rng {
+        let mut rng = ChaCha8Rng::from_seed(self.seed);
+        rng.set_stream(self.stream);
+        rng.set_word_pos(self.word_pos);
+        rng
+    }
+}
+
+/// Everything of an [`Agent`] that is not a function of its model and
+/// parameters: what a durable store keeps to resume it (DESIGN.md,
+/// "Durability"). Ξ, the visit counts, D and its λ₁ statistics, the tick
+/// and the RNG position come back bit for bit; so do π and Q.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct AgentSnapshot {
+    /// The RNG's position.
+    pub rng: RngState,
+    /// D and its running statistics (Eqs. 1-2, §4).
+    pub drive: Drive,
+    /// Ξ and n(s, a).
+    pub stimulus: StimulusFunction,
+    /// Chosen pair per state.
+    pub policy: Vec<u32>,
+    /// Q over valid pairs.
+    pub q: Vec<f64>,
+    /// R as of the last plan.
+    pub rewards: Vec<f64>,
+    /// Planner work counters.
+    pub planner_stats: PlannerStats,
+    /// s_t.
+    pub state: Option<usize>,
+    /// The pair advised by the last `act`.
+    pub advised: Option<usize>,
+    /// Ticks so far.
+    pub tick: u64,
+    /// |r| of the last tick.
+    pub last_reward: f64,
+    /// The last planning step.
+    pub last_plan: PlanOutcome,
+    /// Policy updates applied.
+    pub policy_version: u64,
+    /// R changed since the last plan.
+    pub dirty: bool,
+}
+
+/// One MCA-PI agent: its drive, stimulus function, policy and RNG.
+#[derive(Debug, Clone)]
+pub struct Agent {
+    ctx: Arc<PlanningModel>,
+    params: ValidParams,
+    rng: ChaCha8Rng,
+    drive: Drive,
+    stimulus: StimulusFunction,
+    planner: Planner,
+    /// R = |ΞΛD| as of the last plan.
+    rewards: Vec<f64>,
+    scaled_drive: Vec<f64>,
+    /// s_t: the state of the last observation.
+    state: Option<usize>,
+    /// The pair advised in `state` by the last `act`.
+    advised: Option<usize>,
+    tick: u64,
+    last_reward: f64,
+    last_plan: PlanOutcome,
+    policy_version: u64,
+    /// R changed since the last plan.
+    dirty: bool,
+}
+
+impl Agent {
+    /// A fresh agent: Ξ ~ N(0, σ²), D = |N(0, I)| normalised, π₀ uniformly
+    /// random over valid actions, drawn in that order from ChaCha8(seed) (§3).
+    pub fn new(ctx: Arc<PlanningModel>, params: ValidParams) -> Self {
+        let model = ctx.model();
+        let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+        let stimulus = StimulusFunction::new(
+            model.n_pairs(),
+            model.n_stimuli(),
+            params.optimistic_sd,
+            &mut rng,
+        );
+        let drive = Drive::new(&params.priorities, params.eta, &mut rng);
+        let policy = (0..model.states())
+            .map(|s| {
+                let range = model.pairs_of(s);
+                rng.random_range(range) as u32
+            })
+            .collect();
+        let planner = Planner::new(&ctx, policy);
+        let n_pairs = model.n_pairs();
+        let n = model.n_stimuli();
+        Self {
+            ctx,
+            params,
+            rng,
+            drive,
+            stimulus,
+            planner,
+            rewards: vec![0.0; n_pairs],
+            scaled_drive: vec![0.0; n],
+            state: None,
+            advised: None,
+            tick: 0,
+            last_reward: 0.0,
+            last_plan: PlanOutcome::default(),
+            policy_version: 0,
+            dirty: false,
+        }
+    }
+
+    /// Checks an observation against the model and the agent's state without
+    /// changing anything; returns the pair (s_t, a_t) it will update, if any.
+    pub fn validate(&self, obs: &Observation<'_>) -> Result<Option<usize>> {
+        let model = self.ctx.model();
+        if obs.state >= model.states() {
+            return Err(AlgoError::StateOutOfRange {
+                state: obs.state,
+                states: model.states(),
+            });
+        }
+        let Some(prev) = self.state else {
+            if obs.stimulus.is_some() {
+                return Err(AlgoError::FirstObservation { field: "stimulus" });
+            }
+            if obs.action_taken.is_some() {
+                return Err(AlgoError::FirstObservation {
+                    field: "action_taken",
+                });
+            }
+            return Ok(None);
+        };
+        let xi = obs.stimulus.ok_or(AlgoError::MissingStimulus)?;
+        if xi.len() != model.n_stimuli() {
+            return Err(AlgoError::StimulusLength {
+                got: xi.len(),
+                expected: model.n_stimuli(),
+            });
+        }
+        if xi.iter().any(|x| !x.is_finite()) {
+            return Err(AlgoError::NonFinite { field: "stimulus" });
+        }
+        if let Some((index, &value)) = xi.iter().enumerate().find(|(_, x)| x.abs() > MAX_STIMULUS) {
+            return Err(AlgoError::StimulusTooLarge {
+                index,
+                value,
+                limit: MAX_STIMULUS,
+            });
+        }
+        let pair = match obs.action_taken {
+            None => self.advised,
+            Some(a) if a >= model.n_actions() => {
+                return Err(AlgoError::ActionOutOfRange {
+                    action: a,
+                    actions: model.n_actions(),
+                });
+            }
+            Some(a) => Some(
+                model
+                    .pair(prev, a)
+                    .ok_or_else(|| AlgoError::ActionNotAvailable {
+                        state: prev,
+                        action: model.actions()[a].clone(),
+                    })?,
+            ),
+        };
+        // `advised` is always set once `state` is (act follows every observe).
+        pair.map(Some)
+            .ok_or(AlgoError::Numerical("no advised action to update".into()))
+    }
+
+    /// Lines 5-7 and Eq. 3: learns Ξ(s_t, a_t) and updates D. Nothing changes on error.
+    pub fn observe(&mut self, obs: &Observation<'_>) -> Result<ObserveOutcome> {
+        let pair = self.validate(obs)?;
+        if let (Some(p), Some(xi)) = (pair, obs.stimulus) {
+            self.stimulus.update(p, xi, self.params.stimulus_rate);
+            self.last_reward = self.drive.update(xi).abs();
+            self.tick += 1;
+            self.dirty = true;
+        }
+        self.state = Some(obs.state);
+        self.advised = None;
+        Ok(ObserveOutcome {
+            tick: self.tick,
+            reward: if pair.is_some() {
+                self.last_reward
+            } else {
+                0.0
+            },
+        })
+    }
+
+    /// Line 8 (R = |ΞΛD|) and line 9: one LSTDQ evaluation and one greedy
+    /// improvement of π.
+    pub fn plan(&mut self) -> Result<PlanOutcome> {
+        self.refresh_rewards();
+        let ctx = Arc::clone(&self.ctx);
+        let outcome = self.planner.update(
+            &ctx,
+            &self.rewards,
+            self.params.gamma,
+            self.params.ridge,
+            &mut self.rng,
+        )?;
+        self.last_plan = outcome;
+        self.policy_version += 1;
+        self.dirty = false;
+        Ok(outcome)
+    }
+
+    /// Recomputes R = |ΞΛD| from the current Ξ and D.
+    fn refresh_rewards(&mut self) {
+        for ((s, d), l) in self
+            .scaled_drive
+            .iter_mut()
+            .zip(self.drive.vector())
+            .zip(self.drive.inv_rho())
+        {
+            *s = d * l;
+        }
+        self.stimulus
+            .rewards_into(&self.scaled_drive, &mut self.rewards);
+    }
+
+    /// a_{t+1}: π(s_{t+1}), or with probability ε a uniformly random valid
+    /// action. The choice is remembered as the action the next observation
+    /// updates. Returns `None` before the first observation.
+    pub fn act(&mut self) -> Option<usize> {
+        let s = self.state?;
+        let mut pair = self.planner.chosen_pair(s);
+        if self.params.epsilon > 0.0 && self.rng.random::<f64>() < self.params.epsilon {
+            pair = self.rng.random_range(self.ctx.model().pairs_of(s));
+        }
+        self.advised = Some(pair);
+        Some(self.ctx.model().pair_action(pair))
+    }
+
+    /// One tick of Algorithm 1: observe, plan (except on the first
+    /// observation), act.
+    pub fn step(&mut self, obs: &Observation<'_>) -> Result<Step> {
+        let observed = self.observe(obs)?;
+        let plan = self.dirty.then(|| self.plan());
+        // Act even if planning failed, so the agent stays consistent.
+        let action = self
+            .act()
+            .ok_or_else(|| AlgoError::Numerical("no state after an observation".into()))?;
+        let plan = plan.transpose()?;
+        Ok(Step {
+            tick: observed.tick,
+            action,
+            reward: observed.reward,
+            plan,
+        })
+    }
+
+    /// Shared planning inputs (model and basis).
+    pub fn planning_model(&self) -> &Arc<PlanningModel> {
+        &self.ctx
+    }
+
+    /// Effective parameters.
+    pub fn params(&self) -> &ValidParams {
+        &self.params
+    }
+
+    /// The drive D.
+    pub fn drive(&self) -> &Drive {
+        &self.drive
+    }
+
+    /// The stimulus function Ξ.
+    pub fn stimulus(&self) -> &StimulusFunction {
+        &self.stimulus
+    }
+
+    /// The planner (Q, π).
+    pub fn planner(&self) -> &Planner {
+        &self.planner
+    }
+
+    /// R as of the last plan.
+    pub fn rewards(&self) -> &[f64] {
+        &self.rewards
+    }
+
+    /// Ticks so far.
+    pub fn tick(&self) -> u64 {
+        self.tick
+    }
+
+    /// The state of the last observation.
+    pub fn state(&self) -> Option<usize> {
+        self.state
+    }
+
+    /// Number of planning steps applied.
+    pub fn policy_version(&self) -> u64 {
+        self.policy_version
+    }
+
+    /// The last planning step.
+    pub fn last_plan(&self) -> PlanOutcome {
+        self.last_plan
+    }
+
+    /// True when R changed since the last plan.
+    pub fn needs_plan(&self) -> bool {
+        self.dirty
+    }
+
+    /// The greedy action of state `s` (no exploration).
+    pub fn greedy_action(&self, s: usize) -> usize {
+        self.ctx.model().pair_action(self.planner.chosen_pair(s))
+    }
+
+    /// The action advised by the last `act`: the one the next observation
+    /// updates unless it reports another.
+    pub fn advised_action(&self) -> Option<usize> {
+        self.advised.map(|p| self.ctx.model().pair_action(p))
+    }
+
+    /// Sets the advised action of the current state, as a reply already
+    /// sent to a client named it (used when replaying a log).
+    pub fn set_advised_action(&mut self, action: usize) -> Result<()> {
+        let state = self.state.ok_or_else(|| {
+            AlgoError::InvalidSnapshot("an advised action before any state".into())
+        })?;
+        let pair = self.ctx.model().pair(state, action).ok_or_else(|| {
+            AlgoError::InvalidSnapshot(format!("action {action} is not available in state {state}"))
+        })?;
+        self.advised = Some(pair);
+        Ok(())
+    }
+
+    /// Raises the policy-version counter to at least `v` (a log replay
+    /// restores the count the client was last told; the policy itself is
+    /// recomputed once at the end of the replay).
+    pub fn resume_policy_version(&mut self, v: u64) {
+        self.policy_version = self.policy_version.max(v);
+    }
+
+    /// Gives stimulus column `dim` visit counts of its own (§7: the
+    /// curiosity column's rate is 1/n_cur); see
+    /// [`StimulusFunction::count_column_separately`].
+    pub fn count_stimulus_column_separately(&mut self, dim: usize) -> Result<()> {
+        self.check_dim(dim)?;
+        self.stimulus.count_column_separately(dim);
+        Ok(())
+    }
+
+    /// Re-initialises stimulus column `dim` optimistically, Ξ(·, dim) ~
+    /// N(0, sd²) with the agent's RNG, and restarts its own visit counts (§7:
+    /// at each module freeze). R is recomputed at the next plan.
+    pub fn reset_stimulus_column(&mut self, dim: usize, sd: f64) -> Result<()> {
+        self.check_dim(dim)?;
+        if !(sd.is_finite() && sd >= 0.0) {
+            return Err(AlgoError::NonFinite { field: "sd" });
+        }
+        self.stimulus.reset_column(dim, sd, &mut self.rng);
+        self.dirty = true;
+        Ok(())
+    }
+
+    /// Sets drive component `dim` to `value` and renormalises (§7, condition
+    /// (3)); see [`Drive::set_component`]. Returns whether D changed.
+    pub fn set_drive_component(&mut self, dim: usize, value: f64) -> Result<bool> {
+        self.check_dim(dim)?;
+        if !value.is_finite() {
+            return Err(AlgoError::NonFinite { field: "drive" });
+        }
+        let before = self.drive.vector()[dim];
+        if before == value {
+            return Ok(false);
+        }
+        let changed = self.drive.set_component(dim, value);
+        self.dirty |= changed;
+        Ok(changed)
+    }
+
+    fn check_dim(&self, dim: usize) -> Result<()> {
+        let n = self.ctx.model().n_stimuli();
+        if dim >= n {
+            return Err(AlgoError::StimulusLength {
+                got: dim + 1,
+                expected: n,
+            });
+        }
+        Ok(())
+    }
+
+    /// The agent's resumable state.
+    pub fn snapshot(&self) -> AgentSnapshot {
+        AgentSnapshot {
+            rng: RngState::of(&self.rng),
+            drive: self.drive.without_scratch(),
+            stimulus: self.stimulus.clone(),
+            policy: self.planner.policy().to_vec(),
+            q: self.planner.q().to_vec(),
+            rewards: self.rewards.clone(),
+            planner_stats: self.planner.stats(),
+            state: self.state,
+            advised: self.advised,
+            tick: self.tick,
+            last_reward: self.last_reward,
+            last_plan: self.last_plan,
+            policy_version: self.policy_version,
+            dirty: self.dirty,
+        }
+    }
+
+    /// An agent resumed from a snapshot taken of an agent with the same
+    /// model and parameters; refuses a snapshot that does not fit them.
+    pub fn restore(
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+        snap: AgentSnapshot,
+    ) -> Result<Self> {
+        let model = ctx.model();
+        let (pairs, n) = (model.n_pairs(), model.n_stimuli());
+        let bad = |what: String| Err(AlgoError::InvalidSnapshot(what));
+        if snap.drive.vector().len() != n || snap.drive.inv_rho().len() != n {
+            return bad(format!(
+                "D has {} components; the model has {n} stimuli",
+                snap.drive.vector().len()
+            ));
+        }
+        if snap.drive.vector().iter().any(|x| !x.is_finite())
+            || (super::drive::norm(snap.drive.vector()) - 1.0).abs() > 1e-6
+        {
+            return bad("D is not a finite unit vector".into());
+        }
+        if snap.stimulus.dims() != n
+            || snap.stimulus.table().len() != pairs * n
+            || snap.stimulus.visits().len() != pairs
+        {
+            return bad(format!("Ξ does not have {pairs} pairs x {n} stimuli"));
+        }
+        if snap
+            .stimulus
+            .own_column()
+            .is_some_and(|c| c.dim >= n || c.visits.len() != pairs)
+        {
+            return bad(format!(
+                "Ξ's own column does not fit {pairs} pairs x {n} stimuli"
+            ));
+        }
+        if snap.rewards.len() != pairs {
+            return bad(format!(
+                "R has {} pairs; the model has {pairs}",
+                snap.rewards.len()
+            ));
+        }
+        if snap.state.is_some_and(|s| s >= model.states()) {
+            return bad("the current state is outside the model".into());
+        }
+        match (snap.state, snap.advised) {
+            (None, Some(_)) => return bad("an advised pair without a state".into()),
+            (Some(s), Some(p)) if !model.pairs_of(s).contains(&p) => {
+                return bad(format!("advised pair {p} does not belong to state {s}"));
+            }
+            _ => {}
+        }
+        let planner = Planner::restore(&ctx, snap.policy, snap.q, snap.planner_stats)?;
+        Ok(Self {
+            rng: snap.rng.resume(),
+            drive: snap.drive,
+            stimulus: snap.stimulus,
+            planner,
+            rewards: snap.rewards,
+            scaled_drive: vec![0.0; n],
+            state: snap.state,
+            advised: snap.advised,
+            tick: snap.tick,
+            last_reward: snap.last_reward,
+            last_plan: snap.last_plan,
+            policy_version: snap.policy_version,
+            dirty: snap.dirty,
+            ctx,
+            params,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::basis::Basis;
+    use crate::drive::norm;
+    use crate::model::hallway;
+    use crate::params::AgentParams;
+
+    fn hallway_agent(seed: u64) -> Agent {
+        let preset = hallway();
+        let params = AgentParams {
+            seed: Some(seed),
+            ..Default::default()
+        }
+        .check(2, 0)
+        .expect("params");
+        Agent::new(
+            Arc::new(PlanningModel::new(preset.model, Basis::Indicator)),
+            params,
+        )
+    }
+
+    #[test]
+    fn a_restored_agent_continues_exactly() {
+        let mut a = hallway_agent(9);
+        let mut state = 25;
+        a.step(&Observation::first(state)).expect("first");
+        let walk = |agent: &mut Agent, state: &mut usize, ticks: usize| {
+            let mut out = Vec::new();
+            for _ in 0..ticks {
+                let action = agent.advised_action().expect("advised");
+                *state = match action {
+                    0 => state.saturating_sub(1),
+                    1 => (*state + 1).min(49),
+                    _ => *state,
+                };
+                let xi = [f64::from(*state == 10) * 6.0, f64::from(*state == 40) * 6.0];
+                let step = agent.step(&Observation::new(*state, &xi)).expect("step");
+                out.push((step.action, agent.drive().vector().to_vec()));
+            }
+            out
+        };
+        walk(&mut a, &mut state, 300);
+        let snap = a.snapshot();
+        let bytes = serde_json::to_vec(&snap).expect("encode");
+        let back: AgentSnapshot = serde_json::from_slice(&bytes).expect("decode");
+        assert_eq!(back, snap);
+        let mut b = Agent::restore(Arc::clone(a.planning_model()), a.params().clone(), back)
+            .expect("restore");
+        let mut state_b = state;
+        let ta = walk(&mut a, &mut state, 500);
+        let tb = walk(&mut b, &mut state_b, 500);
+        assert_eq!(ta, tb, "the restored agent must follow the same trajectory");
+        assert!(
+            a.snapshot() == b.snapshot(),
+            "identical state after 500 ticks"
+        );
+    }
+
+    #[test]
+    fn a_snapshot_of_another_model_is_refused() {
+        let a = hallway_agent(1);
+        let mut snap = a.snapshot();
+        snap.rewards.pop();
+        let err = Agent::restore(Arc::clone(a.planning_model()), a.params().clone(), snap)
+            .expect_err("short R");
+        assert!(matches!(err, AlgoError::InvalidSnapshot(_)), "{err}");
+        let mut snap = a.snapshot();
+        snap.policy[0] = 9999;
+        assert!(Agent::restore(Arc::clone(a.planning_model()), a.params().clone(), snap).is_err());
+    }
+
+    #[test]
+    fn first_observation_carries_only_a_state() {
+        let mut agent = hallway_agent(1);
+        let err = agent
+            .step(&Observation::new(3, &[0.0, 0.0]))
+            .expect_err("stimulus on first");
+        assert_eq!(err, AlgoError::FirstObservation { field: "stimulus" });
+        let step = agent.step(&Observation::first(3)).expect("first");
+        assert_eq!(step.tick, 0);
+        assert!(step.plan.is_none());
+        let err = agent
+            .step(&Observation::first(4))
+            .expect_err("missing stimulus");
+        assert_eq!(err, AlgoError::MissingStimulus);
+    }
+
+    #[test]
+    fn bad_observations_change_nothing() {
+        let mut agent = hallway_agent(2);
+        agent.step(&Observation::first(0)).expect("first");
+        let before = agent.drive().vector().to_vec();
+        let cases = [
+            (
+                Observation::new(50, &[0.0, 0.0]),
+                "state 50 is out of range",
+            ),
+            (
+                Observation::new(1, &[0.0]),
+                "stimulus has 1 components, expected 2",
+            ),
+            (Observation::new(1, &[f64::NAN, 0.0]), "non-finite"),
+            (
+                Observation::new(1, &[0.0, -1e200]),
+                "`stimulus[1]` = -1e200 exceeds the limit of ±1e12",
+            ),
+            (
+                Observation {
+                    state: 1,
+                    stimulus: Some(&[0.0, 0.0]),
+                    action_taken: Some(0),
+                },
+                "action `left` is not available in state 0",
+            ),
+            (
+                Observation {
+                    state: 1,
+                    stimulus: Some(&[0.0, 0.0]),
+                    action_taken: Some(7),
+                },
+                "action 7 is out of range",
+            ),
+        ];
+        for (obs, msg) in cases {
+            let err = agent.step(&obs).expect_err("invalid").to_string();
+            assert!(err.contains(msg), "{err:?} should contain {msg:?}");
+        }
+        assert_eq!(agent.tick(), 0);
+        assert_eq!(agent.drive().vector(), &before[..]);
+    }
+
+    #[test]
+    fn action_taken_overrides_the_advice() {
+        let mut agent = hallway_agent(3);
+        agent.step(&Observation::first(20)).expect("first");
+        let stay = agent.planning_model().model().pair(20, 2).expect("stay");
+        let obs = Observation {
+            state: 20,
+            stimulus: Some(&[1.0, 0.0]),
+            action_taken: Some(2),
+        };
+        agent.step(&obs).expect("step");
+        assert_eq!(agent.stimulus().visits()[stay], 1);
+        assert_eq!(agent.stimulus().row(stay), &[1.0, 0.0]);
+    }
+
+    #[test]
+    fn same_seed_same_trajectory() {
+        let run = |seed| {
+            let mut agent = hallway_agent(seed);
+            let mut s = agent.step(&Observation::first(25)).expect("first").action;
+            let mut state = 25usize;
+            let mut actions = Vec::new();
+            for t in 0..300 {
+                state = match s {
+                    0 => state - 1,
+                    1 => state + 1,
+                    _ => state,
+                };
+                let xi = if state == 10 {
+                    [6.0, 0.0]
+                } else if state == 40 {
+                    [0.0, 6.0]
+                } else {
+                    [0.0, 0.0]
+                };
+                let step = agent.step(&Observation::new(state, &xi)).expect("step");
+                assert!(
+                    (norm(agent.drive().vector()) - 1.0).abs() < 1e-12,
+                    "tick {t}"
+                );
+                s = step.action;
+                actions.push(s);
+            }
+            actions
+        };
+        assert_eq!(run(5), run(5));
+        assert_ne!(run(5), run(6));
+    }
+}

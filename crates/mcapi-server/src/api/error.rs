@@ -1,0 +1,185 @@
+//! The one mapping of service errors to HTTP status, gRPC code and stable
+//! snake_case code (STYLE.md, habit 3). Every variant is listed; no `_ =>`.
+
+use axum::Json;
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+use serde::Serialize;
+
+use crate::service::ServiceError;
+use mcapi_core::AlgoError;
+
+/// HTTP status, gRPC code and stable code of an error.
+pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
+    use StatusCode as H;
+    use tonic::Code as G;
+    match e {
+        ServiceError::Algo(a) => match a {
+            AlgoError::InvalidModel(_) => (H::BAD_REQUEST, G::InvalidArgument, "invalid_model"),
+            AlgoError::InvalidSnapshot(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
+            AlgoError::InvalidParameter { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "invalid_parameter")
+            }
+            AlgoError::InvalidBasis(_) => (H::BAD_REQUEST, G::InvalidArgument, "invalid_basis"),
+            AlgoError::StateOutOfRange { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "unknown_state")
+            }
+            AlgoError::ActionOutOfRange { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "unknown_action")
+            }
+            AlgoError::ActionNotAvailable { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "action_not_available")
+            }
+            AlgoError::StimulusLength { .. } | AlgoError::ExtrinsicStimulusLength { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "stimulus_length")
+            }
+            AlgoError::NonFinite { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "non_finite_number")
+            }
+            AlgoError::StimulusTooLarge { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "stimulus_too_large")
+            }
+            AlgoError::FirstObservation { .. } => {
+                (H::BAD_REQUEST, G::InvalidArgument, "first_observation")
+            }
+            AlgoError::MissingStimulus => (H::BAD_REQUEST, G::InvalidArgument, "missing_stimulus"),
+            AlgoError::Numerical(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "numerical_failure"),
+        },
+        ServiceError::BadRequest(_) => (H::BAD_REQUEST, G::InvalidArgument, "bad_request"),
+        ServiceError::NotFound(_) => (H::NOT_FOUND, G::NotFound, "not_found"),
+        ServiceError::UnknownRoute(_) => (H::NOT_FOUND, G::Unimplemented, "unknown_route"),
+        ServiceError::LimitExceeded(_) => {
+            (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "limit_exceeded")
+        }
+        ServiceError::PayloadTooLarge(_) => (
+            H::PAYLOAD_TOO_LARGE,
+            G::ResourceExhausted,
+            "payload_too_large",
+        ),
+        ServiceError::QuotaExceeded(_) => {
+            (H::TOO_MANY_REQUESTS, G::ResourceExhausted, "quota_exceeded")
+        }
+        ServiceError::SessionFailed(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "session_failed"),
+        ServiceError::TooManySessions(_) => (
+            H::TOO_MANY_REQUESTS,
+            G::ResourceExhausted,
+            "too_many_sessions",
+        ),
+        ServiceError::Unavailable(_) => (H::SERVICE_UNAVAILABLE, G::Unavailable, "unavailable"),
+        ServiceError::Unauthenticated(_) => {
+            (H::UNAUTHORIZED, G::Unauthenticated, "unauthenticated")
+        }
+        ServiceError::Storage(_) => (
+            H::SERVICE_UNAVAILABLE,
+            G::Unavailable,
+            "storage_unavailable",
+        ),
+        ServiceError::Internal(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
+        ServiceError::TooManyStreams(_) => (
+            H::TOO_MANY_REQUESTS,
+            G::ResourceExhausted,
+            "too_many_streams",
+        ),
+        ServiceError::RequestTimeout(_) => (
+            H::SERVICE_UNAVAILABLE,
+            G::DeadlineExceeded,
+            "request_timeout",
+        ),
+    }
+}
+
+/// The message a client sees: verbatim for its own mistakes, generic for
+/// internal faults (which are logged once here instead).
+pub fn public_message(e: &ServiceError, status: StatusCode) -> String {
+    if let ServiceError::Storage(detail) = e {
+        tracing::error!(error = %detail, "storage failure");
+        return "the session store failed, so the request was not made durable; its effect is \
+                rolled back (the session is reloaded from its last durable state before it takes \
+                another observation), so it is safe to retry (details in the server log)"
+            .to_string();
+    }
+    if let ServiceError::Algo(AlgoError::Numerical(detail)) = e {
+        tracing::error!(error = %detail, "policy update failed");
+        return "the observation was applied and logged, but the policy update after it failed \
+                numerically (details in the server log); do not send it again: the next \
+                observation plans anew"
+            .to_string();
+    }
+    if let ServiceError::SessionFailed(_) = e {
+        // A server fault, but the client must learn what to do about it.
+        return e.to_string();
+    }
+    if status.is_server_error() && status != StatusCode::SERVICE_UNAVAILABLE {
+        tracing::error!(error = ?e, "internal error");
+        return "internal error".to_string();
+    }
+    capped(e.to_string())
+}
+
+/// Longest message sent, in bytes. A message may quote the input (serde's
+/// "invalid type: string \"...\""); over gRPC it travels in a trailer, and
+/// a trailer beyond the client's header-list limit (16 KiB by default)
+/// breaks the call with an HTTP/2 protocol error instead of the status.
+pub const MAX_MESSAGE_BYTES: usize = 1024;
+
+fn capped(mut message: String) -> String {
+    if message.len() <= MAX_MESSAGE_BYTES {
+        return message;
+    }
+    let total = message.len();
+    let mut end = MAX_MESSAGE_BYTES;
+    while !message.is_char_boundary(end) {
+        end -= 1;
+    }
+    message.truncate(end);
+    message.push_str(&format!("... ({} more bytes)", total - end));
+    message
+}
+
+/// The JSON error body: `{"code", "message"}`.
+#[derive(Debug, Serialize, serde::Deserialize, utoipa::ToSchema)]
+pub struct ErrorBody {
+    /// Stable snake_case code.
+    pub code: String,
+    /// Human-readable message naming the field.
+    pub message: String,
+}
+
+/// A REST error response.
+#[derive(Debug)]
+pub struct ApiError(pub ServiceError);
+
+impl From<ServiceError> for ApiError {
+    fn from(e: ServiceError) -> Self {
+        Self(e)
+    }
+}
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        let (status, _, code) = classify(&self.0);
+        let body = ErrorBody {
+            code: code.to_string(),
+            message: public_message(&self.0, status),
+        };
+        let mut response = (status, Json(body)).into_response();
+        if status == StatusCode::UNAUTHORIZED {
+            response.headers_mut().insert(
+                axum::http::header::WWW_AUTHENTICATE,
+                axum::http::HeaderValue::from_static("Bearer realm=\"mcapi\""),
+            );
+        }
+        response
+    }
+}
+
+/// A gRPC status from a service error.
+pub fn to_status(e: ServiceError) -> tonic::Status {
+    let (http, code, stable) = classify(&e);
+    let message = public_message(&e, http);
+    let mut status = tonic::Status::new(code, message);
+    if let Ok(v) = stable.parse() {
+        status.metadata_mut().insert("x-mcapi-error-code", v);
+    }
+    status
+}

@@ -1,0 +1,558 @@
+//! The gRPC transport (tonic), package `mcapi.v1`, service `Agents`
+//! (DESIGN.md, "gRPC"): a thin adapter over [`SessionManager`]. Each method
+//! decodes its message ([`convert`]), makes one call into the service and
+//! encodes the answer; errors go through the one table in
+//! [`crate::api::error`]. Health (`grpc.health.v1`) and reflection (v1) are
+//! served beside it.
+//!
+//! Streams: `Interact` reads the next observation only when its bounded
+//! reply channel has room (backpressure), and stops when the client goes
+//! away; `Watch` sends a snapshot per interval. Both end, with UNAVAILABLE,
+//! when the server shuts down, so a graceful shutdown is not held up by
+//! long-lived streams.
+//!
+//! Bounds ([`serve_with`], issue 12): keys are checked and `Observe`
+//! batches counted before a message is decoded ([`guard`]); a caller's
+//! `Watch` streams count against its budget of watch streams, shared with
+//! the REST event streams ([`crate::api::streams`]); connections, HTTP/2
+//! streams per connection, keep-alive and the request timeout come from
+//! [`ConnLimits`]; a panicking method answers INTERNAL.
+
+pub mod convert;
+pub mod guard;
+
+use std::future::Future;
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use thiserror::Error;
+use tokio::net::TcpListener;
+use tokio::sync::{mpsc, watch};
+use tokio::time::MissedTickBehavior;
+use tokio_stream::wrappers::ReceiverStream;
+use tonic::metadata::MetadataMap;
+use tonic::service::Routes;
+use tonic::{Request, Response, Status, Streaming};
+use tracing::Instrument;
+
+use crate::api::conn::{ConnLimits, grpc_panic_layer, limited_incoming};
+use crate::api::error::to_status;
+use crate::api::streams::{StreamLimiter, StreamSlot};
+use crate::service::{Caller, ServiceError, SessionManager};
+
+use pb::agents_server::{Agents, AgentsServer};
+
+/// Generated messages, client and server of `proto/mcapi/v1/agents.proto`.
+pub use mcapi_proto as pb;
+/// Metadata key naming the session a call concerns (DESIGN.md, "Scale-out").
+pub use mcapi_proto::SESSION_METADATA;
+
+/// Why the gRPC server could not start or stopped with an error.
+#[derive(Debug, Error)]
+pub enum ServeError {
+    /// Binding the address failed.
+    #[error("binding the gRPC address: {0}")]
+    Bind(#[from] std::io::Error),
+    /// The reflection service could not load the descriptors.
+    #[error("building the reflection service: {0}")]
+    Reflection(#[from] tonic_reflection::server::Error),
+    /// The transport failed.
+    #[error("gRPC transport: {0}")]
+    Transport(#[from] tonic::transport::Error),
+}
+
+/// The `Agents` service over a session manager.
+#[derive(Clone)]
+pub struct AgentsService {
+    manager: Arc<SessionManager>,
+    stream_buffer: usize,
+    stopping: watch::Receiver<bool>,
+    streams: Option<Arc<StreamLimiter>>,
+}
+
+impl AgentsService {
+    /// A service whose streams hold up to `stream_buffer` replies each.
+    /// `stopping` turning true ends every open stream (server shutdown).
+    pub fn new(
+        manager: Arc<SessionManager>,
+        stream_buffer: usize,
+        stopping: watch::Receiver<bool>,
+    ) -> Self {
+        Self {
+            manager,
+            stream_buffer: stream_buffer.max(1),
+            stopping,
+            streams: None,
+        }
+    }
+
+    /// `Watch` streams count against `streams` (shared with the REST event
+    /// streams); without it they are not limited.
+    pub fn with_streams(mut self, streams: Arc<StreamLimiter>) -> Self {
+        self.streams = Some(streams);
+        self
+    }
+
+    /// A slot for a new `Watch` stream of `caller`.
+    fn stream_slot(
+        &self,
+        caller: Caller,
+        peer: Option<std::net::IpAddr>,
+    ) -> Result<Option<StreamSlot>, Status> {
+        let Some(streams) = &self.streams else {
+            return Ok(None);
+        };
+        streams.acquire(caller, peer).map(Some).map_err(to_status)
+    }
+}
+
+/// Resolves once `stopping` turns true; never if its sender is gone.
+async fn stopped(mut stopping: watch::Receiver<bool>) {
+    if stopping.wait_for(|s| *s).await.is_err() {
+        std::future::pending::<()>().await;
+    }
+}
+
+fn shutting_down() -> Status {
+    to_status(ServiceError::Unavailable(
+        "the server is shutting down".into(),
+    ))
+}
+
+/// The caller: as [`guard::GuardLayer`] authenticated it before the
+/// message was decoded, else from the `authorization` metadata
+/// (`Bearer <key>`).
+fn caller<T>(manager: &SessionManager, request: &Request<T>) -> Result<Caller, Status> {
+    if let Some(caller) = request.extensions().get::<Caller>() {
+        return Ok(*caller);
+    }
+    let metadata = request.metadata();
+    let header = match metadata.get("authorization") {
+        None => None,
+        Some(v) => Some(v.to_str().map_err(|_| {
+            to_status(ServiceError::Unauthenticated(
+                "the `authorization` metadata must be `Bearer <key>`".into(),
+            ))
+        })?),
+    };
+    manager.authenticate(header).map_err(to_status)
+}
+
+/// The `x-mcapi-session` metadata, if sent.
+fn metadata_session(metadata: &MetadataMap) -> Result<Option<String>, Status> {
+    metadata
+        .get(SESSION_METADATA)
+        .map(|v| {
+            v.to_str().map(str::to_string).map_err(|_| {
+                to_status(ServiceError::field(
+                    SESSION_METADATA,
+                    "must be printable ASCII",
+                ))
+            })
+        })
+        .transpose()
+}
+
+#[tonic::async_trait]
+impl Agents for AgentsService {
+    async fn create_session(
+        &self,
+        request: Request<pb::CreateSessionRequest>,
+    ) -> Result<Response<pb::SessionInfo>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let req = convert::create_session(request.into_inner()).map_err(to_status)?;
+        let manager = Arc::clone(&self.manager);
+        // Building a model (PVFs: an eigendecomposition) must not block the runtime.
+        let info = tokio::task::spawn_blocking(move || manager.create(caller, req))
+            .await
+            .map_err(|e| to_status(ServiceError::Internal(format!("create task: {e}"))))?
+            .map_err(to_status)?;
+        Ok(Response::new(convert::session_info(info)))
+    }
+
+    async fn get_session(
+        &self,
+        request: Request<pb::GetSessionRequest>,
+    ) -> Result<Response<pb::SessionInfo>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let pb::GetSessionRequest { session_id } = request.into_inner();
+        let id = convert::session_id(session_id, meta.as_deref()).map_err(to_status)?;
+        let info = self
+            .manager
+            .off_runtime(move |m| m.get(caller, &id))
+            .await
+            .map_err(to_status)?;
+        Ok(Response::new(convert::session_info(info)))
+    }
+
+    async fn list_sessions(
+        &self,
+        request: Request<pb::ListSessionsRequest>,
+    ) -> Result<Response<pb::ListSessionsResponse>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let (after, limit) = convert::list_request(request.into_inner());
+        let page = self
+            .manager
+            .off_runtime(move |m| m.list(caller, after.as_deref(), limit))
+            .await
+            .map_err(to_status)?;
+        Ok(Response::new(convert::session_page(page)))
+    }
+
+    async fn delete_session(
+        &self,
+        request: Request<pb::DeleteSessionRequest>,
+    ) -> Result<Response<pb::DeleteSessionResponse>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let pb::DeleteSessionRequest { session_id } = request.into_inner();
+        let id = convert::session_id(session_id, meta.as_deref()).map_err(to_status)?;
+        self.manager.delete(caller, &id).await.map_err(to_status)?;
+        Ok(Response::new(pb::DeleteSessionResponse {}))
+    }
+
+    async fn observe(
+        &self,
+        request: Request<pb::ObserveRequest>,
+    ) -> Result<Response<pb::ObserveResponse>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let (id, batch) =
+            convert::observe_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
+        let steps = self
+            .manager
+            .observe(caller, &id, batch)
+            .await
+            .map_err(to_status)?;
+        Ok(Response::new(pb::ObserveResponse {
+            steps: steps.into_iter().map(convert::step).collect(),
+        }))
+    }
+
+    type InteractStream = ReceiverStream<Result<pb::Step, Status>>;
+
+    async fn interact(
+        &self,
+        request: Request<Streaming<pb::Observation>>,
+    ) -> Result<Response<Self::InteractStream>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let span = tracing::info_span!("interact", session = meta.as_deref().unwrap_or(""));
+        let inbound = request.into_inner();
+        let (tx, rx) = mpsc::channel(self.stream_buffer);
+        let manager = Arc::clone(&self.manager);
+        let stopping = self.stopping.clone();
+        tokio::spawn(
+            async move {
+                tokio::select! {
+                    () = interact_loop(&manager, caller, inbound, meta.as_deref(), &tx) => {}
+                    () = tx.closed() => tracing::debug!("client went away"),
+                    () = stopped(stopping) => {
+                        let _ = tx.send(Err(shutting_down())).await;
+                    }
+                }
+            }
+            .instrument(span),
+        );
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    type WatchStream = ReceiverStream<Result<pb::SessionInfo, Status>>;
+
+    async fn watch(
+        &self,
+        request: Request<pb::WatchRequest>,
+    ) -> Result<Response<Self::WatchStream>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let peer = request.remote_addr().map(|a| a.ip());
+        let (id, interval) =
+            convert::watch_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
+        // An unknown session fails the call itself, before any stream.
+        let first = {
+            let id = id.clone();
+            self.manager
+                .off_runtime(move |m| m.get(caller, &id))
+                .await
+                .map_err(to_status)?
+        };
+        // Held by the stream's task: given back when the stream ends.
+        let slot = self.stream_slot(caller, peer)?;
+        // One slot: a slow reader gets fresh snapshots, not a backlog of old ones.
+        let (tx, rx) = mpsc::channel(1);
+        let manager = Arc::clone(&self.manager);
+        let stopping = self.stopping.clone();
+        let span = tracing::info_span!("watch", session = %id);
+        tokio::spawn(
+            async move {
+                tokio::select! {
+                    () = watch_loop(&manager, caller, &id, interval, first, &tx) => {}
+                    () = tx.closed() => tracing::debug!("client went away"),
+                    () = stopped(stopping) => {
+                        let _ = tx.send(Err(shutting_down())).await;
+                    }
+                }
+                drop(slot);
+            }
+            .instrument(span),
+        );
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
+    async fn get_values(
+        &self,
+        request: Request<pb::GetValuesRequest>,
+    ) -> Result<Response<pb::Values>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let (id, sel) =
+            convert::values_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
+        let values = self
+            .manager
+            .off_runtime(move |m| m.values(caller, &id, sel))
+            .await
+            .map_err(to_status)?;
+        Ok(Response::new(convert::values(values)))
+    }
+
+    async fn get_history(
+        &self,
+        request: Request<pb::GetHistoryRequest>,
+    ) -> Result<Response<pb::History>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let (id, limit) =
+            convert::history_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
+        let entries = self
+            .manager
+            .off_runtime(move |m| m.history(caller, &id, limit))
+            .await
+            .map_err(to_status)?;
+        Ok(Response::new(convert::history(entries)))
+    }
+}
+
+/// Observations in, steps out, one at a time and in order. The next
+/// observation is read only after the previous step found room in `tx`.
+/// Ends when the client closes its side, or after sending an error.
+async fn interact_loop(
+    manager: &SessionManager,
+    caller: Caller,
+    mut inbound: Streaming<pb::Observation>,
+    meta: Option<&str>,
+    tx: &mpsc::Sender<Result<pb::Step, Status>>,
+) {
+    loop {
+        let obs = match inbound.message().await {
+            Ok(Some(obs)) => obs,
+            Ok(None) => return,
+            Err(status) => {
+                // A malformed message or a broken connection.
+                let _ = tx.send(Err(status)).await;
+                return;
+            }
+        };
+        let reply = match convert::observation(obs, meta) {
+            Ok((id, obs)) => manager.observe(caller, &id, vec![obs]).await,
+            Err(e) => Err(e),
+        };
+        let reply = reply.and_then(|steps| {
+            steps
+                .into_iter()
+                .next()
+                .ok_or_else(|| ServiceError::Internal("observe returned no step".into()))
+        });
+        match reply {
+            Ok(step) => {
+                if tx.send(Ok(convert::step(step))).await.is_err() {
+                    return;
+                }
+            }
+            Err(e) => {
+                let _ = tx.send(Err(to_status(e))).await;
+                return;
+            }
+        }
+    }
+}
+
+/// A snapshot now and one per `interval`, until the session is deleted
+/// (ends with NOT_FOUND) or the client goes away.
+async fn watch_loop(
+    manager: &Arc<SessionManager>,
+    caller: Caller,
+    id: &str,
+    interval: Duration,
+    first: crate::service::SessionInfo,
+    tx: &mpsc::Sender<Result<pb::SessionInfo, Status>>,
+) {
+    let mut ticker = tokio::time::interval(interval);
+    ticker.set_missed_tick_behavior(MissedTickBehavior::Delay);
+    ticker.tick().await;
+    if tx.send(Ok(convert::session_info(first))).await.is_err() {
+        return;
+    }
+    loop {
+        ticker.tick().await;
+        let owned = id.to_string();
+        match manager.off_runtime(move |m| m.get(caller, &owned)).await {
+            Ok(info) => {
+                if tx.send(Ok(convert::session_info(info))).await.is_err() {
+                    return;
+                }
+            }
+            Err(e) => {
+                let _ = tx.send(Err(to_status(e))).await;
+                return;
+            }
+        }
+    }
+}
+
+/// How the gRPC server runs: stream buffers, connection limits and the
+/// stream budget shared with the REST event streams.
+#[derive(Debug, Clone)]
+pub struct GrpcOptions {
+    /// Buffered replies per `Interact` stream.
+    pub stream_buffer: usize,
+    /// Connection limits of the port.
+    pub limits: ConnLimits,
+    /// Concurrent `Watch` streams per caller.
+    pub streams: Arc<StreamLimiter>,
+}
+
+impl GrpcOptions {
+    /// Default connection limits with this stream buffer.
+    pub fn new(stream_buffer: usize) -> Self {
+        let limits = ConnLimits::default();
+        Self {
+            stream_buffer,
+            streams: StreamLimiter::new(limits.max_streams_per_key),
+            limits,
+        }
+    }
+}
+
+/// `Agents` (with the body-size limit of the manager), health and
+/// reflection v1, ready for a tonic server. Health reports `mcapi.v1.Agents`
+/// NOT_SERVING while stored sessions are recovered and after shutdown
+/// begins, SERVING in between.
+pub async fn router(
+    manager: Arc<SessionManager>,
+    stream_buffer: usize,
+    stopping: watch::Receiver<bool>,
+) -> Result<Routes, ServeError> {
+    router_with(manager, &GrpcOptions::new(stream_buffer), stopping).await
+}
+
+/// As [`router`], with the `Watch` streams counted against `opts.streams`.
+pub async fn router_with(
+    manager: Arc<SessionManager>,
+    opts: &GrpcOptions,
+    stopping: watch::Receiver<bool>,
+) -> Result<Routes, ServeError> {
+    let max_message = manager.limits().max_body_bytes;
+    let (health, health_service) = tonic_health::server::health_reporter();
+    let ready = manager.is_ready();
+    if ready {
+        health.set_serving::<AgentsServer<AgentsService>>().await;
+    } else {
+        health
+            .set_not_serving::<AgentsServer<AgentsService>>()
+            .await;
+    }
+    tokio::spawn({
+        let manager = Arc::clone(&manager);
+        let mut stopping = stopping.clone();
+        async move {
+            if !ready {
+                while !manager.is_ready() && !*stopping.borrow() {
+                    tokio::time::sleep(Duration::from_millis(20)).await;
+                }
+                if !*stopping.borrow() {
+                    health.set_serving::<AgentsServer<AgentsService>>().await;
+                }
+            }
+            let _ = stopping.wait_for(|stop| *stop).await;
+            health
+                .set_not_serving::<AgentsServer<AgentsService>>()
+                .await;
+        }
+    });
+    let service = AgentsService::new(manager, opts.stream_buffer, stopping)
+        .with_streams(Arc::clone(&opts.streams));
+    let agents = AgentsServer::new(service).max_decoding_message_size(max_message);
+    let reflection = tonic_reflection::server::Builder::configure()
+        .register_encoded_file_descriptor_set(pb::FILE_DESCRIPTOR_SET)
+        .register_encoded_file_descriptor_set(tonic_health::pb::FILE_DESCRIPTOR_SET)
+        .build_v1()?;
+    Ok(Routes::new(agents)
+        .add_service(health_service)
+        .add_service(reflection))
+}
+
+/// Serves gRPC on `addr` until `shutdown` resolves, then ends open streams
+/// and drains in-flight calls.
+pub async fn serve(
+    addr: SocketAddr,
+    manager: Arc<SessionManager>,
+    stream_buffer: usize,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), ServeError> {
+    let listener = TcpListener::bind(addr).await?;
+    serve_on(listener, manager, stream_buffer, shutdown).await
+}
+
+/// As [`serve`], on a listener the caller bound (tests bind port 0), with
+/// the default connection limits.
+pub async fn serve_on(
+    listener: TcpListener,
+    manager: Arc<SessionManager>,
+    stream_buffer: usize,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), ServeError> {
+    serve_with(listener, manager, GrpcOptions::new(stream_buffer), shutdown).await
+}
+
+/// As [`serve_on`], with these options: at most `max_connections`
+/// connections, each with its HTTP/2 preface due within the header-read
+/// timeout, HTTP/2 and TCP keep-alive, `http2_max_streams` calls per
+/// connection, the request timeout (in [`guard`]); keys checked and
+/// `Observe` batches counted before decoding ([`guard`]); a panicking
+/// method answers INTERNAL.
+pub async fn serve_with(
+    listener: TcpListener,
+    manager: Arc<SessionManager>,
+    opts: GrpcOptions,
+    shutdown: impl Future<Output = ()>,
+) -> Result<(), ServeError> {
+    let (stop_tx, stop_rx) = watch::channel(false);
+    let guard = guard::GuardLayer::new(Arc::clone(&manager), opts.limits.request_timeout());
+    let routes = router_with(manager, &opts, stop_rx).await?;
+    if let Ok(addr) = listener.local_addr() {
+        tracing::info!(%addr, "gRPC listening");
+    }
+    let signal = async move {
+        shutdown.await;
+        tracing::info!("gRPC shutting down");
+        // Ends Interact and Watch streams, which would hold the drain up.
+        let _ = stop_tx.send(true);
+    };
+    let limits = &opts.limits;
+    let layers = tower::ServiceBuilder::new()
+        .layer(grpc_panic_layer())
+        .layer(guard);
+    tonic::transport::Server::builder()
+        .max_concurrent_streams(limits.http2_max_streams)
+        .http2_keepalive_interval(Some(Duration::from_millis(limits.http2_keepalive_ms)))
+        .http2_keepalive_timeout(Some(Duration::from_millis(
+            limits.http2_keepalive_timeout_ms,
+        )))
+        .layer(layers)
+        .add_routes(routes)
+        .serve_with_incoming_shutdown(limited_incoming(listener, limits), signal)
+        .await?;
+    Ok(())
+}

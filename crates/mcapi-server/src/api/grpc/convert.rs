@@ -1,0 +1,692 @@
+//! Every conversion between proto messages and service types, in one place
+//! (STYLE.md, habit 7). Inbound messages are destructured fully, so a field
+//! added to the proto fails to compile here until it is handled; outbound
+//! service types are destructured too, so a new service field is not
+//! silently left off the wire. Failures are `ServiceError`s naming the field;
+//! the caller maps them with `api::error::to_status`.
+
+use std::time::Duration;
+
+use crate::service::wire::{GridLayout, GridMark};
+use crate::service::{
+    BasisSummary, CreateSession, CuriosityConfig, CuriosityInfo, EffectiveConfig, FrozenModuleInfo,
+    HistoryEntry, ModelSummary, ObservationIn, ServiceError, SessionConfig, SessionInfo,
+    SessionPage, SessionStats, SessionSummary, StepOut, TickCuriosity, UpdateMode, ValueSelection,
+    Values,
+};
+use mcapi_core::StimulusRate;
+use mcapi_core::params::StimulusRateName;
+use mcapi_core::spec::ActionRef;
+
+use super::pb;
+
+/// Interval of `Watch` when the request leaves it 0.
+pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_secs(1);
+/// Shortest interval of `Watch`, in milliseconds.
+pub const MIN_WATCH_INTERVAL_MS: u32 = 10;
+/// Longest interval of `Watch`, in milliseconds (one hour).
+pub const MAX_WATCH_INTERVAL_MS: u32 = 3_600_000;
+
+// ------------------------------------------------------------------ inbound
+
+fn to_usize(field: &str, n: u64) -> Result<usize, ServiceError> {
+    usize::try_from(n).map_err(|_| ServiceError::field(field, format!("{n} is too large")))
+}
+
+/// `CreateSession`: the model travels as the JSON the REST API takes.
+pub fn create_session(req: pb::CreateSessionRequest) -> Result<CreateSession, ServiceError> {
+    let pb::CreateSessionRequest { model_json, agent } = req;
+    if model_json.trim().is_empty() {
+        return Err(ServiceError::field(
+            "model_json",
+            "must hold the model as JSON, e.g. {\"preset\": \"hallway\"}",
+        ));
+    }
+    let model = serde_json::from_str(&model_json)
+        .map_err(|e| ServiceError::field("model_json", format!("is not valid JSON: {e}")))?;
+    Ok(CreateSession {
+        model,
+        agent: agent.map(session_config).transpose()?.unwrap_or_default(),
+    })
+}
+
+fn session_config(c: pb::SessionConfig) -> Result<SessionConfig, ServiceError> {
+    let pb::SessionConfig {
+        eta,
+        gamma,
+        priorities,
+        stimulus_rate,
+        optimistic_sd,
+        ridge,
+        epsilon,
+        seed,
+        update_mode,
+        history,
+        curiosity,
+    } = c;
+    let stimulus_rate = match stimulus_rate {
+        None => None,
+        Some(pb::session_config::StimulusRate::StimulusRateConstant(c)) => {
+            Some(StimulusRate::Constant(c))
+        }
+        Some(pb::session_config::StimulusRate::StimulusRateRule(rule)) => {
+            Some(stimulus_rate_rule("agent.stimulus_rate_rule", rule)?)
+        }
+    };
+    let update_mode = match pb::UpdateMode::try_from(update_mode) {
+        Ok(pb::UpdateMode::Unspecified) => None,
+        Ok(pb::UpdateMode::Lockstep) => Some(UpdateMode::Lockstep),
+        Ok(pb::UpdateMode::Async) => Some(UpdateMode::Async),
+        Err(_) => {
+            return Err(ServiceError::field(
+                "agent.update_mode",
+                format!("unknown value {update_mode}"),
+            ));
+        }
+    };
+    Ok(SessionConfig {
+        eta,
+        gamma,
+        // proto3 cannot tell an empty list from an absent one: empty is the
+        // default (an empty list is never valid, every model has stimuli).
+        priorities: (!priorities.is_empty()).then_some(priorities),
+        stimulus_rate,
+        optimistic_sd,
+        ridge,
+        epsilon,
+        seed,
+        update_mode,
+        history: history.map(|h| to_usize("agent.history", h)).transpose()?,
+        curiosity: curiosity.map(curiosity_config).transpose()?,
+    })
+}
+
+fn curiosity_config(c: pb::CuriosityConfig) -> Result<CuriosityConfig, ServiceError> {
+    let pb::CuriosityConfig {
+        signal_dim,
+        params_json,
+    } = c;
+    let params = if params_json.trim().is_empty() {
+        Default::default()
+    } else {
+        serde_json::from_str(&params_json)
+            .map_err(|e| ServiceError::field("agent.curiosity.params_json", e))?
+    };
+    Ok(CuriosityConfig {
+        signal_dim: to_usize("agent.curiosity.signal_dim", signal_dim)?,
+        params,
+    })
+}
+
+fn stimulus_rate_rule(field: &str, rule: i32) -> Result<StimulusRate, ServiceError> {
+    match pb::StimulusRateRule::try_from(rule) {
+        Ok(pb::StimulusRateRule::SampleMean) => {
+            Ok(StimulusRate::Named(StimulusRateName::SampleMean))
+        }
+        Ok(pb::StimulusRateRule::Unspecified) => Err(ServiceError::field(
+            field,
+            "is unspecified; leave `stimulus_rate` unset for the default",
+        )),
+        Err(_) => Err(ServiceError::field(field, format!("unknown value {rule}"))),
+    }
+}
+
+/// The session id a call concerns: the message's, or when that is empty the
+/// `x-mcapi-session` metadata's; when both are given they must agree
+/// (DESIGN.md, "Scale-out").
+pub fn session_id(message_id: String, metadata_id: Option<&str>) -> Result<String, ServiceError> {
+    match (message_id.is_empty(), metadata_id) {
+        (false, Some(meta)) if meta != message_id => Err(ServiceError::field(
+            "session_id",
+            format!("`{message_id}` does not match the `x-mcapi-session` metadata `{meta}`"),
+        )),
+        (false, _) => Ok(message_id),
+        (true, Some(meta)) if !meta.is_empty() => Ok(meta.to_string()),
+        (true, _) => Err(ServiceError::field(
+            "session_id",
+            "is required (in the message or as `x-mcapi-session` metadata)",
+        )),
+    }
+}
+
+/// One observation and the session it is for (its own `session_id`, or
+/// `default_id` when empty; both must agree when both are given).
+pub fn observation(
+    obs: pb::Observation,
+    default_id: Option<&str>,
+) -> Result<(String, ObservationIn), ServiceError> {
+    let pb::Observation {
+        session_id: id,
+        state,
+        stimulus,
+        action_taken,
+        signal,
+        signal_source,
+    } = obs;
+    let id = session_id(id, default_id)?;
+    let action_taken = match action_taken {
+        None => None,
+        Some(pb::observation::ActionTaken::ActionName(name)) => Some(ActionRef::Name(name)),
+        Some(pb::observation::ActionTaken::ActionIndex(a)) => {
+            Some(ActionRef::Index(to_usize("action_index", u64::from(a))?))
+        }
+    };
+    let stimulus = stimulus.map(|pb::Stimulus { values }| values);
+    Ok((
+        id,
+        ObservationIn {
+            state: to_usize("state", state)?,
+            stimulus,
+            action_taken,
+            // proto3 cannot tell an empty list from an absent one; a signal
+            // has at least one component.
+            signal: (!signal.is_empty()).then_some(signal),
+            signal_source: signal_source.map(|s| s as usize),
+        },
+    ))
+}
+
+/// `Observe`: the session and its batch; every observation's own id must
+/// be empty or the request's.
+pub fn observe_request(
+    req: pb::ObserveRequest,
+    metadata_id: Option<&str>,
+) -> Result<(String, Vec<ObservationIn>), ServiceError> {
+    let pb::ObserveRequest {
+        session_id: id,
+        observations,
+    } = req;
+    let id = session_id(id, metadata_id)?;
+    let batch = observations
+        .into_iter()
+        .enumerate()
+        .map(|(i, obs)| {
+            if !obs.session_id.is_empty() && obs.session_id != id {
+                return Err(ServiceError::field(
+                    &format!("observations[{i}].session_id"),
+                    format!("`{}` differs from the request's `{id}`", obs.session_id),
+                ));
+            }
+            observation(obs, Some(&id)).map(|(_, obs)| obs)
+        })
+        .collect::<Result<_, _>>()?;
+    Ok((id, batch))
+}
+
+/// `ListSessions`: `after` and `limit`.
+pub fn list_request(req: pb::ListSessionsRequest) -> (Option<String>, Option<usize>) {
+    let pb::ListSessionsRequest { after, limit } = req;
+    // u32 always fits usize on the platforms tonic supports.
+    (after, limit.map(|l| l as usize))
+}
+
+/// `Watch`: the session and the interval between snapshots.
+pub fn watch_request(
+    req: pb::WatchRequest,
+    metadata_id: Option<&str>,
+) -> Result<(String, Duration), ServiceError> {
+    let pb::WatchRequest {
+        session_id: id,
+        interval_ms,
+    } = req;
+    let id = session_id(id, metadata_id)?;
+    let interval = match interval_ms {
+        0 => DEFAULT_WATCH_INTERVAL,
+        ms if (MIN_WATCH_INTERVAL_MS..=MAX_WATCH_INTERVAL_MS).contains(&ms) => {
+            Duration::from_millis(u64::from(ms))
+        }
+        ms => {
+            return Err(ServiceError::field(
+                "interval_ms",
+                format!(
+                    "{ms} is not between {MIN_WATCH_INTERVAL_MS} and {MAX_WATCH_INTERVAL_MS} (or 0 for the default of {} ms)",
+                    DEFAULT_WATCH_INTERVAL.as_millis()
+                ),
+            ));
+        }
+    };
+    Ok((id, interval))
+}
+
+/// `GetHistory`: the session and the number of ticks.
+pub fn history_request(
+    req: pb::GetHistoryRequest,
+    metadata_id: Option<&str>,
+) -> Result<(String, Option<usize>), ServiceError> {
+    let pb::GetHistoryRequest {
+        session_id: id,
+        limit,
+    } = req;
+    Ok((session_id(id, metadata_id)?, limit.map(|l| l as usize)))
+}
+
+/// `GetValues`: the session and the tables, parsed as REST's `?include=`.
+pub fn values_request(
+    req: pb::GetValuesRequest,
+    metadata_id: Option<&str>,
+) -> Result<(String, ValueSelection), ServiceError> {
+    let pb::GetValuesRequest {
+        session_id: id,
+        include,
+    } = req;
+    let id = session_id(id, metadata_id)?;
+    Ok((id, ValueSelection::parse(Some(&include.join(",")))?))
+}
+
+// ----------------------------------------------------------------- outbound
+
+// Counts and indices fit u32/u64: the model stores pair indices as u32.
+fn u32_of(n: usize) -> u32 {
+    u32::try_from(n).unwrap_or(u32::MAX)
+}
+
+fn update_mode(mode: UpdateMode) -> pb::UpdateMode {
+    match mode {
+        UpdateMode::Lockstep => pb::UpdateMode::Lockstep,
+        UpdateMode::Async => pb::UpdateMode::Async,
+    }
+}
+
+fn basis(summary: BasisSummary) -> pb::BasisSummary {
+    let BasisSummary { kind, k } = summary;
+    pb::BasisSummary { kind, k: k as u64 }
+}
+
+fn model_summary(m: ModelSummary) -> pb::ModelSummary {
+    let ModelSummary {
+        states,
+        actions,
+        stimuli,
+        pairs,
+        transitions,
+        deterministic,
+        basis: spec,
+        features,
+        layout,
+    } = m;
+    pb::ModelSummary {
+        states: states as u64,
+        actions,
+        stimuli,
+        pairs: pairs as u64,
+        transitions: transitions as u64,
+        deterministic,
+        basis: Some(basis(spec)),
+        features: features as u64,
+        layout: layout.map(grid_layout),
+    }
+}
+
+fn grid_layout(l: GridLayout) -> pb::GridLayout {
+    let GridLayout {
+        rows,
+        cols,
+        cells,
+        marks,
+    } = l;
+    pb::GridLayout {
+        rows: rows as u64,
+        cols: cols as u64,
+        cells: cells
+            .into_iter()
+            .map(|[row, col]| pb::GridCell {
+                row: row as u64,
+                col: col as u64,
+            })
+            .collect(),
+        marks: marks
+            .into_iter()
+            .map(|GridMark { mark, state }| pb::GridMark {
+                mark,
+                state: state as u64,
+            })
+            .collect(),
+    }
+}
+
+fn effective_config(c: EffectiveConfig) -> pb::EffectiveConfig {
+    let EffectiveConfig {
+        eta,
+        gamma,
+        priorities,
+        stimulus_rate,
+        optimistic_sd,
+        ridge,
+        epsilon,
+        seed,
+        update_mode: mode,
+        history,
+        curiosity,
+    } = c;
+    use pb::effective_config::StimulusRate as Rate;
+    let stimulus_rate = match stimulus_rate {
+        StimulusRate::Constant(c) => Rate::StimulusRateConstant(c),
+        StimulusRate::Named(StimulusRateName::SampleMean) => {
+            Rate::StimulusRateRule(pb::StimulusRateRule::SampleMean.into())
+        }
+    };
+    pb::EffectiveConfig {
+        eta,
+        gamma,
+        priorities,
+        stimulus_rate: Some(stimulus_rate),
+        optimistic_sd,
+        ridge,
+        epsilon,
+        seed,
+        update_mode: update_mode(mode).into(),
+        history: history as u64,
+        curiosity: curiosity.map(
+            |CuriosityConfig { signal_dim, params }| pb::CuriosityConfig {
+                signal_dim: signal_dim as u64,
+                params_json: serde_json::to_string(&params).unwrap_or_default(),
+            },
+        ),
+    }
+}
+
+fn curiosity_info(c: CuriosityInfo) -> pb::CuriosityInfo {
+    let CuriosityInfo {
+        samples,
+        epsilon,
+        active_source,
+        active_samples,
+        all_explained,
+        modules,
+    } = c;
+    pb::CuriosityInfo {
+        samples,
+        epsilon,
+        active_source: active_source.map(|s| s as u64),
+        active_samples,
+        all_explained,
+        modules: modules
+            .into_iter()
+            .map(
+                |FrozenModuleInfo {
+                     source,
+                     frozen_tick,
+                     learned_samples,
+                 }| pb::FrozenModule {
+                    source: source as u64,
+                    frozen_tick,
+                    learned_samples,
+                },
+            )
+            .collect(),
+    }
+}
+
+fn tick_curiosity(c: TickCuriosity) -> pb::TickCuriosity {
+    let TickCuriosity {
+        xi_cur,
+        epsilon,
+        modules,
+        source,
+    } = c;
+    pb::TickCuriosity {
+        xi_cur,
+        epsilon,
+        modules: modules as u64,
+        source: source.map(|s| s as u64),
+    }
+}
+
+fn stats(s: SessionStats) -> pb::SessionStats {
+    let SessionStats {
+        lstdq_error,
+        lambda1_estimate,
+        condition_1_holds,
+        constant_stimuli,
+        factorisation_reuses,
+        factorisations,
+    } = s;
+    pb::SessionStats {
+        lstdq_error,
+        lambda1_estimate,
+        condition_1_holds,
+        constant_stimuli: constant_stimuli.into_iter().map(|d| d as u64).collect(),
+        factorisation_reuses,
+        factorisations,
+    }
+}
+
+/// A session's details.
+pub fn session_info(info: SessionInfo) -> pb::SessionInfo {
+    let SessionInfo {
+        id,
+        tick,
+        drive,
+        policy_version,
+        state,
+        model,
+        agent,
+        stats: s,
+        cost,
+        curiosity,
+    } = info;
+    pb::SessionInfo {
+        id,
+        tick,
+        drive,
+        policy_version,
+        state: state.map(|s| s as u64),
+        model: Some(model_summary(model)),
+        agent: Some(effective_config(agent)),
+        stats: Some(stats(s)),
+        curiosity: curiosity.map(curiosity_info),
+        cost: Some(pb::SessionCost {
+            bytes: cost.bytes,
+            tick_us: cost.tick_us,
+        }),
+    }
+}
+
+/// A page of sessions.
+pub fn session_page(page: SessionPage) -> pb::ListSessionsResponse {
+    let SessionPage { sessions, next } = page;
+    pb::ListSessionsResponse {
+        sessions: sessions
+            .into_iter()
+            .map(
+                |SessionSummary {
+                     id,
+                     tick,
+                     states,
+                     update_mode: mode,
+                     idle_ms,
+                 }| pb::SessionSummary {
+                    id,
+                    tick,
+                    states: states as u64,
+                    update_mode: update_mode(mode).into(),
+                    idle_ms,
+                },
+            )
+            .collect(),
+        next,
+    }
+}
+
+/// The reply to one observation.
+pub fn step(s: StepOut) -> pb::Step {
+    let StepOut {
+        tick,
+        action,
+        action_index,
+        drive,
+        reward,
+        policy_version,
+        curiosity,
+    } = s;
+    pb::Step {
+        tick,
+        action,
+        action_index: u32_of(action_index),
+        drive,
+        reward,
+        policy_version,
+        curiosity: curiosity.map(tick_curiosity),
+    }
+}
+
+/// A session's recent ticks.
+pub fn history(entries: Vec<HistoryEntry>) -> pb::History {
+    pb::History {
+        entries: entries
+            .into_iter()
+            .map(
+                |HistoryEntry {
+                     tick,
+                     state,
+                     action,
+                     drive,
+                     reward,
+                     lstdq_error,
+                     stimulus,
+                     curiosity,
+                 }| pb::HistoryEntry {
+                    tick,
+                    state: state as u64,
+                    action_index: u32_of(action),
+                    drive,
+                    reward,
+                    lstdq_error,
+                    stimulus: stimulus.map(|values| pb::Stimulus { values }),
+                    curiosity: curiosity.map(tick_curiosity),
+                },
+            )
+            .collect(),
+    }
+}
+
+/// The available pairs of a `[state][action]` table, row by row.
+fn pairs<T>(table: Vec<Vec<Option<T>>>) -> impl Iterator<Item = (u64, u32, T)> {
+    table.into_iter().enumerate().flat_map(|(s, row)| {
+        row.into_iter()
+            .enumerate()
+            .filter_map(move |(a, x)| x.map(|x| (s as u64, u32_of(a), x)))
+    })
+}
+
+fn pair_values(table: Vec<Vec<Option<f64>>>) -> pb::PairValues {
+    pb::PairValues {
+        pairs: pairs(table)
+            .map(|(state, action, value)| pb::PairValue {
+                state,
+                action,
+                value,
+            })
+            .collect(),
+    }
+}
+
+/// Value tables; per-pair tables list the available pairs only.
+pub fn values(v: Values) -> pb::Values {
+    let Values {
+        tick,
+        policy_version,
+        v,
+        q,
+        policy,
+        r,
+        xi,
+        curiosity,
+    } = v;
+    pb::Values {
+        tick,
+        policy_version,
+        v: v.map(|values| pb::StateValues { values }),
+        q: q.map(pair_values),
+        policy: policy.map(|actions| pb::Policy { actions }),
+        r: r.map(pair_values),
+        xi: xi.map(|table| pb::PairVectors {
+            pairs: pairs(table)
+                .map(|(state, action, values)| pb::PairVector {
+                    state,
+                    action,
+                    values,
+                })
+                .collect(),
+        }),
+        curiosity: curiosity.map(curiosity_info),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metadata_fills_an_empty_id_and_must_agree_with_a_given_one() {
+        assert_eq!(session_id("a".into(), None).expect("id"), "a");
+        assert_eq!(session_id(String::new(), Some("b")).expect("id"), "b");
+        assert_eq!(session_id("a".into(), Some("a")).expect("id"), "a");
+        let e = session_id("a".into(), Some("b")).expect_err("mismatch");
+        assert!(e.to_string().contains("x-mcapi-session"), "{e}");
+        assert!(session_id(String::new(), None).is_err());
+    }
+
+    #[test]
+    fn an_observation_without_stimulus_is_a_first_observation() {
+        let (id, obs) = observation(
+            pb::Observation {
+                session_id: "s".into(),
+                state: 3,
+                stimulus: None,
+                action_taken: None,
+                signal: vec![],
+                signal_source: None,
+            },
+            None,
+        )
+        .expect("valid");
+        assert_eq!(id, "s");
+        assert_eq!(obs.stimulus, None);
+        let (_, obs) = observation(
+            pb::Observation {
+                session_id: "s".into(),
+                state: 3,
+                stimulus: Some(pb::Stimulus { values: vec![] }),
+                action_taken: Some(pb::observation::ActionTaken::ActionName("left".into())),
+                signal: vec![0.5, 1.0],
+                signal_source: Some(1),
+            },
+            None,
+        )
+        .expect("valid");
+        assert_eq!(obs.stimulus, Some(vec![]));
+        assert_eq!(obs.action_taken, Some(ActionRef::Name("left".into())));
+        assert_eq!(obs.signal, Some(vec![0.5, 1.0]));
+        assert_eq!(obs.signal_source, Some(1));
+    }
+
+    #[test]
+    fn watch_interval_is_bounded() {
+        let req = |ms| pb::WatchRequest {
+            session_id: "s".into(),
+            interval_ms: ms,
+        };
+        assert_eq!(
+            watch_request(req(0), None).expect("default").1,
+            DEFAULT_WATCH_INTERVAL
+        );
+        assert_eq!(
+            watch_request(req(10), None).expect("min").1,
+            Duration::from_millis(10)
+        );
+        assert!(watch_request(req(9), None).is_err());
+        assert!(watch_request(req(MAX_WATCH_INTERVAL_MS + 1), None).is_err());
+    }
+
+    #[test]
+    fn per_pair_tables_skip_unavailable_pairs() {
+        let t = pair_values(vec![vec![None, Some(1.0)], vec![Some(2.0), None]]);
+        let got: Vec<_> = t
+            .pairs
+            .iter()
+            .map(|p| (p.state, p.action, p.value))
+            .collect();
+        assert_eq!(got, vec![(0, 1, 1.0), (1, 0, 2.0)]);
+    }
+}

@@ -1,0 +1,16 @@
+//! Thin transport adapters over [`crate::service`]: REST (axum) and gRPC
+//! (tonic), with one error mapping.
+
+pub mod conn;
+pub mod dashboard;
+pub mod error;
+pub mod extract;
+pub mod grpc;
+pub mod openapi;
+pub mod rest;
+pub mod router;
+pub mod schemas;
+pub mod streams;
+
+pub use extract::AppState;
+pub use router::router;

@@ -1,0 +1,21 @@
+//! # mcapi-server
+//!
+//! Hosts motivated reinforcement-learning agents (MCA-PI, Kompella,
+//! Kazerounian, Schmidhuber, SAB 2014, implemented in [`mcapi_core`]) as
+//! sessions, over REST (axum) and gRPC (tonic).
+//!
+//! Modules, from the bottom up (DESIGN.md, "Layers"):
+//! - [`store`]: durable session storage (redb, or memory).
+//! - [`service`]: the session layer both transports call (sessions, tick
+//!   loop, limits, recovery).
+//! - [`api`]: thin transport adapters over [`service`], with one error
+//!   mapping.
+//! - [`config`], [`telemetry`], [`server`]: `mcapi serve`'s one config
+//!   struct, logging and metrics, and the start-up that binds both ports.
+
+pub mod api;
+pub mod config;
+pub mod server;
+pub mod service;
+pub mod store;
+pub mod telemetry;

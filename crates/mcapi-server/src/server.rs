@@ -1,0 +1,181 @@
+//! `mcapi serve`: binds both transports over one session manager, serves
+//! until told to stop, then finishes in-flight requests and stops the tick
+//! loop.
+//!
+//! Both ports are bounded by the connection limits of [`crate::api::conn`]
+//! (connections per port, header-read, request and send timeouts, TCP and
+//! HTTP/2 keep-alive); REST event streams and gRPC `Watch` streams share
+//! one budget per caller ([`crate::api::streams`]).
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use anyhow::{Context, Result};
+use tokio::net::TcpListener;
+use tokio::sync::watch;
+use tokio::task::JoinHandle;
+
+use crate::api::conn::{RequestTimeout, serve_http};
+use crate::api::dashboard::Stopping;
+use crate::api::grpc::GrpcOptions;
+use crate::api::streams::StreamLimiter;
+use crate::api::{AppState, router};
+use crate::config::{ServeConfig, StoreKind};
+use crate::service::SessionManager;
+use crate::store::Store;
+use crate::telemetry;
+
+/// A running server.
+pub struct Running {
+    /// Bound REST address.
+    pub http_addr: SocketAddr,
+    /// Bound gRPC address.
+    pub grpc_addr: SocketAddr,
+    /// The session layer.
+    pub manager: Arc<SessionManager>,
+    stop: watch::Sender<bool>,
+    tasks: Vec<JoinHandle<Result<()>>>,
+}
+
+async fn stopped(mut rx: watch::Receiver<bool>) {
+    // Either a stop was sent or the sender is gone: both mean stop.
+    let _ = rx.wait_for(|stop| *stop).await;
+}
+
+/// Validates the configuration, binds both ports and starts serving.
+pub async fn start(cfg: &ServeConfig) -> Result<Running> {
+    cfg.validate().map_err(anyhow::Error::msg)?;
+    let mut options = cfg.manager_options();
+    if cfg.store == StoreKind::Redb {
+        let store = Store::open(&cfg.data_dir).context("opening the session store")?;
+        tracing::info!(path = %store.path().display(), "session store open");
+        options.store = Some(Arc::new(store));
+    }
+    let manager = Arc::new(SessionManager::with_options(options)?);
+    let http = TcpListener::bind(cfg.http)
+        .await
+        .with_context(|| format!("binding the REST port {}", cfg.http))?;
+    let grpc = TcpListener::bind(cfg.grpc)
+        .await
+        .with_context(|| format!("binding the gRPC port {}", cfg.grpc))?;
+    let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
+    let (stop, stop_rx) = watch::channel(false);
+    let state = AppState {
+        manager: Arc::clone(&manager),
+        metrics: telemetry::prometheus(),
+    };
+    let limits = cfg.conn_limits();
+    limits.warn_on_fd_limit();
+    // One budget of watch streams per caller for both transports.
+    let streams = StreamLimiter::new(limits.max_streams_per_key);
+    let app = router(state)
+        // Ends the dashboard's event streams at shutdown.
+        .layer(axum::Extension(Stopping(stop_rx.clone())))
+        .layer(axum::Extension(Arc::clone(&streams)))
+        .layer(axum::Extension(RequestTimeout(limits.request_timeout())));
+    let rest_task = tokio::spawn({
+        let rx = stop_rx.clone();
+        let limits = limits.clone();
+        async move {
+            serve_http(http, app, &limits, stopped(rx)).await;
+            Ok(())
+        }
+    });
+    let grpc_task = tokio::spawn({
+        let manager = Arc::clone(&manager);
+        let opts = GrpcOptions {
+            stream_buffer: cfg.stream_buffer,
+            limits,
+            streams,
+        };
+        async move {
+            crate::api::grpc::serve_with(grpc, manager, opts, stopped(stop_rx))
+                .await
+                .context("gRPC server")
+        }
+    });
+    tracing::info!(%http_addr, %grpc_addr, workers = cfg.worker_count(), "mcapi serving");
+    let running = Running {
+        http_addr,
+        grpc_addr,
+        manager,
+        stop,
+        tasks: vec![rest_task, grpc_task],
+    };
+    // Health answers during recovery; readiness and the API wait for it.
+    let recovering = Arc::clone(&running.manager);
+    match tokio::task::spawn_blocking(move || recovering.recover()).await {
+        Ok(Ok(report)) => {
+            if report.sessions > 0 {
+                tracing::info!(
+                    sessions = report.sessions,
+                    replayed = report.replayed,
+                    seconds = report.seconds,
+                    "sessions recovered"
+                );
+            }
+            Ok(running)
+        }
+        Ok(Err(e)) => {
+            running.shutdown();
+            Err(anyhow::anyhow!("recovering stored sessions: {e}"))
+        }
+        Err(e) => {
+            running.shutdown();
+            Err(anyhow::anyhow!("recovery task failed: {e}"))
+        }
+    }
+}
+
+impl Running {
+    /// Asks both transports to stop accepting and finish in-flight requests.
+    pub fn shutdown(&self) {
+        let _ = self.stop.send(true);
+    }
+
+    /// Waits for both transports to finish, then drains and stops the tick loop.
+    pub async fn wait(self) -> Result<()> {
+        let mut result = Ok(());
+        for task in self.tasks {
+            match task.await {
+                Ok(Ok(())) => {}
+                Ok(Err(e)) => result = Err(e),
+                Err(e) => result = Err(anyhow::anyhow!("server task failed: {e}")),
+            }
+        }
+        let manager = Arc::clone(&self.manager);
+        tokio::task::spawn_blocking(move || manager.shutdown())
+            .await
+            .context("stopping the tick loop")?;
+        tracing::info!("mcapi stopped");
+        result
+    }
+}
+
+/// Resolves on SIGINT or SIGTERM.
+pub async fn shutdown_signal() {
+    let ctrl_c = async {
+        if let Err(e) = tokio::signal::ctrl_c().await {
+            tracing::error!(error = %e, "cannot listen for Ctrl-C");
+            std::future::pending::<()>().await;
+        }
+    };
+    #[cfg(unix)]
+    let term = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut s) => {
+                s.recv().await;
+            }
+            Err(e) => {
+                tracing::error!(error = %e, "cannot listen for SIGTERM");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    #[cfg(not(unix))]
+    let term = std::future::pending::<()>();
+    tokio::select! {
+        () = ctrl_c => {},
+        () = term => {},
+    }
+}

@@ -1,0 +1,254 @@
+//! What a session costs the server: its memory and the CPU time of one
+//! observation, estimated from the validated model and configuration before
+//! the session exists (or from a live session's summary, which holds the
+//! same facts).
+//!
+//! The estimates are worst cases of the data structures the core allocates
+//! and of the work one observation does (observe, Eq. 1-3, then one LSTDQ
+//! update, Algorithm 1 lines 5-9), counted in elementary operations and
+//! converted at [`NS_PER_OP`]. They are deliberately simple and
+//! conservative: their job is to refuse a session that would exhaust the
+//! server (PostgreSQL's `work_mem` and etcd's request quotas play the same
+//! role), not to predict latency. `benches/tick.rs` measures real ticks.
+
+use mcapi_core::curiosity::{MAX_LIBRARY, expanded_dim};
+
+use super::agent_config::{CuriosityConfig, EffectiveConfig};
+use super::wire::{ModelSummary, SessionCost};
+
+/// Nanoseconds per counted operation: scalar loops on this kind of machine
+/// run at about one operation per nanosecond (a hallway tick counts about
+/// 1,000 operations and takes about 0.9 µs in `cargo bench --bench tick`).
+pub const NS_PER_OP: f64 = 1.0;
+
+/// Bytes of fixed bookkeeping per session (ids, locks, counters, the agent's
+/// small vectors).
+const FIXED_BYTES: u64 = 4096;
+
+/// Bytes of one history-ring tick besides its vectors.
+const RING_TICK_BYTES: u64 = 64 + 16;
+
+/// Gauss–Seidel sweeps the planner allows before its dense fallback (see
+/// `algo::lstdq`).
+const MAX_SWEEPS: f64 = 20_000.0;
+
+/// States up to which a stochastic model falls back to a dense solve.
+const DENSE_FALLBACK_MAX_STATES: f64 = 2048.0;
+
+fn mul(a: u64, b: u64) -> u64 {
+    a.saturating_mul(b)
+}
+
+fn us(ops: f64) -> u64 {
+    let us = ops * NS_PER_OP / 1000.0;
+    if us.is_finite() && us < u64::MAX as f64 {
+        us.ceil().max(1.0) as u64
+    } else {
+        u64::MAX
+    }
+}
+
+/// Estimates the cost of a session on `model` with `config`.
+pub fn estimate(model: &ModelSummary, config: &EffectiveConfig) -> SessionCost {
+    let states = model.states as u64;
+    let actions = model.actions.len() as u64;
+    let pairs = model.pairs as u64;
+    let transitions = model.transitions as u64;
+    let n = model.stimuli.len() as u64;
+    let features = model.features as u64;
+    let k = model.basis.k as u64;
+    let feature_basis = model.basis.kind != "indicator";
+
+    // The planning model: CSR successors, pair tables and the dense lookup.
+    let names: u64 = model
+        .actions
+        .iter()
+        .chain(&model.stimuli)
+        .map(|s| s.len() as u64 + 24)
+        .sum();
+    let mut bytes = mul(transitions, 12) + mul(pairs, 16) + mul(mul(states, actions), 4) + names;
+    if feature_basis {
+        // State features, ΦᵀΦ, M.
+        bytes += mul(mul(states, k), 8) + mul(mul(features, features), 8);
+        bytes += mul(mul(features, states), 8);
+    }
+    // The learner: Ξ and its visit counts, R, Q twice, the policy, D.
+    bytes += mul(mul(pairs, n), 8) + mul(pairs, 4) + mul(pairs, 24) + mul(states, 4);
+    bytes += mul(n, 64);
+    // The planner's engine.
+    bytes += if feature_basis {
+        mul(mul(features, features), 16) + mul(features, 40) + mul(states, 8)
+    } else {
+        mul(states, 16)
+    };
+    // The history ring: D and the stimulus per tick.
+    let history = config.history as u64;
+    bytes += mul(history, RING_TICK_BYTES + mul(2 * n + 1, 8));
+
+    // One observation: Ξ row and D (O(n)), R for every pair (O(pairs·n)).
+    let mut ops = (pairs * n) as f64 + 16.0 * n as f64;
+    // One policy update.
+    ops += if feature_basis {
+        let f = features as f64;
+        // A rebuild and inversion (every REFRESH_AFTER rank-one updates,
+        // and whenever a Sherman–Morrison step is unsafe) plus Q = Φw.
+        f * f * f + (pairs * k) as f64 + (states * features) as f64
+    } else if model.deterministic {
+        // The functional-graph solve: a few passes over states and pairs.
+        5.0 * (pairs + states) as f64
+    } else {
+        // Gauss–Seidel until γ^sweeps·‖ΔV‖ is below 1e-12, or the dense
+        // fallback when that takes more than MAX_SWEEPS.
+        let sweeps = sweeps_for(config.gamma);
+        let per_sweep = (transitions + states) as f64;
+        if sweeps > MAX_SWEEPS {
+            let s = states as f64;
+            let dense = if s <= DENSE_FALLBACK_MAX_STATES {
+                s * s * s / 3.0
+            } else {
+                0.0
+            };
+            MAX_SWEEPS * per_sweep + dense
+        } else {
+            sweeps * per_sweep
+        }
+    } + 5.0 * pairs as f64;
+
+    if let Some(c) = &config.curiosity {
+        let (channel_bytes, channel_ops) = curiosity(c);
+        bytes = bytes.saturating_add(channel_bytes);
+        ops += channel_ops;
+    }
+    SessionCost {
+        bytes: bytes.saturating_add(FIXED_BYTES),
+        tick_us: us(ops),
+    }
+}
+
+/// Estimated CPU time of one observation without its policy update (what
+/// an async-mode observation costs the request), in microseconds.
+pub fn observe_us(model: &ModelSummary, config: &EffectiveConfig) -> u64 {
+    let n = model.stimuli.len() as f64;
+    let mut ops = model.pairs as f64 * n + 16.0 * n;
+    if let Some(c) = &config.curiosity {
+        ops += curiosity(c).1;
+    }
+    us(ops)
+}
+
+/// Sweeps of Gauss–Seidel for a 1e-12 contraction at discount γ.
+fn sweeps_for(gamma: f64) -> f64 {
+    if gamma <= 0.0 {
+        1.0
+    } else if gamma >= 1.0 {
+        f64::INFINITY
+    } else {
+        ((1e-12f64).ln() / gamma.ln()).ceil() + 1.0
+    }
+}
+
+/// Memory and per-sample operations of a curiosity channel (ALGORITHM.md
+/// §7): one active module learning, up to [`MAX_LIBRARY`] frozen ones
+/// judging every sample, each with a tracker per source.
+fn curiosity(c: &CuriosityConfig) -> (u64, f64) {
+    let p = &c.params;
+    let d = expanded_dim(c.signal_dim) as u64;
+    let window = (p.tau as u64 + p.lag as u64) * 8;
+    let roc = p.max_centres as u64 * 16;
+    // Mean, covariance, whitening, w, the previous sample.
+    let module = mul(mul(d, d), 16) + mul(d, 32);
+    let tracker = roc + p.tau as u64 * 8 + 32;
+    let library = MAX_LIBRARY as u64;
+    let bytes = module
+        + window
+        + roc
+        + mul(library, module + mul(p.max_sources as u64, tracker))
+        + p.max_sources as u64;
+    let df = d as f64;
+    // Covariance update, eigendecomposition (about 10 d³), the whitening
+    // matrix (d³/2), mat-vecs, ROC; each frozen module judges the sample.
+    let learn = 2.0 * df * df + 10.0 * df * df * df + 0.5 * df * df * df + 4.0 * df * df;
+    let judge = library as f64 * (2.0 * df * df + p.max_centres as f64 * 4.0);
+    (
+        bytes,
+        learn + judge + (p.max_centres * p.max_centres) as f64,
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::service::agent_config::UpdateMode;
+    use crate::service::wire::BasisSummary;
+    use mcapi_core::CuriosityParams;
+
+    fn summary(states: usize, actions: usize, n: usize, deterministic: bool) -> ModelSummary {
+        ModelSummary {
+            states,
+            actions: (0..actions).map(|a| format!("a{a}")).collect(),
+            stimuli: (0..n).map(|i| format!("s{i}")).collect(),
+            pairs: states * actions,
+            transitions: states * actions * if deterministic { 1 } else { 2 },
+            deterministic,
+            basis: BasisSummary {
+                kind: "indicator".into(),
+                k: 0,
+            },
+            features: states * actions,
+            layout: None,
+        }
+    }
+
+    fn config(history: usize, curiosity: Option<CuriosityConfig>) -> EffectiveConfig {
+        EffectiveConfig {
+            eta: 0.01,
+            gamma: 0.95,
+            priorities: vec![1.0; 2],
+            stimulus_rate: mcapi_core::StimulusRate::default(),
+            optimistic_sd: 0.3,
+            ridge: 1e-6,
+            epsilon: 0.0,
+            seed: 1,
+            update_mode: UpdateMode::Lockstep,
+            history,
+            curiosity,
+        }
+    }
+
+    #[test]
+    fn a_hallway_costs_tens_of_kilobytes_and_about_a_microsecond() {
+        let cost = estimate(&summary(50, 3, 2, true), &config(256, None));
+        assert!(cost.bytes > 20_000 && cost.bytes < 200_000, "{cost:?}");
+        assert!(cost.tick_us >= 1 && cost.tick_us <= 5, "{cost:?}");
+    }
+
+    #[test]
+    fn cost_grows_with_what_a_client_controls() {
+        let base = estimate(&summary(1000, 4, 3, true), &config(256, None));
+        let long_history = estimate(&summary(1000, 4, 3, true), &config(100_000, None));
+        assert!(long_history.bytes > base.bytes + 100_000 * 64);
+        let stochastic = estimate(&summary(1000, 4, 3, false), &config(256, None));
+        assert!(
+            stochastic.tick_us > 50 * base.tick_us,
+            "{stochastic:?} vs {base:?}"
+        );
+        let mut slow = config(256, None);
+        slow.gamma = 0.999_999;
+        let near_one = estimate(&summary(1000, 4, 3, false), &slow);
+        assert!(near_one.tick_us > stochastic.tick_us);
+    }
+
+    #[test]
+    fn a_large_signal_is_priced_by_its_eigendecomposition() {
+        let channel = |m| CuriosityConfig {
+            signal_dim: m,
+            params: CuriosityParams::default(),
+        };
+        let small = estimate(&summary(50, 3, 3, true), &config(256, Some(channel(2))));
+        let large = estimate(&summary(50, 3, 3, true), &config(256, Some(channel(64))));
+        assert!(small.tick_us < 100, "{small:?}");
+        // d = 2144: about 10^11 operations per sample.
+        assert!(large.tick_us > 10_000_000, "{large:?}");
+        assert!(large.bytes > 64 * 2144 * 2144 * 16, "{large:?}");
+    }
+}

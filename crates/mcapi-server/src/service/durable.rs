@@ -1,0 +1,293 @@
+//! What the service keeps in the store (`crate::store`) and how it reads it
+//! back: the creation record of a session, its snapshots and its log of
+//! observations (DESIGN.md, "Durability").
+//!
+//! A log entry holds what the observation changed, resolved: the state, the
+//! stimulus, the raw curiosity signal, the action that was actually taken
+//! (the advised one unless the client reported another) and the action the
+//! reply advised. Replaying entries through `Agent::observe` (or
+//! `CuriousAgent::observe`) therefore rebuilds Ξ, the visit counts, D, the
+//! curiosity channel and the tick exactly, whatever the policy did in
+//! between; the policy is recomputed once at the end.
+//!
+//! Snapshots and log entries are postcard, a format without field names, so
+//! each record begins with a byte naming its encoding: [`RECORD_V3`] for
+//! what this version writes, [`RECORD_V2`] for records written under store
+//! format 2 (which the store tags when it upgrades the file). Both decode.
+
+use serde::{Deserialize, Serialize};
+
+pub use crate::store::RECORD_V2;
+use mcapi_core::{AgentSnapshot, CuriousSnapshot};
+
+use super::agent_config::EffectiveConfig;
+use super::error::{DecodeError, DecodeFault, ServiceError};
+use super::wire::TickCuriosity;
+
+/// The encoding byte of the records this version writes.
+pub const RECORD_V3: u8 = 3;
+
+/// The creation record of a session (JSON: written once, read at start).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SessionRecord {
+    /// The model as the client posted it (JSON text).
+    pub model: String,
+    /// The effective configuration, seed (and curiosity channel) included.
+    pub config: EffectiveConfig,
+    /// SHA-256 of the API key that created it, if keys were in force.
+    pub owner: Option<[u8; 32]>,
+}
+
+/// One observation as logged.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LogEntry {
+    /// The state observed.
+    pub state: u32,
+    /// The stimulus as the client sent it (for a curious session the
+    /// extrinsic part; absent on a session's first observation).
+    pub stimulus: Option<Vec<f64>>,
+    /// The action whose pair the stimulus updated (absent on the first).
+    pub taken: Option<u32>,
+    /// The action the reply advised.
+    pub advised: u32,
+    /// The LSTDQ error the reply's history entry recorded.
+    pub lstdq_error: f64,
+    /// The policy version the reply reported.
+    pub policy_version: u64,
+    /// The raw curiosity signal and its source, if the observation had one.
+    pub signal: Option<(u32, Vec<f64>)>,
+}
+
+/// A log entry as format 2 wrote it (no signal).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct LogEntryV2 {
+    state: u32,
+    stimulus: Option<Vec<f64>>,
+    taken: Option<u32>,
+    advised: u32,
+    lstdq_error: f64,
+    policy_version: u64,
+}
+
+/// The learner of a snapshot.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "built once per snapshot write or recovery"
+)]
+pub enum LearnerSnapshot {
+    /// An MCA-PI agent.
+    Plain(AgentSnapshot),
+    /// An agent with a curiosity channel.
+    Curious(Box<CuriousSnapshot>),
+}
+
+/// A session snapshot.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct SnapshotRecord {
+    /// The learner.
+    pub learner: LearnerSnapshot,
+    /// The history ring, oldest first.
+    pub history: Vec<TickRecord>,
+}
+
+/// A snapshot as format 2 wrote it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct SnapshotRecordV2 {
+    agent: AgentSnapshot,
+    history: Vec<TickRecordV2>,
+}
+
+/// One history entry as a snapshot keeps it (the API type may change
+/// shape; this one only under a new record version).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TickRecord {
+    pub(super) tick: u64,
+    pub(super) state: usize,
+    pub(super) action: usize,
+    pub(super) drive: Vec<f64>,
+    pub(super) reward: f64,
+    pub(super) lstdq_error: f64,
+    pub(super) stimulus: Option<Vec<f64>>,
+    pub(super) curiosity: Option<TickCuriosity>,
+}
+
+/// A history entry as format 2 kept it (no stimulus).
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct TickRecordV2 {
+    tick: u64,
+    state: usize,
+    action: usize,
+    drive: Vec<f64>,
+    reward: f64,
+    lstdq_error: f64,
+}
+
+/// Encodes a log entry or snapshot: [`RECORD_V3`], then postcard.
+pub fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
+    postcard::to_extend(value, vec![RECORD_V3])
+        .map_err(|e| ServiceError::Internal(format!("encoding a record: {e}")))
+}
+
+fn split<'a>(bytes: &'a [u8], what: &str) -> Result<(u8, &'a [u8]), DecodeError> {
+    let fault = match bytes.split_first() {
+        Some((&v, rest)) if v == RECORD_V2 || v == RECORD_V3 => return Ok((v, rest)),
+        Some((&v, _)) => DecodeFault::Version(v),
+        None => DecodeFault::Empty,
+    };
+    Err(DecodeError {
+        what: what.to_string(),
+        fault,
+    })
+}
+
+fn postcard_decode<'a, T: Deserialize<'a>>(bytes: &'a [u8], what: &str) -> Result<T, DecodeError> {
+    postcard::from_bytes(bytes).map_err(|e| DecodeError {
+        what: what.to_string(),
+        fault: e.into(),
+    })
+}
+
+/// Decodes a log entry of either record version.
+pub fn decode_entry(bytes: &[u8], what: &str) -> Result<LogEntry, DecodeError> {
+    match split(bytes, what)? {
+        (RECORD_V2, rest) => {
+            let e: LogEntryV2 = postcard_decode(rest, what)?;
+            Ok(LogEntry {
+                state: e.state,
+                stimulus: e.stimulus,
+                taken: e.taken,
+                advised: e.advised,
+                lstdq_error: e.lstdq_error,
+                policy_version: e.policy_version,
+                signal: None,
+            })
+        }
+        (_, rest) => postcard_decode(rest, what),
+    }
+}
+
+/// Decodes a snapshot of either record version.
+pub fn decode_snapshot(bytes: &[u8], what: &str) -> Result<SnapshotRecord, DecodeError> {
+    match split(bytes, what)? {
+        (RECORD_V2, rest) => {
+            let s: SnapshotRecordV2 = postcard_decode(rest, what)?;
+            Ok(SnapshotRecord {
+                learner: LearnerSnapshot::Plain(s.agent),
+                history: s
+                    .history
+                    .into_iter()
+                    .map(|t| TickRecord {
+                        tick: t.tick,
+                        state: t.state,
+                        action: t.action,
+                        drive: t.drive,
+                        reward: t.reward,
+                        lstdq_error: t.lstdq_error,
+                        stimulus: None,
+                        curiosity: None,
+                    })
+                    .collect(),
+            })
+        }
+        (_, rest) => postcard_decode(rest, what),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::service::history::RingTick;
+
+    fn entry(signal: Option<(u32, Vec<f64>)>) -> LogEntry {
+        LogEntry {
+            state: 7,
+            stimulus: Some(vec![0.1 + 0.2, -1e-300, 6.0]),
+            taken: Some(2),
+            advised: 1,
+            lstdq_error: 0.25,
+            policy_version: 9,
+            signal,
+        }
+    }
+
+    #[test]
+    fn log_entries_round_trip_exactly() {
+        for e in [entry(None), entry(Some((1, vec![0.5, -2.0])))] {
+            let bytes = encode(&e).expect("encode");
+            assert_eq!(bytes[0], RECORD_V3);
+            assert_eq!(decode_entry(&bytes, "entry").expect("decode"), e);
+            assert!(decode_entry(&bytes[..bytes.len() - 3], "entry").is_err());
+        }
+        assert!(encode(&entry(None)).expect("encode").len() < 48);
+    }
+
+    #[test]
+    fn format_2_entries_decode_and_unknown_versions_are_refused() {
+        let old = LogEntryV2 {
+            state: 7,
+            stimulus: Some(vec![0.1 + 0.2, -1e-300, 6.0]),
+            taken: Some(2),
+            advised: 1,
+            lstdq_error: 0.25,
+            policy_version: 9,
+        };
+        let mut bytes = vec![RECORD_V2];
+        bytes.extend(postcard::to_stdvec(&old).expect("encode"));
+        assert_eq!(decode_entry(&bytes, "entry").expect("decode"), entry(None));
+        bytes[0] = 9;
+        let err = decode_entry(&bytes, "entry").expect_err("version 9");
+        assert!(
+            err.to_string().contains("unknown record version 9"),
+            "{err}"
+        );
+        assert!(decode_entry(&[], "entry").is_err());
+    }
+
+    #[test]
+    fn format_2_snapshots_decode_with_their_history() {
+        use std::sync::Arc;
+
+        use mcapi_core::{Agent, AgentParams, Basis, Observation, PlanningModel};
+        let preset = mcapi_core::model::hallway();
+        let params = AgentParams::default().check(2, 5).expect("params");
+        let ctx = Arc::new(PlanningModel::new(preset.model, Basis::Indicator));
+        let mut agent = Agent::new(ctx, params);
+        agent.step(&Observation::first(3)).expect("first");
+        agent.step(&Observation::new(4, &[1.0, 0.0])).expect("step");
+        let old = SnapshotRecordV2 {
+            agent: agent.snapshot(),
+            history: vec![TickRecordV2 {
+                tick: 1,
+                state: 4,
+                action: 2,
+                drive: vec![0.6, 0.8],
+                reward: 0.5,
+                lstdq_error: 0.125,
+            }],
+        };
+        let mut bytes = vec![RECORD_V2];
+        bytes.extend(postcard::to_stdvec(&old).expect("encode"));
+        let snap = decode_snapshot(&bytes, "snapshot").expect("decode");
+        match snap.learner {
+            LearnerSnapshot::Plain(a) => assert_eq!(a, agent.snapshot()),
+            LearnerSnapshot::Curious(_) => panic!("a format-2 snapshot is a plain agent's"),
+        }
+        let h: Vec<_> = snap
+            .history
+            .iter()
+            .map(|t| RingTick::from(t).entry())
+            .collect();
+        assert_eq!(h.len(), 1);
+        assert_eq!((h[0].tick, h[0].reward), (1, 0.5));
+        assert_eq!(h[0].stimulus, None, "format 2 kept no stimulus");
+        // The same snapshot as this version writes it.
+        let new = SnapshotRecord {
+            learner: LearnerSnapshot::Plain(agent.snapshot()),
+            history: vec![TickRecord::from(&RingTick::from(&snap.history[0]))],
+        };
+        let bytes = encode(&new).expect("encode");
+        let back = decode_snapshot(&bytes, "snapshot").expect("decode");
+        assert_eq!(back.history, new.history);
+    }
+}

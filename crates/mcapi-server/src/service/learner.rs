@@ -1,0 +1,141 @@
+//! The learner of a session: the core's MCA-PI agent, or the curious agent
+//! with its curiosity channel, behind one interface.
+
+use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation, PlanOutcome};
+
+use super::durable::LearnerSnapshot;
+use super::error::ServiceError;
+use super::wire::TickCuriosity;
+
+/// A session's learner: an MCA-PI agent, or one with a curiosity channel.
+#[derive(Debug)]
+#[expect(
+    clippy::large_enum_variant,
+    reason = "one per session, never moved after creation; the common plain agent stays unboxed"
+)]
+pub enum Learner {
+    /// An MCA-PI agent.
+    Plain(Agent),
+    /// An agent with a curiosity channel (ALGORITHM.md §7).
+    Curious(Box<CuriousAgent>),
+}
+
+/// What [`Learner::observe`] did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnerObserved {
+    /// Ticks so far.
+    pub tick: u64,
+    /// |r| (Eq. 3).
+    pub reward: f64,
+    /// ξ_cur appended to the client's stimulus (curious sessions only).
+    pub xi_cur: Option<f64>,
+    /// The curiosity channel after the tick.
+    pub curiosity: Option<TickCuriosity>,
+}
+
+impl Learner {
+    /// The MCA-PI agent.
+    pub fn agent(&self) -> &Agent {
+        match self {
+            Self::Plain(a) => a,
+            Self::Curious(c) => c.agent(),
+        }
+    }
+
+    /// The curious agent, if this is one.
+    pub fn curious(&self) -> Option<&CuriousAgent> {
+        match self {
+            Self::Plain(_) => None,
+            Self::Curious(c) => Some(c),
+        }
+    }
+
+    /// Algorithm 1 lines 5-7 (and §7 steps 1-4 with a channel); no plan.
+    pub fn observe(
+        &mut self,
+        obs: &Observation<'_>,
+        signal: Option<(usize, &[f64])>,
+    ) -> Result<LearnerObserved, ServiceError> {
+        match self {
+            Self::Plain(agent) => {
+                if signal.is_some() {
+                    return Err(ServiceError::field(
+                        "signal",
+                        "this session has no curiosity channel (declare `agent.curiosity` when creating it)",
+                    ));
+                }
+                let out = agent.observe(obs)?;
+                Ok(LearnerObserved {
+                    tick: out.tick,
+                    reward: out.reward,
+                    xi_cur: None,
+                    curiosity: None,
+                })
+            }
+            Self::Curious(agent) => {
+                let out = agent.observe(&CuriousObservation {
+                    state: obs.state,
+                    stimulus: obs.stimulus,
+                    signal,
+                    action_taken: obs.action_taken,
+                })?;
+                Ok(LearnerObserved {
+                    tick: out.observed.tick,
+                    reward: out.observed.reward,
+                    xi_cur: Some(out.xi_cur),
+                    curiosity: Some(TickCuriosity {
+                        xi_cur: out.xi_cur,
+                        epsilon: agent.channel().epsilon(),
+                        modules: agent.channel().module_count(),
+                        source: signal.map(|(s, _)| s),
+                    }),
+                })
+            }
+        }
+    }
+
+    /// True when R changed since the last policy update.
+    pub fn needs_plan(&self) -> bool {
+        self.agent().needs_plan()
+    }
+
+    /// One LSTDQ policy update (Algorithm 1, lines 8-9).
+    pub fn plan(&mut self) -> Result<PlanOutcome, AlgoError> {
+        match self {
+            Self::Plain(a) => a.plan(),
+            Self::Curious(c) => c.plan(),
+        }
+    }
+
+    /// The next action (line 10).
+    pub fn act(&mut self) -> Option<usize> {
+        match self {
+            Self::Plain(a) => a.act(),
+            Self::Curious(c) => c.act(),
+        }
+    }
+
+    /// Records the action a logged reply advised (replay).
+    pub fn set_advised_action(&mut self, action: usize) -> Result<(), AlgoError> {
+        match self {
+            Self::Plain(a) => a.set_advised_action(action),
+            Self::Curious(c) => c.set_advised_action(action),
+        }
+    }
+
+    /// Resumes the policy version counter (replay).
+    pub fn resume_policy_version(&mut self, version: u64) {
+        match self {
+            Self::Plain(a) => a.resume_policy_version(version),
+            Self::Curious(c) => c.resume_policy_version(version),
+        }
+    }
+
+    /// The resumable state.
+    pub fn snapshot(&self) -> LearnerSnapshot {
+        match self {
+            Self::Plain(a) => LearnerSnapshot::Plain(a.snapshot()),
+            Self::Curious(c) => LearnerSnapshot::Curious(Box::new(c.snapshot())),
+        }
+    }
+}

@@ -1,0 +1,263 @@
+//! Rebuilding sessions from the store (DESIGN.md, "Durability"): at start
+//! ([`recover_all`], called by `SessionManager::recover`) and after a failed
+//! commit ([`rebuild`], called by `SessionManager::reload`, the rollback to
+//! what is durable).
+//!
+//! A stored session that cannot be rebuilt (a record, snapshot or log entry
+//! that does not decode or does not replay) is skipped, not fatal: it is
+//! logged with its id and the reason, counted in [`RecoveryReport`] and in
+//! `mcapi_recovery_skipped_total`, and its data is left in the store
+//! untouched for an operator to inspect. A store that cannot be read at all
+//! still fails the start. The errors are typed all the way: the store's
+//! [`StoreError`], this session's damage ([`RecordError`]), and the
+//! service's [`StorageError`] that carries either to a client.
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+
+use crate::store::{StoreError, StoredSession};
+use mcapi_core::{Agent, CuriousAgent};
+
+use super::agent_config::SessionConfig;
+use super::durable::{self, LearnerSnapshot, LogEntry};
+use super::error::{RecordError, RecoveryError, ServiceError, StorageError};
+use super::history::{RingTick, push_tick};
+use super::learner::Learner;
+use super::limits::Limits;
+use super::session::{self, Durability, Session, SessionRef};
+use super::setup::Setup;
+use super::spec::ModelInput;
+
+/// What `recover` did.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RecoveryReport {
+    /// Sessions recovered.
+    pub sessions: u64,
+    /// Log entries replayed.
+    pub replayed: u64,
+    /// Stored sessions that could not be rebuilt and were skipped (their
+    /// data stays in the store).
+    pub skipped: u64,
+    /// The ids of the skipped sessions.
+    pub skipped_ids: Vec<String>,
+    /// Wall time.
+    pub seconds: f64,
+}
+
+/// One step of reading a session's log: the store failed, or this entry
+/// is bad. A malformed chunk is this session's damage, not the store's.
+enum LogRead {
+    Store(StoreError),
+    Record(RecordError),
+}
+
+impl From<StoreError> for LogRead {
+    fn from(e: StoreError) -> Self {
+        match e {
+            e @ StoreError::Corrupt { .. } => Self::Record(RecordError::Corrupt(e)),
+            e => Self::Store(e),
+        }
+    }
+}
+
+/// A rebuilt session and the log entries replayed.
+pub(super) type Rebuilt = Result<(SessionRef, u64), RecoveryError>;
+
+/// Loads every stored session: snapshot, then the log after it, then one
+/// policy update; sessions are rebuilt in parallel. A session whose records
+/// do not decode or replay is skipped (logged, counted, listed in the
+/// report, its data left in the store); a store that cannot be read fails
+/// the recovery.
+pub(super) fn recover_all(
+    setup: &Setup,
+    limits: &Limits,
+    d: &Durability,
+) -> Result<(Vec<SessionRef>, RecoveryReport), ServiceError> {
+    use rayon::prelude::*;
+    let started = std::time::Instant::now();
+    let stored = d.store.sessions()?;
+    let recovered: Vec<(String, Rebuilt)> = stored
+        .into_par_iter()
+        .map(|s| (s.id.clone(), rebuild(setup, limits, d, s)))
+        .collect();
+    let mut report = RecoveryReport::default();
+    let mut rebuilt = Vec::with_capacity(recovered.len());
+    for (id, r) in recovered {
+        match r {
+            Ok((session, replayed)) => {
+                report.sessions += 1;
+                report.replayed += replayed;
+                rebuilt.push(session);
+            }
+            Err(RecoveryError::Store(source)) => {
+                return Err(StorageError::Recovery {
+                    path: d.store.path().to_path_buf(),
+                    id,
+                    source,
+                }
+                .into());
+            }
+            Err(reason) => {
+                tracing::error!(
+                    session = %id,
+                    %reason,
+                    "a stored session cannot be recovered and is skipped; its data is left in the store untouched"
+                );
+                metrics::counter!("mcapi_recovery_skipped_total").increment(1);
+                report.skipped += 1;
+                report.skipped_ids.push(id);
+            }
+        }
+    }
+    report.seconds = started.elapsed().as_secs_f64();
+    Ok((rebuilt, report))
+}
+
+/// Rebuilds one stored session.
+pub(super) fn rebuild(
+    setup: &Setup,
+    limits: &Limits,
+    d: &Durability,
+    stored: StoredSession,
+) -> Rebuilt {
+    let id = stored.id;
+    let bad = |source: RecordError| RecoveryError::Records {
+        id: id.clone(),
+        source,
+    };
+    let record: durable::SessionRecord =
+        serde_json::from_slice(&stored.record).map_err(|e| bad(RecordError::Record(e)))?;
+    let model: serde_json::Value =
+        serde_json::from_str(&record.model).map_err(|e| bad(RecordError::Model(e)))?;
+    let setup_failed = |e: ServiceError| bad(RecordError::Setup(Box::new(e)));
+    let input = ModelInput::parse(model).map_err(setup_failed)?;
+    let agent_cfg = SessionConfig::from(&record.config);
+    // Limits are for new sessions: one created under looser limits is
+    // recovered anyway (and said so), not refused with the whole store.
+    let built = match setup.build(&input, &agent_cfg, limits) {
+        Err(ServiceError::LimitExceeded(why)) => {
+            tracing::warn!(session = %id, limit = %why, "a stored session exceeds the current limits; recovered anyway");
+            setup.build(&input, &agent_cfg, &Limits::unlimited())
+        }
+        built => built,
+    };
+    let (mut learner, summary, config) = built.map_err(setup_failed)?;
+    let mut history = VecDeque::new();
+    let mut after = None;
+    if let Some((seq, bytes)) = &stored.snapshot {
+        let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(|e| bad(e.into()))?;
+        learner = restore(&learner, snap.learner).map_err(&bad)?;
+        history = snap.history.iter().map(RingTick::from).collect();
+        after = Some(*seq);
+    }
+    let mut next_seq = after.map_or(0, |s| s + 1);
+    let mut replayed = 0u64;
+    let read = d.store.for_each_entry(&id, after, |seq, bytes| {
+        if seq != next_seq {
+            return Err(LogRead::Record(RecordError::Gap {
+                expected: next_seq,
+                found: seq,
+            }));
+        }
+        let entry = durable::decode_entry(bytes, &format!("log entry {seq}"))
+            .map_err(|e| LogRead::Record(e.into()))?;
+        replay(&mut learner, &mut history, config.history, &entry).map_err(|e| {
+            LogRead::Record(RecordError::Replay {
+                seq,
+                source: Box::new(e),
+            })
+        })?;
+        next_seq += 1;
+        replayed += 1;
+        Ok(())
+    });
+    match read {
+        Ok(()) => {}
+        Err(LogRead::Record(why)) => return Err(bad(why)),
+        Err(LogRead::Store(e)) => return Err(RecoveryError::Store(e)),
+    }
+    if learner.needs_plan()
+        && let Err(e) = learner.plan()
+    {
+        // As live after the same failed update: the session keeps its
+        // last policy and plans again at its next observation.
+        tracing::warn!(session = %id, error = %e, "the recovered session's policy update failed; it keeps its last policy");
+    }
+    let since_snapshot = next_seq - after.map_or(0, |s| s + 1);
+    let session = Session::resume(
+        id.clone(),
+        learner,
+        summary,
+        config,
+        Some(d.clone()),
+        session::Resumed {
+            owner: record.owner,
+            history,
+            seq: next_seq,
+            since_snapshot,
+        },
+    );
+    Ok((Arc::new(session), replayed))
+}
+
+/// Applies one logged observation to a recovering learner and its history
+/// ring: Ξ, visits, D, the curiosity channel and the tick change exactly as
+/// they did live.
+pub fn replay(
+    learner: &mut Learner,
+    history: &mut VecDeque<RingTick>,
+    history_cap: usize,
+    entry: &LogEntry,
+) -> Result<(), ServiceError> {
+    let obs = mcapi_core::Observation {
+        state: entry.state as usize,
+        stimulus: entry.stimulus.as_deref(),
+        action_taken: entry.taken.map(|a| a as usize),
+    };
+    let signal = entry
+        .signal
+        .as_ref()
+        .map(|(source, x)| (*source as usize, x.as_slice()));
+    let out = learner.observe(&obs, signal)?;
+    learner.set_advised_action(entry.advised as usize)?;
+    if entry.stimulus.is_some() {
+        let tick = RingTick::new(
+            out.tick,
+            obs.state,
+            entry.advised as usize,
+            learner.agent().drive().vector(),
+            entry.stimulus.as_deref(),
+            out.xi_cur,
+            out.reward,
+            entry.lstdq_error,
+            out.curiosity,
+        );
+        push_tick(history, history_cap, tick);
+    }
+    learner.resume_policy_version(entry.policy_version);
+    Ok(())
+}
+
+/// A recovered learner: `base` (built from the session record) resumed from
+/// a snapshot of the same kind.
+fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError> {
+    let ctx = Arc::clone(base.agent().planning_model());
+    let params = base.agent().params().clone();
+    match (snap, base.curious()) {
+        (LearnerSnapshot::Plain(s), None) => Agent::restore(ctx, params, s)
+            .map(Learner::Plain)
+            .map_err(RecordError::Restore),
+        (LearnerSnapshot::Curious(s), Some(c)) => {
+            let channel = c.channel();
+            CuriousAgent::restore(ctx, params, channel.params(), channel.signal_dim(), *s)
+                .map(|a| Learner::Curious(Box::new(a)))
+                .map_err(RecordError::Restore)
+        }
+        (LearnerSnapshot::Plain(_), Some(_)) => Err(RecordError::Mismatch(
+            "its snapshot has no curiosity channel, its record one",
+        )),
+        (LearnerSnapshot::Curious(_), None) => Err(RecordError::Mismatch(
+            "its snapshot has a curiosity channel, its record none",
+        )),
+    }
+}

@@ -1,0 +1,662 @@
+//! One hosted agent: the core `Agent` behind a brief lock, its history ring
+//! and the synchronous operations the tick loop and handlers call.
+
+use std::collections::VecDeque;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::time::Instant;
+
+use parking_lot::Mutex;
+
+use crate::store::{Commit, Store, Write};
+use mcapi_core::spec::ActionRef;
+use mcapi_core::{AlgoError, Observation};
+
+use super::agent_config::{EffectiveConfig, UpdateMode};
+use super::durable::{LogEntry, SnapshotRecord, TickRecord, encode};
+use super::error::{ServiceError, StorageError};
+use super::history::{RingTick, push_tick};
+use super::learner::Learner;
+use super::wire::{HistoryEntry, ModelSummary, ObservationIn, StepOut};
+
+/// Mutable state of a session, behind its lock.
+#[derive(Debug)]
+pub struct SessionState {
+    /// The learner.
+    pub learner: Learner,
+    history: VecDeque<RingTick>,
+    /// Sequence number of the next log entry.
+    seq: u64,
+    /// Log entries since the last snapshot.
+    since_snapshot: u64,
+    /// Set by `delete`: the session takes no more observations.
+    deleted: bool,
+    /// Set while a delete's commit is in flight: no observation or
+    /// snapshot is queued after the delete; cleared if the commit fails.
+    deleting: bool,
+    /// Policy updates to fail on purpose (tests of the failure path).
+    fail_plans: u32,
+}
+
+/// Where a session's observations are made durable.
+#[derive(Debug, Clone)]
+pub struct Durability {
+    /// The store.
+    pub store: Arc<Store>,
+    /// A snapshot is written after this many logged observations.
+    pub snapshot_every: u64,
+}
+
+/// What `Session::observe` did: the replies (or the error that stopped the
+/// batch) and, with a store, the commit that makes the applied observations
+/// durable. Await the commit before replying, error or not.
+#[derive(Debug)]
+pub struct Observed {
+    /// One reply per observation, or the error that stopped the batch.
+    pub result: Result<Vec<StepOut>, ServiceError>,
+    /// Resolves once the applied observations are durable.
+    pub commit: Option<Commit>,
+}
+
+impl Observed {
+    /// Waits for durability, then hands back the replies.
+    pub async fn durable(self) -> Result<Vec<StepOut>, ServiceError> {
+        if let Some(commit) = self.commit {
+            commit.wait().await.map_err(ServiceError::from)?;
+        }
+        self.result
+    }
+}
+
+/// A hosted session. Immutable parts live outside the lock.
+#[derive(Debug)]
+pub struct Session {
+    /// The session id.
+    pub id: String,
+    /// Lockstep or async.
+    pub mode: UpdateMode,
+    /// Model summary.
+    pub model: ModelSummary,
+    /// Effective configuration.
+    pub config: EffectiveConfig,
+    /// SHA-256 of the API key that created it, if keys were in force.
+    pub owner: Option<[u8; 32]>,
+    /// Mutable state.
+    pub state: Mutex<SessionState>,
+    durability: Option<Durability>,
+    /// True while a plan job for this session waits in the tick queue.
+    pub queued: AtomicBool,
+    /// Set after a failed commit (under the state lock, and read under it
+    /// where observations are applied): the state is ahead of what is
+    /// durable, so it takes no more observations and is replaced by a
+    /// reload. Read without the lock on the request path.
+    stale: AtomicBool,
+    /// Moving average of one policy update's cost in nanoseconds;
+    /// `u64::MAX` until the first update is measured.
+    plan_cost_ns: AtomicU64,
+    /// [`clock_ns`] at the last applied observation; 0 if none since the
+    /// server started.
+    last_observed_ns: AtomicU64,
+    history_cap: usize,
+    /// Set when an update panicked (a bug, not a client's mistake): the
+    /// state may be half-updated, so the session is quarantined and answers
+    /// [`ServiceError::SessionFailed`] until it is deleted.
+    failed: AtomicBool,
+    /// Test hook: the next update of this kind panics (see [`Update`]).
+    #[cfg(test)]
+    pub(crate) panic_next: std::sync::atomic::AtomicU8,
+}
+
+/// Nanoseconds since the process's first call, plus one (never 0).
+fn clock_ns() -> u64 {
+    static EPOCH: std::sync::OnceLock<Instant> = std::sync::OnceLock::new();
+    let epoch = EPOCH.get_or_init(Instant::now);
+    u64::try_from(epoch.elapsed().as_nanos())
+        .unwrap_or(u64::MAX - 1)
+        .saturating_add(1)
+}
+
+impl Session {
+    /// Wraps a fresh learner.
+    pub fn new(id: String, learner: Learner, model: ModelSummary, config: EffectiveConfig) -> Self {
+        Self::resume(id, learner, model, config, None, Resumed::default())
+    }
+
+    /// Wraps a learner with its owner, store and recovered log position.
+    pub fn resume(
+        id: String,
+        learner: Learner,
+        model: ModelSummary,
+        config: EffectiveConfig,
+        durability: Option<Durability>,
+        resumed: Resumed,
+    ) -> Self {
+        Self {
+            id,
+            mode: config.update_mode,
+            history_cap: config.history,
+            model,
+            config,
+            owner: resumed.owner,
+            durability,
+            state: Mutex::new(SessionState {
+                learner,
+                history: resumed.history,
+                seq: resumed.seq,
+                since_snapshot: resumed.since_snapshot,
+                deleted: false,
+                deleting: false,
+                fail_plans: 0,
+            }),
+            queued: AtomicBool::new(false),
+            stale: AtomicBool::new(false),
+            plan_cost_ns: AtomicU64::new(u64::MAX),
+            last_observed_ns: AtomicU64::new(0),
+            failed: AtomicBool::new(false),
+            #[cfg(test)]
+            panic_next: std::sync::atomic::AtomicU8::new(0),
+        }
+    }
+
+    /// Whether an update of this session panicked (it is quarantined).
+    pub fn is_failed(&self) -> bool {
+        self.failed.load(Ordering::Acquire)
+    }
+
+    /// Runs `update` on the locked state, catching a panic: the session is
+    /// then quarantined ([`Session::is_failed`]) and the caller gets
+    /// [`ServiceError::SessionFailed`] instead of a dead worker or a
+    /// half-updated state served to the next request.
+    fn guarded<T>(
+        &self,
+        st: &mut SessionState,
+        kind: Update,
+        update: impl FnOnce(&mut SessionState) -> Result<T, ServiceError>,
+    ) -> Result<T, ServiceError> {
+        #[cfg(test)]
+        let inject = self
+            .panic_next
+            .compare_exchange(kind as u8, 0, Ordering::AcqRel, Ordering::Acquire)
+            .is_ok();
+        #[cfg(not(test))]
+        let _ = kind;
+        let outcome = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+            #[cfg(test)]
+            if inject {
+                panic!("injected by a test");
+            }
+            update(st)
+        }));
+        outcome.unwrap_or_else(|panic| {
+            self.failed.store(true, Ordering::Release);
+            let what = panic
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_default();
+            tracing::error!(session = %self.id, panic = %what, "an update panicked; the session is quarantined");
+            metrics::counter!("mcapi_session_panics_total").increment(1);
+            Err(ServiceError::SessionFailed(self.id.clone()))
+        })
+    }
+
+    /// Time since the last applied observation; `None` if none since the
+    /// server started.
+    pub fn idle(&self) -> Option<std::time::Duration> {
+        match self.last_observed_ns.load(Ordering::Relaxed) {
+            0 => None,
+            at => Some(std::time::Duration::from_nanos(
+                clock_ns().saturating_sub(at),
+            )),
+        }
+    }
+
+    /// The measured cost of one policy update (a moving average over recent
+    /// updates), or `u64::MAX` before the first.
+    pub fn plan_cost_ns(&self) -> u64 {
+        self.plan_cost_ns.load(Ordering::Relaxed)
+    }
+
+    fn record_plan_cost(&self, started: Instant, updates: usize) {
+        if updates == 0 {
+            return;
+        }
+        let x =
+            u64::try_from(started.elapsed().as_nanos() / updates as u128).unwrap_or(u64::MAX - 1);
+        let old = self.plan_cost_ns.load(Ordering::Relaxed);
+        let new = if old == u64::MAX {
+            x
+        } else {
+            (old.saturating_mul(3).saturating_add(x)) / 4
+        };
+        self.plan_cost_ns
+            .store(new.min(u64::MAX - 1), Ordering::Relaxed);
+    }
+
+    /// Applies observations in order. With `plan` (lockstep) each is followed
+    /// by exactly one LSTDQ update, as `Agent::step`; without (async) the
+    /// reply uses the current policy and planning is left to the tick loop.
+    ///
+    /// On an error at observation i, the i earlier ones stay applied and the
+    /// message says so.
+    ///
+    /// With a store, the applied observations are queued for the next group
+    /// commit while the lock is held, so the log keeps their order.
+    pub fn observe(&self, batch: &[ObservationIn], plan: bool) -> Observed {
+        let mut st = self.state.lock();
+        if st.deleted {
+            return Observed {
+                result: Err(ServiceError::NotFound(self.id.clone())),
+                commit: None,
+            };
+        }
+        if self.is_failed() {
+            return Observed {
+                result: Err(ServiceError::SessionFailed(self.id.clone())),
+                commit: None,
+            };
+        }
+        if self.stale.load(Ordering::Acquire) {
+            return Observed {
+                result: Err(ServiceError::Unavailable(format!(
+                    "session `{}` is being reloaded from its last durable state after a storage failure; retry",
+                    self.id
+                ))),
+                commit: None,
+            };
+        }
+        if st.deleting {
+            return Observed {
+                result: Err(ServiceError::Unavailable(format!(
+                    "session `{}` is being deleted; retry",
+                    self.id
+                ))),
+                commit: None,
+            };
+        }
+        let started = Instant::now();
+        let mut out = Vec::with_capacity(batch.len());
+        let mut log = Vec::new();
+        let log_to = self.durability.as_ref().map(|_| &mut log);
+        // The observations applied before a panic stay applied and logged:
+        // the log then holds a consistent prefix, which a restart recovers.
+        let cap = self.history_cap;
+        let result = self.guarded(&mut st, Update::Observe, |st| {
+            st.apply_all(batch, plan, cap, &mut out, log_to)
+        });
+        if !out.is_empty() {
+            self.last_observed_ns.store(clock_ns(), Ordering::Relaxed);
+        }
+        let commit = match &self.durability {
+            Some(d) if !log.is_empty() => Some(st.log(&self.id, d, log)),
+            _ => None,
+        };
+        drop(st);
+        if plan {
+            self.record_plan_cost(started, out.len());
+        }
+        Observed {
+            result: result.map(|()| out),
+            commit,
+        }
+    }
+
+    /// Marks the session stale after a failed commit: no observation is
+    /// applied to it any more (the manager replaces it by a reload).
+    pub fn mark_stale(&self) {
+        // Under the lock: an observation being applied finishes first.
+        let _st = self.state.lock();
+        self.stale.store(true, Ordering::Release);
+    }
+
+    /// Whether a failed commit made this session stale.
+    pub fn is_stale(&self) -> bool {
+        self.stale.load(Ordering::Acquire)
+    }
+
+    /// Marks the session deleted (no observation is applied after this) and
+    /// deletes its stored data; the commit resolves once that is durable.
+    pub fn delete(&self) -> Option<Commit> {
+        let mut st = self.state.lock();
+        st.deleted = true;
+        self.durability.as_ref().map(|d| {
+            d.store.submit(vec![Write::Delete {
+                id: Arc::from(self.id.as_str()),
+            }])
+        })
+    }
+
+    /// Starts deleting the session: queues the deletion of its stored data
+    /// and, until [`Self::end_delete`], refuses observations (nothing is
+    /// queued after the delete). Nothing is removed yet: if the commit
+    /// fails, the session goes on as before. `None` without a store.
+    pub fn begin_delete(&self) -> Result<Option<Commit>, ServiceError> {
+        let mut st = self.state.lock();
+        if st.deleted {
+            return Err(ServiceError::NotFound(self.id.clone()));
+        }
+        if self.is_stale() {
+            return Err(StorageError::RollingBack(self.id.clone()).into());
+        }
+        if st.deleting {
+            return Err(ServiceError::Unavailable(format!(
+                "session `{}` is already being deleted; retry",
+                self.id
+            )));
+        }
+        st.deleting = true;
+        Ok(self.durability.as_ref().map(|d| {
+            d.store.submit(vec![Write::Delete {
+                id: Arc::from(self.id.as_str()),
+            }])
+        }))
+    }
+
+    /// Ends a delete: `deleted` once its commit is durable (the session
+    /// takes nothing more), otherwise the session is served again.
+    pub fn end_delete(&self, deleted: bool) {
+        let mut st = self.state.lock();
+        st.deleting = false;
+        st.deleted |= deleted;
+    }
+
+    /// Whether a delete of this session is in flight.
+    pub fn is_deleting(&self) -> bool {
+        self.state.lock().deleting
+    }
+
+    /// Marks a reloaded session as being deleted, as the session it
+    /// replaces was (the delete in flight ends on it).
+    pub(super) fn inherit_deleting(&self) {
+        self.state.lock().deleting = true;
+    }
+
+    /// Makes the next `n` policy updates of observations fail with
+    /// `AlgoError::Numerical` after the observation was applied, as a
+    /// numerical breakdown of the planner would (for tests of that path;
+    /// no request reaches it).
+    #[doc(hidden)]
+    pub fn fail_next_plans(&self, n: u32) {
+        self.state.lock().fail_plans = n;
+    }
+
+    /// Writes a snapshot now (at clean shutdown), unless nothing changed
+    /// since the last one.
+    pub fn snapshot(&self) -> Option<Commit> {
+        let d = self.durability.as_ref()?;
+        let mut st = self.state.lock();
+        if st.deleted
+            || st.deleting
+            || self.is_stale()
+            || self.is_failed()
+            || st.since_snapshot == 0
+        {
+            return None;
+        }
+        match st.snapshot_write(&self.id) {
+            Ok(w) => Some(d.store.submit(vec![w])),
+            Err(e) => {
+                tracing::error!(session = %self.id, error = %e, "snapshot not written");
+                None
+            }
+        }
+    }
+
+    /// One policy update if the reward changed since the last one (the tick
+    /// loop's work for async sessions).
+    pub fn plan_if_needed(&self) -> Result<bool, ServiceError> {
+        let mut st = self.state.lock();
+        if self.is_failed() || !st.learner.needs_plan() {
+            return Ok(false);
+        }
+        let started = Instant::now();
+        self.guarded(&mut st, Update::Plan, |st| Ok(st.learner.plan()?))?;
+        drop(st);
+        self.record_plan_cost(started, 1);
+        Ok(true)
+    }
+
+    /// Marks the session queued; true if it was not already.
+    pub fn try_enqueue(&self) -> bool {
+        !self.queued.swap(true, Ordering::AcqRel)
+    }
+
+    /// Clears the queued mark (before planning, so newer rewards re-queue).
+    pub fn dequeued(&self) {
+        self.queued.store(false, Ordering::Release);
+    }
+
+    /// The most recent `limit` history entries, oldest first.
+    pub fn history(&self, limit: usize) -> Vec<HistoryEntry> {
+        let st = self.state.lock();
+        let skip = st.history.len().saturating_sub(limit);
+        st.history.iter().skip(skip).map(RingTick::entry).collect()
+    }
+}
+
+/// What a recovered session resumes from.
+#[derive(Debug, Default)]
+pub struct Resumed {
+    /// Owner digest.
+    pub owner: Option<[u8; 32]>,
+    /// History ring, oldest first.
+    pub history: VecDeque<RingTick>,
+    /// Sequence number of the next log entry.
+    pub seq: u64,
+    /// Log entries since the last snapshot.
+    pub since_snapshot: u64,
+}
+
+impl SessionState {
+    fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
+        let record = SnapshotRecord {
+            learner: self.learner.snapshot(),
+            history: self.history.iter().map(TickRecord::from).collect(),
+        };
+        self.since_snapshot = 0;
+        Ok(Write::Snapshot {
+            id: Arc::from(id),
+            seq: self.seq.saturating_sub(1),
+            snapshot: encode(&record)?,
+        })
+    }
+
+    /// Queues log entries (and a snapshot when one is due) for commit.
+    fn log(&mut self, id: &str, d: &Durability, entries: Vec<LogEntry>) -> Commit {
+        let id: Arc<str> = Arc::from(id);
+        let mut writes = Vec::with_capacity(entries.len() + 1);
+        for entry in &entries {
+            match encode(entry) {
+                Ok(bytes) => writes.push(Write::Append {
+                    id: Arc::clone(&id),
+                    seq: self.seq,
+                    entry: bytes,
+                }),
+                Err(e) => tracing::error!(session = %id, error = %e, "log entry not encoded"),
+            }
+            self.seq += 1;
+            self.since_snapshot += 1;
+        }
+        if self.since_snapshot >= d.snapshot_every {
+            match self.snapshot_write(&id) {
+                Ok(w) => writes.push(w),
+                Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
+            }
+        }
+        d.store.submit(writes)
+    }
+
+    fn apply_all(
+        &mut self,
+        batch: &[ObservationIn],
+        plan: bool,
+        history_cap: usize,
+        out: &mut Vec<StepOut>,
+        mut log: Option<&mut Vec<LogEntry>>,
+    ) -> Result<(), ServiceError> {
+        for (i, obs) in batch.iter().enumerate() {
+            // The action whose pair this observation updates, resolved now.
+            let advised_before = self.learner.agent().advised_action();
+            match self.apply(obs, plan, history_cap) {
+                Ok(Applied {
+                    step,
+                    taken,
+                    plan_failed,
+                }) => {
+                    if let Some(log) = log.as_deref_mut() {
+                        log.push(LogEntry {
+                            state: obs.state as u32,
+                            stimulus: obs.stimulus.clone(),
+                            taken: obs
+                                .stimulus
+                                .as_ref()
+                                .and(taken.or(advised_before))
+                                .map(|a| a as u32),
+                            advised: step.action_index as u32,
+                            lstdq_error: self.learner.agent().last_plan().lstdq_error,
+                            policy_version: step.policy_version,
+                            signal: obs
+                                .signal
+                                .as_ref()
+                                .map(|x| (obs.signal_source.unwrap_or(0) as u32, x.clone())),
+                        });
+                    }
+                    if let Some(e) = plan_failed {
+                        // The observation is applied (Ξ, D, the tick) and
+                        // logged above, so memory and log agree; the reply
+                        // is the planner's error.
+                        return Err(e.into());
+                    }
+                    out.push(step);
+                }
+                Err(e) if batch.len() == 1 => return Err(e),
+                Err(e) => {
+                    return Err(match e {
+                        ServiceError::Algo(AlgoError::Numerical(_)) | ServiceError::Internal(_) => {
+                            e
+                        }
+                        e => ServiceError::BadRequest(format!(
+                            "`observations[{i}]`: {e} (the {i} observations before it were applied)"
+                        )),
+                    });
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Applies one observation. An error means nothing was applied; a
+    /// failed policy update after the observation was applied is
+    /// [`Applied::plan_failed`], so the caller logs the observation.
+    fn apply(
+        &mut self,
+        obs: &ObservationIn,
+        plan: bool,
+        history_cap: usize,
+    ) -> Result<Applied, ServiceError> {
+        let model = self.learner.agent().planning_model().model();
+        let action_taken = match &obs.action_taken {
+            None => None,
+            Some(ActionRef::Index(a)) => Some(*a),
+            Some(ActionRef::Name(name)) => Some(
+                model
+                    .actions()
+                    .iter()
+                    .position(|a| a == name)
+                    .ok_or_else(|| {
+                        ServiceError::field(
+                            "action_taken",
+                            format!(
+                                "unknown action `{name}` (actions: {})",
+                                model.actions().join(", ")
+                            ),
+                        )
+                    })?,
+            ),
+        };
+        if obs.signal_source.is_some() && obs.signal.is_none() {
+            return Err(ServiceError::field(
+                "signal_source",
+                "is given without a `signal`",
+            ));
+        }
+        let observation = Observation {
+            state: obs.state,
+            stimulus: obs.stimulus.as_deref(),
+            action_taken,
+        };
+        let signal = obs
+            .signal
+            .as_deref()
+            .map(|x| (obs.signal_source.unwrap_or(0), x));
+        let observed = self.learner.observe(&observation, signal)?;
+        // Algorithm 1 lines 8-10, as `Agent::step`: act even if planning
+        // failed, so the agent stays consistent.
+        let planned = (plan && self.learner.needs_plan()).then(|| {
+            if self.fail_plans > 0 {
+                self.fail_plans -= 1;
+                return Err(AlgoError::Numerical(
+                    "injected policy update failure".into(),
+                ));
+            }
+            self.learner.plan()
+        });
+        let action = self
+            .learner
+            .act()
+            .ok_or_else(|| ServiceError::Internal("no state after an observation".into()))?;
+        let plan_failed = planned.and_then(Result::err);
+        let agent = self.learner.agent();
+        let drive = agent.drive().vector().to_vec();
+        if obs.stimulus.is_some() {
+            let tick = RingTick::new(
+                observed.tick,
+                obs.state,
+                action,
+                &drive,
+                obs.stimulus.as_deref(),
+                observed.xi_cur,
+                observed.reward,
+                agent.last_plan().lstdq_error,
+                observed.curiosity,
+            );
+            push_tick(&mut self.history, history_cap, tick);
+        }
+        Ok(Applied {
+            step: StepOut {
+                tick: observed.tick,
+                action: agent.planning_model().model().actions()[action].clone(),
+                action_index: action,
+                drive,
+                reward: observed.reward,
+                policy_version: agent.policy_version(),
+                curiosity: observed.curiosity,
+            },
+            taken: action_taken,
+            plan_failed,
+        })
+    }
+}
+
+/// One applied observation.
+struct Applied {
+    /// The reply.
+    step: StepOut,
+    /// The action the client reported taking, if any.
+    taken: Option<usize>,
+    /// The policy update after it failed (the observation stays applied).
+    plan_failed: Option<AlgoError>,
+}
+
+/// A shared handle.
+pub type SessionRef = Arc<Session>;
+
+/// The two ways a session's state changes, for [`Session::guarded`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[repr(u8)]
+pub(crate) enum Update {
+    /// Observations applied (and, in lockstep, their plans).
+    Observe = 1,
+    /// An async-mode policy update.
+    Plan = 2,
+}

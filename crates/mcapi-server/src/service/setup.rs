@@ -1,0 +1,204 @@
+//! Setting a session up: its model parsed and checked against the limits,
+//! the planning model (shared by every session of the same model, built
+//! once, a few at a time), its agent configuration checked, its learner
+//! built. Creation and recovery both build here.
+
+use std::collections::HashMap;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::{Arc, Weak};
+use std::time::{SystemTime, UNIX_EPOCH};
+
+use parking_lot::Mutex;
+
+use mcapi_core::{Agent, Basis, CuriousAgent, PlanningModel};
+
+use super::agent_config::{EffectiveConfig, SessionConfig};
+use super::error::ServiceError;
+use super::learner::Learner;
+use super::limits::Limits;
+use super::spec::ModelInput;
+use super::wire::{BasisSummary, GridLayout, ModelSummary};
+
+/// A counting semaphore for model builds: at most `slots` at once, and at
+/// most `queue` more waiting; beyond that a create is refused with 503
+/// instead of piling up blocking threads.
+struct BuildSlots {
+    state: Mutex<(usize, usize)>,
+    freed: parking_lot::Condvar,
+    slots: usize,
+    queue: usize,
+}
+
+struct BuildSlot<'a>(&'a BuildSlots);
+
+impl BuildSlots {
+    fn new(slots: usize) -> Self {
+        Self {
+            state: Mutex::new((0, 0)),
+            freed: parking_lot::Condvar::new(),
+            slots: slots.max(1),
+            queue: 8 * slots.max(1),
+        }
+    }
+
+    /// Waits for a slot (blocking: call off the async runtime).
+    fn acquire(&self) -> Result<BuildSlot<'_>, ServiceError> {
+        let mut st = self.state.lock();
+        if st.0 >= self.slots {
+            if st.1 >= self.queue {
+                return Err(ServiceError::Unavailable(format!(
+                    "{} sessions are being created and {} more wait; retry shortly",
+                    st.0, st.1
+                )));
+            }
+            st.1 += 1;
+            while st.0 >= self.slots {
+                self.freed.wait(&mut st);
+            }
+            st.1 -= 1;
+        }
+        st.0 += 1;
+        Ok(BuildSlot(self))
+    }
+}
+
+impl Drop for BuildSlot<'_> {
+    fn drop(&mut self) {
+        self.0.state.lock().0 -= 1;
+        self.0.freed.notify_one();
+    }
+}
+
+/// What the model summaries of sessions sharing a planning model take from
+/// its one build: the basis chosen and the grid layout.
+#[derive(Debug, Clone)]
+struct Built {
+    basis: BasisSummary,
+    layout: Option<GridLayout>,
+}
+
+/// SplitMix64, for seeds and shards.
+fn splitmix(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// An algorithm error about a field of `agent.curiosity`, with its path:
+/// `invalid parameter `agent.curiosity.params`: `gain` must be ...`.
+fn prefix(field: &'static str, e: mcapi_core::AlgoError) -> ServiceError {
+    match e {
+        mcapi_core::AlgoError::InvalidParameter { name, reason } => {
+            mcapi_core::AlgoError::InvalidParameter {
+                name: field,
+                reason: format!("`{name}` {reason}"),
+            }
+            .into()
+        }
+        e => ServiceError::field(field, e),
+    }
+}
+
+/// What every session build shares: the planning models by model, the
+/// bound on concurrent builds and the seed source.
+pub(super) struct Setup {
+    models: Mutex<HashMap<String, (Weak<PlanningModel>, Built)>>,
+    seed_counter: AtomicU64,
+    builds: BuildSlots,
+}
+
+impl Setup {
+    /// Builds at most `workers` planning models at once.
+    pub(super) fn new(workers: usize) -> Self {
+        let now = SystemTime::now()
+            .duration_since(UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        Self {
+            models: Mutex::new(HashMap::new()),
+            seed_counter: AtomicU64::new(splitmix(now ^ u64::from(std::process::id()))),
+            builds: BuildSlots::new(workers),
+        }
+    }
+
+    pub(super) fn fresh_u64(&self) -> u64 {
+        splitmix(
+            self.seed_counter
+                .fetch_add(0x9E37_79B9_7F4A_7C15, Ordering::Relaxed),
+        )
+    }
+
+    /// The shared planning model for `input`, built once per distinct model,
+    /// with what a session's model summary takes from its build.
+    fn planning_model(
+        &self,
+        input: &ModelInput,
+        curious: bool,
+        limits: &Limits,
+    ) -> Result<(Arc<PlanningModel>, Built), ServiceError> {
+        let key = format!("{}:curious={curious}", input.cache_key());
+        if let Some((weak, built)) = self.models.lock().get(&key)
+            && let Some(ctx) = weak.upgrade()
+        {
+            return Ok((ctx, built.clone()));
+        }
+        // Built outside the lock (PVFs cost an eigendecomposition), a few at
+        // a time.
+        let _slot = self.builds.acquire()?;
+        let (model, basis_spec) = input.build(limits, curious)?;
+        let basis = Basis::build(&basis_spec, &model)?;
+        let built = Built {
+            basis: BasisSummary::of(&basis_spec),
+            layout: input.layout(),
+        };
+        let ctx = Arc::new(PlanningModel::new(model, basis));
+        let mut models = self.models.lock();
+        models.retain(|_, (w, _)| w.strong_count() > 0);
+        if let Some((weak, existing_built)) = models.get(&key)
+            && let Some(existing) = weak.upgrade()
+        {
+            return Ok((existing, existing_built.clone()));
+        }
+        models.insert(key, (Arc::downgrade(&ctx), built.clone()));
+        Ok((ctx, built))
+    }
+
+    /// Builds the agent of a session (fresh, or the base of a recovery).
+    pub(super) fn build(
+        &self,
+        input: &ModelInput,
+        agent: &SessionConfig,
+        limits: &Limits,
+    ) -> Result<(Learner, ModelSummary, EffectiveConfig), ServiceError> {
+        limits.check_config(agent)?;
+        let (ctx, built) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
+        let model = ctx.model();
+        let params = agent.params().check(model.n_stimuli(), self.fresh_u64())?;
+        let config = agent.effective(&params);
+        let summary = ModelSummary {
+            states: model.states(),
+            actions: model.actions().to_vec(),
+            stimuli: model.stimuli().to_vec(),
+            pairs: model.n_pairs(),
+            transitions: model.n_transitions(),
+            deterministic: model.is_deterministic(),
+            basis: built.basis,
+            features: ctx.n_features(),
+            layout: built.layout,
+        };
+        let learner = match &agent.curiosity {
+            None => Learner::Plain(Agent::new(ctx, params)),
+            Some(c) => {
+                let checked = c
+                    .params
+                    .check()
+                    .map_err(|e| prefix("agent.curiosity.params", e))?;
+                Learner::Curious(Box::new(
+                    CuriousAgent::new(ctx, params, checked, c.signal_dim)
+                        .map_err(|e| prefix("agent.curiosity", e))?,
+                ))
+            }
+        };
+        Ok((learner, summary, config))
+    }
+}
