@@ -143,7 +143,7 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// `mcapi experiment curiosity` (Experiment 3, ALGORITHM.md §7).
+/// `mcapi experiment curiosity` (Experiment 3, docs/algorithm.md §7).
 fn curiosity_experiment(args: ExperimentArgs) -> anyhow::Result<()> {
     let started = Instant::now();
     let opts = RunOptions {

@@ -4,7 +4,7 @@ This is the reference point for the Rust tick benchmarks: what a researcher
 would write from Algorithm 1 of Kompella, Kazerounian & Schmidhuber (SAB 2014)
 without tuning.  Every basis, including the indicator one, is a dense feature
 matrix Φ (pairs × features); each tick builds P^πΦ densely, forms
-A = Φᵀ(Φ − γP^πΦ) and solves it from scratch (ALGORITHM.md §2, §5).
+A = Φᵀ(Φ − γP^πΦ) and solves it from scratch (docs/algorithm.md §2, §5).
 
 Run from the repository root (see run.sh); prints one JSON object per setup:
 {"setup": ..., "median_us": ..., "ticks": ..., "repeats": ...}.
@@ -140,7 +140,7 @@ class Agent:
     """MCA-PI agent state (Ξ, visit counts, D, π, Q) and its tick (Algorithm 1, lines 5-9)."""
 
     def __init__(self, setup: Setup, rng: np.random.Generator):
-        """Initialisation of ALGORITHM.md §3, all from `rng`."""
+        """Initialisation of docs/algorithm.md §3, all from `rng`."""
         self.setup = setup
         self.rng = rng
         n_pairs = len(setup.pair_state)

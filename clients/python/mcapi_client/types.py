@@ -103,7 +103,7 @@ def check_signal(signal: list[float]) -> list[float]:
 @dataclass(frozen=True, slots=True, init=False)
 class CuriosityConfig:
     """A session's curiosity channel (the paper's section on curiosity-driven
-    learning; ALGORITHM.md section 7 of the server).
+    learning; docs/algorithm.md section 7 of the server).
 
     A session created with one gets an extra stimulus dimension named
     ``"curiosity"``, last in ``model.stimuli``: the server computes it, as

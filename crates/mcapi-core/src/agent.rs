@@ -1,6 +1,6 @@
 //! Algorithm 1 (MCA-PI) as an [`Agent`]: one observation in, one action out.
 //!
-//! A tick (ALGORITHM.md §2): the agent in s_t took a_t (the action it advised,
+//! A tick (docs/algorithm.md §2): the agent in s_t took a_t (the action it advised,
 //! or the one the caller reports it took), arrived in s_{t+1} and received
 //! ξ(t+1). [`Agent::observe`] applies line 5 (Ξ), lines 6-7 (D, Eqs. 1-2)
 //! and Eq. 3 (r); [`Agent::plan`] applies line 8 (R = |ΞΛD|) and line 9 (one
@@ -103,7 +103,7 @@ impl RngState {
 }
 
 /// Everything of an [`Agent`] that is not a function of its model and
-/// parameters: what a durable store keeps to resume it (DESIGN.md,
+/// parameters: what a durable store keeps to resume it (docs/sessions.md, "Durability and recovery",
 /// "Durability"). Ξ, the visit counts, D and its λ₁ statistics, the tick
 /// and the RNG position come back bit for bit; so do π and Q.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

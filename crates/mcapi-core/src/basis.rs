@@ -1,4 +1,4 @@
-//! Feature bases for LSTDQ (ALGORITHM.md §5).
+//! Feature bases for LSTDQ (docs/algorithm.md §5).
 //!
 //! - `indicator`: one feature per valid pair (Φ = I); LSTDQ is then exact
 //!   policy evaluation and never forms a matrix (see [`super::lstdq`]).
@@ -15,7 +15,7 @@ use super::error::{AlgoError, Result};
 use super::model::EnvModel;
 use super::spec::BasisSpec;
 
-/// Pair counts up to this use the indicator basis by default (DESIGN.md).
+/// Pair counts up to this use the indicator basis by default (docs/sessions.md, "The model").
 pub const INDICATOR_DEFAULT_MAX_PAIRS: usize = 2000;
 
 /// Number of PVFs used when the default falls back to `proto_value`.
@@ -133,7 +133,7 @@ fn custom_features(model: &EnvModel, rows: &[Vec<f64>]) -> Result<StateFeatures>
 }
 
 /// The k eigenvectors of the normalised Laplacian with the smallest
-/// eigenvalues (ALGORITHM.md §5). W_ss' = 1 when some action moves s to
+/// eigenvalues (docs/algorithm.md §5). W_ss' = 1 when some action moves s to
 /// s' ≠ s with p > 0, symmetrised, without self loops. A state without
 /// neighbours has a zero row in D^{-1/2} W D^{-1/2}.
 ///

@@ -1,4 +1,4 @@
-//! An MCA-PI agent with a curiosity drive: ALGORITHM.md §7 "Coupling to the
+//! An MCA-PI agent with a curiosity drive: docs/algorithm.md §7 "Coupling to the
 //! agent" (paper Sec. 4.3).
 //!
 //! [`CuriousAgent`] owns an [`Agent`] whose model has the curiosity

@@ -8,7 +8,7 @@ use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-/// The drive, its MCA rate and the running estimate of λ₁ (ALGORITHM.md §4).
+/// The drive, its MCA rate and the running estimate of λ₁ (docs/algorithm.md §4).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Drive {
     d: Vec<f64>,
@@ -34,7 +34,7 @@ pub fn norm(x: &[f64]) -> f64 {
 }
 
 impl Drive {
-    /// D₀ = |N(0, I)| normalised (ALGORITHM.md §3).
+    /// D₀ = |N(0, I)| normalised (docs/algorithm.md §3).
     pub fn new(priorities: &[f64], eta: f64, rng: &mut impl Rng) -> Self {
         let n = priorities.len();
         let d: Vec<f64> = (0..n)
@@ -120,7 +120,7 @@ impl Drive {
     }
 
     /// Sets component `dim` of D to `value` and renormalises, |D| = 1
-    /// (ALGORITHM.md §7, condition (3): D\[cur\] = 0 while every known signal
+    /// (docs/algorithm.md §7, condition (3): D\[cur\] = 0 while every known signal
     /// source is explained, 1/√n when one becomes unexplained again). Sets
     /// nothing and returns false if the result would not be a finite
     /// non-zero vector; a component already equal to `value` is left as it

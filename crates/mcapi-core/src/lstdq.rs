@@ -1,5 +1,5 @@
 //! Model-based LSTDQ and greedy policy improvement (Algorithm 1, line 9;
-//! ALGORITHM.md §2.6 and §5).
+//! docs/algorithm.md §2.6 and §5).
 //!
 //! One call of [`Planner::update`] is exactly one LSTDQ evaluation of the
 //! current policy π_t on the current reward R followed by one greedy

@@ -1,5 +1,5 @@
 //! The environment model: finite states, named actions, the valid state-action
-//! pairs and the known transition model P(s'|s,a) (ALGORITHM.md §1).
+//! pairs and the known transition model P(s'|s,a) (docs/algorithm.md §1).
 //!
 //! Only **valid pairs** exist: an action that would leave the chain or walk into
 //! a wall is simply absent. Every per-pair quantity of the algorithm (Φ, Ξ, R,
@@ -16,7 +16,7 @@ use serde::{Deserialize, Serialize};
 use super::error::{AlgoError, Result};
 use super::spec::{ActionRef, ModelSpec, TransitionSpec};
 
-/// Probabilities of one pair must sum to 1 within this tolerance (DESIGN.md).
+/// Probabilities of one pair must sum to 1 within this tolerance (docs/sessions.md, "The model").
 pub const PROBABILITY_TOLERANCE: f64 = 1e-9;
 
 const NONE: u32 = u32::MAX;
@@ -250,7 +250,7 @@ impl EnvModel {
     }
 
     /// The same model with one more stimulus dimension, last (the curiosity
-    /// dimension of ALGORITHM.md §7: no transition delivers it, a channel
+    /// dimension of docs/algorithm.md §7: no transition delivers it, a channel
     /// does). Refuses a name the model already has.
     pub fn with_stimulus(mut self, name: &str) -> Result<Self> {
         self.stimuli.push(name.to_string());
@@ -275,7 +275,7 @@ impl EnvModel {
         })
     }
 
-    /// The hallway of Experiment 1 (ALGORITHM.md §6): an `n`-state chain with
+    /// The hallway of Experiment 1 (docs/algorithm.md §6): an `n`-state chain with
     /// actions left, right, stay; state 0 lacks left and state n-1 lacks right.
     pub fn chain(n: usize, stimuli: Vec<String>) -> Result<Self> {
         let next = (0..n)

@@ -1,6 +1,6 @@
 //! Agent parameters, checked once (`AgentParams::check -> ValidParams`) so
 //! that the algorithm only ever sees valid values. Defaults follow
-//! ALGORITHM.md §2-§6.
+//! docs/algorithm.md §2-§6.
 
 use serde::{Deserialize, Serialize};
 
@@ -30,13 +30,13 @@ impl Default for StimulusRate {
     }
 }
 
-/// Default MCA learning rate η (ALGORITHM.md §6).
+/// Default MCA learning rate η (docs/algorithm.md §6).
 pub const DEFAULT_ETA: f64 = 0.01;
 /// Default discount γ (the hallway's).
 pub const DEFAULT_GAMMA: f64 = 0.95;
-/// Default σ of the optimistic initialisation of Ξ (ALGORITHM.md §3).
+/// Default σ of the optimistic initialisation of Ξ (docs/algorithm.md §3).
 pub const DEFAULT_OPTIMISTIC_SD: f64 = 0.3;
-/// Default ridge λ, added only when A is singular (ALGORITHM.md §2.6).
+/// Default ridge λ, added only when A is singular (docs/algorithm.md §2.6).
 pub const DEFAULT_RIDGE: f64 = 1e-6;
 
 /// Agent configuration as a client sends it; every field is optional.
@@ -110,7 +110,7 @@ impl AgentParams {
     /// `fallback_seed` is used when no seed was given.
     pub fn check(&self, n_stimuli: usize, fallback_seed: u64) -> Result<ValidParams> {
         let eta = finite("eta", self.eta.unwrap_or(DEFAULT_ETA))?;
-        // Condition (1), first half (ALGORITHM.md §4).
+        // Condition (1), first half (docs/algorithm.md §4).
         if !(eta > 0.0 && eta <= 0.5) {
             return Err(bad(
                 "eta",

@@ -1,5 +1,5 @@
 //! The environment model and its feature basis as a client posts them
-//! (DESIGN.md, "Environment model"): plain data, checked by
+//! (docs/sessions.md, "The model"): plain data, checked by
 //! [`EnvModel::from_spec`](super::model::EnvModel::from_spec) and
 //! [`Basis::build`](super::basis::Basis::build). The posted JSON is a
 //! wire format: these derives must not change what they accept or print.
@@ -28,7 +28,7 @@ pub struct TransitionSpec {
     pub next: Vec<(usize, f64)>,
 }
 
-/// An environment model as a client posts it (DESIGN.md, "Environment model").
+/// An environment model as a client posts it (docs/sessions.md, "The model").
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct ModelSpec {

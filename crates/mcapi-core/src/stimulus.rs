@@ -3,7 +3,7 @@
 //!
 //! Ξ has one row per valid pair and one column per stimulus dimension: the
 //! agent's estimate of what taking a in s delivers. It starts optimistic,
-//! Ξ ~ N(0, σ²) (ALGORITHM.md §3), so unexplored pairs promise something.
+//! Ξ ~ N(0, σ²) (docs/algorithm.md §3), so unexplored pairs promise something.
 
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
@@ -29,7 +29,7 @@ pub struct StimulusFunction {
     own_column: Option<OwnColumn>,
 }
 
-/// A column of Ξ learned at its own rate 1/n_col(s, a) (ALGORITHM.md §7:
+/// A column of Ξ learned at its own rate 1/n_col(s, a) (docs/algorithm.md §7:
 /// the curiosity column restarts its counts at every module freeze).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct OwnColumn {
@@ -55,7 +55,7 @@ impl StimulusFunction {
         }
     }
 
-    /// Gives column `dim` visit counts of its own, starting at 0 (ALGORITHM.md
+    /// Gives column `dim` visit counts of its own, starting at 0 (docs/algorithm.md
     /// §7: the curiosity column's rate is 1/n_cur). Ξ is unchanged.
     pub fn count_column_separately(&mut self, dim: usize) {
         debug_assert!(dim < self.n);

@@ -1,4 +1,4 @@
-//! The core knows nothing of the network (STYLE.md, habit 1), and the crate
+//! The core knows nothing of the network (docs/architecture.md), and the crate
 //! boundary enforces it: this test reads the workspace's *resolved*
 //! dependency graph (`cargo metadata`) and walks mcapi-core's normal
 //! dependencies, transitively, the way `cargo tree -p mcapi-core -e normal`

@@ -1,4 +1,4 @@
-//! Property tests of the MCA-PI core (`mcapi_core`) against ALGORITHM.md.
+//! Property tests of the MCA-PI core (`mcapi_core`) against docs/algorithm.md.
 //!
 //! Each property draws its structure (sizes, rates, a seed) from proptest and
 //! fills the bulk content (matrices, models, stimulus streams) from a ChaCha8

@@ -6,7 +6,7 @@
 //! warmed up first so the policy is in its steady regime (drives switching,
 //! factorisation reused on some ticks and updated on others).
 //!
-//! The `curiosity` group prices the intMCA channel (ALGORITHM.md §7): a
+//! The `curiosity` group prices the intMCA channel (docs/algorithm.md §7): a
 //! curious agent standing at a signal source, learning a book sample every
 //! tick (freezing disabled, so every tick pays for slow-feature learning),
 //! against the plain agent on the same observations.

@@ -1,4 +1,4 @@
-//! The paper's experiments (ALGORITHM.md §6) over the pure core: the
+//! The paper's experiments (docs/algorithm.md §6) over the pure core: the
 //! hallway (Exp. 1), the three-room maze (Exp. 2) and the curiosity room
 //! (Exp. 3, §7), with their baselines, metrics, per-trial CSV series,
 //! `summary.json` and figures.

@@ -1,4 +1,4 @@
-//! The worlds and configurations of Experiments 1 and 2 (ALGORITHM.md §6),
+//! The worlds and configurations of Experiments 1 and 2 (docs/algorithm.md §6),
 //! and the simulation of one trial.
 
 use std::sync::Arc;
@@ -18,7 +18,7 @@ use super::dominance::DominanceTracker;
 /// Magnitude of a source's stimulus on its own dimension.
 pub const SOURCE_STIMULUS: f64 = 6.0;
 
-/// Standard deviation of the source noise. ALGORITHM.md writes N(0, 2); we
+/// Standard deviation of the source noise. docs/algorithm.md writes N(0, 2); we
 /// read the 2 as the standard deviation, as §6 writes N(0, σ) for the
 /// Brownian step. With it η‖ξ‖² exceeds 1 − η on some visits, so Eq. 1 flips
 /// a component's sign now and then, as §2.4 says it does.
@@ -276,7 +276,7 @@ impl<'a> World<'a> {
     }
 
     /// ξ at state `s`: SOURCE_STIMULUS + noise on the source's own
-    /// dimension, exactly 0 elsewhere (ALGORITHM.md §6).
+    /// dimension, exactly 0 elsewhere (docs/algorithm.md §6).
     fn stimulus(&mut self, s: usize, xi: &mut [f64]) {
         xi.fill(0.0);
         for src in &self.preset.sources {

@@ -1,4 +1,4 @@
-//! Figures of the experiments (ALGORITHM.md §6), as PNG and SVG, drawn with
+//! Figures of the experiments (docs/algorithm.md §6), as PNG and SVG, drawn with
 //! plotters and the bundled DejaVu Sans font (no system fonts needed).
 //!
 //! Hallway: Fig. 2(b) cumulative |r| (mean ± sd, MCA-PI vs Brownian),

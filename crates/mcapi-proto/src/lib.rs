@@ -1,4 +1,4 @@
-//! The gRPC API of mcapi, package `mcapi.v1` (DESIGN.md, "gRPC"): the prost
+//! The gRPC API of mcapi, package `mcapi.v1` (docs/grpc.md): the prost
 //! messages and the tonic client and server generated from
 //! `proto/mcapi/v1/agents.proto` at the workspace's top level, shared by the
 //! server (`mcapi-server`) and the load generator (`mcapi loadgen`).
@@ -11,6 +11,6 @@ tonic::include_proto!("mcapi.v1");
 pub const FILE_DESCRIPTOR_SET: &[u8] =
     include_bytes!(concat!(env!("OUT_DIR"), "/mcapi_descriptor.bin"));
 
-/// Metadata key naming the session a call concerns (DESIGN.md, "Scale-out"):
+/// Metadata key naming the session a call concerns (docs/sessions.md, "Session ids and ownership"):
 /// routers cannot read message bodies, so clients send the id here too.
 pub const SESSION_METADATA: &str = "x-mcapi-session";

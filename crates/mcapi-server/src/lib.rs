@@ -4,7 +4,7 @@
 //! Kazerounian, Schmidhuber, SAB 2014, implemented in [`mcapi_core`]) as
 //! sessions, over REST (axum) and gRPC (tonic).
 //!
-//! Modules, from the bottom up (DESIGN.md, "Layers"):
+//! Modules, from the bottom up (docs/architecture.md, "The layers"):
 //! - [`store`]: durable session storage (redb, or memory).
 //! - [`service`]: the session layer both transports call (sessions, tick
 //!   loop, limits, recovery).

@@ -1,4 +1,4 @@
-//! Curiosity: the intMCA channel (ALGORITHM.md §7; paper Sec. 4.3, Eqs. 6-7).
+//! Curiosity: the intMCA channel (docs/algorithm.md §7; paper Sec. 4.3, Eqs. 6-7).
 //!
 //! A curiosity channel turns a raw signal x(t) ∈ Rᵐ, received only at signal
 //! sources, into one extra stimulus dimension ξ_cur. Read in the order of §7:

@@ -1,4 +1,4 @@
-//! The curiosity channel's constants (ALGORITHM.md §7), checked once:
+//! The curiosity channel's constants (docs/algorithm.md §7), checked once:
 //! [`CuriosityParams::check`] gives the [`ValidCuriosityParams`] that every
 //! other part of the channel accepts.
 
@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{AlgoError, Result};
 
-/// Every constant of the curiosity channel (ALGORITHM.md §7). [`Default`]
+/// Every constant of the curiosity channel (docs/algorithm.md §7). [`Default`]
 /// gives the paper's values and, where the paper is silent, the values of the
 /// reproduction that §7 records; those are marked **(ours)**.
 ///

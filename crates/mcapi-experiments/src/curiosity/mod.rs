@@ -1,4 +1,4 @@
-//! Experiment 3 (ALGORITHM.md §7 "Experiment 3"; paper Sec. 4.3): the
+//! Experiment 3 (docs/algorithm.md §7 "Experiment 3"; paper Sec. 4.3): the
 //! curiosity room. Food `F` feeds dimension 0, rest `R` dimension 1; the book
 //! `K` and the music `M` deliver the signals of Eq. 6 (one sample per tick
 //! while the agent is there, each source on its own clock), which the

@@ -1,5 +1,5 @@
 //! The one mapping of service errors to HTTP status, gRPC code and stable
-//! snake_case code (STYLE.md, habit 3). Every variant is listed; no `_ =>`.
+//! snake_case code (docs/architecture.md). Every variant is listed; no `_ =>`.
 
 use axum::Json;
 use axum::http::StatusCode;

@@ -1,5 +1,5 @@
 //! The gRPC transport (tonic), package `mcapi.v1`, service `Agents`
-//! (DESIGN.md, "gRPC"): a thin adapter over [`SessionManager`]. Each method
+//! (docs/grpc.md): a thin adapter over [`SessionManager`]. Each method
 //! decodes its message ([`convert`]), makes one call into the service and
 //! encodes the answer; errors go through the one table in
 //! [`crate::api::error`]. Health (`grpc.health.v1`) and reflection (v1) are
@@ -45,7 +45,7 @@ use pb::agents_server::{Agents, AgentsServer};
 
 /// Generated messages, client and server of `proto/mcapi/v1/agents.proto`.
 pub use mcapi_proto as pb;
-/// Metadata key naming the session a call concerns (DESIGN.md, "Scale-out").
+/// Metadata key naming the session a call concerns (docs/sessions.md, "Session ids and ownership").
 pub use mcapi_proto::SESSION_METADATA;
 
 /// Why the gRPC server could not start or stopped with an error.

@@ -455,7 +455,7 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
 
     let window = "(the server allocates it for every curiosity module)";
     let curiosity_params = closed(
-        "The curiosity channel's constants (ALGORITHM.md §7); each defaults to the \
+        "The curiosity channel's constants (docs/algorithm.md §7); each defaults to the \
          reproduction's value.",
     )
     .property(
@@ -603,7 +603,7 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         ),
     );
     let curiosity = closed(
-        "A curiosity channel (ALGORITHM.md §7): the server appends a stimulus dimension \
+        "A curiosity channel (docs/algorithm.md §7): the server appends a stimulus dimension \
          `curiosity`, last, computed from the raw `signal` of observations.",
     )
     .property(

@@ -51,7 +51,7 @@ pub struct SessionConfig {
     pub update_mode: Option<UpdateMode>,
     /// Number of recent ticks kept for `/history`; default 256.
     pub history: Option<usize>,
-    /// A curiosity channel (ALGORITHM.md §7): the server appends a stimulus
+    /// A curiosity channel (docs/algorithm.md §7): the server appends a stimulus
     /// dimension `curiosity`, last, and computes it from raw `signal`s.
     pub curiosity: Option<CuriosityConfig>,
 }
@@ -59,7 +59,7 @@ pub struct SessionConfig {
 /// Name of the stimulus dimension a curiosity channel adds.
 pub const CURIOSITY_DIMENSION: &str = "curiosity";
 
-/// A session's curiosity channel (ALGORITHM.md §7).
+/// A session's curiosity channel (docs/algorithm.md §7).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct CuriosityConfig {

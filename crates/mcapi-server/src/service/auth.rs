@@ -1,4 +1,4 @@
-//! API keys (DESIGN.md, "Limits and safety"): with keys configured, every
+//! API keys (docs/operations.md, "API keys"): with keys configured, every
 //! call names one in `Authorization: Bearer <key>` and sees only the
 //! sessions created with it.
 //!

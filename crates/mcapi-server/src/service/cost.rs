@@ -147,7 +147,7 @@ fn sweeps_for(gamma: f64) -> f64 {
     }
 }
 
-/// Memory and per-sample operations of a curiosity channel (ALGORITHM.md
+/// Memory and per-sample operations of a curiosity channel (docs/algorithm.md
 /// §7): one active module learning, up to [`MAX_LIBRARY`] frozen ones
 /// judging every sample, each with a tracker per source.
 fn curiosity(c: &CuriosityConfig) -> (u64, f64) {

@@ -1,6 +1,6 @@
 //! What the service keeps in the store (`crate::store`) and how it reads it
 //! back: the creation record of a session, its snapshots and its log of
-//! observations (DESIGN.md, "Durability").
+//! observations (docs/sessions.md, "Durability and recovery").
 //!
 //! A log entry holds what the observation changed, resolved: the state, the
 //! stimulus, the raw curiosity signal, the action that was actually taken

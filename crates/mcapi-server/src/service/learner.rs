@@ -16,7 +16,7 @@ use super::wire::TickCuriosity;
 pub enum Learner {
     /// An MCA-PI agent.
     Plain(Agent),
-    /// An agent with a curiosity channel (ALGORITHM.md §7).
+    /// An agent with a curiosity channel (docs/algorithm.md §7).
     Curious(Box<CuriousAgent>),
 }
 

@@ -33,7 +33,7 @@ use super::wire::{
     SessionPage, SessionStats, SessionSummary, StepOut, Values,
 };
 
-/// Number of virtual shards in session ids (fixed forever, DESIGN.md).
+/// Number of virtual shards in session ids (fixed forever, docs/sessions.md).
 pub const SHARDS: u64 = 1024;
 
 /// Default and maximum page size of `list`.
@@ -417,7 +417,7 @@ impl SessionManager {
         Ok(())
     }
 
-    /// Applies observations in order and returns one reply each (DESIGN.md,
+    /// Applies observations in order and returns one reply each (docs/sessions.md, "Durability and recovery",
     /// "Observation protocol"). Lockstep sessions reply after their update
     /// on the tick pool; async sessions reply at once and queue an update.
     pub async fn observe(

@@ -1,4 +1,4 @@
-//! The one session layer both transports call (DESIGN.md, "Layers"): create,
+//! The one session layer both transports call (docs/architecture.md, "The layers"): create,
 //! get, list, delete, observe, values and history of hosted agents, the
 //! limits, and the tick loop that runs policy updates off the request path.
 //!

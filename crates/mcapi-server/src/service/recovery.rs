@@ -1,4 +1,4 @@
-//! Rebuilding sessions from the store (DESIGN.md, "Durability"): at start
+//! Rebuilding sessions from the store (docs/sessions.md, "Durability and recovery"): at start
 //! ([`recover_all`], called by `SessionManager::recover`) and after a failed
 //! commit ([`rebuild`], called by `SessionManager::reload`, the rollback to
 //! what is durable).

@@ -137,7 +137,7 @@ pub struct ObservationIn {
     #[schema(value_type = Option<Object>)]
     pub action_taken: Option<ActionRef>,
     /// A raw signal sample x(t) received on arrival, for a session with a
-    /// curiosity channel (ALGORITHM.md §7); `stimulus` is then the
+    /// curiosity channel (docs/algorithm.md §7); `stimulus` is then the
     /// extrinsic part and the server appends ξ_cur.
     #[serde(default)]
     pub signal: Option<Vec<f64>>,
@@ -146,7 +146,7 @@ pub struct ObservationIn {
     pub signal_source: Option<usize>,
 }
 
-/// The curiosity channel at one tick (ALGORITHM.md §7).
+/// The curiosity channel at one tick (docs/algorithm.md §7).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct TickCuriosity {
     /// ξ_cur of the tick (Eq. 7; 0 without a signal sample).
@@ -231,7 +231,7 @@ pub struct SessionInfo {
     pub curiosity: Option<CuriosityInfo>,
 }
 
-/// The state of a session's curiosity channel (ALGORITHM.md §7).
+/// The state of a session's curiosity channel (docs/algorithm.md §7).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct CuriosityInfo {
     /// Signal samples received.

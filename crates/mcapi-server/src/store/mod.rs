@@ -1,4 +1,4 @@
-//! The durable session store (DESIGN.md, "Durability"): one redb file in the
+//! The durable session store (docs/sessions.md, "Durability and recovery"): one redb file in the
 //! data directory holding, per session, its creation record, its newest
 //! snapshot and the log of observations since that snapshot.
 //!

@@ -402,7 +402,7 @@
       scales: { x: { time: false } },
       axes: [{ label: "tick" }, { label: "|r|" }, { scale: "err", side: 1, label: "LSTDQ error", grid: { show: false } }],
     });
-    // A session with a curiosity channel (ALGORITHM.md §7): ξ_cur and ε.
+    // A session with a curiosity channel (docs/algorithm.md §7): ξ_cur and ε.
     const curious = !!view.info.curiosity;
     $("curiosity-card").hidden = !curious;
     if (curious) {

@@ -1,5 +1,5 @@
 //! Every conversion between proto messages and service types, in one place
-//! (STYLE.md, habit 7). Inbound messages are destructured fully, so a field
+//! (docs/architecture.md). Inbound messages are destructured fully, so a field
 //! added to the proto fails to compile here until it is handled; outbound
 //! service types are destructured too, so a new service field is not
 //! silently left off the wire. Failures are `ServiceError`s naming the field;
@@ -133,7 +133,7 @@ fn stimulus_rate_rule(field: &str, rule: i32) -> Result<StimulusRate, ServiceErr
 
 /// The session id a call concerns: the message's, or when that is empty the
 /// `x-mcapi-session` metadata's; when both are given they must agree
-/// (DESIGN.md, "Scale-out").
+/// (docs/sessions.md, "Session ids and ownership").
 pub fn session_id(message_id: String, metadata_id: Option<&str>) -> Result<String, ServiceError> {
     match (message_id.is_empty(), metadata_id) {
         (false, Some(meta)) if meta != message_id => Err(ServiceError::field(
