@@ -21,6 +21,10 @@ use super::lstdq::{PlanOutcome, Planner, PlannerStats, PlanningModel};
 use super::params::ValidParams;
 use super::stimulus::StimulusFunction;
 
+/// ChaCha streams `COLUMN_RESET_STREAMS | tick` of the agent's seed draw the
+/// re-initialised stimulus columns (stream 0 is the agent's own RNG).
+const COLUMN_RESET_STREAMS: u64 = 1 << 63;
+
 /// What the caller reports at a tick.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Observation<'a> {
@@ -103,8 +107,8 @@ impl RngState {
 }
 
 /// Everything of an [`Agent`] that is not a function of its model and
-/// parameters: what a durable store keeps to resume it (docs/sessions.md, "Durability and recovery",
-/// "Durability"). Ξ, the visit counts, D and its λ₁ statistics, the tick
+/// parameters: what a durable store keeps to resume it (docs/sessions.md,
+/// "Durability and recovery"). Ξ, the visit counts, D and its λ₁ statistics, the tick
 /// and the RNG position come back bit for bit; so do π and Q.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct AgentSnapshot {
@@ -443,14 +447,22 @@ impl Agent {
     }
 
     /// Re-initialises stimulus column `dim` optimistically, Ξ(·, dim) ~
-    /// N(0, sd²) with the agent's RNG, and restarts its own visit counts (§7:
-    /// at each module freeze). R is recomputed at the next plan.
+    /// N(0, sd²), and restarts its own visit counts (§7: at each module
+    /// freeze). R is recomputed at the next plan.
+    ///
+    /// The draws come from their own ChaCha stream, keyed by the agent's
+    /// seed and the current tick, not from the agent's RNG: how many
+    /// tie-break and exploration draws [`Agent::act`] made before (none when
+    /// a store replays a log) must not change the learned Ξ, so a recovered
+    /// session has the column it had live.
     pub fn reset_stimulus_column(&mut self, dim: usize, sd: f64) -> Result<()> {
         self.check_dim(dim)?;
         if !(sd.is_finite() && sd >= 0.0) {
             return Err(AlgoError::NonFinite { field: "sd" });
         }
-        self.stimulus.reset_column(dim, sd, &mut self.rng);
+        let mut rng = ChaCha8Rng::seed_from_u64(self.params.seed);
+        rng.set_stream(COLUMN_RESET_STREAMS | self.tick);
+        self.stimulus.reset_column(dim, sd, &mut rng);
         self.dirty = true;
         Ok(())
     }

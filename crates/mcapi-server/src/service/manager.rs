@@ -417,8 +417,8 @@ impl SessionManager {
         Ok(())
     }
 
-    /// Applies observations in order and returns one reply each (docs/sessions.md, "Durability and recovery",
-    /// "Observation protocol"). Lockstep sessions reply after their update
+    /// Applies observations in order and returns one reply each (docs/sessions.md,
+    /// "Observing"). Lockstep sessions reply after their update
     /// on the tick pool; async sessions reply at once and queue an update.
     pub async fn observe(
         &self,
