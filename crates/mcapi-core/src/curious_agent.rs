@@ -528,7 +528,9 @@ mod tests {
         let mut live = make(&params);
         let mut replayed = make(&params);
         let first = live.step(&CuriousObservation::first(1)).expect("first");
-        replayed.observe(&CuriousObservation::first(1)).expect("first");
+        replayed
+            .observe(&CuriousObservation::first(1))
+            .expect("first");
         replayed
             .set_advised_action(first.step.action)
             .expect("advised action");
@@ -559,7 +561,11 @@ mod tests {
         assert!(froze, "a module froze, so the column was re-drawn");
         let column = |a: &CuriousAgent| {
             let xi = a.agent().stimulus().table();
-            xi.iter().skip(1).step_by(2).map(|x| x.to_bits()).collect::<Vec<_>>()
+            xi.iter()
+                .skip(1)
+                .step_by(2)
+                .map(|x| x.to_bits())
+                .collect::<Vec<_>>()
         };
         assert_eq!(column(&live), column(&replayed));
         assert_eq!(
