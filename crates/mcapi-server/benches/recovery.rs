@@ -6,6 +6,10 @@
 //! `cargo bench --bench recovery [-- SESSIONS OBSERVATIONS]` (defaults
 //! 10000 1000). A one-shot measurement, not criterion: the fixture takes a
 //! minute to write, and the quantity is a wall time of seconds.
+//!
+//! Without `--bench` (as `cargo test --all-targets` runs it) it is a smoke
+//! test of the same code on 20 sessions of 20 observations, as criterion
+//! benches do in test mode: the checks run, the minutes do not.
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -29,8 +33,10 @@ fn main() -> anyhow::Result<()> {
         .skip(1)
         .filter_map(|a| a.parse().ok())
         .collect();
-    let sessions = args.first().copied().unwrap_or(10_000);
-    let observations = args.get(1).copied().unwrap_or(1000);
+    let bench = std::env::args().any(|a| a == "--bench");
+    let (default_sessions, default_observations) = if bench { (10_000, 1000) } else { (20, 20) };
+    let sessions = args.first().copied().unwrap_or(default_sessions);
+    let observations = args.get(1).copied().unwrap_or(default_observations);
     let dir = tempfile::tempdir()?;
     let workers = std::thread::available_parallelism().map_or(2, |n| n.get());
     let options = |store: Arc<Store>| ManagerOptions {
