@@ -21,7 +21,7 @@ use std::time::{Duration, Instant};
 
 use common::{
     ACTIONS, Launch, Obs, Reply, STATES, Server, assert_float_roundtrip, available, check_session,
-    free_port, grpc_create, grpc_request, http_client, log_events, params, rest, rest_create,
+    free_ports, grpc_create, grpc_request, http_client, log_events, params, rest, rest_create,
     rest_get, rest_list_all, step_state, stimulus,
 };
 use mcapi_core::AgentParams;
@@ -519,10 +519,11 @@ async fn crash_run(seed: u64, rounds: &[Round]) {
 
         // A crash during recovery (the store's integrity check and repair,
         // or the replay) changes nothing either.
+        let (http, grpc) = free_ports();
         let mut interrupted = common::spawn(
             &launch,
-            free_port(),
-            free_port(),
+            http,
+            grpc,
             &logs.path().join(format!("run-{round}-interrupted.log")),
         );
         tokio::time::sleep(Duration::from_millis(rng.random_range(0..40))).await;

@@ -37,7 +37,7 @@ use std::time::{Duration, Instant};
 
 use common::{
     ACTIONS, Launch, Obs, Reply, STATES, Server, assert_bits_eq, assert_float_roundtrip, available,
-    check_session, core_agent, free_port, grpc_create, grpc_request, http_client, log_events,
+    check_session, core_agent, free_ports, grpc_create, grpc_request, http_client, log_events,
     params, rest, rest_create, rest_get, rest_list_all, step_state, stimulus,
 };
 use mcapi_core::{Agent, AgentParams, Observation};
@@ -993,8 +993,7 @@ async fn a_damaged_last_commit_is_not_silently_rolled_back() {
     }
     std::fs::write(&file, &bytes).expect("write");
 
-    let port = free_port();
-    let gport = free_port();
+    let (port, gport) = free_ports();
     let log = log_path(&logs, "second");
     let mut child = common::spawn(&launch, port, gport, &log);
     let deadline = Instant::now() + Duration::from_secs(20);

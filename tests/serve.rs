@@ -6,12 +6,12 @@ use std::net::TcpListener;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .expect("bind")
-        .local_addr()
-        .expect("addr")
-        .port()
+/// Two distinct free ports: both listeners are held until both are known.
+fn free_ports() -> (u16, u16) {
+    let a = TcpListener::bind("127.0.0.1:0").expect("bind");
+    let b = TcpListener::bind("127.0.0.1:0").expect("bind");
+    let port = |l: &TcpListener| l.local_addr().expect("addr").port();
+    (port(&a), port(&b))
 }
 
 fn healthcheck(url: &str) -> bool {
@@ -24,7 +24,7 @@ fn healthcheck(url: &str) -> bool {
 
 #[test]
 fn serve_answers_and_stops_on_sigterm() {
-    let (http, grpc) = (free_port(), free_port());
+    let (http, grpc) = free_ports();
     let data = tempfile::tempdir().expect("data dir");
     let mut child = Command::new(env!("CARGO_BIN_EXE_mcapi"))
         .args([

@@ -26,13 +26,14 @@ pub const ACTIONS: [&str; 3] = ["left", "right", "stay"];
 /// States of the hallway.
 pub const STATES: usize = 50;
 
-/// A port nothing listens on right now.
-pub fn free_port() -> u16 {
-    TcpListener::bind("127.0.0.1:0")
-        .expect("bind")
-        .local_addr()
-        .expect("addr")
-        .port()
+/// Two distinct ports nothing listens on right now (HTTP, gRPC). Both
+/// listeners are held until both ports are known: binding port 0 twice,
+/// releasing the first before the second, may return the same port.
+pub fn free_ports() -> (u16, u16) {
+    let a = TcpListener::bind("127.0.0.1:0").expect("bind");
+    let b = TcpListener::bind("127.0.0.1:0").expect("bind");
+    let port = |l: &TcpListener| l.local_addr().expect("addr").port();
+    (port(&a), port(&b))
 }
 
 /// How to start `mcapi serve`.
@@ -128,7 +129,7 @@ impl Server {
     /// Starts the server on fresh ports and waits until `/readyz` answers
     /// 200 (recovery done); `log` names its log file.
     pub async fn start(launch: &Launch, log: PathBuf) -> Self {
-        let (http, grpc) = (free_port(), free_port());
+        let (http, grpc) = free_ports();
         let child = spawn(launch, http, grpc, &log);
         let mut server = Self {
             child: Some(child),
