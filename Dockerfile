@@ -93,14 +93,12 @@ STOPSIGNAL SIGTERM
 ENTRYPOINT ["mcapi"]
 CMD ["serve"]
 
-# Labels last, so a new revision rebuilds only this metadata layer.
+# Labels last, so a new revision rebuilds only this metadata layer. The
+# creation time is the image's own (from SOURCE_DATE_EPOCH, see the top).
 ARG VERSION=unknown
 ARG REVISION=unknown
-ARG SOURCE_DATE_EPOCH
 LABEL org.opencontainers.image.title="mcapi" \
       org.opencontainers.image.description="Hosts motivated reinforcement-learning agents (MCA-PI) as sessions over REST and gRPC" \
       org.opencontainers.image.licenses="MIT OR Apache-2.0" \
       org.opencontainers.image.version="${VERSION}" \
-      org.opencontainers.image.revision="${REVISION}" \
-      org.opencontainers.image.source="https://github.com/mcapi/mcapi" \
-      org.opencontainers.image.created="${SOURCE_DATE_EPOCH}"
+      org.opencontainers.image.revision="${REVISION}"
