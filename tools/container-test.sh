@@ -43,6 +43,10 @@ fail() {
   exit 1
 }
 drive() { "$PY" tools/container_drive.py "$1" --http "$HTTP" --grpc "$GRPC" --ledger "$OUT/ledger.json" "${@:2}"; }
+# Ticks acknowledged so far, summed over the ledger's sessions.
+acknowledged() {
+  "$PY" -c 'import json,sys; print(sum(s["tick"] for s in json.load(open(sys.argv[1]))["sessions"].values()))' "$OUT/ledger.json"
+}
 
 cleanup() {
   status=$?
@@ -167,11 +171,11 @@ drive verify --exact || fail "state lost over a clean stop"
 # ---------------------------------------------------------------------------
 drive drive --until-error >"$OUT/drive_until_kill.log" 2>&1 &
 driver=$!
-before=$("$PY" -c 'import json,sys; print(sum(s["tick"] for s in json.load(open(sys.argv[1]))["sessions"].values()))' "$OUT/ledger.json")
+before=$(acknowledged)
 sleep 4
 podman_ kill -s KILL "$NAME" >/dev/null 2>>"$OUT/podman.log"
 wait "$driver" || { cat "$OUT/drive_until_kill.log"; fail "the driver failed"; }
-after=$("$PY" -c 'import json,sys; print(sum(s["tick"] for s in json.load(open(sys.argv[1]))["sessions"].values()))' "$OUT/ledger.json")
+after=$(acknowledged)
 [ "$after" -gt "$before" ] || fail "no observation acknowledged before the kill"
 code=$(podman_ inspect --format '{{.State.ExitCode}}' "$NAME")
 log "SIGKILL mid-stream after $((after - before)) more acknowledged observations (exit code $code)"
