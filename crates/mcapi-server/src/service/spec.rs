@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use mcapi_core::model::{GridMap, grid_preset, hallway, three_room};
@@ -41,23 +41,23 @@ pub enum ModelInput {
     Spec(Box<ModelSpec>),
 }
 
-#[derive(Deserialize)]
+#[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct PresetForm {
     preset: String,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     basis: Option<BasisSpec>,
 }
 
-#[derive(Deserialize)]
+#[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct GridForm {
     grid: Vec<String>,
     #[serde(default)]
     sources: BTreeMap<String, usize>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     stimuli: Option<Vec<String>>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     basis: Option<BasisSpec>,
 }
 
@@ -88,6 +88,30 @@ impl ModelInput {
         } else {
             Ok(Self::Spec(Box::new(from_value(value)?)))
         }
+    }
+
+    /// The model as the JSON the REST API takes (what a durable session
+    /// record keeps): [`ModelInput::parse`] of it gives `self` back.
+    pub fn to_json_text(&self) -> Result<String, ServiceError> {
+        let text = match self {
+            Self::Preset { name, basis } => serde_json::to_string(&PresetForm {
+                preset: name.clone(),
+                basis: basis.clone(),
+            }),
+            Self::Grid {
+                lines,
+                sources,
+                stimuli,
+                basis,
+            } => serde_json::to_string(&GridForm {
+                grid: lines.clone(),
+                sources: sources.clone(),
+                stimuli: stimuli.clone(),
+                basis: basis.clone(),
+            }),
+            Self::Spec(spec) => serde_json::to_string(spec),
+        };
+        text.map_err(|e| ServiceError::Internal(format!("encoding a model: {e}")))
     }
 
     /// A key identifying the model and basis, for sharing built models: the
