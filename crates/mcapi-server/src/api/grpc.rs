@@ -170,9 +170,9 @@ impl Agents for AgentsService {
                 manager.create_parsed(caller, model, &agent)
             }
         })
-            .await
-            .map_err(|e| to_status(ServiceError::Internal(format!("create task: {e}"))))?
-            .map_err(to_status)?;
+        .await
+        .map_err(|e| to_status(ServiceError::Internal(format!("create task: {e}"))))?
+        .map_err(to_status)?;
         Ok(Response::new(convert::session_info(info)))
     }
 

@@ -279,3 +279,34 @@ impl ModelInput {
         Some(GridLayout::of(&grid))
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// A model parsed by a transport is stored as JSON and parsed again on
+    /// recovery: the round trip must give it back exactly.
+    #[test]
+    fn json_text_parses_back_to_the_same_model() {
+        let models = [
+            json!({"preset": "hallway"}),
+            json!({"preset": "three_room", "basis": {"kind": "proto_value", "k": 4}}),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}}),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 1},
+                   "stimuli": ["x", "y"], "basis": {"kind": "indicator"}}),
+            json!({"states": 2, "state_names": ["l", "r"], "actions": ["go", "stay"],
+                   "next": [[1, 0], [null, 1]], "stimuli": ["x"]}),
+            json!({"states": 2, "actions": ["go"], "stimuli": ["x"],
+                   "transitions": [{"state": 0, "action": "go", "next": [[1, 0.1], [0, 0.9]]},
+                                   {"state": 1, "action": 0, "next": [[0, 1.0]]}],
+                   "basis": {"kind": "custom", "state_features": [[0.1], [1e-300]]}}),
+        ];
+        for value in models {
+            let input = ModelInput::parse(value.clone()).expect("valid model");
+            let text = input.to_json_text().expect("encodes");
+            let back: Value = serde_json::from_str(&text).expect("JSON");
+            assert_eq!(ModelInput::parse(back).expect("parses"), input, "{value}");
+        }
+    }
+}

@@ -188,9 +188,10 @@ fn transition_spec(i: usize, t: pb::Transition) -> Result<TransitionSpec, Servic
                 "is required: set `action_index` or `action_name`",
             ));
         }
-        Some(Action::ActionIndex(a)) => {
-            ActionRef::Index(to_usize(&format!("model.transitions[{i}].action_index"), a)?)
-        }
+        Some(Action::ActionIndex(a)) => ActionRef::Index(to_usize(
+            &format!("model.transitions[{i}].action_index"),
+            a,
+        )?),
         Some(Action::ActionName(name)) => ActionRef::Name(name),
     };
     let next = next
