@@ -1129,12 +1129,13 @@ async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<()> {
         for i in 0..args.grpc_streams {
             let info = admin
                 .create_session(pb::CreateSessionRequest {
-                    model_json: r#"{"preset":"hallway"}"#.into(),
+                    model: Some(pb::Model::preset("hallway")),
                     agent: Some(pb::SessionConfig {
                         seed: Some(i as u64),
                         update_mode: mode.to_pb().into(),
                         ..Default::default()
                     }),
+                    ..Default::default()
                 })
                 .await?
                 .into_inner();

@@ -26,6 +26,9 @@
 //!   before) and its retry deletes it, restarts included;
 //! - a lockstep observation whose policy update fails is applied and
 //!   logged: memory and log agree, live and after a crash.
+// These tests still send the deprecated `model_json` (accepted for one
+// more release, docs/grpc.md).
+#![allow(deprecated)]
 
 mod common;
 
@@ -1447,6 +1450,7 @@ async fn api_keys_over_grpc() {
             .create_session(grpc_request(
                 pb::CreateSessionRequest {
                     model_json: r#"{"preset": "hallway"}"#.into(),
+                    model: None,
                     agent: None,
                 },
                 key,

@@ -17,6 +17,9 @@
 //!
 //! `PROPTEST_CASES` sets the cases per test (default 5000: 30-60 s in
 //! `make test`); `make fuzz` runs many more. `FUZZ_SEED` replays a run.
+// These tests still send the deprecated `model_json` (accepted for one
+// more release, docs/grpc.md).
+#![allow(deprecated)]
 
 use std::sync::{Arc, OnceLock};
 use std::time::{Duration, Instant};
@@ -148,6 +151,7 @@ fn env() -> &'static Env {
             for model in [r#"{"preset": "hallway"}"#, r#"{"preset": "three_room"}"#] {
                 let req = pb::CreateSessionRequest {
                     model_json: model.into(),
+                    model: None,
                     agent: Some(pb::SessionConfig {
                         seed: Some(5),
                         ..Default::default()
@@ -928,6 +932,7 @@ fn mutate_bytes(valid: Vec<u8>) -> impl Strategy<Value = Vec<u8>> {
 fn grpc_create_bodies() -> impl Strategy<Value = Vec<u8>> {
     let valid = pb::CreateSessionRequest {
         model_json: r#"{"preset": "hallway"}"#.into(),
+        model: None,
         agent: Some(pb::SessionConfig {
             eta: Some(0.01),
             seed: Some(9),
@@ -959,6 +964,7 @@ fn grpc_create_bodies() -> impl Strategy<Value = Vec<u8>> {
             let f = x.as_ref().and_then(Value::as_f64);
             pb::CreateSessionRequest {
                 model_json: model,
+                model: None,
                 agent: Some(pb::SessionConfig {
                     eta: f,
                     gamma: f,
@@ -1132,6 +1138,7 @@ fn a_long_quoted_input_still_gets_its_status() {
     let e = env();
     let req = pb::CreateSessionRequest {
         model_json: r#"{"preset": "hallway"}"#.into(),
+        model: None,
         agent: Some(pb::SessionConfig {
             curiosity: Some(pb::CuriosityConfig {
                 signal_dim: 2,

@@ -2,6 +2,9 @@
 //! over `Interact` and gets the same actions and drives as the core; bad
 //! input gets the right codes; streams stop cleanly; health and reflection
 //! answer.
+// These tests still send the deprecated `model_json` (accepted for one
+// more release, docs/grpc.md).
+#![allow(deprecated)]
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -113,12 +116,13 @@ async fn create_hallway(
 ) -> pb::SessionInfo {
     client
         .create_session(pb::CreateSessionRequest {
-            model_json: r#"{"preset": "hallway"}"#.into(),
+            model: Some(pb::Model::preset("hallway")),
             agent: Some(pb::SessionConfig {
                 seed: Some(SEED),
                 update_mode: mode.into(),
                 ..Default::default()
             }),
+            ..Default::default()
         })
         .await
         .expect("create hallway session")
@@ -435,6 +439,7 @@ async fn bad_inputs_get_the_right_codes() {
     // Bad model JSON, unknown preset, bad configuration.
     let create = |model_json: &str, agent: Option<pb::SessionConfig>| pb::CreateSessionRequest {
         model_json: model_json.into(),
+        model: None,
         agent,
     };
     assert_code(
@@ -868,6 +873,7 @@ async fn grid_models_come_with_their_layout() {
     let mut client = server.client().await;
     let create = |model: &str| pb::CreateSessionRequest {
         model_json: model.into(),
+        model: None,
         agent: None,
     };
     let grid = client

@@ -1,6 +1,9 @@
 //! REST-vs-gRPC parity on the full server (`server::start`, both ports on
 //! real sockets): the same seed and the same observations give identical
 //! actions and drives over both transports in lockstep mode.
+// These tests still send the deprecated `model_json` (accepted for one
+// more release, docs/grpc.md).
+#![allow(deprecated)]
 
 use clap::Parser;
 use mcapi_server::api::grpc::pb;
@@ -62,6 +65,7 @@ async fn rest_and_grpc_give_identical_trajectories() {
     let grpc_id = grpc
         .create_session(pb::CreateSessionRequest {
             model_json: r#"{"preset": "hallway"}"#.into(),
+            model: None,
             agent: Some(pb::SessionConfig {
                 seed: Some(SEED),
                 update_mode: pb::UpdateMode::Lockstep as i32,

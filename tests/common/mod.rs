@@ -364,13 +364,14 @@ pub async fn grpc_create(
     let info = client
         .create_session(grpc_request(
             pb::CreateSessionRequest {
-                model_json: r#"{"preset": "hallway"}"#.into(),
+                model: Some(pb::Model::preset("hallway")),
                 agent: Some(pb::SessionConfig {
                     seed: Some(seed),
                     epsilon,
                     update_mode: mode.into(),
                     ..Default::default()
                 }),
+                ..Default::default()
             },
             key,
             None,

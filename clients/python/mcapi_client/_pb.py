@@ -62,8 +62,142 @@ _UPDATE_MODE_NAMES: dict[int, UpdateMode] = {
 }
 
 
+class _NotTyped(Exception):
+    """A model JSON that the typed ``Model`` cannot carry as it is."""
+
+
+def _uint(value: Any) -> int:
+    if type(value) is not int or value < 0:
+        raise _NotTyped
+    return value
+
+
+def _number(value: Any) -> float:
+    if type(value) not in (int, float):
+        raise _NotTyped
+    return float(value)
+
+
+def _strings(value: Any) -> list[str]:
+    if not isinstance(value, list) or not all(isinstance(v, str) for v in value):
+        raise _NotTyped
+    return value
+
+
+def _only(obj: dict[str, Any], *keys: str) -> None:
+    if not set(obj) <= set(keys):
+        raise _NotTyped
+
+
+def _basis(spec: Any, out: pb.Basis) -> None:
+    if not isinstance(spec, dict):
+        raise _NotTyped
+    kind = spec.get("kind")
+    if kind == "indicator":
+        _only(spec, "kind")
+        out.indicator.SetInParent()
+    elif kind == "proto_value":
+        _only(spec, "kind", "k")
+        out.proto_value.k = _uint(spec.get("k"))
+    elif kind == "custom":
+        _only(spec, "kind", "state_features")
+        rows = spec.get("state_features")
+        if not isinstance(rows, list):
+            raise _NotTyped
+        for row in rows:
+            if not isinstance(row, list):
+                raise _NotTyped
+            out.custom.state_features.add().features.extend(_number(v) for v in row)
+        out.custom.SetInParent()
+    else:
+        raise _NotTyped
+
+
+def _full(model: dict[str, Any], out: pb.FullModel) -> None:
+    _only(model, "states", "state_names", "actions", "next", "transitions", "stimuli", "basis")
+    out.states = _uint(model.get("states"))
+    if model.get("state_names") is not None:
+        out.state_names.extend(_strings(model["state_names"]))
+        if not out.state_names:
+            raise _NotTyped  # an explicit empty list: proto3 would send none
+    out.actions.extend(_strings(model.get("actions")))
+    out.stimuli.extend(_strings(model.get("stimuli")))
+    nxt, transitions = model.get("next"), model.get("transitions")
+    if (nxt is None) == (transitions is None):
+        raise _NotTyped  # both or neither: the server says which, as REST does
+    if nxt is not None:
+        if not isinstance(nxt, list):
+            raise _NotTyped
+        out.next.SetInParent()
+        for row in nxt:
+            if not isinstance(row, list):
+                raise _NotTyped
+            out.next.rows.add().next.extend(-1 if s is None else _uint(s) for s in row)
+    else:
+        if not isinstance(transitions, list):
+            raise _NotTyped
+        out.stochastic.SetInParent()
+        for t in transitions:
+            if not isinstance(t, dict) or set(t) != {"state", "action", "next"}:
+                raise _NotTyped
+            msg = out.stochastic.transitions.add(state=_uint(t["state"]))
+            if isinstance(t["action"], str):
+                msg.action_name = t["action"]
+            else:
+                msg.action_index = _uint(t["action"])
+            if not isinstance(t["next"], list):
+                raise _NotTyped
+            for succ in t["next"]:
+                if not isinstance(succ, list) or len(succ) != 2:
+                    raise _NotTyped
+                msg.next.add(state=_uint(succ[0]), probability=_number(succ[1]))
+    if model.get("basis") is not None:
+        _basis(model["basis"], out.basis)
+
+
+def model_message(model: dict[str, Any]) -> pb.Model | None:
+    """The typed ``Model`` of a model's REST JSON, or ``None`` when the JSON
+    does not map onto it as it is (unknown keys, wrong types, an explicit
+    empty list): such a model is sent as the deprecated ``model_json``, so the
+    server names the mistake exactly as REST does."""
+    out = pb.Model()
+    try:
+        if not isinstance(model, dict):
+            raise _NotTyped
+        if "preset" in model:
+            _only(model, "preset", "basis")
+            if not isinstance(model["preset"], str):
+                raise _NotTyped
+            out.preset.name = model["preset"]
+            out.preset.SetInParent()
+            if model.get("basis") is not None:
+                _basis(model["basis"], out.preset.basis)
+        elif "grid" in model:
+            _only(model, "grid", "sources", "stimuli", "basis")
+            out.grid.rows.extend(_strings(model["grid"]))
+            sources = model.get("sources", {})
+            if not isinstance(sources, dict) or not all(isinstance(k, str) for k in sources):
+                raise _NotTyped
+            for mark, dim in sources.items():
+                out.grid.sources[mark] = _uint(dim)
+            if model.get("stimuli") is not None:
+                out.grid.stimuli.extend(_strings(model["stimuli"]))
+                if not out.grid.stimuli:
+                    raise _NotTyped
+            out.grid.SetInParent()
+            if model.get("basis") is not None:
+                _basis(model["basis"], out.grid.basis)
+        else:
+            _full(model, out.full)
+            out.full.SetInParent()
+    except (_NotTyped, OverflowError, ValueError, TypeError):
+        return None
+    return out
+
+
 def create_request(model: dict[str, Any], agent: AgentOptions) -> pb.CreateSessionRequest:
-    """``CreateSession``: the model travels as the JSON the REST API takes."""
+    """``CreateSession``: the model as the typed ``Model`` (see
+    :func:`model_message`), else as the JSON the REST API takes."""
     cfg = pb.SessionConfig()
     # AgentOptions holds plain ints and floats (numpy values were converted).
     for name in ("eta", "gamma", "optimistic_sd", "ridge", "epsilon", "seed", "history"):
@@ -88,6 +222,10 @@ def create_request(model: dict[str, Any], agent: AgentOptions) -> pb.CreateSessi
         if agent.curiosity.params:
             cfg.curiosity.params_json = json.dumps(agent.curiosity.params)
         cfg.curiosity.SetInParent()
+    typed = model_message(model)
+    if typed is not None:
+        return pb.CreateSessionRequest(model=typed, agent=cfg)
+    # Deprecated on the server; kept for models the typed form cannot carry.
     return pb.CreateSessionRequest(model_json=json.dumps(model), agent=cfg)
 
 
@@ -395,7 +533,7 @@ class GrpcProtocol:
         return info
 
     def create_session(self, model: ModelLike, agent: AgentOptions) -> Op[Call, SessionInfo]:
-        """``CreateSession``: the model travels as the JSON the REST API takes."""
+        """``CreateSession``: the model travels typed (:func:`create_request`)."""
         reply = yield Call("CreateSession", create_request(model_json(model), agent))
         return self._remember(session_info(reply))
 

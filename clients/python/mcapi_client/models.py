@@ -735,7 +735,7 @@ mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
 
 
 def model_json(model: ModelLike) -> dict[str, Any]:
-    """The ``model`` JSON of a create request (REST's body, gRPC's ``model_json``)."""
+    """The ``model`` JSON of a create request (REST's body; gRPC sends it as the typed ``Model``)."""
     if isinstance(model, Model):
         return model.to_json()
     if isinstance(model, str):

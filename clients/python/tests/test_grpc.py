@@ -243,3 +243,50 @@ def test_both_transports_report_the_same_session_cost(client: Client, grpc_clien
     for s in (via_rest, longer):
         client.delete_session(s.id)
     grpc_client.delete_session(via_grpc.id)
+
+
+_TYPED_MODELS = [
+    {"preset": "hallway"},
+    {"preset": "three_room", "basis": {"kind": "proto_value", "k": 4}},
+    {"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}, "stimuli": ["food", "water"]},
+    {"states": 3, "actions": ["l", "r"], "next": [[0, 1], [0, 2], [1, None]], "stimuli": ["x"]},
+    {
+        "states": 2,
+        "actions": ["go", "stay"],
+        "stimuli": ["x"],
+        "transitions": [
+            {"state": 0, "action": "go", "next": [[1, 0.25], [0, 0.75]]},
+            {"state": 1, "action": 1, "next": [[1, 1.0]]},
+        ],
+        "basis": {"kind": "custom", "state_features": [[1.0, 0.0], [0.0, 1.0]]},
+    },
+]
+
+
+@pytest.mark.parametrize("model", _TYPED_MODELS)
+def test_models_travel_typed_and_match_rest(client: Client, grpc_client: GrpcClient, model: dict) -> None:
+    """Every form goes as the typed ``Model`` (not the deprecated
+    ``model_json``) and gives the session REST gives."""
+    from mcapi_client import _pb
+
+    assert _pb.create_request(model, _pb.AgentOptions()).HasField("model")
+    rest = client.create_session(model, seed=3)
+    over_grpc = grpc_client.create_session(model, seed=3)
+    assert rest.model == over_grpc.model
+    client.delete_session(rest.id)
+    grpc_client.delete_session(over_grpc.id)
+
+
+def test_models_the_typed_form_cannot_carry_go_as_json(client: Client, grpc_client: GrpcClient) -> None:
+    """A model with an unknown key goes as ``model_json``, so the server
+    refuses it with the error REST gives."""
+    from mcapi_client import _pb
+
+    bad = {"preset": "hallway", "colour": "red"}
+    assert not _pb.create_request(bad, _pb.AgentOptions()).HasField("model")
+    with pytest.raises(Exception) as over_rest:
+        client.create_session(bad)
+    with pytest.raises(Exception) as over_grpc:
+        grpc_client.create_session(bad)
+    assert type(over_rest.value) is type(over_grpc.value)
+    assert getattr(over_rest.value, "code", None) == getattr(over_grpc.value, "code", None)

@@ -14,3 +14,15 @@ pub const FILE_DESCRIPTOR_SET: &[u8] =
 /// Metadata key naming the session a call concerns (docs/sessions.md, "Session ids and ownership"):
 /// routers cannot read message bodies, so clients send the id here too.
 pub const SESSION_METADATA: &str = "x-mcapi-session";
+
+impl Model {
+    /// A preset model by name (`hallway` or `three_room`), with its own basis.
+    pub fn preset(name: impl Into<String>) -> Self {
+        Self {
+            form: Some(model::Form::Preset(PresetModel {
+                name: name.into(),
+                basis: None,
+            })),
+        }
+    }
+}

@@ -164,10 +164,15 @@ impl Agents for AgentsService {
         let req = convert::create_session(request.into_inner()).map_err(to_status)?;
         let manager = Arc::clone(&self.manager);
         // Building a model (PVFs: an eigendecomposition) must not block the runtime.
-        let info = tokio::task::spawn_blocking(move || manager.create(caller, req))
-            .await
-            .map_err(|e| to_status(ServiceError::Internal(format!("create task: {e}"))))?
-            .map_err(to_status)?;
+        let info = tokio::task::spawn_blocking(move || match req {
+            convert::CreateCall::Json(req) => manager.create(caller, req),
+            convert::CreateCall::Typed { model, agent } => {
+                manager.create_parsed(caller, model, &agent)
+            }
+        })
+        .await
+        .map_err(|e| to_status(ServiceError::Internal(format!("create task: {e}"))))?
+        .map_err(to_status)?;
         Ok(Response::new(convert::session_info(info)))
     }
 

@@ -15,7 +15,7 @@ use tokio::sync::oneshot;
 
 use crate::store::{Store, Write};
 
-use super::agent_config::UpdateMode;
+use super::agent_config::{SessionConfig, UpdateMode};
 use super::auth::{ApiKeys, Caller};
 use super::cost;
 use super::durable;
@@ -207,11 +207,41 @@ impl SessionManager {
     /// an eigendecomposition; with a store, the creation is committed before
     /// this returns): call it off the async runtime.
     pub fn create(&self, caller: Caller, req: CreateSession) -> Result<SessionInfo, ServiceError> {
+        let CreateSession { model, agent } = req;
         if self.len() >= self.limits.max_sessions {
             return Err(ServiceError::TooManySessions(self.limits.max_sessions));
         }
-        let model_text = self.durability.as_ref().map(|_| req.model.to_string());
-        let input = ModelInput::parse(req.model)?;
+        let model_text = self.durability.as_ref().map(|_| model.to_string());
+        let input = ModelInput::parse(model)?;
+        self.create_from(caller, input, &agent, model_text)
+    }
+
+    /// Creates a session from a model already parsed (gRPC's typed `Model`,
+    /// converted in `api::grpc::convert`); otherwise as [`Self::create`],
+    /// with the same checks in the same order.
+    pub fn create_parsed(
+        &self,
+        caller: Caller,
+        input: ModelInput,
+        agent: &SessionConfig,
+    ) -> Result<SessionInfo, ServiceError> {
+        if self.len() >= self.limits.max_sessions {
+            return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+        }
+        let model_text = match &self.durability {
+            Some(_) => Some(input.to_json_text()?),
+            None => None,
+        };
+        self.create_from(caller, input, agent, model_text)
+    }
+
+    fn create_from(
+        &self,
+        caller: Caller,
+        input: ModelInput,
+        agent: &SessionConfig,
+        model_text: Option<String>,
+    ) -> Result<SessionInfo, ServiceError> {
         let owner = caller.owner();
         // Refused early when the key's quota of sessions is used up.
         self.limits.check_cost(
@@ -221,7 +251,7 @@ impl SessionManager {
             },
             self.sessions.read().usage(&owner),
         )?;
-        let (learner, summary, config) = self.setup.build(&input, &req.agent, &self.limits)?;
+        let (learner, summary, config) = self.setup.build(&input, agent, &self.limits)?;
         let cost = cost::estimate(&summary, &config);
         self.limits
             .check_cost(&cost, self.sessions.read().usage(&owner))?;

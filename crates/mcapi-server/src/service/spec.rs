@@ -4,7 +4,7 @@
 
 use std::collections::BTreeMap;
 
-use serde::Deserialize;
+use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use mcapi_core::model::{GridMap, grid_preset, hallway, three_room};
@@ -41,23 +41,23 @@ pub enum ModelInput {
     Spec(Box<ModelSpec>),
 }
 
-#[derive(Deserialize)]
+#[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct PresetForm {
     preset: String,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     basis: Option<BasisSpec>,
 }
 
-#[derive(Deserialize)]
+#[derive(Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 struct GridForm {
     grid: Vec<String>,
     #[serde(default)]
     sources: BTreeMap<String, usize>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     stimuli: Option<Vec<String>>,
-    #[serde(default)]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     basis: Option<BasisSpec>,
 }
 
@@ -88,6 +88,30 @@ impl ModelInput {
         } else {
             Ok(Self::Spec(Box::new(from_value(value)?)))
         }
+    }
+
+    /// The model as the JSON the REST API takes (what a durable session
+    /// record keeps): [`ModelInput::parse`] of it gives `self` back.
+    pub fn to_json_text(&self) -> Result<String, ServiceError> {
+        let text = match self {
+            Self::Preset { name, basis } => serde_json::to_string(&PresetForm {
+                preset: name.clone(),
+                basis: basis.clone(),
+            }),
+            Self::Grid {
+                lines,
+                sources,
+                stimuli,
+                basis,
+            } => serde_json::to_string(&GridForm {
+                grid: lines.clone(),
+                sources: sources.clone(),
+                stimuli: stimuli.clone(),
+                basis: basis.clone(),
+            }),
+            Self::Spec(spec) => serde_json::to_string(spec),
+        };
+        text.map_err(|e| ServiceError::Internal(format!("encoding a model: {e}")))
     }
 
     /// A key identifying the model and basis, for sharing built models: the
@@ -253,5 +277,36 @@ impl ModelInput {
             Self::Preset { .. } | Self::Spec(_) => return None,
         };
         Some(GridLayout::of(&grid))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    /// A model parsed by a transport is stored as JSON and parsed again on
+    /// recovery: the round trip must give it back exactly.
+    #[test]
+    fn json_text_parses_back_to_the_same_model() {
+        let models = [
+            json!({"preset": "hallway"}),
+            json!({"preset": "three_room", "basis": {"kind": "proto_value", "k": 4}}),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}}),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 1},
+                   "stimuli": ["x", "y"], "basis": {"kind": "indicator"}}),
+            json!({"states": 2, "state_names": ["l", "r"], "actions": ["go", "stay"],
+                   "next": [[1, 0], [null, 1]], "stimuli": ["x"]}),
+            json!({"states": 2, "actions": ["go"], "stimuli": ["x"],
+                   "transitions": [{"state": 0, "action": "go", "next": [[1, 0.1], [0, 0.9]]},
+                                   {"state": 1, "action": 0, "next": [[0, 1.0]]}],
+                   "basis": {"kind": "custom", "state_features": [[0.1], [1e-300]]}}),
+        ];
+        for value in models {
+            let input = ModelInput::parse(value.clone()).expect("valid model");
+            let text = input.to_json_text().expect("encodes");
+            let back: Value = serde_json::from_str(&text).expect("JSON");
+            assert_eq!(ModelInput::parse(back).expect("parses"), input, "{value}");
+        }
     }
 }

@@ -14,9 +14,12 @@ use crate::service::{
     SessionPage, SessionStats, SessionSummary, StepOut, TickCuriosity, UpdateMode, ValueSelection,
     Values,
 };
-use mcapi_core::StimulusRate;
+use std::collections::BTreeMap;
+
+use crate::service::ModelInput;
 use mcapi_core::params::StimulusRateName;
-use mcapi_core::spec::ActionRef;
+use mcapi_core::spec::{ActionRef, ModelSpec, TransitionSpec};
+use mcapi_core::{BasisSpec, StimulusRate};
 
 use super::pb;
 
@@ -33,21 +36,199 @@ fn to_usize(field: &str, n: u64) -> Result<usize, ServiceError> {
     usize::try_from(n).map_err(|_| ServiceError::field(field, format!("{n} is too large")))
 }
 
-/// `CreateSession`: the model travels as the JSON the REST API takes.
-pub fn create_session(req: pb::CreateSessionRequest) -> Result<CreateSession, ServiceError> {
-    let pb::CreateSessionRequest { model_json, agent } = req;
-    if model_json.trim().is_empty() {
-        return Err(ServiceError::field(
-            "model_json",
-            "must hold the model as JSON, e.g. {\"preset\": \"hallway\"}",
-        ));
-    }
-    let model = serde_json::from_str(&model_json)
-        .map_err(|e| ServiceError::field("model_json", format!("is not valid JSON: {e}")))?;
-    Ok(CreateSession {
+/// What `CreateSession` asks for: the model as REST JSON (the deprecated
+/// `model_json`) or typed (`model`), already parsed.
+#[derive(Debug)]
+pub enum CreateCall {
+    /// `model_json`: parsed by the service exactly as REST's body.
+    Json(CreateSession),
+    /// `model`: converted here into the service's own model type.
+    Typed {
+        /// The model, in the form the REST JSON parses into.
+        model: ModelInput,
+        /// Agent configuration.
+        agent: SessionConfig,
+    },
+}
+
+/// `CreateSession`: exactly one of `model` (typed) and `model_json`
+/// (deprecated, the JSON the REST API takes).
+#[allow(deprecated)]
+pub fn create_session(req: pb::CreateSessionRequest) -> Result<CreateCall, ServiceError> {
+    let pb::CreateSessionRequest {
+        model_json,
+        agent,
         model,
-        agent: agent.map(session_config).transpose()?.unwrap_or_default(),
+    } = req;
+    let agent = agent.map(session_config).transpose()?.unwrap_or_default();
+    match (model, model_json.trim().is_empty()) {
+        (Some(_), false) => Err(ServiceError::field(
+            "model",
+            "and `model_json` are both set; set only `model` (`model_json` is deprecated)",
+        )),
+        (None, true) => Err(ServiceError::field(
+            "model",
+            "is required: set `model` (or the deprecated `model_json`)",
+        )),
+        (Some(m), true) => Ok(CreateCall::Typed {
+            model: model_input(m)?,
+            agent,
+        }),
+        (None, false) => {
+            let model = serde_json::from_str(&model_json).map_err(|e| {
+                ServiceError::field("model_json", format!("is not valid JSON: {e}"))
+            })?;
+            Ok(CreateCall::Json(CreateSession { model, agent }))
+        }
+    }
+}
+
+/// The typed model as the service's [`ModelInput`], the type the REST JSON
+/// parses into: from here on both transports share every check, limit and
+/// error (`ModelInput::build`). Only what JSON cannot express wrongly is
+/// checked here (an unset `oneof`, a negative successor); nothing is
+/// allocated beyond the decoded message's own size.
+pub fn model_input(m: pb::Model) -> Result<ModelInput, ServiceError> {
+    use pb::model::Form;
+    let pb::Model { form } = m;
+    match form {
+        None => Err(ServiceError::field(
+            "model",
+            "has no form: set one of `preset`, `grid` or `full`",
+        )),
+        Some(Form::Preset(pb::PresetModel { name, basis })) => Ok(ModelInput::Preset {
+            name,
+            basis: basis.map(basis_spec).transpose()?,
+        }),
+        Some(Form::Grid(pb::GridModel {
+            rows,
+            sources,
+            stimuli,
+            basis,
+        })) => Ok(ModelInput::Grid {
+            lines: rows,
+            sources: sources
+                .into_iter()
+                .map(|(mark, dim)| Ok((mark, to_usize("model.sources", dim)?)))
+                .collect::<Result<BTreeMap<_, _>, ServiceError>>()?,
+            // proto3 cannot tell an empty list from an absent one: empty is
+            // the default (the marks).
+            stimuli: (!stimuli.is_empty()).then_some(stimuli),
+            basis: basis.map(basis_spec).transpose()?,
+        }),
+        Some(Form::Full(full)) => Ok(ModelInput::Spec(Box::new(model_spec(full)?))),
+    }
+}
+
+fn model_spec(m: pb::FullModel) -> Result<ModelSpec, ServiceError> {
+    use pb::full_model::Transitions;
+    let pb::FullModel {
+        states,
+        state_names,
+        actions,
+        stimuli,
+        transitions,
+        basis,
+    } = m;
+    let (next, transitions) = match transitions {
+        None => (None, None),
+        Some(Transitions::Next(pb::DeterministicTransitions { rows })) => {
+            let next = rows
+                .into_iter()
+                .enumerate()
+                .map(|(s, pb::NextRow { next })| {
+                    next.into_iter()
+                        .enumerate()
+                        .map(|(a, s2)| match s2 {
+                            -1 => Ok(None),
+                            s2 => usize::try_from(s2).map(Some).map_err(|_| {
+                                ServiceError::field(
+                                    &format!("model.next[{s}][{a}]"),
+                                    format!("is {s2}; a state is at least 0 (-1: unavailable)"),
+                                )
+                            }),
+                        })
+                        .collect::<Result<Vec<_>, _>>()
+                })
+                .collect::<Result<Vec<_>, _>>()?;
+            (Some(next), None)
+        }
+        Some(Transitions::Stochastic(pb::StochasticTransitions { transitions })) => {
+            let t = transitions
+                .into_iter()
+                .enumerate()
+                .map(|(i, t)| transition_spec(i, t))
+                .collect::<Result<Vec<_>, _>>()?;
+            (None, Some(t))
+        }
+    };
+    Ok(ModelSpec {
+        states: to_usize("model.states", states)?,
+        // proto3 cannot tell an empty list from an absent one: empty is none.
+        state_names: (!state_names.is_empty()).then_some(state_names),
+        actions,
+        next,
+        transitions,
+        stimuli,
+        basis: basis.map(basis_spec).transpose()?,
     })
+}
+
+fn transition_spec(i: usize, t: pb::Transition) -> Result<TransitionSpec, ServiceError> {
+    use pb::transition::Action;
+    let pb::Transition {
+        state,
+        action,
+        next,
+    } = t;
+    let action = match action {
+        None => {
+            return Err(ServiceError::field(
+                &format!("model.transitions[{i}].action"),
+                "is required: set `action_index` or `action_name`",
+            ));
+        }
+        Some(Action::ActionIndex(a)) => ActionRef::Index(to_usize(
+            &format!("model.transitions[{i}].action_index"),
+            a,
+        )?),
+        Some(Action::ActionName(name)) => ActionRef::Name(name),
+    };
+    let next = next
+        .into_iter()
+        .map(|pb::Successor { state, probability }| {
+            Ok((
+                to_usize(&format!("model.transitions[{i}].next.state"), state)?,
+                probability,
+            ))
+        })
+        .collect::<Result<Vec<_>, ServiceError>>()?;
+    Ok(TransitionSpec {
+        state: to_usize(&format!("model.transitions[{i}].state"), state)?,
+        action,
+        next,
+    })
+}
+
+fn basis_spec(b: pb::Basis) -> Result<BasisSpec, ServiceError> {
+    use pb::basis::Kind;
+    let pb::Basis { kind } = b;
+    match kind {
+        None => Err(ServiceError::field(
+            "model.basis",
+            "has no kind: set one of `indicator`, `proto_value` or `custom`",
+        )),
+        Some(Kind::Indicator(pb::IndicatorBasis {})) => Ok(BasisSpec::Indicator),
+        Some(Kind::ProtoValue(pb::ProtoValueBasis { k })) => Ok(BasisSpec::ProtoValue {
+            k: to_usize("model.basis.k", k)?,
+        }),
+        Some(Kind::Custom(pb::CustomBasis { state_features })) => Ok(BasisSpec::Custom {
+            state_features: state_features
+                .into_iter()
+                .map(|pb::FeatureRow { features }| features)
+                .collect(),
+        }),
+    }
 }
 
 fn session_config(c: pb::SessionConfig) -> Result<SessionConfig, ServiceError> {

@@ -24,12 +24,139 @@ STIMULUS_RATE_RULE_UNSPECIFIED: StimulusRateRule
 STIMULUS_RATE_RULE_SAMPLE_MEAN: StimulusRateRule
 
 class CreateSessionRequest(_message.Message):
-    __slots__ = ("model_json", "agent")
+    __slots__ = ("model_json", "agent", "model")
     MODEL_JSON_FIELD_NUMBER: _ClassVar[int]
     AGENT_FIELD_NUMBER: _ClassVar[int]
+    MODEL_FIELD_NUMBER: _ClassVar[int]
     model_json: str
     agent: SessionConfig
-    def __init__(self, model_json: _Optional[str] = ..., agent: _Optional[_Union[SessionConfig, _Mapping]] = ...) -> None: ...
+    model: Model
+    def __init__(self, model_json: _Optional[str] = ..., agent: _Optional[_Union[SessionConfig, _Mapping]] = ..., model: _Optional[_Union[Model, _Mapping]] = ...) -> None: ...
+
+class Model(_message.Message):
+    __slots__ = ("preset", "grid", "full")
+    PRESET_FIELD_NUMBER: _ClassVar[int]
+    GRID_FIELD_NUMBER: _ClassVar[int]
+    FULL_FIELD_NUMBER: _ClassVar[int]
+    preset: PresetModel
+    grid: GridModel
+    full: FullModel
+    def __init__(self, preset: _Optional[_Union[PresetModel, _Mapping]] = ..., grid: _Optional[_Union[GridModel, _Mapping]] = ..., full: _Optional[_Union[FullModel, _Mapping]] = ...) -> None: ...
+
+class PresetModel(_message.Message):
+    __slots__ = ("name", "basis")
+    NAME_FIELD_NUMBER: _ClassVar[int]
+    BASIS_FIELD_NUMBER: _ClassVar[int]
+    name: str
+    basis: Basis
+    def __init__(self, name: _Optional[str] = ..., basis: _Optional[_Union[Basis, _Mapping]] = ...) -> None: ...
+
+class GridModel(_message.Message):
+    __slots__ = ("rows", "sources", "stimuli", "basis")
+    class SourcesEntry(_message.Message):
+        __slots__ = ("key", "value")
+        KEY_FIELD_NUMBER: _ClassVar[int]
+        VALUE_FIELD_NUMBER: _ClassVar[int]
+        key: str
+        value: int
+        def __init__(self, key: _Optional[str] = ..., value: _Optional[int] = ...) -> None: ...
+    ROWS_FIELD_NUMBER: _ClassVar[int]
+    SOURCES_FIELD_NUMBER: _ClassVar[int]
+    STIMULI_FIELD_NUMBER: _ClassVar[int]
+    BASIS_FIELD_NUMBER: _ClassVar[int]
+    rows: _containers.RepeatedScalarFieldContainer[str]
+    sources: _containers.ScalarMap[str, int]
+    stimuli: _containers.RepeatedScalarFieldContainer[str]
+    basis: Basis
+    def __init__(self, rows: _Optional[_Iterable[str]] = ..., sources: _Optional[_Mapping[str, int]] = ..., stimuli: _Optional[_Iterable[str]] = ..., basis: _Optional[_Union[Basis, _Mapping]] = ...) -> None: ...
+
+class FullModel(_message.Message):
+    __slots__ = ("states", "state_names", "actions", "stimuli", "next", "stochastic", "basis")
+    STATES_FIELD_NUMBER: _ClassVar[int]
+    STATE_NAMES_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    STIMULI_FIELD_NUMBER: _ClassVar[int]
+    NEXT_FIELD_NUMBER: _ClassVar[int]
+    STOCHASTIC_FIELD_NUMBER: _ClassVar[int]
+    BASIS_FIELD_NUMBER: _ClassVar[int]
+    states: int
+    state_names: _containers.RepeatedScalarFieldContainer[str]
+    actions: _containers.RepeatedScalarFieldContainer[str]
+    stimuli: _containers.RepeatedScalarFieldContainer[str]
+    next: DeterministicTransitions
+    stochastic: StochasticTransitions
+    basis: Basis
+    def __init__(self, states: _Optional[int] = ..., state_names: _Optional[_Iterable[str]] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., next: _Optional[_Union[DeterministicTransitions, _Mapping]] = ..., stochastic: _Optional[_Union[StochasticTransitions, _Mapping]] = ..., basis: _Optional[_Union[Basis, _Mapping]] = ...) -> None: ...
+
+class DeterministicTransitions(_message.Message):
+    __slots__ = ("rows",)
+    ROWS_FIELD_NUMBER: _ClassVar[int]
+    rows: _containers.RepeatedCompositeFieldContainer[NextRow]
+    def __init__(self, rows: _Optional[_Iterable[_Union[NextRow, _Mapping]]] = ...) -> None: ...
+
+class NextRow(_message.Message):
+    __slots__ = ("next",)
+    NEXT_FIELD_NUMBER: _ClassVar[int]
+    next: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, next: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class StochasticTransitions(_message.Message):
+    __slots__ = ("transitions",)
+    TRANSITIONS_FIELD_NUMBER: _ClassVar[int]
+    transitions: _containers.RepeatedCompositeFieldContainer[Transition]
+    def __init__(self, transitions: _Optional[_Iterable[_Union[Transition, _Mapping]]] = ...) -> None: ...
+
+class Transition(_message.Message):
+    __slots__ = ("state", "action_index", "action_name", "next")
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
+    ACTION_NAME_FIELD_NUMBER: _ClassVar[int]
+    NEXT_FIELD_NUMBER: _ClassVar[int]
+    state: int
+    action_index: int
+    action_name: str
+    next: _containers.RepeatedCompositeFieldContainer[Successor]
+    def __init__(self, state: _Optional[int] = ..., action_index: _Optional[int] = ..., action_name: _Optional[str] = ..., next: _Optional[_Iterable[_Union[Successor, _Mapping]]] = ...) -> None: ...
+
+class Successor(_message.Message):
+    __slots__ = ("state", "probability")
+    STATE_FIELD_NUMBER: _ClassVar[int]
+    PROBABILITY_FIELD_NUMBER: _ClassVar[int]
+    state: int
+    probability: float
+    def __init__(self, state: _Optional[int] = ..., probability: _Optional[float] = ...) -> None: ...
+
+class Basis(_message.Message):
+    __slots__ = ("indicator", "proto_value", "custom")
+    INDICATOR_FIELD_NUMBER: _ClassVar[int]
+    PROTO_VALUE_FIELD_NUMBER: _ClassVar[int]
+    CUSTOM_FIELD_NUMBER: _ClassVar[int]
+    indicator: IndicatorBasis
+    proto_value: ProtoValueBasis
+    custom: CustomBasis
+    def __init__(self, indicator: _Optional[_Union[IndicatorBasis, _Mapping]] = ..., proto_value: _Optional[_Union[ProtoValueBasis, _Mapping]] = ..., custom: _Optional[_Union[CustomBasis, _Mapping]] = ...) -> None: ...
+
+class IndicatorBasis(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class ProtoValueBasis(_message.Message):
+    __slots__ = ("k",)
+    K_FIELD_NUMBER: _ClassVar[int]
+    k: int
+    def __init__(self, k: _Optional[int] = ...) -> None: ...
+
+class CustomBasis(_message.Message):
+    __slots__ = ("state_features",)
+    STATE_FEATURES_FIELD_NUMBER: _ClassVar[int]
+    state_features: _containers.RepeatedCompositeFieldContainer[FeatureRow]
+    def __init__(self, state_features: _Optional[_Iterable[_Union[FeatureRow, _Mapping]]] = ...) -> None: ...
+
+class FeatureRow(_message.Message):
+    __slots__ = ("features",)
+    FEATURES_FIELD_NUMBER: _ClassVar[int]
+    features: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, features: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class SessionConfig(_message.Message):
     __slots__ = ("eta", "gamma", "priorities", "stimulus_rate_rule", "stimulus_rate_constant", "optimistic_sd", "ridge", "epsilon", "seed", "update_mode", "history", "curiosity")
