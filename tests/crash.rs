@@ -10,8 +10,9 @@
 //! never half of an observation). Driving then continues, is killed again,
 //! recovered again; finally every session takes more ticks (which checks
 //! the recovered visit counts and advised action too) and the server stops
-//! cleanly. Three seeds with three crashes each at 200-1500 ms, and one
-//! that kills within milliseconds, while first observations are in flight.
+//! cleanly. Three seeds with three crashes each at 200-1500 ms, one more
+//! under `--durability os`, and one that kills within milliseconds, while
+//! first observations are in flight.
 
 mod common;
 
@@ -477,23 +478,27 @@ async fn create_sessions(server: &Server, seed: u64) -> Vec<Tracked> {
 }
 
 async fn crash_run(seed: u64, rounds: &[Round]) {
+    crash_run_with(seed, rounds, &[]).await;
+}
+
+/// [`crash_run`] with more `mcapi serve` flags.
+async fn crash_run_with(seed: u64, rounds: &[Round], flags: &[&str]) {
     let started = Instant::now();
     assert_float_roundtrip();
     let data = tempfile::tempdir().expect("data dir");
     let logs = tempfile::tempdir().expect("log dir");
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let every = SNAPSHOT_EVERY.to_string();
-    let launch = Launch::new(
-        data.path(),
-        &[
-            "--snapshot-every",
-            &every,
-            "--api-key",
-            KEY_A,
-            "--api-key",
-            KEY_B,
-        ],
-    );
+    let mut args = vec![
+        "--snapshot-every",
+        &every,
+        "--api-key",
+        KEY_A,
+        "--api-key",
+        KEY_B,
+    ];
+    args.extend_from_slice(flags);
+    let launch = Launch::new(data.path(), &args);
     let mut server = Server::start(&launch, logs.path().join("run-0.log")).await;
     let mut tracked = create_sessions(&server, seed).await;
 
@@ -599,6 +604,13 @@ async fn kill_9_loses_no_acknowledged_observation_seed_2() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 4)]
 async fn kill_9_loses_no_acknowledged_observation_seed_3() {
     crash_run(3, &ROUNDS).await;
+}
+
+/// `--durability os` acknowledges once the log frame is in the kernel: a
+/// killed process loses nothing acknowledged either (a power cut could).
+#[tokio::test(flavor = "multi_thread", worker_threads = 4)]
+async fn kill_9_with_durability_os_loses_no_acknowledged_observation() {
+    crash_run_with(5, &ROUNDS, &["--durability", "os"]).await;
 }
 
 /// Kills within milliseconds of the start, when sessions' first

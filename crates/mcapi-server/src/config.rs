@@ -45,6 +45,12 @@ pub struct ServeConfig {
     /// Session store: `redb` (durable, in --data-dir) or `memory`.
     #[arg(long, env = "MCAPI_STORE", value_enum, default_value = "redb")]
     pub store: StoreKind,
+    /// When an observation is acknowledged: `sync` after its log frame is
+    /// on disk (fdatasync; survives a power cut), `os` after it reaches the
+    /// kernel (survives kill -9 of the process, not a power cut; synced in
+    /// the background every 5 ms).
+    #[arg(long, env = "MCAPI_DURABILITY", value_enum, default_value = "sync")]
+    pub durability: crate::store::Durability,
     /// Logged observations between two snapshots of a session (the log
     /// before a snapshot is trimmed).
     #[arg(long, env = "MCAPI_SNAPSHOT_EVERY", default_value_t = crate::service::DEFAULT_SNAPSHOT_EVERY)]

@@ -1,116 +1,81 @@
-//! The durable session store (docs/sessions.md, "Durability and recovery"): one redb file in the
-//! data directory holding, per session, its creation record, its newest
-//! snapshot and the log of observations since that snapshot.
+//! The durable session store (docs/sessions.md, "Durability and recovery"):
+//! per session, its creation record, its newest snapshot and the log of
+//! observations since that snapshot, in the data directory.
 //!
 //! The store knows keys, sequence numbers and bytes, not what they mean: the
 //! service encodes its records (`service::durable`). Writes go through one
-//! writer thread that commits everything queued since its last commit in a
-//! single transaction (group commit), so many concurrent observations share
-//! one disk sync. A caller learns that its write is durable by awaiting the
+//! writer thread that takes everything queued since its last commit as one
+//! group (group commit), so many concurrent observations share one disk
+//! sync. A caller learns that its write is durable by awaiting the
 //! [`Commit`] it got back.
 //!
-//! Layout (format version [`FORMAT_VERSION`]):
-//! - `meta`: `"format_version"` → u64;
-//! - `sessions`: id → creation record;
-//! - `snapshots`: id → (sequence number, snapshot);
-//! - `log`: (session key, chunk number) → a chunk of up to [`CHUNK`]
-//!   observation records (chunk c holds sequence numbers c·CHUNK to
-//!   c·CHUNK + CHUNK − 1, each framed as sequence number, length, bytes).
-//!   The session key is the 128-bit ULID of the session id. A snapshot at
-//!   sequence number n drops the chunks that end at or before n.
-//!
-//! Since format 3 every snapshot and log record begins with one byte naming
-//! the encoding of the rest, which the service chooses and reads
-//! ([`RECORD_V2`] for records written under format 2). Opening a format-2
-//! file upgrades it in place, in one transaction, by prefixing each of its
-//! records with [`RECORD_V2`]; nothing else changes.
+//! Two files make one store:
+//! - the **write-ahead log** (`wal/`, [`wal`]): a group commit is one frame
+//!   appended to it, then one `fdatasync` ([`Durability::Sync`], the
+//!   default) or none ([`Durability::Os`], synced in the background every
+//!   [`OS_SYNC_INTERVAL`]);
+//! - the **redb file** (`mcapi.redb`, layout in `db.rs`): sessions,
+//!   snapshots and the log in chunks, brought up to date in bulk by the
+//!   checkpointer thread (`checkpoint.rs`) about twice a second, after
+//!   which the segments it applied are deleted. Opening the store applies
+//!   whatever the log holds beyond the file's last checkpoint, so reads see
+//!   every acknowledged write; a reader at run time first asks for a
+//!   checkpoint of what it may need.
 //!
 //! A failed commit leaves a hole in the logs of the sessions it wrote to, so
 //! from then on the store refuses their appends and snapshots
 //! ([`StoreError::Broken`]) instead of writing after the hole, until the
 //! service has reloaded the session from what is durable and sent
-//! [`Write::Resume`]. Later records therefore never depend on lost ones.
+//! [`Write::Resume`]. Later records therefore never depend on lost ones. A
+//! failed frame is cut off the log before anything else is written, so it
+//! can never be read back.
 //!
-//! Storage faults are survived without a restart. redb latches the first
-//! real I/O error of a `Database` (ENOSPC included): every later call on it,
-//! reads too, fails with `StorageError::PreviousIo` until it is closed and
-//! opened again. So after a commit fails with an I/O error the writer thread
-//! closes the database at once (readers then get [`StoreError::Unavailable`]
-//! instead of the latched error), and reopens it with backoff: at the next
-//! write after the backoff, or by itself when nothing is written (the health
-//! probe). A reopen counts only once a probe commit succeeds on the new
-//! handle; until then [`Store::health`] says why the store cannot write, and
-//! every write fails at once. Opening repairs the file to its last commit, so
-//! nothing acknowledged is lost and nothing unacknowledged appears.
-//!
-//! Chunks, not one record per observation: a B-tree entry per 20-byte
-//! observation cost about 140 bytes of file, and the file's size is what
-//! opening it (integrity check) and recovery cost.
+//! Storage faults are survived without a restart: after a failed append or
+//! sync the writer refuses every write at once and retries with backoff
+//! (cutting the log back to its last good frame and writing a probe file);
+//! after a failed checkpoint the checkpointer reopens the database. While
+//! either is down, [`Store::health`] says why.
+
+mod checkpoint;
+mod db;
+pub mod wal;
 
 use std::collections::HashSet;
+use std::io::Write as _;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
 use crossbeam_channel::{Receiver, RecvTimeoutError, Sender, unbounded};
 use parking_lot::{Mutex, RwLock};
-use redb::{Database, Durability, ReadableDatabase, ReadableTable, TableDefinition};
+use redb::{Database, ReadableDatabase, ReadableTable};
 use thiserror::Error;
 use tokio::sync::oneshot;
 
-/// Version of the on-disk layout. A format-2 file is upgraded at open;
-/// a file of any other version is refused.
-pub const FORMAT_VERSION: u64 = 3;
+use checkpoint::{Checkpointer, ToCheckpoint};
+use db::{LOG, SESSIONS, SNAPSHOTS, log_key, split_entry};
+pub use db::{CHUNK, FORMAT_VERSION, RECORD_V2};
+pub use wal::Durability;
+use wal::{AppendError, Wal};
 
-/// The record-encoding byte given to records written under format 2.
-pub const RECORD_V2: u8 = 2;
-
-/// Name of the store file inside the data directory.
+/// Name of the redb file inside the data directory.
 pub const FILE_NAME: &str = "mcapi.redb";
 
-const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
-const SESSIONS: TableDefinition<&str, &[u8]> = TableDefinition::new("sessions");
-const SNAPSHOTS: TableDefinition<&str, (u64, &[u8])> = TableDefinition::new("snapshots");
-const LOG: TableDefinition<(u128, u64), &[u8]> = TableDefinition::new("log");
-/// The health probe's scratch table (empty between probes).
-const PROBE: TableDefinition<&str, &[u8]> = TableDefinition::new("probe");
+/// Under [`Durability::Os`], how long a frame may stay unsynced.
+pub const OS_SYNC_INTERVAL: Duration = Duration::from_millis(5);
 
-/// The log's key of a session: the 128 bits of the ULID in its id
-/// (`s<shard>.<ULID>`), or a 128-bit hash of the id for other ids. A number
-/// instead of the string keeps the log, which holds most of the file, small:
-/// the store's size is what opening (integrity check) and recovery cost.
-fn log_key(id: &str) -> u128 {
-    if let Some((_, ulid)) = id.split_once('.')
-        && let Ok(u) = ulid::Ulid::from_string(ulid)
-    {
-        return u.0;
-    }
-    use sha2::Digest;
-    let d = sha2::Sha256::digest(id.as_bytes());
-    let mut b = [0u8; 16];
-    b.copy_from_slice(&d[..16]);
-    u128::from_be_bytes(b)
-}
-
-/// Observation records per log chunk.
-pub const CHUNK: u64 = 64;
-
-/// Most writes folded into one transaction.
+/// Most writes folded into one group.
 const MAX_GROUP: usize = 8192;
 
-/// First wait before reopening the database after a storage fault; doubled
-/// after every failed attempt up to [`MAX_BACKOFF`], reset by a successful
-/// commit of real writes.
+/// First wait before repairing the log after a storage fault; doubled
+/// after every failed attempt up to [`MAX_BACKOFF`], reset by a success.
 const MIN_BACKOFF: Duration = Duration::from_millis(50);
-/// Longest wait between two reopening attempts.
+/// Longest wait between two repair attempts.
 const MAX_BACKOFF: Duration = Duration::from_secs(1);
-/// How long a reopen waits for readers to let go of the failed handle
-/// (redb holds the file lock until the last one is dropped).
-const RELEASE_WAIT: Duration = Duration::from_secs(2);
-/// What the health probe writes (and removes again) after a reopen.
-const PROBE_BYTES: usize = 256 * 1024;
+/// The probe file's name in the data directory (written and removed).
+const PROBE_FILE: &str = "probe.tmp";
 
 /// What can go wrong with the store.
 #[derive(Debug, Clone, Error)]
@@ -127,7 +92,7 @@ pub enum StoreError {
     /// not decode.
     #[error("the store {path} is corrupt: {reason}")]
     Corrupt {
-        /// The store file.
+        /// The damaged file.
         path: PathBuf,
         /// What is wrong.
         reason: String,
@@ -146,7 +111,7 @@ pub enum StoreError {
     #[error("store failure: {0}")]
     Failed(String),
     /// The store cannot write after a storage fault (a full or failing
-    /// disk); it is reopened automatically once the fault clears.
+    /// disk); it recovers automatically once the fault clears.
     #[error("the store is unavailable after a storage fault ({0}); it is reopened automatically")]
     Unavailable(String),
     /// An earlier write of this session failed; its writes are refused
@@ -158,53 +123,6 @@ pub enum StoreError {
     /// The store was closed.
     #[error("the store is closed")]
     Closed,
-}
-
-/// Whether a redb error leaves the `Database` unusable until it is closed and
-/// opened again: an I/O error is latched (every later call answers
-/// `PreviousIo`), and a failed commit may discard the allocator state (every
-/// later write transaction answers `Corrupted`, "reopen the database to
-/// repair it").
-fn needs_reopen(e: &redb::Error) -> bool {
-    matches!(
-        e,
-        redb::Error::Io(_)
-            | redb::Error::PreviousIo
-            | redb::Error::DatabaseClosed
-            | redb::Error::Corrupted(_)
-            | redb::Error::TransactionPoisoned
-            | redb::Error::LockPoisoned(_)
-            | redb::Error::Backend(_)
-    )
-}
-
-/// A failure of the database while running, classified: a fault that needs
-/// a reopen, or another failure.
-#[derive(Debug)]
-struct DbFailure {
-    reopen: bool,
-    message: String,
-}
-
-impl DbFailure {
-    fn of(e: impl Into<redb::Error>) -> Self {
-        let e: redb::Error = e.into();
-        Self {
-            reopen: needs_reopen(&e),
-            message: e.to_string(),
-        }
-    }
-
-    fn injected() -> Self {
-        Self {
-            reopen: false,
-            message: "injected commit failure".into(),
-        }
-    }
-
-    fn into_store_error(self) -> StoreError {
-        StoreError::Failed(self.message)
-    }
 }
 
 /// One write.
@@ -257,20 +175,46 @@ impl Write {
             Self::Session { .. } | Self::Delete { .. } | Self::Resume { .. } => None,
         }
     }
+
+    /// Whether the write is stored (a `Resume` only changes what the writer
+    /// accepts).
+    fn is_logged(&self) -> bool {
+        !matches!(self, Self::Resume { .. })
+    }
+
+    /// Bytes it holds, roughly (what waiting for a checkpoint costs).
+    fn size(&self) -> usize {
+        match self {
+            Self::Session { id, record } => id.len() + record.len(),
+            Self::Append { id, entry, .. } => id.len() + entry.len() + 8,
+            Self::Snapshot { id, snapshot, .. } => id.len() + snapshot.len() + 8,
+            Self::Delete { id } | Self::Resume { id } => id.len(),
+        }
+    }
 }
 
-/// What the writer thread shares with the store's handle.
+/// What the writer and checkpointer threads share with the store's handle.
 #[derive(Default)]
 struct Shared {
     /// Sessions whose log has a hole (a commit with their writes failed).
     broken: Mutex<HashSet<Arc<str>>>,
     /// Commits to fail on purpose (tests of the failure path).
     fail_next: AtomicU32,
-    /// The open database; `None` after a storage fault until the writer
-    /// has reopened it. Readers clone the handle for one read.
+    /// The open database; `None` after a storage fault until the
+    /// checkpointer has reopened it. Readers clone the handle for one read.
     db: RwLock<Option<Arc<Database>>>,
-    /// Why the store cannot write, while it cannot.
-    fault: Mutex<Option<String>>,
+    /// Why the log cannot be written, while it cannot.
+    wal_fault: Mutex<Option<String>>,
+    /// Why the database cannot be written, while it cannot.
+    db_fault: Mutex<Option<String>>,
+    /// The newest frame handed to the checkpointer.
+    forwarded: AtomicU64,
+    /// The newest frame applied to the database.
+    applied: AtomicU64,
+    /// Closed log segments not yet deleted: first and last frame, path.
+    closed: Mutex<Vec<(u64, u64, PathBuf)>>,
+    /// Set by [`Store::crash`]: stop without the final checkpoint.
+    crashed: std::sync::atomic::AtomicBool,
 }
 
 impl Shared {
@@ -280,23 +224,32 @@ impl Shared {
             return Ok(Arc::clone(db));
         }
         let why = self
-            .fault
+            .db_fault
             .lock()
             .clone()
             .unwrap_or_else(|| "the database is being reopened".into());
         Err(StoreError::Unavailable(why))
     }
 
-    fn set_fault(&self, why: &str) {
-        let mut fault = self.fault.lock();
-        if fault.is_none() {
-            metrics::gauge!("mcapi_store_healthy").set(0.0);
-        }
-        *fault = Some(why.to_string());
+    /// Why the store cannot write, if it cannot.
+    fn fault(&self) -> Option<String> {
+        self.wal_fault
+            .lock()
+            .clone()
+            .or_else(|| self.db_fault.lock().clone())
     }
 
-    fn clear_fault(&self) {
-        if self.fault.lock().take().is_some() {
+    fn set_fault(&self, which: &Mutex<Option<String>>, why: &str) {
+        let healthy = self.fault().is_none();
+        *which.lock() = Some(why.to_string());
+        if healthy {
+            metrics::gauge!("mcapi_store_healthy").set(0.0);
+        }
+    }
+
+    fn clear_fault(&self, which: &Mutex<Option<String>>) {
+        let cleared = which.lock().take().is_some();
+        if cleared && self.fault().is_none() {
             metrics::gauge!("mcapi_store_healthy").set(1.0);
         }
     }
@@ -334,82 +287,145 @@ pub struct StoredSession {
     pub snapshot: Option<(u64, Vec<u8>)>,
 }
 
-/// The store: a redb database and its writer thread.
+/// The store: the log's writer thread, the checkpointer thread and the
+/// redb database they share with readers.
 pub struct Store {
     path: PathBuf,
+    durability: Durability,
     shared: Arc<Shared>,
     tx: Mutex<Option<Sender<Pending>>>,
-    writer: Mutex<Option<JoinHandle<()>>>,
+    checkpoint_tx: Mutex<Option<Sender<ToCheckpoint>>>,
+    threads: Mutex<Vec<JoinHandle<()>>>,
 }
 
 impl std::fmt::Debug for Store {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.debug_struct("Store").field("path", &self.path).finish()
+        f.debug_struct("Store")
+            .field("path", &self.path)
+            .field("durability", &self.durability)
+            .finish()
     }
 }
 
 impl Store {
-    /// Opens (or creates) the store in `dir`, checking the file's integrity
-    /// and format version.
+    /// Opens (or creates) the store in `dir` with [`Durability::Sync`].
     pub fn open(dir: &Path) -> Result<Self, StoreError> {
-        std::fs::create_dir_all(dir).map_err(|e| StoreError::Io {
-            path: dir.to_path_buf(),
-            reason: format!("cannot create the data directory: {e}"),
-        })?;
+        Self::open_with(dir, Durability::Sync)
+    }
+
+    /// Opens (or creates) the store in `dir`: checks the database's
+    /// integrity and format version (upgrading older formats), applies the
+    /// log beyond its last checkpoint, and starts the writer and the
+    /// checkpointer.
+    pub fn open_with(dir: &Path, durability: Durability) -> Result<Self, StoreError> {
+        let io = |path: &Path, what: &str, e: std::io::Error| StoreError::Io {
+            path: path.to_path_buf(),
+            reason: format!("{what}: {e}"),
+        };
+        std::fs::create_dir_all(dir)
+            .map_err(|e| io(dir, "cannot create the data directory", e))?;
         let path = dir.join(FILE_NAME);
-        let db = open_database(&path)?;
-        let (tx, rx) = unbounded::<Pending>();
+        let wal_dir = dir.join(wal::WAL_DIR);
+        let (db, applied) = db::open_database(&path)?;
+        if !wal_dir.exists() {
+            std::fs::create_dir_all(&wal_dir)
+                .map_err(|e| io(&wal_dir, "cannot create the log directory", e))?;
+            wal::sync_dir(dir).map_err(|e| io(dir, "syncing the data directory", e))?;
+        }
+        let started = Instant::now();
+        let replayed = db::replay_wal(&db, &wal_dir, applied)?;
+        if replayed.frames > 0 || replayed.torn {
+            tracing::info!(
+                frames = replayed.frames,
+                torn_tail_cut = replayed.torn,
+                seconds = started.elapsed().as_secs_f64(),
+                "write-ahead log applied to the store"
+            );
+        }
+        let applied = replayed.next_lsn - 1;
+        let wal = Wal::create(&wal_dir, replayed.next_lsn)
+            .map_err(|e| io(&wal_dir, "creating a log segment", e))?;
         let shared = Arc::new(Shared::default());
         *shared.db.write() = Some(Arc::new(db));
-        let writer_shared = Arc::clone(&shared);
-        let writer_path = path.clone();
-        let writer = std::thread::Builder::new()
-            .name("mcapi-store".into())
-            .spawn(move || Writer::new(writer_path, writer_shared).run(&rx))
-            .map_err(|e| StoreError::Io {
-                path: path.clone(),
-                reason: format!("starting the writer thread: {e}"),
-            })?;
+        shared.applied.store(applied, Ordering::Release);
+        shared.forwarded.store(applied, Ordering::Release);
+
+        let (checkpoint_tx, checkpoint_rx) = unbounded::<ToCheckpoint>();
+        let checkpointer = Checkpointer::new(path.clone(), wal_dir, Arc::clone(&shared), applied);
+        let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
+            std::thread::Builder::new()
+                .name(name.into())
+                .spawn(f)
+                .map_err(|e| io(&path, "starting a store thread", e))
+        };
+        let mut threads =
+            vec![spawn("mcapi-checkpoint", Box::new(move || checkpointer.run(&checkpoint_rx)))?];
+        let (tx, rx) = unbounded::<Pending>();
+        let writer = Writer {
+            wal,
+            data_dir: dir.to_path_buf(),
+            durability,
+            shared: Arc::clone(&shared),
+            checkpoint: checkpoint_tx.clone(),
+            retry_at: None,
+            backoff: MIN_BACKOFF,
+            dirty: false,
+            sync_due: None,
+        };
+        threads.push(spawn("mcapi-store", Box::new(move || writer.run(&rx)))?);
         Ok(Self {
             path,
+            durability,
             shared,
             tx: Mutex::new(Some(tx)),
-            writer: Mutex::new(Some(writer)),
+            checkpoint_tx: Mutex::new(Some(checkpoint_tx)),
+            threads: Mutex::new(threads),
         })
     }
 
+    /// When commits are acknowledged.
+    pub fn durability(&self) -> Durability {
+        self.durability
+    }
+
     /// Whether the store can write: `Err` with the reason while it cannot
-    /// (after a storage fault, until the database is reopened and a probe
-    /// commit succeeds).
+    /// (after a storage fault, until the log is repaired and the database
+    /// reopened).
     pub fn health(&self) -> Result<(), String> {
-        match self.shared.fault.lock().as_ref() {
-            Some(why) => Err(why.clone()),
+        match self.shared.fault() {
+            Some(why) => Err(why),
             None => Ok(()),
         }
     }
 
-    /// The open database for one read, or [`StoreError::Unavailable`].
+    /// Applies every acknowledged write to the database now (blocking until
+    /// done). Reads call it when the database is behind the log.
+    pub fn checkpoint(&self) -> Result<(), StoreError> {
+        let (reply, answer) = crossbeam_channel::bounded(1);
+        let sent = self
+            .checkpoint_tx
+            .lock()
+            .as_ref()
+            .is_some_and(|tx| tx.send(ToCheckpoint::Flush(reply)).is_ok());
+        if !sent {
+            return Err(StoreError::Closed);
+        }
+        answer.recv().unwrap_or(Err(StoreError::Closed))
+    }
+
+    /// The open database for one read, brought up to date with every write
+    /// acknowledged so far.
     fn db(&self) -> Result<Arc<Database>, StoreError> {
+        let forwarded = self.shared.forwarded.load(Ordering::Acquire);
+        if self.shared.applied.load(Ordering::Acquire) < forwarded {
+            self.checkpoint()?;
+        }
         self.shared.db()
     }
 
-    /// A failed read: an I/O error (latched by redb) is reported to the
-    /// writer, which reopens the database, so a failing read does not wait
-    /// for the next write to be noticed.
+    /// A failed read.
     fn read_failed(&self, e: impl Into<redb::Error>) -> StoreError {
-        let e: redb::Error = e.into();
-        // Only an I/O error: a read that finds a damaged page fails alone.
-        if matches!(e, redb::Error::Io(_) | redb::Error::PreviousIo) {
-            self.shared.set_fault(&e.to_string());
-            // An empty write wakes the writer, which sees the fault.
-            if let Some(tx) = self.tx.lock().as_ref() {
-                let _ = tx.send(Pending {
-                    writes: Vec::new(),
-                    done: None,
-                });
-            }
-        }
-        StoreError::Failed(e.to_string())
+        StoreError::Failed(e.into().to_string())
     }
 
     /// The store file.
@@ -533,13 +549,25 @@ impl Store {
         Ok(())
     }
 
-    /// Stops the writer after it has committed everything queued.
+    /// Stops the threads as a `kill -9` would leave the files: the log's
+    /// frames are not applied to the database and stay in the log (for
+    /// tests of the replay at open).
+    #[doc(hidden)]
+    pub fn crash(&self) {
+        self.shared.crashed.store(true, Ordering::SeqCst);
+        self.close();
+    }
+
+    /// Stops the writer after it has committed everything queued, then the
+    /// checkpointer after it has applied everything (a clean close leaves
+    /// an empty log).
     pub fn close(&self) {
         self.tx.lock().take();
-        if let Some(h) = self.writer.lock().take()
-            && h.join().is_err()
-        {
-            tracing::error!("the store writer panicked");
+        self.checkpoint_tx.lock().take();
+        for h in self.threads.lock().drain(..).rev() {
+            if h.join().is_err() {
+                tracing::error!("a store thread panicked");
+            }
         }
     }
 }
@@ -550,115 +578,29 @@ impl Drop for Store {
     }
 }
 
-/// Opens (or creates) the database file, checking its integrity and format
-/// version (upgrading a format-2 file); at start and at every reopen.
-fn open_database(path: &Path) -> Result<Database, StoreError> {
-    let corrupt = |reason: String| StoreError::Corrupt {
-        path: path.to_path_buf(),
-        reason,
-    };
-    // An I/O error (a full disk) is not damage: it is reported as such, at
-    // start and at a reopen after a storage fault.
-    let failed = |e: redb::Error| match e {
-        redb::Error::Io(io)
-            if !matches!(
-                io.kind(),
-                std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
-            ) =>
-        {
-            StoreError::Io {
-                path: path.to_path_buf(),
-                reason: io.to_string(),
-            }
-        }
-        redb::Error::PreviousIo => StoreError::Io {
-            path: path.to_path_buf(),
-            reason: e.to_string(),
-        },
-        other => corrupt(other.to_string()),
-    };
-    let existed = path.metadata().map(|m| m.len() > 0).unwrap_or(false);
-    let db = Database::builder()
-        .set_check_integrity_on_open(true)
-        .create(path)
-        .map_err(|e| match e {
-            redb::DatabaseError::DatabaseAlreadyOpen => StoreError::Io {
-                path: path.to_path_buf(),
-                reason: "already open in another process (is another mcapi running on this data directory?)".into(),
-            },
-            other => failed(other.into()),
-        })?;
-    let mut write = db.begin_write().map_err(|e| failed(e.into()))?;
-    write.set_two_phase_commit(true);
-    {
-        let mut meta = write.open_table(META).map_err(|e| failed(e.into()))?;
-        let found = meta
-            .get("format_version")
-            .map_err(|e| failed(e.into()))?
-            .map(|v| v.value());
-        match found {
-            Some(FORMAT_VERSION) => {}
-            Some(2) => {
-                let started = Instant::now();
-                let records = tag_format_2_records(&write)
-                    .map_err(|e| corrupt(format!("upgrading from format version 2: {e}")))?;
-                meta.insert("format_version", FORMAT_VERSION)
-                    .map_err(|e| failed(e.into()))?;
-                tracing::info!(
-                    path = %path.display(),
-                    records,
-                    seconds = started.elapsed().as_secs_f64(),
-                    "store upgraded from format version 2 to {FORMAT_VERSION}"
-                );
-            }
-            Some(found) => {
-                return Err(StoreError::Version {
-                    path: path.to_path_buf(),
-                    found,
-                });
-            }
-            None if existed => {
-                return Err(corrupt("the format version record is missing".into()));
-            }
-            None => {
-                meta.insert("format_version", FORMAT_VERSION)
-                    .map_err(|e| failed(e.into()))?;
-            }
-        }
-        write.open_table(SESSIONS).map_err(|e| failed(e.into()))?;
-        write.open_table(SNAPSHOTS).map_err(|e| failed(e.into()))?;
-        write.open_table(LOG).map_err(|e| failed(e.into()))?;
-    }
-    write.commit().map_err(|e| failed(e.into()))?;
-    Ok(db)
-}
-
-/// The writer thread: group commits, and the database's recovery after a
-/// storage fault.
+/// The writer thread: group commits to the log, and the log's recovery
+/// after a storage fault.
 struct Writer {
-    path: PathBuf,
+    wal: Wal,
+    data_dir: PathBuf,
+    durability: Durability,
     shared: Arc<Shared>,
-    /// While the store is down: when to try reopening next.
+    checkpoint: Sender<ToCheckpoint>,
+    /// While the log is down: when to try repairing it next.
     retry_at: Option<Instant>,
     /// The wait before the next attempt.
     backoff: Duration,
+    /// A failed write may have left part of a frame in the segment.
+    dirty: bool,
+    /// Under [`Durability::Os`]: when the unsynced frames must be synced.
+    sync_due: Option<Instant>,
 }
 
 impl Writer {
-    fn new(path: PathBuf, shared: Arc<Shared>) -> Self {
-        Self {
-            path,
-            shared,
-            retry_at: None,
-            backoff: MIN_BACKOFF,
-        }
-    }
-
     fn run(mut self, rx: &Receiver<Pending>) {
         loop {
-            // While the store is down, wake up to retry even without writes:
-            // the health probe.
-            let first = match self.retry_at {
+            let due = [self.retry_at, self.sync_due].into_iter().flatten().min();
+            let first = match due {
                 None => match rx.recv() {
                     Ok(p) => p,
                     Err(_) => break,
@@ -666,7 +608,7 @@ impl Writer {
                 Some(at) => match rx.recv_timeout(at.saturating_duration_since(Instant::now())) {
                     Ok(p) => p,
                     Err(RecvTimeoutError::Timeout) => {
-                        self.try_reopen();
+                        self.timers();
                         continue;
                     }
                     Err(RecvTimeoutError::Disconnected) => break,
@@ -681,9 +623,32 @@ impl Writer {
                 group.push(next);
             }
             self.process(group, writes);
+            self.timers();
         }
-        // Closed: let go of the database (the file lock) with the writer.
-        self.shared.db.write().take();
+        // Closed: what the kernel holds goes to disk before the
+        // checkpointer applies it and deletes the log.
+        if self.wal.unsynced()
+            && let Err(e) = self.wal.sync()
+        {
+            tracing::error!(error = %e, "syncing the log at close");
+        }
+    }
+
+    /// The background sync and the repair, when due.
+    fn timers(&mut self) {
+        let now = Instant::now();
+        if self.sync_due.is_some_and(|at| now >= at) {
+            self.sync_due = None;
+            if let Err(e) = self.wal.sync() {
+                // Acknowledged frames may not be on disk: a power cut would
+                // lose them. Writes stop until a sync succeeds again.
+                tracing::error!(error = %e, "the background sync of the log failed");
+                self.down(&format!("syncing the log: {e}"));
+            }
+        }
+        if self.retry_at.is_some_and(|at| now >= at) {
+            self.try_repair();
+        }
     }
 
     fn process(&mut self, mut group: Vec<Pending>, writes: usize) {
@@ -715,69 +680,12 @@ impl Writer {
                 let _ = done.send(Err(StoreError::Broken(Arc::clone(id))));
             }
         }
-        // A reader found a fault the writer has not seen: reopen now.
-        if self.retry_at.is_none() && shared.fault.lock().is_some() {
-            self.down(None);
-        }
-        if self.retry_at.is_some_and(|at| Instant::now() >= at) {
-            self.try_reopen();
-        }
-        let result = if group.iter().all(|p| p.writes.is_empty()) {
-            // Nothing to commit (a wake-up, or every write refused).
-            Ok(())
-        } else if self.retry_at.is_some() {
-            // Down: fail at once rather than on the latched handle.
-            Err(shared.db().err().unwrap_or_else(|| {
-                StoreError::Unavailable("the database is being reopened".into())
-            }))
-        } else {
-            let started = Instant::now();
-            let injected = shared
-                .fail_next
-                .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
-                .is_ok();
-            let outcome = if injected {
-                Err(DbFailure::injected())
-            } else {
-                match shared.db() {
-                    Ok(db) => commit(&db, &group),
-                    Err(e) => Err(DbFailure {
-                        reopen: true,
-                        message: e.to_string(),
-                    }),
-                }
-            };
-            metrics::histogram!("mcapi_store_commit_seconds")
-                .record(started.elapsed().as_secs_f64());
-            metrics::histogram!("mcapi_store_commit_writes").record(writes as f64);
-            match outcome {
-                Ok(()) => {
-                    self.backoff = MIN_BACKOFF;
-                    Ok(())
-                }
-                Err(f) => {
-                    tracing::error!(error = %f.message, writes, reopen = f.reopen, "store commit failed");
-                    if f.reopen {
-                        self.down(Some(&f.message));
-                    }
-                    Err(f.into_store_error())
-                }
-            }
-        };
+        let result = self.commit(&mut group, writes);
         if result.is_err() {
             let mut broken = shared.broken.lock();
             for w in group.iter().flat_map(|p| &p.writes) {
                 if let Some(id) = w.extends() {
                     broken.insert(Arc::clone(id));
-                }
-            }
-        } else {
-            // A deleted session's writes are no longer refused (its id is
-            // never reused); only once the delete is durable.
-            let mut broken = shared.broken.lock();
-            for w in group.iter().flat_map(|p| &p.writes) {
-                if let Write::Delete { id } = w {
-                    broken.remove(id);
                 }
             }
         }
@@ -788,229 +696,166 @@ impl Writer {
         }
     }
 
-    /// The database failed and must be reopened: closes it now (readers get
-    /// `Unavailable` instead of the latched error) and schedules a reopen.
-    fn down(&mut self, why: Option<&str>) {
-        if let Some(why) = why {
-            self.shared.set_fault(why);
+    /// Appends the group as one frame and makes it durable as promised;
+    /// then hands its writes to the checkpointer (before anyone hears of
+    /// the commit, so a reader that asks for a checkpoint sees them).
+    fn commit(&mut self, group: &mut [Pending], writes: usize) -> Result<(), StoreError> {
+        if !group.iter().flat_map(|p| &p.writes).any(Write::is_logged) {
+            // Nothing to store (a wake-up, a resume, or every write refused).
+            return Ok(());
         }
-        let taken = self.shared.db.write().take();
-        if let Some(db) = taken {
-            self.release(db);
+        if self.retry_at.is_some_and(|at| Instant::now() >= at) {
+            self.try_repair();
         }
+        if let Some(why) = self.shared.fault() {
+            // Down: fail at once, before anything is written.
+            return Err(StoreError::Unavailable(why));
+        }
+        if self
+            .shared
+            .fail_next
+            .fetch_update(Ordering::SeqCst, Ordering::SeqCst, |n| n.checked_sub(1))
+            .is_ok()
+        {
+            tracing::error!(writes, "store commit failed: injected commit failure");
+            return Err(StoreError::Failed("injected commit failure".into()));
+        }
+        let started = Instant::now();
+        let (len, next) = (self.wal.len(), self.wal.next_lsn());
+        let lsn = match self
+            .wal
+            .append(group.iter().flat_map(|p| &p.writes).filter(|w| w.is_logged()))
+        {
+            Ok(lsn) => lsn,
+            Err(e) => {
+                tracing::error!(error = %e, writes, "appending to the log failed");
+                self.dirty = matches!(e, AppendError::Dirty(_));
+                self.down(&format!("appending to the log: {e}"));
+                return Err(StoreError::Failed(format!("appending to the log: {e}")));
+            }
+        };
+        match self.durability {
+            Durability::Sync => {
+                if let Err(e) = self.wal.sync() {
+                    tracing::error!(error = %e, writes, "syncing the log failed");
+                    // The frame may or may not be on disk: cut it off, so
+                    // that it is never read back.
+                    if let Err(cut) = self.wal.truncate(len, next) {
+                        tracing::error!(error = %cut, "cutting the failed frame off the log");
+                        self.dirty = true;
+                    }
+                    self.down(&format!("syncing the log: {e}"));
+                    return Err(StoreError::Failed(format!("syncing the log: {e}")));
+                }
+            }
+            Durability::Os => {
+                self.sync_due
+                    .get_or_insert_with(|| Instant::now() + OS_SYNC_INTERVAL);
+            }
+        }
+        metrics::histogram!("mcapi_store_commit_seconds").record(started.elapsed().as_secs_f64());
+        metrics::histogram!("mcapi_store_commit_writes").record(writes as f64);
+        self.backoff = MIN_BACKOFF;
+        let logged: Vec<Write> = group
+            .iter_mut()
+            .flat_map(|p| std::mem::take(&mut p.writes))
+            .filter(Write::is_logged)
+            .collect();
+        // A deleted session's writes are no longer refused (its id is never
+        // reused); only once the delete is durable.
+        {
+            let mut broken = self.shared.broken.lock();
+            for w in &logged {
+                if let Write::Delete { id } = w {
+                    broken.remove(id);
+                }
+            }
+        }
+        if self
+            .checkpoint
+            .send(ToCheckpoint::Frame {
+                lsn,
+                writes: logged,
+            })
+            .is_ok()
+        {
+            self.shared.forwarded.store(lsn, Ordering::Release);
+        }
+        if self.wal.full() {
+            self.roll();
+        }
+        Ok(())
+    }
+
+    /// Begins the next segment; the closed one is deleted once applied.
+    fn roll(&mut self) {
+        match self.wal.roll() {
+            Ok(closed) => self.shared.closed.lock().push(closed),
+            Err(e) => {
+                // The full segment stays active: frames go on into it, and
+                // the roll is tried again after the next frame.
+                tracing::error!(error = %e, "beginning a new log segment");
+                self.down(&format!("beginning a new log segment: {e}"));
+            }
+        }
+    }
+
+    /// The log failed: every write fails at once until a repair succeeds.
+    fn down(&mut self, why: &str) {
+        self.shared.set_fault(&self.shared.wal_fault, why);
         if self.retry_at.is_none() {
-            // Doubled here too: a store whose reopen succeeds but whose
-            // next commit fails again retries less and less often.
             self.retry_at = Some(Instant::now() + self.backoff);
             self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
         }
     }
 
-    /// Closes a handle once the readers still holding it are done (redb
-    /// holds the file lock until its last handle is dropped).
-    fn release(&self, mut db: Arc<Database>) {
-        let deadline = Instant::now() + RELEASE_WAIT;
-        loop {
-            match Arc::try_unwrap(db) {
-                Ok(db) => {
-                    if let Err(e) = db.close() {
-                        tracing::warn!(error = %e, "closing the failed store handle");
-                    }
-                    return;
-                }
-                Err(shared) if Instant::now() < deadline => {
-                    db = shared;
-                    std::thread::sleep(Duration::from_millis(1));
-                }
-                Err(_) => {
-                    tracing::warn!(
-                        "a reader still holds the failed store handle; reopening anyway"
-                    );
-                    return;
-                }
+    /// One repair attempt: cut the segment back to its last whole frame if
+    /// a failed write may have left part of one, sync what is
+    /// acknowledged, and prove the disk takes new data (a probe file of
+    /// [`db::PROBE_BYTES`], synced and removed). On failure the next attempt
+    /// waits twice as long.
+    fn try_repair(&mut self) {
+        let attempt = (|| -> Result<(), String> {
+            if self.dirty {
+                self.wal.repair()?;
+                self.dirty = false;
             }
-        }
-    }
-
-    /// One reopen attempt: open the file (redb repairs it to its last
-    /// commit), then a probe commit on the new handle. On success the store
-    /// is healthy again; on failure the next attempt waits twice as long.
-    fn try_reopen(&mut self) {
-        let started = Instant::now();
-        let attempt = open_database(&self.path).and_then(|db| {
-            probe(&db).map_err(|f| {
-                StoreError::Failed(format!("the probe commit failed: {}", f.message))
-            })?;
-            Ok(db)
-        });
+            self.wal.sync().map_err(|e| format!("syncing the log: {e}"))?;
+            self.sync_due = None;
+            let probe = self.data_dir.join(PROBE_FILE);
+            let written = std::fs::File::create(&probe).and_then(|mut f| {
+                f.write_all(&vec![0u8; db::PROBE_BYTES])?;
+                f.sync_data()
+            });
+            let _ = std::fs::remove_file(&probe);
+            written.map_err(|e| format!("the probe write failed: {e}"))?;
+            if self.wal.full() {
+                self.wal
+                    .roll()
+                    .map(|closed| self.shared.closed.lock().push(closed))
+                    .map_err(|e| format!("beginning a new log segment: {e}"))?;
+            }
+            Ok(())
+        })();
         match attempt {
-            Ok(db) => {
-                *self.shared.db.write() = Some(Arc::new(db));
+            Ok(()) => {
                 self.retry_at = None;
-                self.shared.clear_fault();
-                metrics::counter!("mcapi_store_reopens_total").increment(1);
-                tracing::info!(
-                    path = %self.path.display(),
-                    seconds = started.elapsed().as_secs_f64(),
-                    "store reopened after a storage fault"
-                );
+                self.shared.clear_fault(&self.shared.wal_fault);
+                tracing::info!("the store's log is writable again after a storage fault");
             }
             Err(e) => {
-                self.shared.set_fault(&e.to_string());
+                self.shared.set_fault(&self.shared.wal_fault, &e);
                 self.retry_at = Some(Instant::now() + self.backoff);
-                tracing::warn!(error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store cannot be reopened yet");
+                tracing::warn!(error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store's log cannot be written yet");
                 self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
             }
         }
     }
 }
 
-/// The health probe: on a freshly opened handle, a durable commit of
-/// [`PROBE_BYTES`] of new data, then a second one that removes it. A reopen
-/// alone proves little: redb reuses the free pages inside its file, so a
-/// small commit can succeed on a full disk while the next real one fails
-/// again. Writing more than a small store's free pages needs the disk; a
-/// large store whose free pages hold the probe can also take real commits
-/// until they run out (and the fault, with a longer backoff, returns).
-fn probe(db: &Database) -> Result<(), DbFailure> {
-    let blob = vec![0u8; PROBE_BYTES];
-    for keep in [true, false] {
-        let mut txn = db.begin_write().map_err(DbFailure::of)?;
-        txn.set_durability(Durability::Immediate)
-            .map_err(DbFailure::of)?;
-        txn.set_two_phase_commit(true);
-        {
-            let mut table = txn.open_table(PROBE).map_err(DbFailure::of)?;
-            if keep {
-                table
-                    .insert("probe", blob.as_slice())
-                    .map_err(DbFailure::of)?;
-            } else {
-                table.remove("probe").map_err(DbFailure::of)?;
-            }
-        }
-        txn.commit().map_err(DbFailure::of)?;
-    }
-    Ok(())
-}
-
-/// The 2 → 3 upgrade: prefixes every snapshot and log record with
-/// [`RECORD_V2`]. Returns the number of records rewritten.
-fn tag_format_2_records(write: &redb::WriteTransaction) -> Result<u64, String> {
-    let e = |e: redb::Error| e.to_string();
-    let tagged = |bytes: &[u8]| {
-        let mut out = Vec::with_capacity(bytes.len() + 1);
-        out.push(RECORD_V2);
-        out.extend_from_slice(bytes);
-        out
-    };
-    let mut n = 0u64;
-    let mut snapshots = write.open_table(SNAPSHOTS).map_err(|x| e(x.into()))?;
-    let mut rows = Vec::new();
-    for row in snapshots.iter().map_err(|x| e(x.into()))? {
-        let (id, v) = row.map_err(|x| e(x.into()))?;
-        let (seq, bytes) = v.value();
-        rows.push((id.value().to_string(), seq, tagged(bytes)));
-    }
-    for (id, seq, bytes) in &rows {
-        snapshots
-            .insert(id.as_str(), (*seq, bytes.as_slice()))
-            .map_err(|x| e(x.into()))?;
-        n += 1;
-    }
-    let mut log = write.open_table(LOG).map_err(|x| e(x.into()))?;
-    let mut chunks = Vec::new();
-    for row in log.iter().map_err(|x| e(x.into()))? {
-        let (key, chunk) = row.map_err(|x| e(x.into()))?;
-        let mut rest = chunk.value();
-        let mut out = Vec::with_capacity(rest.len() + CHUNK as usize);
-        while !rest.is_empty() {
-            let (seq, entry, tail) =
-                split_entry(rest).ok_or_else(|| "a log chunk is malformed".to_string())?;
-            push_entry(&mut out, seq, &tagged(entry));
-            n += 1;
-            rest = tail;
-        }
-        chunks.push((key.value(), out));
-    }
-    for (key, chunk) in &chunks {
-        log.insert(*key, chunk.as_slice())
-            .map_err(|x| e(x.into()))?;
-    }
-    Ok(n)
-}
-
-/// Frames one record of a chunk: sequence number, length, bytes.
-fn push_entry(chunk: &mut Vec<u8>, seq: u64, entry: &[u8]) {
-    chunk.extend_from_slice(&seq.to_le_bytes());
-    chunk.extend_from_slice(&(entry.len() as u32).to_le_bytes());
-    chunk.extend_from_slice(entry);
-}
-
-/// The first record of a chunk and the rest.
-fn split_entry(chunk: &[u8]) -> Option<(u64, &[u8], &[u8])> {
-    let (seq, rest) = chunk.split_first_chunk::<8>()?;
-    let (len, rest) = rest.split_first_chunk::<4>()?;
-    let len = u32::from_le_bytes(*len) as usize;
-    (rest.len() >= len).then(|| (u64::from_le_bytes(*seq), &rest[..len], &rest[len..]))
-}
-
-fn commit(db: &Database, group: &[Pending]) -> Result<(), DbFailure> {
-    let mut txn = db.begin_write().map_err(DbFailure::of)?;
-    txn.set_durability(Durability::Immediate)
-        .map_err(DbFailure::of)?;
-    // Two-phase: a damaged newest commit is then reported as corruption
-    // instead of being taken for a torn write and silently rolled back
-    // (which would lose acknowledged observations). Costs a second sync.
-    txn.set_two_phase_commit(true);
-    {
-        let mut sessions = txn.open_table(SESSIONS).map_err(DbFailure::of)?;
-        let mut snapshots = txn.open_table(SNAPSHOTS).map_err(DbFailure::of)?;
-        let mut log = txn.open_table(LOG).map_err(DbFailure::of)?;
-        for write in group.iter().flat_map(|p| &p.writes) {
-            match write {
-                Write::Session { id, record } => {
-                    sessions
-                        .insert(&**id, record.as_slice())
-                        .map_err(DbFailure::of)?;
-                }
-                Write::Append { id, seq, entry } => {
-                    let at = (log_key(id), seq / CHUNK);
-                    let mut chunk = log
-                        .get(at)
-                        .map_err(DbFailure::of)?
-                        .map(|v| v.value().to_vec())
-                        .unwrap_or_default();
-                    push_entry(&mut chunk, *seq, entry);
-                    log.insert(at, chunk.as_slice()).map_err(DbFailure::of)?;
-                }
-                Write::Snapshot { id, seq, snapshot } => {
-                    snapshots
-                        .insert(&**id, (*seq, snapshot.as_slice()))
-                        .map_err(DbFailure::of)?;
-                    // Chunks wholly at or before `seq`; a partial chunk
-                    // stays, and reads skip its covered records.
-                    let key = log_key(id);
-                    let whole = (seq.saturating_add(1)) / CHUNK;
-                    log.retain_in((key, 0)..(key, whole), |_, _| false)
-                        .map_err(DbFailure::of)?;
-                }
-                Write::Resume { .. } => {}
-                Write::Delete { id } => {
-                    sessions.remove(&**id).map_err(DbFailure::of)?;
-                    snapshots.remove(&**id).map_err(DbFailure::of)?;
-                    let key = log_key(id);
-                    log.retain_in((key, 0)..=(key, u64::MAX), |_, _| false)
-                        .map_err(DbFailure::of)?;
-                }
-            }
-        }
-    }
-    txn.commit().map_err(DbFailure::of)
-}
-
 #[cfg(test)]
 mod tests {
+    use super::db::META;
     use super::*;
     use redb::ReadableTableMetadata;
 
@@ -1307,5 +1152,171 @@ mod tests {
         assert!(!store.is_broken("a"));
         assert_eq!(entries(&store, "a", None), vec![(0, vec![0]), (1, vec![1])]);
         assert_eq!(entries(&store, "b", None), vec![(0, vec![0]), (1, vec![1])]);
+    }
+
+    fn appends(s: &str, seqs: std::ops::Range<u64>, bytes: usize) -> Vec<Write> {
+        seqs.map(|seq| Write::Append {
+            id: id(s),
+            seq,
+            entry: vec![seq as u8; bytes],
+        })
+        .collect()
+    }
+
+    fn segments(dir: &Path) -> Vec<(u64, PathBuf)> {
+        wal::list_segments(&dir.join(wal::WAL_DIR)).expect("segments")
+    }
+
+    #[test]
+    fn a_clean_close_applies_the_log_and_leaves_it_empty() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Store::open(dir.path()).expect("open");
+        store
+            .submit(appends("a", 0..10, 8))
+            .wait_blocking()
+            .expect("commit");
+        store.close();
+        assert!(segments(dir.path()).is_empty());
+        let read = Database::open(dir.path().join(FILE_NAME)).expect("db");
+        let read = read.begin_read().expect("read");
+        let meta = read.open_table(META).expect("meta");
+        assert_eq!(meta.get("wal_lsn").expect("get").map(|v| v.value()), Some(1));
+        let log = read.open_table(LOG).expect("log");
+        assert_eq!(log.len().expect("len"), 1);
+    }
+
+    #[test]
+    fn after_a_crash_the_log_is_replayed_into_the_database_exactly_once() {
+        for durability in [Durability::Sync, Durability::Os] {
+            let dir = tempfile::tempdir().expect("tempdir");
+            let store = Store::open_with(dir.path(), durability).expect("open");
+            for seq in 0..20 {
+                store
+                    .submit(appends("a", seq..seq + 1, 4))
+                    .wait_blocking()
+                    .expect("commit");
+            }
+            // Half of it applied by a checkpoint before the crash.
+            store.checkpoint().expect("checkpoint");
+            for seq in 20..40 {
+                store
+                    .submit(appends("a", seq..seq + 1, 4))
+                    .wait_blocking()
+                    .expect("commit");
+            }
+            store.crash();
+            drop(store);
+            assert!(!segments(dir.path()).is_empty(), "{durability}: the log stays");
+            for round in 0..2 {
+                let store = Store::open_with(dir.path(), durability).expect("reopen");
+                let got = entries(&store, "a", None);
+                assert_eq!(
+                    got,
+                    (0..40).map(|s| (s, vec![s as u8; 4])).collect::<Vec<_>>(),
+                    "{durability}, round {round}: every acknowledged write, once"
+                );
+                store.crash();
+            }
+        }
+    }
+
+    #[test]
+    fn a_torn_tail_is_cut_and_a_damaged_frame_refuses_the_open() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Store::open(dir.path()).expect("open");
+        for seq in 0..3 {
+            store
+                .submit(appends("a", seq..seq + 1, 40))
+                .wait_blocking()
+                .expect("commit");
+        }
+        store.crash();
+        drop(store);
+        let (_, path) = segments(dir.path()).pop().expect("segment");
+        let whole = std::fs::read(&path).expect("bytes");
+        // Damage inside the last frame: refused, naming the segment.
+        let mut damaged = whole.clone();
+        let at = damaged.len() - 10;
+        damaged[at] ^= 1;
+        std::fs::write(&path, &damaged).expect("write");
+        let err = Store::open(dir.path()).expect_err("damage");
+        assert!(
+            matches!(&err, StoreError::Corrupt { path: p, .. } if *p == path),
+            "{err}"
+        );
+        // The last frame cut short (a power cut mid-write): cut, and the
+        // frames before it are kept.
+        std::fs::write(&path, &whole[..whole.len() - 10]).expect("write");
+        let store = Store::open(dir.path()).expect("a torn tail is not damage");
+        assert_eq!(
+            entries(&store, "a", None),
+            vec![(0, vec![0; 40]), (1, vec![1; 40])]
+        );
+        // The next frame follows on and survives another crash.
+        store
+            .submit(appends("a", 2..3, 40))
+            .wait_blocking()
+            .expect("commit");
+        store.crash();
+        drop(store);
+        let store = Store::open(dir.path()).expect("reopen");
+        assert_eq!(entries(&store, "a", None).len(), 3);
+    }
+
+    #[test]
+    fn full_segments_are_closed_and_deleted_once_applied() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Store::open(dir.path()).expect("open");
+        let frame = 1 << 20;
+        let n = wal::SEGMENT_BYTES / frame as u64 + 2;
+        for seq in 0..n {
+            store
+                .submit(appends("a", seq..seq + 1, frame))
+                .wait_blocking()
+                .expect("commit");
+        }
+        assert!(segments(dir.path()).len() >= 2, "a new segment was begun");
+        store.checkpoint().expect("checkpoint");
+        assert_eq!(segments(dir.path()).len(), 1, "the closed segment is deleted");
+        assert_eq!(entries(&store, "a", None).len() as u64, n);
+    }
+
+    #[test]
+    fn a_format_3_file_is_upgraded_to_4() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        {
+            let store = Store::open(dir.path()).expect("open");
+            store
+                .submit(appends("a", 0..3, 2))
+                .wait_blocking()
+                .expect("commit");
+            store.close();
+        }
+        // A format-3 file: no log directory, no `wal_lsn`.
+        std::fs::remove_dir(dir.path().join(wal::WAL_DIR)).expect("rmdir");
+        {
+            let db = Database::create(dir.path().join(FILE_NAME)).expect("db");
+            let w = db.begin_write().expect("write");
+            {
+                let mut meta = w.open_table(META).expect("meta");
+                meta.insert("format_version", 3).expect("insert");
+                meta.remove("wal_lsn").expect("remove");
+            }
+            w.commit().expect("commit");
+        }
+        let store = Store::open(dir.path()).expect("upgrade");
+        assert_eq!(entries(&store, "a", None).len(), 3);
+        store
+            .submit(appends("a", 3..4, 2))
+            .wait_blocking()
+            .expect("commit");
+        store.crash();
+        drop(store);
+        let store = Store::open(dir.path()).expect("reopen");
+        assert_eq!(entries(&store, "a", None).len(), 4);
+        let read = store.db().expect("db").begin_read().expect("read");
+        let meta = read.open_table(META).expect("meta");
+        let v = meta.get("format_version").expect("get").map(|v| v.value());
+        assert_eq!(v, Some(FORMAT_VERSION));
     }
 }

@@ -1,0 +1,313 @@
+//! The checkpointer thread: applies the write-ahead log's frames to redb in
+//! bulk, off the commit path, and deletes the segments it has applied.
+//!
+//! It receives every frame the writer made durable, keeps them until a
+//! checkpoint is due ([`CHECKPOINT_INTERVAL`] after the oldest, or
+//! [`CHECKPOINT_BYTES`] of them, or a reader asks for one), then applies
+//! them in one redb transaction that also records the last frame's number.
+//! A frame is thus applied exactly once: by a checkpoint, or by the replay
+//! at the next open if the process dies first.
+//!
+//! It also owns the database's recovery after a storage fault. redb
+//! latches the first real I/O error of a `Database` (ENOSPC included):
+//! every later call on it, reads too, fails with `StorageError::PreviousIo`
+//! until it is closed and opened again. So after a checkpoint fails the
+//! thread closes the database at once (readers then get
+//! [`StoreError::Unavailable`] instead of the latched error), and reopens
+//! it with backoff. A reopen counts only once a probe commit succeeds on
+//! the new handle; until then the store reports the fault
+//! ([`super::Store::health`]) and the writer refuses new writes, so the
+//! frames waiting here stay bounded. Nothing waiting is lost: the frames are
+//! in the log, and the checkpoint is retried after the reopen.
+
+use std::path::PathBuf;
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
+use std::time::{Duration, Instant};
+
+use crossbeam_channel::{Receiver, RecvTimeoutError};
+use redb::Database;
+
+use super::db::{self, DbFailure};
+use super::wal;
+use super::{Shared, StoreError, Write};
+
+/// Longest a durable frame waits before it is applied to redb.
+pub const CHECKPOINT_INTERVAL: Duration = Duration::from_millis(500);
+/// Bytes of waiting writes that make a checkpoint due at once.
+const CHECKPOINT_BYTES: usize = 32 << 20;
+/// First wait before reopening the database after a storage fault; doubled
+/// after every failed attempt up to [`MAX_BACKOFF`], reset by a successful
+/// checkpoint.
+const MIN_BACKOFF: Duration = Duration::from_millis(50);
+/// Longest wait between two reopening attempts.
+const MAX_BACKOFF: Duration = Duration::from_secs(1);
+/// How long a reopen waits for readers to let go of the failed handle
+/// (redb holds the file lock until the last one is dropped).
+const RELEASE_WAIT: Duration = Duration::from_secs(2);
+
+/// What the writer and the readers send the checkpointer.
+pub(super) enum ToCheckpoint {
+    /// A frame the log made durable, with its writes.
+    Frame { lsn: u64, writes: Vec<Write> },
+    /// Apply everything received so far now, then answer.
+    Flush(crossbeam_channel::Sender<Result<(), StoreError>>),
+}
+
+/// The checkpointer's state.
+pub(super) struct Checkpointer {
+    /// The redb file.
+    path: PathBuf,
+    /// The log's directory.
+    wal_dir: PathBuf,
+    shared: Arc<Shared>,
+    /// Writes received and not yet applied, in order.
+    waiting: Vec<Write>,
+    /// Their bytes (keys and values).
+    waiting_bytes: usize,
+    /// The number of the newest frame received.
+    newest: u64,
+    /// When the oldest waiting write arrived.
+    oldest: Option<Instant>,
+    /// While the database is down: when to try reopening next.
+    retry_at: Option<Instant>,
+    /// The wait before the next attempt.
+    backoff: Duration,
+}
+
+impl Checkpointer {
+    pub(super) fn new(path: PathBuf, wal_dir: PathBuf, shared: Arc<Shared>, applied: u64) -> Self {
+        Self {
+            path,
+            wal_dir,
+            shared,
+            waiting: Vec::new(),
+            waiting_bytes: 0,
+            newest: applied,
+            oldest: None,
+            retry_at: None,
+            backoff: MIN_BACKOFF,
+        }
+    }
+
+    pub(super) fn run(mut self, rx: &Receiver<ToCheckpoint>) {
+        loop {
+            let due = [
+                self.oldest.map(|t| t + CHECKPOINT_INTERVAL),
+                self.retry_at,
+            ]
+            .into_iter()
+            .flatten()
+            .min();
+            let msg = match due {
+                None => rx.recv().map_err(|_| RecvTimeoutError::Disconnected),
+                Some(at) => rx.recv_timeout(at.saturating_duration_since(Instant::now())),
+            };
+            match msg {
+                Ok(ToCheckpoint::Frame { lsn, writes }) => {
+                    self.receive(lsn, writes);
+                    if self.waiting_bytes >= CHECKPOINT_BYTES {
+                        let _ = self.checkpoint();
+                    }
+                }
+                Ok(ToCheckpoint::Flush(reply)) => {
+                    // Everything queued before the request is included.
+                    let mut replies = vec![reply];
+                    while let Ok(msg) = rx.try_recv() {
+                        match msg {
+                            ToCheckpoint::Frame { lsn, writes } => self.receive(lsn, writes),
+                            ToCheckpoint::Flush(r) => replies.push(r),
+                        }
+                    }
+                    let result = self.checkpoint();
+                    for r in replies {
+                        let _ = r.send(result.clone());
+                    }
+                }
+                Err(RecvTimeoutError::Timeout) => {
+                    if self.retry_at.is_some_and(|at| Instant::now() >= at) {
+                        self.try_reopen();
+                    }
+                    if self
+                        .oldest
+                        .is_some_and(|t| t.elapsed() >= CHECKPOINT_INTERVAL)
+                    {
+                        let _ = self.checkpoint();
+                    }
+                }
+                Err(RecvTimeoutError::Disconnected) => break,
+            }
+        }
+        // The writer is gone: apply the rest, and with it every segment.
+        if !self.shared.crashed.load(Ordering::SeqCst) && self.checkpoint().is_ok() {
+            self.remove_segments(u64::MAX);
+        }
+        self.shared.db.write().take();
+    }
+
+    fn receive(&mut self, lsn: u64, writes: Vec<Write>) {
+        self.waiting_bytes += writes.iter().map(Write::size).sum::<usize>();
+        self.waiting.extend(writes);
+        self.newest = lsn;
+        self.oldest.get_or_insert_with(Instant::now);
+    }
+
+    /// Applies everything waiting in one transaction; on success the
+    /// segments wholly applied are deleted.
+    fn checkpoint(&mut self) -> Result<(), StoreError> {
+        if self.waiting.is_empty() {
+            return Ok(());
+        }
+        if self.retry_at.is_some_and(|at| Instant::now() >= at) {
+            self.try_reopen();
+        }
+        let db = match self.shared.db() {
+            Ok(db) if self.retry_at.is_none() => db,
+            Ok(_) | Err(_) => {
+                return Err(self.shared.db().err().unwrap_or_else(|| {
+                    StoreError::Unavailable("the database is being reopened".into())
+                }));
+            }
+        };
+        let started = Instant::now();
+        let writes = self.waiting.len();
+        let outcome = db::apply(&db, self.waiting.iter(), self.newest);
+        drop(db);
+        metrics::histogram!("mcapi_store_checkpoint_seconds")
+            .record(started.elapsed().as_secs_f64());
+        match outcome {
+            Ok(()) => {
+                self.waiting.clear();
+                self.waiting_bytes = 0;
+                self.oldest = None;
+                self.backoff = MIN_BACKOFF;
+                self.shared.applied.store(self.newest, Ordering::Release);
+                metrics::histogram!("mcapi_store_checkpoint_writes").record(writes as f64);
+                self.remove_segments(self.newest);
+                Ok(())
+            }
+            Err(f) => {
+                tracing::error!(error = %f.message, writes, reopen = f.reopen, "store checkpoint failed; the writes stay in the log");
+                self.down(&f);
+                Err(StoreError::Failed(f.message))
+            }
+        }
+    }
+
+    /// Deletes the closed segments whose frames are all at or before
+    /// `applied` (every segment, the active one too, with `u64::MAX` at
+    /// close).
+    fn remove_segments(&self, applied: u64) {
+        let mut removed = false;
+        let paths: Vec<PathBuf> = if applied == u64::MAX {
+            match wal::list_segments(&self.wal_dir) {
+                Ok(all) => all.into_iter().map(|(_, p)| p).collect(),
+                Err(e) => {
+                    tracing::warn!(error = %e, "listing the log segments at close");
+                    return;
+                }
+            }
+        } else {
+            let mut closed = self.shared.closed.lock();
+            let (done, keep): (Vec<_>, Vec<_>) =
+                closed.drain(..).partition(|(_, last, _)| *last <= applied);
+            *closed = keep;
+            done.into_iter().map(|(_, _, p)| p).collect()
+        };
+        for path in paths {
+            match std::fs::remove_file(&path) {
+                Ok(()) => removed = true,
+                Err(e) => tracing::warn!(path = %path.display(), error = %e, "removing an applied log segment"),
+            }
+        }
+        if removed && let Err(e) = wal::sync_dir(&self.wal_dir) {
+            tracing::warn!(error = %e, "syncing the log directory");
+        }
+    }
+
+    /// The database failed: closes it now (readers get `Unavailable`
+    /// instead of the latched error) and schedules a reopen.
+    fn down(&mut self, f: &DbFailure) {
+        self.shared.set_fault(&self.shared.db_fault, &f.message);
+        if f.reopen {
+            let taken = self.shared.db.write().take();
+            if let Some(db) = taken {
+                self.release(db);
+            }
+        }
+        if self.retry_at.is_none() {
+            self.retry_at = Some(Instant::now() + self.backoff);
+            self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
+        }
+    }
+
+    /// Closes a handle once the readers still holding it are done (redb
+    /// holds the file lock until its last handle is dropped).
+    fn release(&self, mut db: Arc<Database>) {
+        let deadline = Instant::now() + RELEASE_WAIT;
+        loop {
+            match Arc::try_unwrap(db) {
+                Ok(db) => {
+                    if let Err(e) = db.close() {
+                        tracing::warn!(error = %e, "closing the failed store handle");
+                    }
+                    return;
+                }
+                Err(shared) if Instant::now() < deadline => {
+                    db = shared;
+                    std::thread::sleep(Duration::from_millis(1));
+                }
+                Err(_) => {
+                    tracing::warn!(
+                        "a reader still holds the failed store handle; reopening anyway"
+                    );
+                    return;
+                }
+            }
+        }
+    }
+
+    /// One reopen attempt: open the file (redb repairs it to its last
+    /// commit; a handle that did not fail is kept), then a probe commit. On
+    /// success the database is healthy again and the checkpoint is retried
+    /// at once; on failure the next attempt waits twice as long.
+    fn try_reopen(&mut self) {
+        let started = Instant::now();
+        let current = self.shared.db.read().clone();
+        let attempt = match current {
+            Some(db) => db::probe(&db)
+                .map(|()| None)
+                .map_err(|f| StoreError::Failed(format!("the probe commit failed: {}", f.message))),
+            None => db::open_database(&self.path).and_then(|(db, _)| {
+                db::probe(&db).map_err(|f| {
+                    StoreError::Failed(format!("the probe commit failed: {}", f.message))
+                })?;
+                Ok(Some(db))
+            }),
+        };
+        match attempt {
+            Ok(db) => {
+                if let Some(db) = db {
+                    *self.shared.db.write() = Some(Arc::new(db));
+                    metrics::counter!("mcapi_store_reopens_total").increment(1);
+                }
+                self.retry_at = None;
+                self.shared.clear_fault(&self.shared.db_fault);
+                tracing::info!(
+                    path = %self.path.display(),
+                    seconds = started.elapsed().as_secs_f64(),
+                    "store database healthy again after a storage fault"
+                );
+                if !self.waiting.is_empty() {
+                    let _ = self.checkpoint();
+                }
+            }
+            Err(e) => {
+                self.shared.set_fault(&self.shared.db_fault, &e.to_string());
+                self.retry_at = Some(Instant::now() + self.backoff);
+                tracing::warn!(error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store database cannot be reopened yet");
+                self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
+            }
+        }
+    }
+}

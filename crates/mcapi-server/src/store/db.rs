@@ -1,0 +1,458 @@
+//! The redb side of the store: the file's tables and format versions, the
+//! bulk application of log frames (checkpoints), the replay of the
+//! write-ahead log at open, and the health probe.
+//!
+//! Layout (format version [`FORMAT_VERSION`]):
+//! - `meta`: `"format_version"` → u64; `"wal_lsn"` → the number of the
+//!   last log frame applied (0: none);
+//! - `sessions`: id → creation record;
+//! - `snapshots`: id → (sequence number, snapshot);
+//! - `log`: (session key, chunk number) → a chunk of up to [`CHUNK`]
+//!   observation records (chunk c holds sequence numbers c·CHUNK to
+//!   c·CHUNK + CHUNK − 1, each framed as sequence number, length, bytes).
+//!   The session key is the 128-bit ULID of the session id. A snapshot at
+//!   sequence number n drops the chunks that end at or before n.
+//!
+//! Upgrades at open, each in one transaction: format 2 → 3 prefixes every
+//! record with [`RECORD_V2`]; 3 → 4 adds `wal_lsn` (an older file has no
+//! log directory, or an empty one).
+
+use std::collections::HashMap;
+use std::path::Path;
+use std::time::Instant;
+
+use redb::{Database, Durability, ReadableTable, TableDefinition};
+
+use super::wal::{self, Frame};
+use super::{StoreError, Write};
+
+/// Version of the on-disk layout. Formats 2 and 3 are upgraded at open;
+/// a file of any other version is refused.
+pub const FORMAT_VERSION: u64 = 4;
+
+/// The record-encoding byte given to records written under format 2.
+pub const RECORD_V2: u8 = 2;
+
+/// Observation records per log chunk.
+pub const CHUNK: u64 = 64;
+
+pub(super) const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
+pub(super) const SESSIONS: TableDefinition<&str, &[u8]> = TableDefinition::new("sessions");
+pub(super) const SNAPSHOTS: TableDefinition<&str, (u64, &[u8])> =
+    TableDefinition::new("snapshots");
+pub(super) const LOG: TableDefinition<(u128, u64), &[u8]> = TableDefinition::new("log");
+/// The health probe's scratch table (empty between probes).
+const PROBE: TableDefinition<&str, &[u8]> = TableDefinition::new("probe");
+/// The meta key of the last applied log frame.
+const WAL_LSN: &str = "wal_lsn";
+
+/// What the health probe writes (and removes again) after a reopen.
+pub(super) const PROBE_BYTES: usize = 256 * 1024;
+
+/// The log's key of a session: the 128 bits of the ULID in its id
+/// (`s<shard>.<ULID>`), or a 128-bit hash of the id for other ids. A number
+/// instead of the string keeps the log, which holds most of the file, small:
+/// the store's size is what opening (integrity check) and recovery cost.
+pub(super) fn log_key(id: &str) -> u128 {
+    if let Some((_, ulid)) = id.split_once('.')
+        && let Ok(u) = ulid::Ulid::from_string(ulid)
+    {
+        return u.0;
+    }
+    use sha2::Digest;
+    let d = sha2::Sha256::digest(id.as_bytes());
+    let mut b = [0u8; 16];
+    b.copy_from_slice(&d[..16]);
+    u128::from_be_bytes(b)
+}
+
+/// Whether a redb error leaves the `Database` unusable until it is closed and
+/// opened again: an I/O error is latched (every later call answers
+/// `PreviousIo`), and a failed commit may discard the allocator state (every
+/// later write transaction answers `Corrupted`, "reopen the database to
+/// repair it").
+fn needs_reopen(e: &redb::Error) -> bool {
+    matches!(
+        e,
+        redb::Error::Io(_)
+            | redb::Error::PreviousIo
+            | redb::Error::DatabaseClosed
+            | redb::Error::Corrupted(_)
+            | redb::Error::TransactionPoisoned
+            | redb::Error::LockPoisoned(_)
+            | redb::Error::Backend(_)
+    )
+}
+
+/// A failure of the database while running, classified: a fault that needs
+/// a reopen, or another failure.
+#[derive(Debug)]
+pub(super) struct DbFailure {
+    pub reopen: bool,
+    pub message: String,
+}
+
+impl DbFailure {
+    pub fn of(e: impl Into<redb::Error>) -> Self {
+        let e: redb::Error = e.into();
+        Self {
+            reopen: needs_reopen(&e),
+            message: e.to_string(),
+        }
+    }
+}
+
+/// Opens (or creates) the database file, checking its integrity and format
+/// version (upgrading formats 2 and 3); at start and at every reopen.
+/// Returns the database and the number of the last log frame applied.
+pub(super) fn open_database(path: &Path) -> Result<(Database, u64), StoreError> {
+    let corrupt = |reason: String| StoreError::Corrupt {
+        path: path.to_path_buf(),
+        reason,
+    };
+    // An I/O error (a full disk) is not damage: it is reported as such, at
+    // start and at a reopen after a storage fault.
+    let failed = |e: redb::Error| match e {
+        redb::Error::Io(io)
+            if !matches!(
+                io.kind(),
+                std::io::ErrorKind::InvalidData | std::io::ErrorKind::UnexpectedEof
+            ) =>
+        {
+            StoreError::Io {
+                path: path.to_path_buf(),
+                reason: io.to_string(),
+            }
+        }
+        redb::Error::PreviousIo => StoreError::Io {
+            path: path.to_path_buf(),
+            reason: e.to_string(),
+        },
+        other => corrupt(other.to_string()),
+    };
+    let existed = path.metadata().map(|m| m.len() > 0).unwrap_or(false);
+    let db = Database::builder()
+        .set_check_integrity_on_open(true)
+        .create(path)
+        .map_err(|e| match e {
+            redb::DatabaseError::DatabaseAlreadyOpen => StoreError::Io {
+                path: path.to_path_buf(),
+                reason: "already open in another process (is another mcapi running on this data directory?)".into(),
+            },
+            other => failed(other.into()),
+        })?;
+    let mut write = db.begin_write().map_err(|e| failed(e.into()))?;
+    write.set_two_phase_commit(true);
+    let applied;
+    {
+        let mut meta = write.open_table(META).map_err(|e| failed(e.into()))?;
+        let found = meta
+            .get("format_version")
+            .map_err(|e| failed(e.into()))?
+            .map(|v| v.value());
+        match found {
+            Some(v @ 2..=FORMAT_VERSION) => {
+                if v == 2 {
+                    let started = Instant::now();
+                    let records = tag_format_2_records(&write)
+                        .map_err(|e| corrupt(format!("upgrading from format version 2: {e}")))?;
+                    tracing::info!(
+                        path = %path.display(),
+                        records,
+                        seconds = started.elapsed().as_secs_f64(),
+                        "store records tagged (format version 2 to 3)"
+                    );
+                }
+                if v < FORMAT_VERSION {
+                    meta.insert("format_version", FORMAT_VERSION)
+                        .map_err(|e| failed(e.into()))?;
+                    tracing::info!(path = %path.display(), "store upgraded from format version {v} to {FORMAT_VERSION}");
+                }
+            }
+            Some(found) => {
+                return Err(StoreError::Version {
+                    path: path.to_path_buf(),
+                    found,
+                });
+            }
+            None if existed => {
+                return Err(corrupt("the format version record is missing".into()));
+            }
+            None => {
+                meta.insert("format_version", FORMAT_VERSION)
+                    .map_err(|e| failed(e.into()))?;
+            }
+        }
+        applied = meta
+            .get(WAL_LSN)
+            .map_err(|e| failed(e.into()))?
+            .map_or(0, |v| v.value());
+        write.open_table(SESSIONS).map_err(|e| failed(e.into()))?;
+        write.open_table(SNAPSHOTS).map_err(|e| failed(e.into()))?;
+        write.open_table(LOG).map_err(|e| failed(e.into()))?;
+    }
+    write.commit().map_err(|e| failed(e.into()))?;
+    Ok((db, applied))
+}
+
+/// What [`replay_wal`] found.
+#[derive(Debug, Default)]
+pub(super) struct Replayed {
+    /// The number the next frame gets.
+    pub next_lsn: u64,
+    /// Frames applied to the database.
+    pub frames: u64,
+    /// Whether the newest segment ended in a torn frame (cut).
+    pub torn: bool,
+}
+
+/// At open: applies the log frames after `applied` to the database, one
+/// transaction per segment, then deletes the segments (everything in them
+/// is in the database). A torn tail of the newest segment is cut; any other
+/// damage refuses the open, and nothing is deleted.
+pub(super) fn replay_wal(
+    db: &Database,
+    wal_dir: &Path,
+    applied: u64,
+) -> Result<Replayed, StoreError> {
+    let segments = wal::list_segments(wal_dir)?;
+    let mut out = Replayed {
+        next_lsn: applied + 1,
+        ..Replayed::default()
+    };
+    let mut expected: Option<u64> = None;
+    for (i, (first, path)) in segments.iter().enumerate() {
+        let last = i + 1 == segments.len();
+        if let Some(e) = expected
+            && *first != e
+        {
+            return Err(StoreError::Corrupt {
+                path: path.clone(),
+                reason: format!("the log segment begins at frame {first}, its predecessor ends before {e}"),
+            });
+        }
+        let read = wal::read_segment(path, *first, last)?;
+        out.torn |= read.torn;
+        let next = *first + read.frames.len() as u64;
+        expected = Some(next);
+        let frames: Vec<&Frame> = read.frames.iter().filter(|f| f.lsn > applied).collect();
+        if let Some(f) = frames.first()
+            && f.lsn > out.next_lsn
+        {
+            return Err(StoreError::Corrupt {
+                path: path.clone(),
+                reason: format!(
+                    "log frames {} to {} are missing (the database has applied up to {applied})",
+                    out.next_lsn,
+                    f.lsn - 1
+                ),
+            });
+        }
+        if let Some(f) = frames.last() {
+            apply(db, frames.iter().flat_map(|f| &f.writes), f.lsn).map_err(|f| {
+                StoreError::Io {
+                    path: path.clone(),
+                    reason: format!("applying the log to the database: {}", f.message),
+                }
+            })?;
+            out.frames += frames.len() as u64;
+        }
+        out.next_lsn = out.next_lsn.max(next);
+    }
+    for (_, path) in &segments {
+        std::fs::remove_file(path).map_err(|e| StoreError::Io {
+            path: path.clone(),
+            reason: format!("removing a replayed log segment: {e}"),
+        })?;
+    }
+    if !segments.is_empty() {
+        wal::sync_dir(wal_dir).map_err(|e| StoreError::Io {
+            path: wal_dir.to_path_buf(),
+            reason: e.to_string(),
+        })?;
+    }
+    Ok(out)
+}
+
+/// The health probe: on a freshly opened handle, a durable commit of
+/// [`PROBE_BYTES`] of new data, then a second one that removes it. A reopen
+/// alone proves little: redb reuses the free pages inside its file, so a
+/// small commit can succeed on a full disk while the next real one fails
+/// again. Writing more than a small store's free pages needs the disk; a
+/// large store whose free pages hold the probe can also take real commits
+/// until they run out (and the fault, with a longer backoff, returns).
+pub(super) fn probe(db: &Database) -> Result<(), DbFailure> {
+    let blob = vec![0u8; PROBE_BYTES];
+    for keep in [true, false] {
+        let mut txn = db.begin_write().map_err(DbFailure::of)?;
+        txn.set_durability(Durability::Immediate)
+            .map_err(DbFailure::of)?;
+        txn.set_two_phase_commit(true);
+        {
+            let mut table = txn.open_table(PROBE).map_err(DbFailure::of)?;
+            if keep {
+                table
+                    .insert("probe", blob.as_slice())
+                    .map_err(DbFailure::of)?;
+            } else {
+                table.remove("probe").map_err(DbFailure::of)?;
+            }
+        }
+        txn.commit().map_err(DbFailure::of)?;
+    }
+    Ok(())
+}
+
+/// The 2 → 3 upgrade: prefixes every snapshot and log record with
+/// [`RECORD_V2`]. Returns the number of records rewritten.
+fn tag_format_2_records(write: &redb::WriteTransaction) -> Result<u64, String> {
+    let e = |e: redb::Error| e.to_string();
+    let tagged = |bytes: &[u8]| {
+        let mut out = Vec::with_capacity(bytes.len() + 1);
+        out.push(RECORD_V2);
+        out.extend_from_slice(bytes);
+        out
+    };
+    let mut n = 0u64;
+    let mut snapshots = write.open_table(SNAPSHOTS).map_err(|x| e(x.into()))?;
+    let mut rows = Vec::new();
+    for row in snapshots.iter().map_err(|x| e(x.into()))? {
+        let (id, v) = row.map_err(|x| e(x.into()))?;
+        let (seq, bytes) = v.value();
+        rows.push((id.value().to_string(), seq, tagged(bytes)));
+    }
+    for (id, seq, bytes) in &rows {
+        snapshots
+            .insert(id.as_str(), (*seq, bytes.as_slice()))
+            .map_err(|x| e(x.into()))?;
+        n += 1;
+    }
+    let mut log = write.open_table(LOG).map_err(|x| e(x.into()))?;
+    let mut chunks = Vec::new();
+    for row in log.iter().map_err(|x| e(x.into()))? {
+        let (key, chunk) = row.map_err(|x| e(x.into()))?;
+        let mut rest = chunk.value();
+        let mut out = Vec::with_capacity(rest.len() + CHUNK as usize);
+        while !rest.is_empty() {
+            let (seq, entry, tail) =
+                split_entry(rest).ok_or_else(|| "a log chunk is malformed".to_string())?;
+            push_entry(&mut out, seq, &tagged(entry));
+            n += 1;
+            rest = tail;
+        }
+        chunks.push((key.value(), out));
+    }
+    for (key, chunk) in &chunks {
+        log.insert(*key, chunk.as_slice())
+            .map_err(|x| e(x.into()))?;
+    }
+    Ok(n)
+}
+
+/// Frames one record of a chunk: sequence number, length, bytes.
+fn push_entry(chunk: &mut Vec<u8>, seq: u64, entry: &[u8]) {
+    chunk.extend_from_slice(&seq.to_le_bytes());
+    chunk.extend_from_slice(&(entry.len() as u32).to_le_bytes());
+    chunk.extend_from_slice(entry);
+}
+
+/// The first record of a chunk and the rest.
+pub(super) fn split_entry(chunk: &[u8]) -> Option<(u64, &[u8], &[u8])> {
+    let (seq, rest) = chunk.split_first_chunk::<8>()?;
+    let (len, rest) = rest.split_first_chunk::<4>()?;
+    let len = u32::from_le_bytes(*len) as usize;
+    (rest.len() >= len).then(|| (u64::from_le_bytes(*seq), &rest[..len], &rest[len..]))
+}
+
+/// Writes back the chunks a checkpoint appended to.
+fn write_back(
+    log: &mut redb::Table<'_, (u128, u64), &'static [u8]>,
+    key: u128,
+    chunks: Vec<(u64, Vec<u8>)>,
+) -> Result<(), DbFailure> {
+    for (c, bytes) in chunks {
+        log.insert((key, c), bytes.as_slice())
+            .map_err(DbFailure::of)?;
+    }
+    Ok(())
+}
+
+/// Applies writes to the database in one durable transaction that also
+/// records `lsn` as the last applied log frame: a checkpoint, or the replay
+/// of one segment at open. Appends to one chunk are gathered, so each chunk
+/// a checkpoint touches is read and written once, however many of its
+/// records arrive.
+pub(super) fn apply<'a>(
+    db: &Database,
+    writes: impl Iterator<Item = &'a Write>,
+    lsn: u64,
+) -> Result<(), DbFailure> {
+    let mut txn = db.begin_write().map_err(DbFailure::of)?;
+    txn.set_durability(Durability::Immediate)
+        .map_err(DbFailure::of)?;
+    // Two-phase: a damaged newest commit is then reported as corruption
+    // instead of being taken for a torn write and silently rolled back.
+    // Costs a second sync, once per checkpoint.
+    txn.set_two_phase_commit(true);
+    {
+        let mut meta = txn.open_table(META).map_err(DbFailure::of)?;
+        let mut sessions = txn.open_table(SESSIONS).map_err(DbFailure::of)?;
+        let mut snapshots = txn.open_table(SNAPSHOTS).map_err(DbFailure::of)?;
+        let mut log = txn.open_table(LOG).map_err(DbFailure::of)?;
+        // Chunks with appended records not yet written back, by session key.
+        let mut touched: HashMap<u128, Vec<(u64, Vec<u8>)>> = HashMap::new();
+        for write in writes {
+            match write {
+                Write::Session { id, record } => {
+                    sessions
+                        .insert(&**id, record.as_slice())
+                        .map_err(DbFailure::of)?;
+                }
+                Write::Append { id, seq, entry } => {
+                    let key = log_key(id);
+                    let c = seq / CHUNK;
+                    let chunks = touched.entry(key).or_default();
+                    if chunks.last().is_none_or(|(last, _)| *last != c) {
+                        let bytes = log
+                            .get((key, c))
+                            .map_err(DbFailure::of)?
+                            .map(|v| v.value().to_vec())
+                            .unwrap_or_default();
+                        chunks.push((c, bytes));
+                    }
+                    if let Some((_, bytes)) = chunks.last_mut() {
+                        push_entry(bytes, *seq, entry);
+                    }
+                }
+                Write::Snapshot { id, seq, snapshot } => {
+                    let key = log_key(id);
+                    if let Some(chunks) = touched.remove(&key) {
+                        write_back(&mut log, key, chunks)?;
+                    }
+                    snapshots
+                        .insert(&**id, (*seq, snapshot.as_slice()))
+                        .map_err(DbFailure::of)?;
+                    // Chunks wholly at or before `seq`; a partial chunk
+                    // stays, and reads skip its covered records.
+                    let whole = (seq.saturating_add(1)) / CHUNK;
+                    log.retain_in((key, 0)..(key, whole), |_, _| false)
+                        .map_err(DbFailure::of)?;
+                }
+                Write::Resume { .. } => {}
+                Write::Delete { id } => {
+                    let key = log_key(id);
+                    touched.remove(&key);
+                    sessions.remove(&**id).map_err(DbFailure::of)?;
+                    snapshots.remove(&**id).map_err(DbFailure::of)?;
+                    log.retain_in((key, 0)..=(key, u64::MAX), |_, _| false)
+                        .map_err(DbFailure::of)?;
+                }
+            }
+        }
+        for (key, chunks) in touched {
+            write_back(&mut log, key, chunks)?;
+        }
+        meta.insert(WAL_LSN, lsn).map_err(DbFailure::of)?;
+    }
+    txn.commit().map_err(DbFailure::of)
+}
