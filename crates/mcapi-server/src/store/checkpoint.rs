@@ -294,9 +294,10 @@ impl Checkpointer {
                 self.retry_at = None;
                 self.shared.clear_fault(&self.shared.db_fault);
                 tracing::info!(
+                    part = "database",
                     path = %self.path.display(),
                     seconds = started.elapsed().as_secs_f64(),
-                    "store database healthy again after a storage fault"
+                    "store reopened after a storage fault"
                 );
                 if !self.waiting.is_empty() {
                     let _ = self.checkpoint();
@@ -305,7 +306,7 @@ impl Checkpointer {
             Err(e) => {
                 self.shared.set_fault(&self.shared.db_fault, &e.to_string());
                 self.retry_at = Some(Instant::now() + self.backoff);
-                tracing::warn!(error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store database cannot be reopened yet");
+                tracing::warn!(part = "database", error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store cannot be reopened yet");
                 self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
             }
         }

@@ -841,12 +841,12 @@ impl Writer {
             Ok(()) => {
                 self.retry_at = None;
                 self.shared.clear_fault(&self.shared.wal_fault);
-                tracing::info!("the store's log is writable again after a storage fault");
+                tracing::info!(part = "log", "store reopened after a storage fault");
             }
             Err(e) => {
                 self.shared.set_fault(&self.shared.wal_fault, &e);
                 self.retry_at = Some(Instant::now() + self.backoff);
-                tracing::warn!(error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store's log cannot be written yet");
+                tracing::warn!(part = "log", error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store cannot be reopened yet");
                 self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
             }
         }
