@@ -1009,7 +1009,10 @@ async fn a_damaged_last_commit_is_not_silently_rolled_back() {
         hits.extend(found);
         damaged.push(file);
     }
-    assert!(!hits.is_empty(), "the logged stimulus is in the store's files");
+    assert!(
+        !hits.is_empty(),
+        "the logged stimulus is in the store's files"
+    );
 
     let (port, gport) = free_ports();
     let log = log_path(&logs, "second");

@@ -47,8 +47,8 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     cfg.validate().map_err(anyhow::Error::msg)?;
     let mut options = cfg.manager_options();
     if cfg.store == StoreKind::Redb {
-        let store = Store::open_with(&cfg.data_dir, cfg.durability)
-            .context("opening the session store")?;
+        let store =
+            Store::open_with(&cfg.data_dir, cfg.durability).context("opening the session store")?;
         tracing::info!(path = %store.path().display(), durability = %store.durability(), "session store open");
         options.store = Some(Arc::new(store));
     }

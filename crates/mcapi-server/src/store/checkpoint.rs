@@ -92,13 +92,10 @@ impl Checkpointer {
 
     pub(super) fn run(mut self, rx: &Receiver<ToCheckpoint>) {
         loop {
-            let due = [
-                self.oldest.map(|t| t + CHECKPOINT_INTERVAL),
-                self.retry_at,
-            ]
-            .into_iter()
-            .flatten()
-            .min();
+            let due = [self.oldest.map(|t| t + CHECKPOINT_INTERVAL), self.retry_at]
+                .into_iter()
+                .flatten()
+                .min();
             let msg = match due {
                 None => rx.recv().map_err(|_| RecvTimeoutError::Disconnected),
                 Some(at) => rx.recv_timeout(at.saturating_duration_since(Instant::now())),
@@ -217,7 +214,9 @@ impl Checkpointer {
         for path in paths {
             match std::fs::remove_file(&path) {
                 Ok(()) => removed = true,
-                Err(e) => tracing::warn!(path = %path.display(), error = %e, "removing an applied log segment"),
+                Err(e) => {
+                    tracing::warn!(path = %path.display(), error = %e, "removing an applied log segment")
+                }
             }
         }
         if removed && let Err(e) = wal::sync_dir(&self.wal_dir) {

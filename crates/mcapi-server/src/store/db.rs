@@ -38,8 +38,7 @@ pub const CHUNK: u64 = 64;
 
 pub(super) const META: TableDefinition<&str, u64> = TableDefinition::new("meta");
 pub(super) const SESSIONS: TableDefinition<&str, &[u8]> = TableDefinition::new("sessions");
-pub(super) const SNAPSHOTS: TableDefinition<&str, (u64, &[u8])> =
-    TableDefinition::new("snapshots");
+pub(super) const SNAPSHOTS: TableDefinition<&str, (u64, &[u8])> = TableDefinition::new("snapshots");
 pub(super) const LOG: TableDefinition<(u128, u64), &[u8]> = TableDefinition::new("log");
 /// The health probe's scratch table (empty between probes).
 const PROBE: TableDefinition<&str, &[u8]> = TableDefinition::new("probe");
@@ -228,7 +227,9 @@ pub(super) fn replay_wal(
         {
             return Err(StoreError::Corrupt {
                 path: path.clone(),
-                reason: format!("the log segment begins at frame {first}, its predecessor ends before {e}"),
+                reason: format!(
+                    "the log segment begins at frame {first}, its predecessor ends before {e}"
+                ),
             });
         }
         let read = wal::read_segment(path, *first, last)?;

@@ -55,8 +55,8 @@ use thiserror::Error;
 use tokio::sync::oneshot;
 
 use checkpoint::{Checkpointer, ToCheckpoint};
-use db::{LOG, SESSIONS, SNAPSHOTS, log_key, split_entry};
 pub use db::{CHUNK, FORMAT_VERSION, RECORD_V2};
+use db::{LOG, SESSIONS, SNAPSHOTS, log_key, split_entry};
 pub use wal::Durability;
 use wal::{AppendError, Wal};
 
@@ -322,8 +322,7 @@ impl Store {
             path: path.to_path_buf(),
             reason: format!("{what}: {e}"),
         };
-        std::fs::create_dir_all(dir)
-            .map_err(|e| io(dir, "cannot create the data directory", e))?;
+        std::fs::create_dir_all(dir).map_err(|e| io(dir, "cannot create the data directory", e))?;
         let path = dir.join(FILE_NAME);
         let wal_dir = dir.join(wal::WAL_DIR);
         let (db, applied) = db::open_database(&path)?;
@@ -358,8 +357,10 @@ impl Store {
                 .spawn(f)
                 .map_err(|e| io(&path, "starting a store thread", e))
         };
-        let mut threads =
-            vec![spawn("mcapi-checkpoint", Box::new(move || checkpointer.run(&checkpoint_rx)))?];
+        let mut threads = vec![spawn(
+            "mcapi-checkpoint",
+            Box::new(move || checkpointer.run(&checkpoint_rx)),
+        )?];
         let (tx, rx) = unbounded::<Pending>();
         let writer = Writer {
             wal,
@@ -721,11 +722,13 @@ impl Writer {
             return Err(StoreError::Failed("injected commit failure".into()));
         }
         let started = Instant::now();
-        let (len, next) = (self.wal.len(), self.wal.next_lsn());
-        let lsn = match self
-            .wal
-            .append(group.iter().flat_map(|p| &p.writes).filter(|w| w.is_logged()))
-        {
+        let (len, next) = (self.wal.bytes(), self.wal.next_lsn());
+        let lsn = match self.wal.append(
+            group
+                .iter()
+                .flat_map(|p| &p.writes)
+                .filter(|w| w.is_logged()),
+        ) {
             Ok(lsn) => lsn,
             Err(e) => {
                 tracing::error!(error = %e, writes, "appending to the log failed");
@@ -820,7 +823,9 @@ impl Writer {
                 self.wal.repair()?;
                 self.dirty = false;
             }
-            self.wal.sync().map_err(|e| format!("syncing the log: {e}"))?;
+            self.wal
+                .sync()
+                .map_err(|e| format!("syncing the log: {e}"))?;
             self.sync_due = None;
             let probe = self.data_dir.join(PROBE_FILE);
             let written = std::fs::File::create(&probe).and_then(|mut f| {
@@ -1180,7 +1185,10 @@ mod tests {
         let read = Database::open(dir.path().join(FILE_NAME)).expect("db");
         let read = read.begin_read().expect("read");
         let meta = read.open_table(META).expect("meta");
-        assert_eq!(meta.get("wal_lsn").expect("get").map(|v| v.value()), Some(1));
+        assert_eq!(
+            meta.get("wal_lsn").expect("get").map(|v| v.value()),
+            Some(1)
+        );
         let log = read.open_table(LOG).expect("log");
         assert_eq!(log.len().expect("len"), 1);
     }
@@ -1206,7 +1214,10 @@ mod tests {
             }
             store.crash();
             drop(store);
-            assert!(!segments(dir.path()).is_empty(), "{durability}: the log stays");
+            assert!(
+                !segments(dir.path()).is_empty(),
+                "{durability}: the log stays"
+            );
             for round in 0..2 {
                 let store = Store::open_with(dir.path(), durability).expect("reopen");
                 let got = entries(&store, "a", None);
@@ -1277,7 +1288,11 @@ mod tests {
         }
         assert!(segments(dir.path()).len() >= 2, "a new segment was begun");
         store.checkpoint().expect("checkpoint");
-        assert_eq!(segments(dir.path()).len(), 1, "the closed segment is deleted");
+        assert_eq!(
+            segments(dir.path()).len(),
+            1,
+            "the closed segment is deleted"
+        );
         assert_eq!(entries(&store, "a", None).len() as u64, n);
     }
 

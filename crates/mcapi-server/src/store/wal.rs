@@ -271,7 +271,9 @@ pub fn read_segment(path: &Path, first: u64, last: bool) -> Result<SegmentRead, 
     }
     let version = u32::from_le_bytes(header[8..12].try_into().unwrap_or([0; 4]));
     if header[12..16] != [0; 4] {
-        return Err(corrupt("the segment header's reserved bytes are not zero".into()));
+        return Err(corrupt(
+            "the segment header's reserved bytes are not zero".into(),
+        ));
     }
     if version != SEGMENT_VERSION {
         return Err(corrupt(format!(
@@ -308,7 +310,8 @@ pub fn read_segment(path: &Path, first: u64, last: bool) -> Result<SegmentRead, 
         if crc32fast::hash(payload) != payload_crc {
             return Err(corrupt(at("the payload checksum does not match")));
         }
-        let writes = decode_payload(payload).ok_or_else(|| corrupt(at("the payload does not decode")))?;
+        let writes =
+            decode_payload(payload).ok_or_else(|| corrupt(at("the payload does not decode")))?;
         frames.push(Frame { lsn, writes });
         offset += (FRAME_HEADER + len as usize) as u64;
         expected += 1;
@@ -399,7 +402,11 @@ impl Wal {
 
     /// Cuts the segment back to its last whole frame after a failed write.
     fn cut(&mut self, cause: std::io::Error) -> AppendError {
-        match self.file.set_len(self.len).and_then(|()| self.file.sync_data()) {
+        match self
+            .file
+            .set_len(self.len)
+            .and_then(|()| self.file.sync_data())
+        {
             Ok(()) => AppendError::Clean(cause),
             Err(e) => AppendError::Dirty(format!("{cause}; then cutting the segment back: {e}")),
         }
@@ -415,7 +422,7 @@ impl Wal {
     }
 
     /// Bytes of the active segment.
-    pub fn len(&self) -> u64 {
+    pub fn bytes(&self) -> u64 {
         self.len
     }
 
@@ -589,11 +596,14 @@ mod tests {
         let dir = tempfile::tempdir().expect("dir");
         let mut wal = Wal::create(dir.path(), 1).expect("create");
         wal.append(writes().iter()).expect("append");
-        let len = wal.len();
+        let len = wal.bytes();
         wal.append(writes().iter()).expect("append");
         wal.truncate(len, 2).expect("truncate");
         let (first, path) = wal.active();
-        assert_eq!(read_segment(&path, first, true).expect("read").frames.len(), 1);
+        assert_eq!(
+            read_segment(&path, first, true).expect("read").frames.len(),
+            1
+        );
         assert_eq!(wal.append(writes().iter()).expect("append"), 2);
         let (a, b, closed) = wal.roll().expect("roll");
         assert_eq!((a, b), (1, 2));
