@@ -64,7 +64,10 @@ fn run(epsilon: f64, ticks: usize) -> Pins {
     let mut agent = Agent::new(ctx, params);
     let mut world = ChaCha8Rng::seed_from_u64(11);
     let mut state = preset.sources[0].state;
-    let mut action = agent.step(&Observation::first(state)).expect("first").action;
+    let mut action = agent
+        .step(&Observation::first(state))
+        .expect("first")
+        .action;
     let mut xi = vec![0.0; model.n_stimuli()];
     let mut trace = FNV_OFFSET;
     for _ in 0..ticks {
