@@ -196,6 +196,9 @@ pub struct PlannerStats {
 pub struct Planner {
     q: Vec<f64>,
     q_next: Vec<f64>,
+    /// Scratch of [`Planner::update`]: the states whose action is no longer
+    /// greedy under the new Q, in state order.
+    outdated: Vec<u32>,
     /// Chosen pair per state (absolute pair index).
     policy: Vec<u32>,
     engine: Engine,
@@ -274,6 +277,7 @@ impl Planner {
         Self {
             q: vec![0.0; model.n_pairs()],
             q_next: vec![0.0; model.n_pairs()],
+            outdated: Vec::new(),
             policy,
             engine,
             stats: PlannerStats::default(),
@@ -382,12 +386,7 @@ impl Planner {
             }
         }
         // ‖Q_t − Q_{t+1}‖₂; a non-finite Q makes it non-finite too.
-        let err_sq: f64 = self
-            .q
-            .iter()
-            .zip(&self.q_next)
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum();
+        let err_sq = self.compare(model);
         if !err_sq.is_finite() {
             if let Engine::Features(fe) = &mut self.engine {
                 fe.stale = true;
@@ -405,19 +404,40 @@ impl Planner {
         })
     }
 
-    /// Greedy improvement with the tie rule of §2.6; returns the number of
-    /// states whose action changed.
-    fn improve(&mut self, model: &EnvModel, rng: &mut impl Rng) -> usize {
-        let mut changes = 0;
+    /// ‖Q_t − Q_{t+1}‖² over the valid pairs (in pair order), and, in the
+    /// same pass, the states whose current action is no longer within the
+    /// tie tolerance of max_a Q_{t+1}(s, a) (§2.6) into `outdated`: the only
+    /// states [`Planner::improve`] has to look at again.
+    fn compare(&mut self, model: &EnvModel) -> f64 {
+        self.outdated.clear();
+        let mut err_sq = 0.0;
         for s in 0..model.states() {
+            let range = model.pairs_of(s);
+            let mut max = f64::NEG_INFINITY;
+            for (old, &new) in self.q[range.clone()].iter().zip(&self.q_next[range]) {
+                err_sq += (old - new) * (old - new);
+                max = f64::max(max, new);
+            }
+            let floor = max - TIE_TOLERANCE * (1.0 + max.abs());
+            if self.q_next[self.policy[s] as usize] >= floor {
+                continue;
+            }
+            self.outdated.push(s as u32);
+        }
+        err_sq
+    }
+
+    /// Greedy improvement with the tie rule of §2.6 (Algorithm 1, line 9)
+    /// over the states [`Planner::compare`] found outdated, in state order;
+    /// returns the number of states whose action changed.
+    fn improve(&mut self, model: &EnvModel, rng: &mut impl Rng) -> usize {
+        for &s in &self.outdated {
+            let s = s as usize;
             let range = model.pairs_of(s);
             let qs = &self.q[range.clone()];
             let max = qs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
             let floor = max - TIE_TOLERANCE * (1.0 + max.abs());
             let current = self.policy[s] as usize;
-            if self.q[current] >= floor {
-                continue;
-            }
             let tied = qs.iter().filter(|&&q| q >= floor).count();
             let pick = if tied > 1 {
                 rng.random_range(0..tied)
@@ -435,9 +455,8 @@ impl Planner {
                 fe.pending.push((s as u32, current as u32, new));
             }
             self.policy[s] = new;
-            changes += 1;
         }
-        changes
+        self.outdated.len()
     }
 }
 
