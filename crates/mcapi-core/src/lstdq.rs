@@ -29,7 +29,9 @@
 //!   is. A is rebuilt and re-inverted from scratch after many changes, every
 //!   [`REFRESH_AFTER`] rank-one updates (to bound rounding drift), and when a
 //!   Sherman–Morrison denominator is near zero. Ridge λI is added only when A
-//!   is singular.
+//!   is singular. When neither A⁻¹ nor R changed since the last evaluation,
+//!   Q_{t+1} = Q_t bit for bit and the evaluation is skipped (the outcome is
+//!   the one it would give: error 0, no policy change).
 
 use nalgebra::{DMatrix, DVector};
 use rand::{Rng, RngExt};
@@ -239,6 +241,10 @@ struct FeatureEngine {
     q_states: Vec<f64>,
     /// Scratch: b with each action block padded to `kp` entries.
     b_wide: Vec<f64>,
+    /// R of the last evaluation.
+    r_last: Vec<f64>,
+    /// The planner's Q is Φ A⁻¹ Φᵀ `r_last` for the current A⁻¹, bit for bit.
+    evaluated: bool,
 }
 
 impl Planner {
@@ -271,6 +277,8 @@ impl Planner {
                     u: DVector::zeros(big_k),
                     q_states: vec![0.0; model.states() * model.n_actions()],
                     b_wide: vec![0.0; cache.kp * model.n_actions()],
+                    r_last: Vec::new(),
+                    evaluated: false,
                 }))
             }
         };
@@ -382,6 +390,20 @@ impl Planner {
                 })?;
                 reused =
                     fe.prepare(model, f, cache, &self.policy, gamma, ridge, &mut self.stats)?;
+                if reused && fe.evaluated && same_bits(&fe.r_last, r) {
+                    // Neither A⁻¹ nor R changed since the last evaluation, so
+                    // Q_{t+1} = Q_t bit for bit: the LSTDQ error is 0 and π,
+                    // already greedy in Q_t, stays (no outdated state, no
+                    // RNG draw). Skipping the evaluation changes nothing.
+                    self.stats.updates += 1;
+                    self.stats.reuses += 1;
+                    return Ok(PlanOutcome {
+                        lstdq_error: 0.0,
+                        policy_changes: 0,
+                        reused_factorisation: true,
+                    });
+                }
+                fe.evaluated = false;
                 fe.evaluate(model, cache, r, &mut self.q_next);
             }
         }
@@ -392,6 +414,11 @@ impl Planner {
                 fe.stale = true;
             }
             return Err(AlgoError::Numerical("LSTDQ produced a non-finite Q".into()));
+        }
+        if let Engine::Features(fe) = &mut self.engine {
+            fe.r_last.clear();
+            fe.r_last.extend_from_slice(r);
+            fe.evaluated = true;
         }
         std::mem::swap(&mut self.q, &mut self.q_next);
         self.stats.updates += 1;
@@ -515,6 +542,11 @@ impl FunctionalGraph {
             *qp = r[p] + gamma * v[model.next_state(p)];
         }
     }
+}
+
+/// `a` and `b` hold the same bits (so −0 ≠ 0 and NaN = NaN of the same payload).
+fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
 }
 
 /// Exact Q^π for a stochastic model and Φ = I (see module docs).
@@ -1049,6 +1081,52 @@ mod tests {
             mat_vec(&a_inv, &b_ref, &mut x);
             assert_eq!(bits(&x), bits(&w_ref), "A⁻¹u, k = {k}");
         }
+    }
+
+    #[test]
+    fn an_evaluation_with_nothing_changed_is_skipped_without_changing_results() {
+        let model = hallway().model;
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let rows: Vec<Vec<f64>> = (0..50)
+            .map(|_| (0..6).map(|_| rng.random::<f64>() - 0.5).collect())
+            .collect();
+        let basis = Basis::build(
+            &BasisSpec::Custom {
+                state_features: rows,
+            },
+            &model,
+        )
+        .expect("basis");
+        let ctx = PlanningModel::new(model.clone(), basis);
+        let mut r: Vec<f64> = (0..model.n_pairs()).map(|_| rng.random::<f64>()).collect();
+        let mut memo = Planner::new(&ctx, first_action_policy(&model));
+        let mut full = memo.clone();
+        let mut skipped = 0;
+        for t in 0..60 {
+            if t == 30 {
+                r[7] += 0.25;
+            }
+            // `full` evaluates every time, `memo` may skip.
+            if let Engine::Features(fe) = &mut full.engine {
+                fe.evaluated = false;
+            }
+            if let Engine::Features(fe) = &memo.engine {
+                skipped += usize::from(
+                    fe.evaluated && !fe.stale && fe.pending.is_empty() && fe.r_last == r,
+                );
+            }
+            let mut rng_full = rng.clone();
+            let a = memo.update(&ctx, &r, 0.9, 1e-6, &mut rng).expect("memo");
+            let b = full
+                .update(&ctx, &r, 0.9, 1e-6, &mut rng_full)
+                .expect("full");
+            assert_eq!(a, b, "tick {t}");
+            assert_eq!(memo.policy(), full.policy(), "tick {t}");
+            let bits = |p: &Planner| p.q().iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&memo), bits(&full), "tick {t}");
+            assert_eq!(memo.stats(), full.stats(), "tick {t}");
+        }
+        assert!(skipped > 40, "only {skipped} evaluations skipped");
     }
 
     #[test]
