@@ -29,7 +29,9 @@
 //!   is. A is rebuilt and re-inverted from scratch after many changes, every
 //!   [`REFRESH_AFTER`] rank-one updates (to bound rounding drift), and when a
 //!   Sherman–Morrison denominator is near zero. Ridge λI is added only when A
-//!   is singular.
+//!   is singular. When neither A⁻¹ nor R changed since the last evaluation,
+//!   Q_{t+1} = Q_t bit for bit and the evaluation is skipped (the outcome is
+//!   the one it would give: error 0, no policy change).
 
 use nalgebra::{DMatrix, DVector};
 use rand::{Rng, RngExt};
@@ -71,6 +73,11 @@ struct FeatureCache {
     m: DMatrix<f64>,
     /// State features column-major (|S|×k): column j is v_j over states.
     v_cols: Vec<f64>,
+    /// k rounded up to a multiple of [`LANES`]: the row stride of
+    /// `rows_padded`.
+    kp: usize,
+    /// v(s) row-major with stride `kp`, zero-padded: the rows b = ΦᵀR reads.
+    rows_padded: Vec<f64>,
     /// Features that are zero on every valid pair (e.g. the block of an
     /// action no state offers): their rows and columns of A are zero.
     unused: Vec<usize>,
@@ -143,12 +150,19 @@ impl FeatureCache {
                 v_cols[j * n + s] = x;
             }
         }
+        let kp = k.div_ceil(LANES) * LANES;
+        let mut rows_padded = vec![0.0; n * kp];
+        for s in 0..n {
+            rows_padded[s * kp..s * kp + k].copy_from_slice(f.row(s));
+        }
         Self {
             k,
             gram,
             m,
             v_cols,
             unused,
+            kp,
+            rows_padded,
         }
     }
 }
@@ -184,6 +198,9 @@ pub struct PlannerStats {
 pub struct Planner {
     q: Vec<f64>,
     q_next: Vec<f64>,
+    /// Scratch of [`Planner::update`]: the states whose action is no longer
+    /// greedy under the new Q, in state order.
+    outdated: Vec<u32>,
     /// Chosen pair per state (absolute pair index).
     policy: Vec<u32>,
     engine: Engine,
@@ -222,6 +239,12 @@ struct FeatureEngine {
     u: DVector<f64>,
     /// Scratch: Q(s, a) for every state and action, column-major |S|×|A|.
     q_states: Vec<f64>,
+    /// Scratch: b with each action block padded to `kp` entries.
+    b_wide: Vec<f64>,
+    /// R of the last evaluation.
+    r_last: Vec<f64>,
+    /// The planner's Q is Φ A⁻¹ Φᵀ `r_last` for the current A⁻¹, bit for bit.
+    evaluated: bool,
 }
 
 impl Planner {
@@ -253,12 +276,16 @@ impl Planner {
                     y: DVector::zeros(big_k),
                     u: DVector::zeros(big_k),
                     q_states: vec![0.0; model.states() * model.n_actions()],
+                    b_wide: vec![0.0; cache.kp * model.n_actions()],
+                    r_last: Vec::new(),
+                    evaluated: false,
                 }))
             }
         };
         Self {
             q: vec![0.0; model.n_pairs()],
             q_next: vec![0.0; model.n_pairs()],
+            outdated: Vec::new(),
             policy,
             engine,
             stats: PlannerStats::default(),
@@ -363,21 +390,35 @@ impl Planner {
                 })?;
                 reused =
                     fe.prepare(model, f, cache, &self.policy, gamma, ridge, &mut self.stats)?;
-                fe.evaluate(model, f, cache, r, &mut self.q_next);
+                if reused && fe.evaluated && same_bits(&fe.r_last, r) {
+                    // Neither A⁻¹ nor R changed since the last evaluation, so
+                    // Q_{t+1} = Q_t bit for bit: the LSTDQ error is 0 and π,
+                    // already greedy in Q_t, stays (no outdated state, no
+                    // RNG draw). Skipping the evaluation changes nothing.
+                    self.stats.updates += 1;
+                    self.stats.reuses += 1;
+                    return Ok(PlanOutcome {
+                        lstdq_error: 0.0,
+                        policy_changes: 0,
+                        reused_factorisation: true,
+                    });
+                }
+                fe.evaluated = false;
+                fe.evaluate(model, cache, r, &mut self.q_next);
             }
         }
         // ‖Q_t − Q_{t+1}‖₂; a non-finite Q makes it non-finite too.
-        let err_sq: f64 = self
-            .q
-            .iter()
-            .zip(&self.q_next)
-            .map(|(a, b)| (a - b) * (a - b))
-            .sum();
+        let err_sq = self.compare(model);
         if !err_sq.is_finite() {
             if let Engine::Features(fe) = &mut self.engine {
                 fe.stale = true;
             }
             return Err(AlgoError::Numerical("LSTDQ produced a non-finite Q".into()));
+        }
+        if let Engine::Features(fe) = &mut self.engine {
+            fe.r_last.clear();
+            fe.r_last.extend_from_slice(r);
+            fe.evaluated = true;
         }
         std::mem::swap(&mut self.q, &mut self.q_next);
         self.stats.updates += 1;
@@ -390,19 +431,40 @@ impl Planner {
         })
     }
 
-    /// Greedy improvement with the tie rule of §2.6; returns the number of
-    /// states whose action changed.
-    fn improve(&mut self, model: &EnvModel, rng: &mut impl Rng) -> usize {
-        let mut changes = 0;
+    /// ‖Q_t − Q_{t+1}‖² over the valid pairs (in pair order), and, in the
+    /// same pass, the states whose current action is no longer within the
+    /// tie tolerance of max_a Q_{t+1}(s, a) (§2.6) into `outdated`: the only
+    /// states [`Planner::improve`] has to look at again.
+    fn compare(&mut self, model: &EnvModel) -> f64 {
+        self.outdated.clear();
+        let mut err_sq = 0.0;
         for s in 0..model.states() {
+            let range = model.pairs_of(s);
+            let mut max = f64::NEG_INFINITY;
+            for (old, &new) in self.q[range.clone()].iter().zip(&self.q_next[range]) {
+                err_sq += (old - new) * (old - new);
+                max = f64::max(max, new);
+            }
+            let floor = max - TIE_TOLERANCE * (1.0 + max.abs());
+            if self.q_next[self.policy[s] as usize] >= floor {
+                continue;
+            }
+            self.outdated.push(s as u32);
+        }
+        err_sq
+    }
+
+    /// Greedy improvement with the tie rule of §2.6 (Algorithm 1, line 9)
+    /// over the states [`Planner::compare`] found outdated, in state order;
+    /// returns the number of states whose action changed.
+    fn improve(&mut self, model: &EnvModel, rng: &mut impl Rng) -> usize {
+        for &s in &self.outdated {
+            let s = s as usize;
             let range = model.pairs_of(s);
             let qs = &self.q[range.clone()];
             let max = qs.iter().copied().fold(f64::NEG_INFINITY, f64::max);
             let floor = max - TIE_TOLERANCE * (1.0 + max.abs());
             let current = self.policy[s] as usize;
-            if self.q[current] >= floor {
-                continue;
-            }
             let tied = qs.iter().filter(|&&q| q >= floor).count();
             let pick = if tied > 1 {
                 rng.random_range(0..tied)
@@ -420,9 +482,8 @@ impl Planner {
                 fe.pending.push((s as u32, current as u32, new));
             }
             self.policy[s] = new;
-            changes += 1;
         }
-        changes
+        self.outdated.len()
     }
 }
 
@@ -481,6 +542,11 @@ impl FunctionalGraph {
             *qp = r[p] + gamma * v[model.next_state(p)];
         }
     }
+}
+
+/// `a` and `b` hold the same bits (so −0 ≠ 0 and NaN = NaN of the same payload).
+fn same_bits(a: &[f64], b: &[f64]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).all(|(x, y)| x.to_bits() == y.to_bits())
 }
 
 /// Exact Q^π for a stochastic model and Φ = I (see module docs).
@@ -702,27 +768,24 @@ impl FeatureEngine {
     }
 
     /// b = ΦᵀR, w = A⁻¹b, Q = Φw (see [`feature_kernel`]).
-    fn evaluate(
-        &mut self,
-        model: &EnvModel,
-        f: &StateFeatures,
-        cache: &FeatureCache,
-        r: &[f64],
-        q: &mut [f64],
-    ) {
+    fn evaluate(&mut self, model: &EnvModel, cache: &FeatureCache, r: &[f64], q: &mut [f64]) {
         feature_kernel(
             FeatureKernel {
                 pair_state: model.pair_states(),
                 pair_action: model.pair_actions(),
-                rows: f.as_slice(),
+                rows_padded: &cache.rows_padded,
+                kp: cache.kp,
                 v_cols: &cache.v_cols,
                 k: cache.k,
                 a_inv: self.a_inv.as_slice(),
                 r,
             },
-            self.b.as_mut_slice(),
-            self.w.as_mut_slice(),
-            &mut self.q_states,
+            FeatureScratch {
+                b_wide: &mut self.b_wide,
+                b: self.b.as_mut_slice(),
+                w: self.w.as_mut_slice(),
+                q_states: &mut self.q_states,
+            },
             q,
         );
     }
@@ -732,8 +795,10 @@ impl FeatureEngine {
 struct FeatureKernel<'a> {
     pair_state: &'a [u32],
     pair_action: &'a [u32],
-    /// v(s) row-major, |S|×k.
-    rows: &'a [f64],
+    /// v(s) row-major, |S|×kp, zero-padded.
+    rows_padded: &'a [f64],
+    /// Row stride of `rows_padded`, a multiple of [`LANES`] ≥ k.
+    kp: usize,
     /// v_j column-major, |S|×k.
     v_cols: &'a [f64],
     k: usize,
@@ -742,71 +807,128 @@ struct FeatureKernel<'a> {
     r: &'a [f64],
 }
 
-/// b = ΦᵀR, w = A⁻¹b, Q = Φw with the block structure φ(s,a) = e_a ⊗ v(s).
+/// Outputs and scratch of [`feature_kernel`].
+struct FeatureScratch<'a> {
+    /// b with each action block padded to kp entries (|A|·kp).
+    b_wide: &'a mut [f64],
+    b: &'a mut [f64],
+    w: &'a mut [f64],
+    /// Q(s, a) for every state and action, column-major |S|×|A|.
+    q_states: &'a mut [f64],
+}
+
+/// Lanes of the widest vector register the kernels are compiled for (8
+/// doubles with AVX-512): the rows b = ΦᵀR reads are padded to a multiple,
+/// so their axpys have no scalar remainder.
+const LANES: usize = 8;
+
+/// Rows per block of [`combine_columns_into`].
+const ROW_BLOCK: usize = 16;
+
+/// b = ΦᵀR, w = A⁻¹b, Q = Φw with the block structure φ(s,a) = e_a ⊗ v(s)
+/// (docs/algorithm.md §2.6; §5, engine 3).
 ///
-/// Every loop is an axpy (no reductions), so the compiler vectorises it;
-/// the function is compiled for AVX2 and NEON as well and picks the best
-/// version at run time. b gains R(s,a) v(s) in block a; w is the sum of
-/// A⁻¹'s columns weighted by b; Q(·, a) = Σ_j w_(a,j) v_j over states.
-#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx", "aarch64+neon"))]
-fn feature_kernel<'a>(
-    x: FeatureKernel<'a>,
-    b: &mut [f64],
-    w: &mut [f64],
-    q_states: &mut [f64],
-    q: &mut [f64],
-) {
-    let k = x.k;
-    let n = x.rows.len() / k;
-    b.fill(0.0);
+/// b gains R(s,a) v(s) in block a, pair by pair, as axpys over padded rows
+/// (consecutive pairs mostly belong to different actions, so the axpys do
+/// not wait for each other); w is the sum of A⁻¹'s columns weighted by b and
+/// Q(·, a) = Σ_j w_(a,j) v_j over states, both by [`combine_columns_into`],
+/// which keeps a block of outputs in registers while it walks the columns.
+/// Every output is summed in a fixed order, so the bits do not depend on the
+/// vector width: the function is compiled for AVX-512, AVX2 and NEON as well
+/// and picks the best version at run time, and every version gives the same
+/// results (no FMA contraction).
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx",
+    "aarch64+neon"
+))]
+fn feature_kernel<'a>(x: FeatureKernel<'a>, out: FeatureScratch<'a>, q: &mut [f64]) {
+    let (k, kp) = (x.k, x.kp);
+    let n = x.v_cols.len() / k;
+    out.b_wide.fill(0.0);
     for ((&rp, &s), &a) in x.r.iter().zip(x.pair_state).zip(x.pair_action) {
         let (s, a) = (s as usize, a as usize);
-        let block = &mut b[a * k..(a + 1) * k];
-        for (bj, vj) in block.iter_mut().zip(&x.rows[s * k..(s + 1) * k]) {
+        let block = &mut out.b_wide[a * kp..(a + 1) * kp];
+        for (bj, vj) in block.iter_mut().zip(&x.rows_padded[s * kp..(s + 1) * kp]) {
             *bj += rp * vj;
         }
     }
-    mat_vec(x.a_inv, b, w);
-    for (a, col) in q_states.chunks_exact_mut(n).enumerate() {
-        col.fill(0.0);
-        combine_columns(col, x.v_cols, &w[a * k..(a + 1) * k]);
+    for (bj, wide) in out.b.chunks_exact_mut(k).zip(out.b_wide.chunks_exact(kp)) {
+        bj.copy_from_slice(&wide[..k]);
+    }
+    combine_columns_into(out.w, x.a_inv, out.b);
+    for (col, wa) in out.q_states.chunks_exact_mut(n).zip(out.w.chunks_exact(k)) {
+        combine_columns_into(col, x.v_cols, wa);
     }
     for ((qp, &s), &a) in q.iter_mut().zip(x.pair_state).zip(x.pair_action) {
-        *qp = q_states[a as usize * n + s as usize];
+        *qp = out.q_states[a as usize * n + s as usize];
     }
 }
 
-/// x = M u for a square column-major M, as a sum of M's columns (axpy form,
-/// vectorised; AVX2 and NEON versions picked at run time).
-#[multiversion::multiversion(targets("x86_64+avx2+fma", "x86_64+avx", "aarch64+neon"))]
+/// x = M u for a square column-major M, as a sum of M's columns (vectorised;
+/// AVX-512, AVX2 and NEON versions picked at run time).
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx",
+    "aarch64+neon"
+))]
 fn mat_vec(m: &[f64], u: &[f64], x: &mut [f64]) {
-    x.fill(0.0);
-    combine_columns(x, m, u);
+    combine_columns_into(x, m, u);
 }
 
-/// out += Σ_j c_j · cols_j, where `cols` holds `c.len()` columns of
-/// `out.len()` entries each. Four columns are combined per pass over `out`
-/// (one load and store of `out` per four columns); each entry is summed in
-/// the same order on every CPU, so results do not depend on the vector width.
+/// out = Σ_j c_j · cols_j, where `cols` holds `c.len()` columns of
+/// `out.len()` entries each.
+///
+/// Every entry is summed from 0 in the same order: the columns four at a
+/// time, out_i += (c₀a₀ᵢ + c₁a₁ᵢ) + (c₂a₂ᵢ + c₃a₃ᵢ), then the columns left
+/// over one at a time. So the bits do not depend on the vector width, nor on
+/// the blocking: the rows are done [`ROW_BLOCK`] at a time (then 4, then 1),
+/// each block summed in registers over all columns and stored once.
 #[inline(always)]
-fn combine_columns(out: &mut [f64], cols: &[f64], c: &[f64]) {
+fn combine_columns_into(out: &mut [f64], cols: &[f64], c: &[f64]) {
     let n = out.len();
-    let mut quads = cols.chunks_exact(4 * n).zip(c.chunks_exact(4));
-    for (block, c4) in &mut quads {
-        let (v0, rest) = block.split_at(n);
-        let (v1, rest) = rest.split_at(n);
-        let (v2, v3) = rest.split_at(n);
+    let mut i0 = 0;
+    while n - i0 >= ROW_BLOCK {
+        combine_rows::<ROW_BLOCK>(out, cols, c, i0);
+        i0 += ROW_BLOCK;
+    }
+    while n - i0 >= 4 {
+        combine_rows::<4>(out, cols, c, i0);
+        i0 += 4;
+    }
+    while i0 < n {
+        combine_rows::<1>(out, cols, c, i0);
+        i0 += 1;
+    }
+}
+
+/// Rows i0..i0+W of [`combine_columns_into`].
+#[inline(always)]
+fn combine_rows<const W: usize>(out: &mut [f64], cols: &[f64], c: &[f64], i0: usize) {
+    let n = out.len();
+    let mut acc = [0.0f64; W];
+    let mut quads = c.chunks_exact(4);
+    for (q, c4) in (&mut quads).enumerate() {
+        let base = 4 * q * n + i0;
+        let a0 = &cols[base..base + W];
+        let a1 = &cols[base + n..base + n + W];
+        let a2 = &cols[base + 2 * n..base + 2 * n + W];
+        let a3 = &cols[base + 3 * n..base + 3 * n + W];
         let (c0, c1, c2, c3) = (c4[0], c4[1], c4[2], c4[3]);
-        for ((((o, a0), a1), a2), a3) in out.iter_mut().zip(v0).zip(v1).zip(v2).zip(v3) {
-            *o += (c0 * a0 + c1 * a1) + (c2 * a2 + c3 * a3);
+        for ((((o, x0), x1), x2), x3) in acc.iter_mut().zip(a0).zip(a1).zip(a2).zip(a3) {
+            *o += (c0 * x0 + c1 * x1) + (c2 * x2 + c3 * x3);
         }
     }
     let done = c.len() / 4 * 4;
-    for (&cj, col) in c[done..].iter().zip(cols[done * n..].chunks_exact(n)) {
-        for (o, v) in out.iter_mut().zip(col) {
-            *o += cj * v;
+    for (j, &cj) in c.iter().enumerate().skip(done) {
+        let base = j * n + i0;
+        for (o, x) in acc.iter_mut().zip(&cols[base..base + W]) {
+            *o += cj * x;
         }
     }
+    out[i0..i0 + W].copy_from_slice(&acc);
 }
 
 /// M += alpha x yᵀ for a column-major M with `x.len()` rows and `y.len()`
@@ -850,6 +972,161 @@ mod tests {
         (0..model.states())
             .map(|s| model.pairs_of(s).start as u32)
             .collect()
+    }
+
+    /// The axpy-form kernels the blocked ones replaced (commit 15aa12d):
+    /// b gains R(s,a) v(s) pair by pair, w and Q are sums of columns four at
+    /// a time. The blocked kernels must give the same bits.
+    fn reference_kernel(
+        model: &EnvModel,
+        f: &StateFeatures,
+        a_inv: &[f64],
+        r: &[f64],
+    ) -> (Vec<f64>, Vec<f64>, Vec<f64>) {
+        fn combine(out: &mut [f64], cols: &[f64], c: &[f64]) {
+            let n = out.len();
+            out.fill(0.0);
+            let mut quads = cols.chunks_exact(4 * n).zip(c.chunks_exact(4));
+            for (block, c4) in &mut quads {
+                for (i, o) in out.iter_mut().enumerate() {
+                    *o += (c4[0] * block[i] + c4[1] * block[n + i])
+                        + (c4[2] * block[2 * n + i] + c4[3] * block[3 * n + i]);
+                }
+            }
+            let done = c.len() / 4 * 4;
+            for (&cj, col) in c[done..].iter().zip(cols[done * n..].chunks_exact(n)) {
+                for (o, v) in out.iter_mut().zip(col) {
+                    *o += cj * v;
+                }
+            }
+        }
+        let (k, n) = (f.k(), model.states());
+        let big_k = k * model.n_actions();
+        let mut b = vec![0.0; big_k];
+        for (p, &rp) in r.iter().enumerate() {
+            let (s, a) = (model.pair_state(p), model.pair_action(p));
+            for (bj, vj) in b[a * k..(a + 1) * k].iter_mut().zip(f.row(s)) {
+                *bj += rp * vj;
+            }
+        }
+        let mut w = vec![0.0; big_k];
+        combine(&mut w, a_inv, &b);
+        let mut v_cols = vec![0.0; n * k];
+        for s in 0..n {
+            for (j, &x) in f.row(s).iter().enumerate() {
+                v_cols[j * n + s] = x;
+            }
+        }
+        let mut q_states = vec![0.0; n * model.n_actions()];
+        for (col, wa) in q_states.chunks_exact_mut(n).zip(w.chunks_exact(k)) {
+            combine(col, &v_cols, wa);
+        }
+        let q = (0..model.n_pairs())
+            .map(|p| q_states[model.pair_action(p) * n + model.pair_state(p)])
+            .collect();
+        (b, w, q)
+    }
+
+    #[test]
+    fn blocked_kernels_match_the_axpy_reference_bit_for_bit() {
+        let model = hallway().model;
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut normal = || rng.random::<f64>() * 2.0 - 1.0;
+        let bits = |x: &[f64]| x.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        for k in [1, 3, 4, 5, 7, 8, 9, 16, 17, 30, 33, 41, 50] {
+            let rows: Vec<Vec<f64>> = (0..50)
+                .map(|_| (0..k).map(|_| normal()).collect())
+                .collect();
+            let basis = Basis::build(
+                &BasisSpec::Custom {
+                    state_features: rows,
+                },
+                &model,
+            )
+            .expect("basis");
+            let ctx = PlanningModel::new(model.clone(), basis);
+            let (f, cache) = (
+                ctx.state_features().expect("features"),
+                ctx.features.as_ref().expect("cache"),
+            );
+            let big_k = 3 * k;
+            let a_inv: Vec<f64> = (0..big_k * big_k).map(|_| normal()).collect();
+            let r: Vec<f64> = (0..model.n_pairs()).map(|_| normal().abs()).collect();
+            let (mut b, mut w, mut q) = (vec![0.0; big_k], vec![0.0; big_k], vec![0.0; 148]);
+            let mut q_states = vec![0.0; 150];
+            feature_kernel(
+                FeatureKernel {
+                    pair_state: model.pair_states(),
+                    pair_action: model.pair_actions(),
+                    rows_padded: &cache.rows_padded,
+                    kp: cache.kp,
+                    v_cols: &cache.v_cols,
+                    k,
+                    a_inv: &a_inv,
+                    r: &r,
+                },
+                FeatureScratch {
+                    b_wide: &mut vec![0.0; 3 * cache.kp],
+                    b: &mut b,
+                    w: &mut w,
+                    q_states: &mut q_states,
+                },
+                &mut q,
+            );
+            let (b_ref, w_ref, q_ref) = reference_kernel(&model, f, &a_inv, &r);
+            assert_eq!(bits(&b), bits(&b_ref), "b, k = {k}");
+            assert_eq!(bits(&w), bits(&w_ref), "w, k = {k}");
+            assert_eq!(bits(&q), bits(&q_ref), "Q, k = {k}");
+            let mut x = vec![0.0; big_k];
+            mat_vec(&a_inv, &b_ref, &mut x);
+            assert_eq!(bits(&x), bits(&w_ref), "A⁻¹u, k = {k}");
+        }
+    }
+
+    #[test]
+    fn an_evaluation_with_nothing_changed_is_skipped_without_changing_results() {
+        let model = hallway().model;
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let rows: Vec<Vec<f64>> = (0..50)
+            .map(|_| (0..6).map(|_| rng.random::<f64>() - 0.5).collect())
+            .collect();
+        let basis = Basis::build(
+            &BasisSpec::Custom {
+                state_features: rows,
+            },
+            &model,
+        )
+        .expect("basis");
+        let ctx = PlanningModel::new(model.clone(), basis);
+        let mut r: Vec<f64> = (0..model.n_pairs()).map(|_| rng.random::<f64>()).collect();
+        let mut memo = Planner::new(&ctx, first_action_policy(&model));
+        let mut full = memo.clone();
+        let mut skipped = 0;
+        for t in 0..60 {
+            if t == 30 {
+                r[7] += 0.25;
+            }
+            // `full` evaluates every time, `memo` may skip.
+            if let Engine::Features(fe) = &mut full.engine {
+                fe.evaluated = false;
+            }
+            if let Engine::Features(fe) = &memo.engine {
+                skipped += usize::from(
+                    fe.evaluated && !fe.stale && fe.pending.is_empty() && fe.r_last == r,
+                );
+            }
+            let mut rng_full = rng.clone();
+            let a = memo.update(&ctx, &r, 0.9, 1e-6, &mut rng).expect("memo");
+            let b = full
+                .update(&ctx, &r, 0.9, 1e-6, &mut rng_full)
+                .expect("full");
+            assert_eq!(a, b, "tick {t}");
+            assert_eq!(memo.policy(), full.policy(), "tick {t}");
+            let bits = |p: &Planner| p.q().iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+            assert_eq!(bits(&memo), bits(&full), "tick {t}");
+            assert_eq!(memo.stats(), full.stats(), "tick {t}");
+        }
+        assert!(skipped > 40, "only {skipped} evaluations skipped");
     }
 
     #[test]

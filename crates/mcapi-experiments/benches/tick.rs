@@ -11,6 +11,14 @@
 //! tick (freezing disabled, so every tick pays for slow-feature learning),
 //! against the plain agent on the same observations.
 //!
+//! The `lstdq` group prices one full feature-basis evaluation (b = ΦᵀR,
+//! w = A⁻¹b, Q = Φw, the LSTDQ error and the greedy scan) on its own: the
+//! warmed-up 30-PVF maze agent's planner, fed its own R and a copy nudged in
+//! one entry in turn, so R changes on every update and the evaluation is
+//! never skipped (the greedy agent of `tick/three_room_pvf30` has stopped
+//! moving, so its R, and with it Q, stays the same bit for bit from tick to
+//! tick and the planner skips the evaluation).
+//!
 //! Run: `cargo bench --bench tick`.
 
 use std::hint::black_box;
@@ -20,10 +28,12 @@ use criterion::{Criterion, criterion_group, criterion_main};
 use mcapi_core::model::hallway;
 use mcapi_core::{
     Agent, AgentParams, Basis, BasisSpec, CuriosityParams, CuriousAgent, CuriousObservation,
-    Eq6Source, Observation, PlanningModel, Signals,
+    Eq6Source, Observation, Planner, PlanningModel, Signals,
 };
 use mcapi_experiments::paper::Simulation;
 use mcapi_experiments::{Experiment, ExperimentKind};
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
 
 const WARM_UP_TICKS: usize = 2000;
 
@@ -71,6 +81,35 @@ fn bench_tick(c: &mut Criterion) {
         let mut sim = simulation(exp, &basis, epsilon);
         group.bench_function(name, |b| b.iter(|| black_box(sim.tick().expect("tick"))));
     }
+    group.finish();
+}
+
+fn bench_evaluation(c: &mut Criterion) {
+    let maze = Experiment::new(ExperimentKind::ThreeRoom);
+    let sim = simulation(&maze, &BasisSpec::ProtoValue { k: 30 }, 0.0);
+    let agent = sim.agent();
+    let ctx = Arc::clone(agent.planning_model());
+    let mut planner = Planner::new(&ctx, agent.planner().policy().to_vec());
+    let r = agent.rewards().to_vec();
+    let mut nudged = r.clone();
+    nudged[0] *= 1.0 + 1e-9;
+    let inputs = [r, nudged];
+    let (gamma, ridge) = (agent.params().gamma, agent.params().ridge);
+    let mut rng = ChaCha8Rng::seed_from_u64(1);
+    let mut t = 0usize;
+    let mut update = move || {
+        t += 1;
+        planner
+            .update(&ctx, &inputs[t % 2], gamma, ridge, &mut rng)
+            .expect("update")
+    };
+    for _ in 0..10 {
+        update();
+    }
+    let mut group = c.benchmark_group("lstdq");
+    group.bench_function("three_room_pvf30_evaluation", |b| {
+        b.iter(|| black_box(update()))
+    });
     group.finish();
 }
 
@@ -142,5 +181,5 @@ fn bench_curiosity(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_tick, bench_curiosity);
+criterion_group!(benches, bench_tick, bench_evaluation, bench_curiosity);
 criterion_main!(benches);
