@@ -189,7 +189,7 @@ met() { awk -v x="$1" -v op="$2" -v t="$3" 'BEGIN {
 row() { printf '| %s | %s | %s | %s |\n' "$1" "$2" "$3" "$4"; }
 
 cat <<EOF
-Command: \`$([ "$QUICK" = 1 ] && echo "QUICK=1 ")MEMORY_SESSIONS=$MEMORY_SESSIONS benches/server.sh\`
+Command: \`$([ "$QUICK" = 1 ] && echo "QUICK=1 ")$([ "$MCAPI" != target/release/mcapi ] && echo "MCAPI=$MCAPI ")MEMORY_SESSIONS=$MEMORY_SESSIONS benches/server.sh\`
 (warm-up $WARMUP s + window $DURATION s per measurement), commit $COMMIT$DIRTY,
 $STARTED to $FINISHED, $(nproc) cores ($(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//')).
 Server on core $SERVER_CORE, \`mcapi loadgen --threads 1\` on core $LOADGEN_CORE; async hallway sessions.
