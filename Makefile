@@ -1,7 +1,7 @@
 # `make test` is what CI runs (.ci/run): formatting, lints, every test.
 CARGO ?= cargo
 
-.PHONY: test lint-docker check-links fmt-check clippy unit build release bench figures peers clean \
+.PHONY: test lint-docker check-links fmt-check clippy unit build release bench bench-server figures peers clean \
 	python-venv python-test e2e contract fuzz checks container-base container-test container-bench
 
 CHECKS := lint-docker check-links fmt-check clippy unit contract python-test e2e
@@ -128,6 +128,14 @@ container-bench: python-venv
 # the core stepped by the experiments' simulated world).
 bench:
 	$(CARGO) bench --bench tick
+
+# Every row of issue 15's table in one run (benches/server.sh): the server
+# pinned to core 0, the load generator to core 1, each target with its
+# measurement and ratio (BENCHMARKS.md §8). About 12 minutes; QUICK=1 for a
+# short run, MEMORY_SESSIONS=1000000 for the memory row at full size. Not
+# part of `make test`.
+bench-server: release
+	bash benches/server.sh
 
 # The numpy peer of the tick benchmark (creates its own venv).
 peers:

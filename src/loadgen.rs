@@ -21,8 +21,10 @@
 //!   connections; one observation in flight per stream.
 //! - **memory**: the server's resident memory (`VmRSS`) with 10,000 and
 //!   100,000 idle hallway sessions, after one observation each, and after
-//!   deleting them. Needs the server's pid (`--server-pid`, or found in
-//!   `/proc` when exactly one `mcapi serve` runs on this machine).
+//!   deleting them (at once and `--settle-secs` later); it reports KiB per
+//!   idle session and the RSS left after deleting them all. Needs the
+//!   server's pid (`--server-pid`, or found in `/proc` when exactly one
+//!   `mcapi serve` runs on this machine).
 //!
 //! Every closed-loop measurement runs for `--warmup-secs`, then counts the
 //! requests completed during the next `--duration-secs`; latencies are exact
@@ -32,7 +34,9 @@
 //! used by the server, the load generator and everything else on the
 //! machine during the window (`/proc`): the two share the machine's cores,
 //! so neither number means much without the other. Results go to stdout as
-//! Markdown tables; progress goes to stderr.
+//! Markdown tables (and, with `--json FILE`, to that file as one JSON
+//! document, for scripts such as `benches/server.sh`); progress goes to
+//! stderr.
 
 use std::collections::HashSet;
 use std::future::Future;
@@ -49,6 +53,7 @@ use hyper::header::{CONTENT_TYPE, HOST, HeaderValue};
 use hyper::{Method, Request, StatusCode};
 use hyper_util::rt::TokioIo;
 use serde::Deserialize;
+use serde_json::{Value, json};
 use tokio::net::TcpStream;
 use tokio::sync::mpsc;
 use tokio::task::JoinSet;
@@ -116,6 +121,14 @@ pub struct LoadgenArgs {
     /// Worker threads of the load generator's runtime (default: all cores).
     #[arg(long)]
     pub threads: Option<usize>,
+    /// Also write the results as one JSON document to this file (for
+    /// scripts: `benches/server.sh`).
+    #[arg(long)]
+    pub json: Option<std::path::PathBuf>,
+    /// The memory scenario reads RSS again this long after the last delete
+    /// (an allocator may give memory back to the system with a delay).
+    #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u64).range(0..=600))]
+    pub settle_secs: u64,
 }
 
 /// Which measurements to run.
@@ -200,14 +213,25 @@ async fn run_scenarios(args: LoadgenArgs) -> Result<()> {
         args.warmup_secs,
         args.duration_secs
     );
+    let mut report = serde_json::Map::new();
+    report.insert("cores".into(), json!(cores));
+    report.insert("warmup_secs".into(), json!(args.warmup_secs));
+    report.insert("duration_secs".into(), json!(args.duration_secs));
     if matches!(args.scenario, Scenario::Rest | Scenario::All) {
-        rest_scenario(&args, &http, server_pid).await?;
+        report.insert(
+            "rest".into(),
+            rest_scenario(&args, &http, server_pid).await?,
+        );
     }
     if matches!(args.scenario, Scenario::Grpc | Scenario::All) {
-        grpc_scenario(&args, server_pid).await?;
+        report.insert("grpc".into(), grpc_scenario(&args, server_pid).await?);
     }
     if let (true, Some(pid)) = (memory, server_pid) {
-        memory_scenario(&args, &http, pid).await?;
+        report.insert("memory".into(), memory_scenario(&args, &http, pid).await?);
+    }
+    if let Some(path) = &args.json {
+        let text = serde_json::to_string_pretty(&Value::Object(report))?;
+        std::fs::write(path, text + "\n").with_context(|| format!("writing {}", path.display()))?;
     }
     Ok(())
 }
@@ -315,6 +339,24 @@ struct Summary {
     first_error: Option<String>,
 }
 
+impl Summary {
+    /// The summary as JSON (latencies in µs).
+    fn json(&self) -> Value {
+        json!({
+            "rate": self.rate,
+            "p50_us": micros(self.p50),
+            "p99_us": micros(self.p99),
+            "max_us": micros(self.max),
+            "errors": self.errors,
+            "first_error": self.first_error,
+        })
+    }
+}
+
+fn micros(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e6
+}
+
 /// Clock ticks per second of `/proc` CPU times (`USER_HZ`, fixed at 100 on Linux).
 const USER_HZ: f64 = 100.0;
 
@@ -365,6 +407,34 @@ struct Window {
     handler: Option<(f64, f64)>,
     /// Open loop: how late the pacing thread released requests (p99, max).
     pacer_lag: Option<(Duration, Duration)>,
+}
+
+impl Window {
+    /// The window as JSON, with the server's CPU µs per request at `rate`.
+    fn json(&self, rate: f64) -> Value {
+        json!({
+            "cpu_server": self.cpu.server,
+            "cpu_loadgen": self.cpu.loadgen,
+            "cpu_other": self.cpu.other,
+            "server_cpu_us_per_request": server_us(self.cpu, rate),
+            "handler_p50_s": self.handler.and_then(|h| finite(h.0)),
+            "handler_p99_s": self.handler.and_then(|h| finite(h.1)),
+            "pacer_lag_p99_us": self.pacer_lag.map(|l| micros(l.0)),
+            "pacer_lag_max_us": self.pacer_lag.map(|l| micros(l.1)),
+        })
+    }
+}
+
+/// JSON has no infinity: a bound past the last bucket is `null`.
+fn finite(x: f64) -> Option<f64> {
+    x.is_finite().then_some(x)
+}
+
+/// Server CPU time per request, in µs.
+fn server_us(cpu: CpuUse, rate: f64) -> Option<f64> {
+    cpu.server
+        .filter(|_| rate > 0.0)
+        .map(|cores| cores / rate * 1e6)
 }
 
 /// Samples CPU time, and the server's latency histogram of `route` if
@@ -911,7 +981,7 @@ struct RestRow {
     paced: Option<(f64, Summary, Window)>,
 }
 
-async fn rest_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: Option<u32>) -> Result<()> {
+async fn rest_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: Option<u32>) -> Result<Value> {
     let mut rows = Vec::new();
     for &n in &args.sessions {
         ensure!(n > 0, "--sessions: counts must be at least 1");
@@ -976,7 +1046,26 @@ async fn rest_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: Option<u32>) 
         }
     }
     print_rest(&rows, args);
-    Ok(())
+    Ok(rows.iter().map(RestRow::json).collect())
+}
+
+impl RestRow {
+    fn json(&self) -> Value {
+        let ((h, hw), (o, ow)) = (&self.healthz, &self.observe);
+        json!({
+            "sessions": self.sessions,
+            "mode": self.mode.as_str(),
+            "connections": self.connections,
+            "healthz": { "summary": h.json(), "window": hw.json(h.rate) },
+            "observe": { "summary": o.json(), "window": ow.json(o.rate) },
+            "observe_over_healthz": (h.rate > 0.0).then(|| o.rate / h.rate),
+            "paced": self.paced.as_ref().map(|(target, s, w)| json!({
+                "target_rate": target,
+                "summary": s.json(),
+                "window": w.json(s.rate),
+            })),
+        })
+    }
 }
 
 fn print_rest(rows: &[RestRow], args: &LoadgenArgs) {
@@ -1105,7 +1194,7 @@ async fn grpc_worker(mut client: AgentsClient<Channel>, id: String, phase: Phase
     Ok(tally)
 }
 
-async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<()> {
+async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<Value> {
     let endpoint = Endpoint::from_shared(args.grpc.clone())?.tcp_nodelay(true);
     let mut channels = Vec::with_capacity(args.grpc_connections);
     for _ in 0..args.grpc_connections {
@@ -1172,7 +1261,18 @@ async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<()> {
          CPU: server / loadgen / other |"
     );
     println!("|---|---|---|---|---|");
+    let mut out = Vec::with_capacity(rows.len());
     for (mode, s, cpu) in rows {
+        out.push(json!({
+            "mode": mode.as_str(),
+            "streams": args.grpc_streams,
+            "connections": args.grpc_connections,
+            "summary": s.json(),
+            "cpu_server": cpu.server,
+            "cpu_loadgen": cpu.loadgen,
+            "cpu_other": cpu.other,
+            "server_cpu_us_per_observation": server_us(cpu, s.rate),
+        }));
         println!(
             "| {} | {} | {} / {} / {} | {} | {} |",
             mode.as_str(),
@@ -1185,7 +1285,7 @@ async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<()> {
         );
     }
     println!();
-    Ok(())
+    Ok(Value::Array(out))
 }
 
 // ------------------------------------------------------------------ memory
@@ -1210,10 +1310,14 @@ fn memory_of(pid: u32) -> Result<(u64, u64)> {
     Ok((field("VmRSS:")?, field("VmHWM:")?))
 }
 
-async fn memory_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: u32) -> Result<()> {
+async fn memory_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: u32) -> Result<Value> {
     let mut levels = args.memory_sessions.clone();
     levels.sort_unstable();
     levels.dedup();
+    ensure!(
+        levels.last().is_some_and(|&n| n > 0),
+        "--memory-sessions: give at least one count above 0"
+    );
     let (baseline, _) = memory_of(pid)?;
     let mut rows = vec![("before".to_string(), 0usize, baseline, None)];
     let mut ids: Vec<String> = Vec::new();
@@ -1226,17 +1330,38 @@ async fn memory_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: u32) -> Res
         rows.push(("idle".into(), ids.len(), rss, None));
     }
     let create_rate = ids.len() as f64 / started.elapsed().as_secs_f64();
+    let idle_rss = rows.last().map_or(baseline, |r| r.2);
     eprintln!("memory: one observation per session");
     let t = Instant::now();
     for_each_session(http, &ids, Method::POST, args.create_connections).await?;
     let observe_rate = ids.len() as f64 / t.elapsed().as_secs_f64();
-    let (rss, hwm) = memory_of(pid)?;
-    rows.push(("one observation each".into(), ids.len(), rss, Some(hwm)));
+    let (observed_rss, hwm) = memory_of(pid)?;
+    rows.push((
+        "one observation each".into(),
+        ids.len(),
+        observed_rss,
+        Some(hwm),
+    ));
     eprintln!("memory: deleting {} sessions", ids.len());
     for_each_session(http, &ids, Method::DELETE, args.create_connections).await?;
-    let (rss, hwm) = memory_of(pid)?;
-    rows.push(("all deleted".into(), 0, rss, Some(hwm)));
+    let (deleted_rss, hwm) = memory_of(pid)?;
+    rows.push(("all deleted".into(), 0, deleted_rss, Some(hwm)));
+    tokio::time::sleep(Duration::from_secs(args.settle_secs)).await;
+    let (settled_rss, hwm) = memory_of(pid)?;
+    rows.push((
+        format!("all deleted, {} s later", args.settle_secs),
+        0,
+        settled_rss,
+        Some(hwm),
+    ));
 
+    let n = ids.len();
+    let kib = |rss: u64| rss.saturating_sub(baseline) as f64 / n as f64 / 1024.0;
+    // How much of what the sessions took the server gave back.
+    let taken = observed_rss.max(idle_rss).saturating_sub(baseline);
+    let returned = |rss: u64| {
+        (taken > 0).then(|| observed_rss.max(idle_rss).saturating_sub(rss) as f64 / taken as f64)
+    };
     println!("## Memory: server VmRSS with idle hallway sessions\n");
     println!(
         "Sessions created over {} connections ({} sessions/s), then one first observation \
@@ -1247,24 +1372,56 @@ async fn memory_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: u32) -> Res
     );
     println!("| sessions | state | VmRSS | per session | VmHWM (peak) |");
     println!("|---|---|---|---|---|");
-    for (state, n, rss, hwm) in rows {
-        let per = if n > 0 {
+    for (state, n, rss, hwm) in &rows {
+        let per = if *n > 0 {
             format!(
                 "{:.1} KiB",
-                (rss.saturating_sub(baseline)) as f64 / n as f64 / 1024.0
+                (rss.saturating_sub(baseline)) as f64 / *n as f64 / 1024.0
             )
         } else {
             "—".into()
         };
         println!(
             "| {} | {state} | {} | {per} | {} |",
-            thousands(n as f64),
-            mib(rss),
+            thousands(*n as f64),
+            mib(*rss),
             hwm.map_or_else(|| "—".to_string(), mib)
         );
     }
-    println!();
-    Ok(())
+    let pct = |r: Option<f64>| r.map_or_else(|| "—".to_string(), |r| format!("{:.0}%", 100.0 * r));
+    println!(
+        "\n**{:.2} KiB per idle session** ({} sessions; {:.2} KiB after one observation each). \
+         **RSS after deleting them all: {}** ({} over the fresh server's {}; {} of what the \
+         sessions took returned at once, {} after {} s).\n",
+        kib(idle_rss),
+        thousands(n as f64),
+        kib(observed_rss),
+        mib(settled_rss),
+        mib(settled_rss.saturating_sub(baseline)),
+        mib(baseline),
+        pct(returned(deleted_rss)),
+        pct(returned(settled_rss)),
+        args.settle_secs,
+    );
+    Ok(json!({
+        "sessions": n,
+        "baseline_rss_bytes": baseline,
+        "idle_rss_bytes": idle_rss,
+        "observed_rss_bytes": observed_rss,
+        "deleted_rss_bytes": deleted_rss,
+        "settled_rss_bytes": settled_rss,
+        "settle_secs": args.settle_secs,
+        "peak_rss_bytes": hwm,
+        "kib_per_idle_session": kib(idle_rss),
+        "kib_per_observed_session": kib(observed_rss),
+        "returned_at_once": returned(deleted_rss),
+        "returned_after_settle": returned(settled_rss),
+        "create_rate": create_rate,
+        "observe_rate": observe_rate,
+        "levels": rows.iter().map(|(state, n, rss, hwm)| json!({
+            "state": state, "sessions": n, "rss_bytes": rss, "hwm_bytes": hwm,
+        })).collect::<Vec<_>>(),
+    }))
 }
 
 /// The pid of the one `mcapi serve` process on this machine, if there is one.
@@ -1328,10 +1485,7 @@ fn cores(c: CpuUse) -> String {
 
 /// Server CPU time per request, in µs.
 fn per_request(cpu: CpuUse, rate: f64) -> String {
-    match cpu.server {
-        Some(cores) if rate > 0.0 => format!("{:.0}", cores / rate * 1e6),
-        _ => "—".to_string(),
-    }
+    server_us(cpu, rate).map_or_else(|| "—".to_string(), |us| format!("{us:.1}"))
 }
 
 /// `≤ p50 / ≤ p99` from histogram bucket bounds.

@@ -7,6 +7,12 @@ use std::time::Instant;
 
 mod loadgen;
 
+/// mimalloc returns freed memory to the system (the default feature; see
+/// Cargo.toml and BENCHMARKS.md §8).
+#[cfg(feature = "mimalloc")]
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 use clap::{Args, Parser, Subcommand};
 use mcapi_experiments::curiosity;
 use mcapi_experiments::run::results_table;

@@ -125,12 +125,20 @@ impl From<&RingTick> for TickRecord {
 
 /// Appends a tick to a history ring of capacity `cap` (none kept at 0),
 /// dropping the oldest when full: the live and the replayed path.
+///
+/// The ring is lazy and sized by use: it allocates nothing until its first
+/// tick (an idle session pays nothing for it), then grows by doubling as a
+/// `VecDeque` does, but never past `cap` (`history: 300` keeps room for
+/// 300 ticks, not the 512 plain doubling would reserve).
 pub fn push_tick(ring: &mut VecDeque<RingTick>, cap: usize, tick: RingTick) {
     if cap == 0 {
         return;
     }
     if ring.len() >= cap {
         ring.pop_front();
+    } else if ring.len() == ring.capacity() {
+        let want = ring.capacity().saturating_mul(2).max(4).min(cap);
+        ring.reserve_exact(want - ring.len());
     }
     ring.push_back(tick);
 }
@@ -168,5 +176,38 @@ mod tests {
         let old = RingTick::new(7, 3, 2, &[0.6, 0.8], None, None, 0.25, 0.125, None);
         assert_eq!(old.entry().stimulus, None);
         assert_eq!(RingTick::from(&TickRecord::from(&old)), old);
+    }
+
+    #[test]
+    fn the_ring_is_lazy_and_never_reserves_past_its_length() {
+        let tick = |t: u64| RingTick::new(t, 0, 0, &[1.0], Some(&[0.0]), None, 0.0, 0.0, None);
+        let mut ring = VecDeque::new();
+        assert_eq!(
+            ring.capacity(),
+            0,
+            "nothing allocated before the first tick"
+        );
+        push_tick(&mut ring, 0, tick(0));
+        assert_eq!(ring.capacity(), 0, "history 0 keeps nothing");
+        push_tick(&mut ring, 300, tick(0));
+        assert!(ring.capacity() <= 4, "a first tick reserves a little");
+        for t in 1..1000 {
+            push_tick(&mut ring, 300, tick(t));
+            assert!(
+                ring.capacity() <= 300,
+                "capacity {} at tick {t}",
+                ring.capacity()
+            );
+        }
+        assert_eq!(ring.len(), 300);
+        assert_eq!(ring.front().map(|t| t.tick), Some(700));
+        assert_eq!(ring.back().map(|t| t.tick), Some(999));
+        // A short ring stays short.
+        let mut short = VecDeque::new();
+        for t in 0..10 {
+            push_tick(&mut short, 3, tick(t));
+        }
+        assert_eq!(short.len(), 3);
+        assert!(short.capacity() <= 3);
     }
 }

@@ -29,8 +29,8 @@ use super::table::SessionTable;
 use super::tick::{self, Job, TickPool};
 use super::values::{self, ValueSelection};
 use super::wire::{
-    CreateSession, CuriosityInfo, HistoryEntry, ObservationIn, SessionCost, SessionInfo,
-    SessionPage, SessionStats, SessionSummary, StepOut, Values,
+    CreateSession, CuriosityInfo, HistoryEntry, ModelSummary, ObservationIn, SessionCost,
+    SessionInfo, SessionPage, SessionStats, SessionSummary, StepOut, Values,
 };
 
 /// Number of virtual shards in session ids (fixed forever, docs/sessions.md).
@@ -629,7 +629,7 @@ fn info_of(session: &Session) -> SessionInfo {
         drive: agent.drive().vector().to_vec(),
         policy_version: agent.policy_version(),
         state: agent.state(),
-        model: session.model.clone(),
+        model: ModelSummary::clone(&session.model),
         agent: session.config.clone(),
         stats: SessionStats {
             lstdq_error: agent.last_plan().lstdq_error,

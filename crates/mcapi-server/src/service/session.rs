@@ -75,8 +75,8 @@ pub struct Session {
     pub id: String,
     /// Lockstep or async.
     pub mode: UpdateMode,
-    /// Model summary.
-    pub model: ModelSummary,
+    /// Model summary, shared by every session of the same model.
+    pub model: Arc<ModelSummary>,
     /// Effective configuration.
     pub config: EffectiveConfig,
     /// SHA-256 of the API key that created it, if keys were in force.
@@ -118,7 +118,12 @@ fn clock_ns() -> u64 {
 
 impl Session {
     /// Wraps a fresh learner.
-    pub fn new(id: String, learner: Learner, model: ModelSummary, config: EffectiveConfig) -> Self {
+    pub fn new(
+        id: String,
+        learner: Learner,
+        model: Arc<ModelSummary>,
+        config: EffectiveConfig,
+    ) -> Self {
         Self::resume(id, learner, model, config, None, Resumed::default())
     }
 
@@ -126,7 +131,7 @@ impl Session {
     pub fn resume(
         id: String,
         learner: Learner,
-        model: ModelSummary,
+        model: Arc<ModelSummary>,
         config: EffectiveConfig,
         durability: Option<Durability>,
         resumed: Resumed,

@@ -69,12 +69,29 @@ impl Drop for BuildSlot<'_> {
     }
 }
 
-/// What the model summaries of sessions sharing a planning model take from
-/// its one build: the basis chosen and the grid layout.
-#[derive(Debug, Clone)]
-struct Built {
+/// The model summary of every session sharing a planning model, built once
+/// with it and shared (interned) by them: its names, basis and grid layout
+/// are not copied into each session.
+type Built = Arc<ModelSummary>;
+
+/// The summary of a model as built: the basis chosen and the grid layout.
+fn summary_of(
+    ctx: &PlanningModel,
     basis: BasisSummary,
     layout: Option<GridLayout>,
+) -> ModelSummary {
+    let model = ctx.model();
+    ModelSummary {
+        states: model.states(),
+        actions: model.actions().to_vec(),
+        stimuli: model.stimuli().to_vec(),
+        pairs: model.n_pairs(),
+        transitions: model.n_transitions(),
+        deterministic: model.is_deterministic(),
+        basis,
+        features: ctx.n_features(),
+        layout,
+    }
 }
 
 /// SplitMix64, for seeds and shards.
@@ -140,26 +157,27 @@ impl Setup {
         if let Some((weak, built)) = self.models.lock().get(&key)
             && let Some(ctx) = weak.upgrade()
         {
-            return Ok((ctx, built.clone()));
+            return Ok((ctx, Arc::clone(built)));
         }
         // Built outside the lock (PVFs cost an eigendecomposition), a few at
         // a time.
         let _slot = self.builds.acquire()?;
         let (model, basis_spec) = input.build(limits, curious)?;
         let basis = Basis::build(&basis_spec, &model)?;
-        let built = Built {
-            basis: BasisSummary::of(&basis_spec),
-            layout: input.layout(),
-        };
         let ctx = Arc::new(PlanningModel::new(model, basis));
+        let built = Arc::new(summary_of(
+            &ctx,
+            BasisSummary::of(&basis_spec),
+            input.layout(),
+        ));
         let mut models = self.models.lock();
         models.retain(|_, (w, _)| w.strong_count() > 0);
         if let Some((weak, existing_built)) = models.get(&key)
             && let Some(existing) = weak.upgrade()
         {
-            return Ok((existing, existing_built.clone()));
+            return Ok((existing, Arc::clone(existing_built)));
         }
-        models.insert(key, (Arc::downgrade(&ctx), built.clone()));
+        models.insert(key, (Arc::downgrade(&ctx), Arc::clone(&built)));
         Ok((ctx, built))
     }
 
@@ -169,23 +187,13 @@ impl Setup {
         input: &ModelInput,
         agent: &SessionConfig,
         limits: &Limits,
-    ) -> Result<(Learner, ModelSummary, EffectiveConfig), ServiceError> {
+    ) -> Result<(Learner, Arc<ModelSummary>, EffectiveConfig), ServiceError> {
         limits.check_config(agent)?;
-        let (ctx, built) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
-        let model = ctx.model();
-        let params = agent.params().check(model.n_stimuli(), self.fresh_u64())?;
+        let (ctx, summary) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
+        let params = agent
+            .params()
+            .check(ctx.model().n_stimuli(), self.fresh_u64())?;
         let config = agent.effective(&params);
-        let summary = ModelSummary {
-            states: model.states(),
-            actions: model.actions().to_vec(),
-            stimuli: model.stimuli().to_vec(),
-            pairs: model.n_pairs(),
-            transitions: model.n_transitions(),
-            deterministic: model.is_deterministic(),
-            basis: built.basis,
-            features: ctx.n_features(),
-            layout: built.layout,
-        };
         let learner = match &agent.curiosity {
             None => Learner::Plain(Agent::new(ctx, params)),
             Some(c) => {
