@@ -4,6 +4,8 @@
 //! and metrics; with the body limit, the request timeout, the panic guard
 //! and the request metrics around them.
 
+use std::collections::HashMap;
+use std::sync::OnceLock;
 use std::time::Instant;
 
 use axum::Router;
@@ -11,6 +13,7 @@ use axum::extract::{DefaultBodyLimit, MatchedPath, Request};
 use axum::middleware::{self, Next};
 use axum::response::Response;
 use axum::routing::get;
+use parking_lot::RwLock;
 use utoipa_swagger_ui::SwaggerUi;
 
 use crate::api::error::ApiError;
@@ -72,24 +75,51 @@ fn method_label(method: &axum::http::Method) -> &'static str {
     }
 }
 
+/// Latency histograms by route, then by method and status, each resolved
+/// from the recorder once. Every label comes from a bounded set (the
+/// declared routes or `unmatched`, the eight methods of [`method_label`],
+/// status codes), so the map stays small; a request whose handle exists
+/// formats no label and does not touch the recorder's registry.
+type Histograms = HashMap<Box<str>, HashMap<(&'static str, u16), metrics::Histogram>>;
+
+fn histograms() -> &'static RwLock<Histograms> {
+    static HISTOGRAMS: OnceLock<RwLock<Histograms>> = OnceLock::new();
+    HISTOGRAMS.get_or_init(RwLock::default)
+}
+
+/// The latency histogram of one label set.
+fn request_histogram(method: &'static str, route: &str, status: u16) -> metrics::Histogram {
+    if let Some(h) = histograms()
+        .read()
+        .get(route)
+        .and_then(|by| by.get(&(method, status)))
+    {
+        return h.clone();
+    }
+    let h = metrics::histogram!(
+        "mcapi_http_request_duration_seconds",
+        "method" => method,
+        "route" => route.to_string(),
+        "status" => status.to_string()
+    );
+    histograms()
+        .write()
+        .entry(route.into())
+        .or_default()
+        .insert((method, status), h.clone());
+    h
+}
+
 /// Request latency by method, route and status, every label from a bounded
 /// set: the method from [`method_label`], the route as declared (or
 /// `unmatched`), the status code.
 async fn record_request(req: Request, next: Next) -> Response {
     let started = Instant::now();
-    let route = req
-        .extensions()
-        .get::<MatchedPath>()
-        .map_or_else(|| "unmatched".to_string(), |p| p.as_str().to_string());
+    let route = req.extensions().get::<MatchedPath>().cloned();
     let method = method_label(req.method());
     let response = next.run(req).await;
-    let status = response.status().as_u16().to_string();
-    metrics::histogram!(
-        "mcapi_http_request_duration_seconds",
-        "method" => method,
-        "route" => route,
-        "status" => status
-    )
-    .record(started.elapsed().as_secs_f64());
+    let route = route.as_ref().map_or("unmatched", MatchedPath::as_str);
+    request_histogram(method, route, response.status().as_u16())
+        .record(started.elapsed().as_secs_f64());
     response
 }
