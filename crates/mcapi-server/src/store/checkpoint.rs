@@ -30,18 +30,12 @@ use redb::Database;
 
 use super::db::{self, DbFailure};
 use super::wal;
-use super::{Shared, StoreError, Write};
+use super::{MAX_BACKOFF, MIN_BACKOFF, Shared, StoreError, Write};
 
 /// Longest a durable frame waits before it is applied to redb.
 pub const CHECKPOINT_INTERVAL: Duration = Duration::from_millis(500);
 /// Bytes of waiting writes that make a checkpoint due at once.
 const CHECKPOINT_BYTES: usize = 32 << 20;
-/// First wait before reopening the database after a storage fault; doubled
-/// after every failed attempt up to [`MAX_BACKOFF`], reset by a successful
-/// checkpoint.
-const MIN_BACKOFF: Duration = Duration::from_millis(50);
-/// Longest wait between two reopening attempts.
-const MAX_BACKOFF: Duration = Duration::from_secs(1);
 /// How long a reopen waits for readers to let go of the failed handle
 /// (redb holds the file lock until the last one is dropped).
 const RELEASE_WAIT: Duration = Duration::from_secs(2);

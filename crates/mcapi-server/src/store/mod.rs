@@ -69,10 +69,11 @@ pub const OS_SYNC_INTERVAL: Duration = Duration::from_millis(5);
 /// Most writes folded into one group.
 const MAX_GROUP: usize = 8192;
 
-/// First wait before repairing the log after a storage fault; doubled
-/// after every failed attempt up to [`MAX_BACKOFF`], reset by a success.
+/// First wait before repairing the log or reopening the database after a
+/// storage fault; doubled after every failed attempt up to [`MAX_BACKOFF`],
+/// reset by a success.
 const MIN_BACKOFF: Duration = Duration::from_millis(50);
-/// Longest wait between two repair attempts.
+/// Longest wait between two repair or reopening attempts.
 const MAX_BACKOFF: Duration = Duration::from_secs(1);
 /// The probe file's name in the data directory (written and removed).
 const PROBE_FILE: &str = "probe.tmp";
