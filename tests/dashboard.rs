@@ -26,6 +26,7 @@ async fn start(keys: &[&str]) -> String {
     let state = AppState {
         manager,
         metrics: None,
+        serving: None,
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
         .await

@@ -108,6 +108,7 @@ fn env() -> &'static Env {
         let rest = router(AppState {
             manager: Arc::clone(&manager),
             metrics: None,
+            serving: None,
         });
         let mut sessions = Vec::new();
         for (body, stimuli, signal) in [

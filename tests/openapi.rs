@@ -302,6 +302,7 @@ fn app() -> axum::Router {
     router(AppState {
         manager,
         metrics: None,
+        serving: None,
     })
 }
 

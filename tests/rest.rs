@@ -21,6 +21,7 @@ async fn start(limits: Limits) -> Server {
     let state = AppState {
         manager: Arc::clone(&manager),
         metrics: mcapi_server::telemetry::prometheus(),
+        serving: None,
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
         .await

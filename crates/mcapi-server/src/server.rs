@@ -15,8 +15,8 @@ use tokio::net::TcpListener;
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
-use crate::api::conn::{RequestTimeout, serve_http};
-use crate::api::dashboard::Stopping;
+use crate::api::conn::serve_http;
+use crate::api::extract::Serving;
 use crate::api::grpc::GrpcOptions;
 use crate::api::streams::StreamLimiter;
 use crate::api::{AppState, router};
@@ -61,19 +61,19 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
         .with_context(|| format!("binding the gRPC port {}", cfg.grpc))?;
     let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
     let (stop, stop_rx) = watch::channel(false);
-    let state = AppState {
-        manager: Arc::clone(&manager),
-        metrics: telemetry::prometheus(),
-    };
     let limits = cfg.conn_limits();
     limits.warn_on_fd_limit();
     // One budget of watch streams per caller for both transports.
     let streams = StreamLimiter::new(limits.max_streams_per_key);
-    let app = router(state)
-        // Ends the dashboard's event streams at shutdown.
-        .layer(axum::Extension(Stopping(stop_rx.clone())))
-        .layer(axum::Extension(Arc::clone(&streams)))
-        .layer(axum::Extension(RequestTimeout(limits.request_timeout())));
+    let app = router(AppState {
+        manager: Arc::clone(&manager),
+        metrics: telemetry::prometheus(),
+        serving: Some(Serving {
+            stopping: stop_rx.clone(),
+            streams: Arc::clone(&streams),
+            request_timeout: limits.request_timeout(),
+        }),
+    });
     let rest_task = tokio::spawn({
         let rx = stop_rx.clone();
         let limits = limits.clone();

@@ -28,8 +28,7 @@ use std::time::Duration;
 
 use axum::Router;
 use axum::extract::{ConnectInfo, Request};
-use axum::middleware::Next;
-use axum::response::{IntoResponse, Response};
+use axum::response::IntoResponse;
 use hyper_util::rt::{TokioIo, TokioTimer};
 use hyper_util::server::graceful::GracefulShutdown;
 use hyper_util::service::TowerToHyperService;
@@ -517,30 +516,6 @@ impl<T: AsyncWrite + Unpin> AsyncWrite for SendTimeout<T> {
 
     fn is_write_vectored(&self) -> bool {
         self.inner.is_write_vectored()
-    }
-}
-
-/// The request timeout of REST requests, installed by `mcapi serve` as a
-/// router extension; [`request_timeout`] applies it.
-#[derive(Debug, Clone, Copy)]
-pub struct RequestTimeout(pub Duration);
-
-/// Middleware: a request not answered within the [`RequestTimeout`] (body
-/// read included) gets 503 `request_timeout`. Only the response head is
-/// timed, so an open event stream is not cut. Without the extension, no
-/// timeout.
-pub async fn request_timeout(req: Request, next: Next) -> Response {
-    let Some(RequestTimeout(limit)) = req.extensions().get::<RequestTimeout>().copied() else {
-        return next.run(req).await;
-    };
-    match tokio::time::timeout(limit, next.run(req)).await {
-        Ok(response) => response,
-        Err(_) => ApiError(ServiceError::RequestTimeout(format!(
-            "the request was not answered within {} ms (the server's request timeout); \
-             it may or may not have taken effect",
-            limit.as_millis()
-        )))
-        .into_response(),
     }
 }
 

@@ -31,14 +31,13 @@ use axum::routing::get;
 use axum::{Extension, Router};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
-use tokio::sync::{mpsc, watch};
+use tokio::sync::mpsc;
 use tokio::time::MissedTickBehavior;
 use tokio_stream::wrappers::ReceiverStream;
 use tracing::Instrument;
 
 use crate::api::error::{ApiError, ErrorBody, classify, public_message};
 use crate::api::extract::{AppState, Auth, query};
-use crate::api::streams::StreamLimiter;
 use crate::service::{Caller, HistoryEntry, ServiceError, SessionManager, ValueSelection};
 
 /// Default polling interval of the events stream.
@@ -118,13 +117,6 @@ static ETAGS: LazyLock<Vec<HeaderValue>> = LazyLock::new(|| {
         })
         .collect()
 });
-
-/// Ends open event streams when the server shuts down (a graceful shutdown
-/// waits for in-flight responses, and an event stream never finishes by
-/// itself). Installed by `mcapi serve` as a router [`Extension`]; without
-/// it, streams end when their client leaves or their session is deleted.
-#[derive(Debug, Clone)]
-pub struct Stopping(pub watch::Receiver<bool>);
 
 /// The page's routes (`/` and `/assets/*`) and the events stream
 /// (`/v1/sessions/{id}/events`), merged into the REST router.
@@ -235,8 +227,6 @@ pub async fn events(
     Auth(caller): Auth,
     Path(id): Path<String>,
     q: Result<Query<EventsQuery>, QueryRejection>,
-    stopping: Option<Extension<Stopping>>,
-    streams: Option<Extension<Arc<StreamLimiter>>>,
     peer: Option<Extension<ConnectInfo<SocketAddr>>>,
 ) -> Result<Response, ApiError> {
     let interval = query(q)?.interval()?;
@@ -250,13 +240,14 @@ pub async fn events(
     };
     let first = json_event("session", &first)?;
     // Held by the stream's task: given back when the stream ends.
-    let slot = match streams {
-        Some(Extension(streams)) => {
+    let slot = match &state.serving {
+        Some(serving) => {
             let peer = peer.map(|Extension(ConnectInfo(addr))| addr.ip());
-            Some(streams.acquire(caller, peer)?)
+            Some(serving.streams.acquire(caller, peer)?)
         }
         None => None,
     };
+    let stopping = state.serving.as_ref().map(|s| s.stopping.clone());
     let (tx, rx) = mpsc::channel(STREAM_BUFFER);
     let manager = Arc::clone(&state.manager);
     let span = tracing::debug_span!("events", session = %id);
@@ -264,7 +255,7 @@ pub async fn events(
         async move {
             let stopped = async {
                 match stopping {
-                    Some(Extension(Stopping(mut rx))) => {
+                    Some(mut rx) => {
                         let _ = rx.wait_for(|stop| *stop).await;
                     }
                     None => std::future::pending().await,

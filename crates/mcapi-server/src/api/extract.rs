@@ -5,6 +5,7 @@
 //! string ([`query`]), each rejection a `{"code","message"}` error.
 
 use std::sync::Arc;
+use std::time::Duration;
 
 use axum::Json;
 use axum::extract::rejection::{JsonRejection, QueryRejection};
@@ -13,8 +14,10 @@ use axum::http::StatusCode;
 use axum::http::request::Parts;
 use metrics_exporter_prometheus::PrometheusHandle;
 use serde_json::Value;
+use tokio::sync::watch;
 
 use crate::api::error::ApiError;
+use crate::api::streams::StreamLimiter;
 use crate::service::{Caller, CreateSession, ServiceError, SessionManager};
 
 /// Shared state of the handlers.
@@ -24,6 +27,24 @@ pub struct AppState {
     pub manager: Arc<SessionManager>,
     /// Renders `/metrics`.
     pub metrics: Option<PrometheusHandle>,
+    /// What `mcapi serve` adds around the routes; `None` (no request
+    /// timeout, no stream budget, streams end only with their client or
+    /// session) where tests mount the router by itself.
+    pub serving: Option<Serving>,
+}
+
+/// The server's side of the REST routes.
+#[derive(Clone)]
+pub struct Serving {
+    /// Turns true when the server shuts down: open event streams end (a
+    /// graceful shutdown waits for in-flight responses, and an event
+    /// stream never finishes by itself).
+    pub stopping: watch::Receiver<bool>,
+    /// The watch streams per caller, shared with gRPC.
+    pub streams: Arc<StreamLimiter>,
+    /// A request not answered within this (body read included) gets 503
+    /// `request_timeout`.
+    pub request_timeout: Duration,
 }
 
 /// The caller of a request, from its `Authorization` header (see

@@ -6,11 +6,12 @@ pub mod dashboard;
 pub mod error;
 pub mod extract;
 pub mod grpc;
+pub mod observe_body;
 pub mod openapi;
 pub mod rest;
 pub mod router;
 pub mod schemas;
 pub mod streams;
 
-pub use extract::AppState;
+pub use extract::{AppState, Serving};
 pub use router::router;

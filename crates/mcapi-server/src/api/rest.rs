@@ -15,16 +15,14 @@ use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
 
 use crate::api::error::ApiError;
-use crate::api::extract::{
-    AppState, Auth, JsonBody, JsonValue, OBSERVE_OBJECTS, query, require_objects,
-};
+use crate::api::extract::{AppState, Auth, JsonBody, query};
+use crate::api::observe_body::ObserveBody;
 use crate::api::schemas::{
     BadRequest, InternalError, NotFound, ObserveBatchReply, ObserveReply, ObserveRequest,
     PayloadTooLarge, TooManyRequests, Unauthorized, Unavailable,
 };
 use crate::service::{
-    CreateSession, HistoryEntry, ObservationIn, ServiceError, SessionInfo, SessionPage,
-    ValueSelection, Values,
+    CreateSession, HistoryEntry, ServiceError, SessionInfo, SessionPage, ValueSelection, Values,
 };
 
 /// Liveness
@@ -192,14 +190,6 @@ pub(crate) async fn delete_session(
     Ok(StatusCode::NO_CONTENT)
 }
 
-/// A batch of observations, replayed in order (its schema:
-/// [`crate::api::schemas::request_schemas`]).
-#[derive(Debug, Deserialize)]
-#[serde(deny_unknown_fields)]
-struct ObserveBatch {
-    observations: Vec<ObservationIn>,
-}
-
 /// Observe
 ///
 /// Report an observation (or a batch under `observations`) and get the next
@@ -221,26 +211,20 @@ pub(crate) async fn observe(
     State(state): State<AppState>,
     Auth(caller): Auth,
     Path(id): Path<String>,
-    JsonValue(body): JsonValue,
+    body: ObserveBody,
 ) -> Result<Response, ApiError> {
-    require_objects(&body, OBSERVE_OBJECTS)?;
-    let batch = body.get("observations").is_some();
-    let parse_err = |e: serde_json::Error| {
-        ApiError(ServiceError::BadRequest(format!(
-            "malformed observation: {e}"
-        )))
-    };
-    if batch {
-        let ObserveBatch { observations } = serde_json::from_value(body).map_err(parse_err)?;
-        let steps = state.manager.observe(caller, &id, observations).await?;
-        Ok(Json(ObserveReply::Batch(ObserveBatchReply { steps })).into_response())
-    } else {
-        let obs: ObservationIn = serde_json::from_value(body).map_err(parse_err)?;
-        let mut steps = state.manager.observe(caller, &id, vec![obs]).await?;
-        let step = steps
-            .pop()
-            .ok_or_else(|| ServiceError::Internal("no step for an observation".into()))?;
-        Ok(Json(ObserveReply::Step(step)).into_response())
+    match body {
+        ObserveBody::Batch(observations) => {
+            let steps = state.manager.observe(caller, &id, observations).await?;
+            Ok(Json(ObserveReply::Batch(ObserveBatchReply { steps })).into_response())
+        }
+        ObserveBody::One(obs) => {
+            let mut steps = state.manager.observe(caller, &id, vec![obs]).await?;
+            let step = steps
+                .pop()
+                .ok_or_else(|| ServiceError::Internal("no step for an observation".into()))?;
+            Ok(Json(ObserveReply::Step(step)).into_response())
+        }
     }
 }
 

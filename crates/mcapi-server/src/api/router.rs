@@ -5,15 +5,19 @@
 //! and the request metrics around them.
 
 use std::collections::HashMap;
+use std::convert::Infallible;
+use std::future::Future;
+use std::pin::Pin;
 use std::sync::OnceLock;
-use std::time::Instant;
+use std::task::{Context, Poll};
+use std::time::{Duration, Instant};
 
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, MatchedPath, Request};
-use axum::middleware::{self, Next};
-use axum::response::Response;
-use axum::routing::get;
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
 use parking_lot::RwLock;
+use tower::{Layer, Service, ServiceBuilder};
 use utoipa_swagger_ui::SwaggerUi;
 
 use crate::api::error::ApiError;
@@ -27,16 +31,28 @@ use crate::api::{conn, dashboard};
 use crate::service::ServiceError;
 
 /// The REST router with every route, limits and metrics middleware.
+///
+/// Each route gets one layer, [`Edge`] over the panic guard and the body
+/// limit, composed without boxing: axum boxes a route once per
+/// `Router::layer` call and clones every box on every request, so the
+/// middleware is stacked first and installed with a single call.
 pub fn router(state: AppState) -> Router {
     let body_limit = state.manager.limits().max_body_bytes;
-    let v1 = Router::new()
-        .route("/sessions", get(list_sessions).post(create_session))
-        .route("/sessions/{id}", get(get_session).delete(delete_session))
-        .route("/sessions/{id}/observations", axum::routing::post(observe))
-        .route("/sessions/{id}/values", get(values))
-        .route("/sessions/{id}/history", get(history));
+    let timeout = state.serving.as_ref().map(|s| s.request_timeout);
+    let per_route = ServiceBuilder::new()
+        .layer(EdgeLayer { timeout })
+        // A panicking handler answers 500 `internal`, and is recorded.
+        .layer(conn::rest_panic_layer())
+        .layer(DefaultBodyLimit::max(body_limit))
+        .into_inner();
     Router::new()
-        .nest("/v1", v1)
+        // Full paths, not `nest("/v1", ...)`: a nested router rewrites the
+        // URI of every request it serves.
+        .route("/v1/sessions", get(list_sessions).post(create_session))
+        .route("/v1/sessions/{id}", get(get_session).delete(delete_session))
+        .route("/v1/sessions/{id}/observations", post(observe))
+        .route("/v1/sessions/{id}/values", get(values))
+        .route("/v1/sessions/{id}/history", get(history))
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics_text))
@@ -44,12 +60,7 @@ pub fn router(state: AppState) -> Router {
         .merge(SwaggerUi::new("/docs").url("/v1/openapi.json", document(state.manager.limits())))
         .merge(dashboard::routes()) // the page at `/` and the events stream
         .fallback(not_found)
-        .layer(DefaultBodyLimit::max(body_limit))
-        // `mcapi serve` sets the timeout (`conn::RequestTimeout`).
-        .layer(middleware::from_fn(conn::request_timeout))
-        // A panicking handler answers 500 `internal`, and is recorded.
-        .layer(conn::rest_panic_layer())
-        .layer(middleware::from_fn(record_request))
+        .layer(per_route)
         .with_state(state)
 }
 
@@ -110,16 +121,72 @@ fn request_histogram(method: &'static str, route: &str, status: u16) -> metrics:
     h
 }
 
-/// Request latency by method, route and status, every label from a bounded
-/// set: the method from [`method_label`], the route as declared (or
-/// `unmatched`), the status code.
-async fn record_request(req: Request, next: Next) -> Response {
-    let started = Instant::now();
-    let route = req.extensions().get::<MatchedPath>().cloned();
-    let method = method_label(req.method());
-    let response = next.run(req).await;
-    let route = route.as_ref().map_or("unmatched", MatchedPath::as_str);
-    request_histogram(method, route, response.status().as_u16())
-        .record(started.elapsed().as_secs_f64());
-    response
+/// The edge of every route: request latency by method, route and status
+/// (every label from a bounded set: the method from [`method_label`], the
+/// route as declared or `unmatched`, the status code), and the request
+/// timeout of `mcapi serve`: a request not answered within it (body read
+/// included) gets 503 `request_timeout`. Only the response head is timed,
+/// so an open event stream is not cut.
+#[derive(Debug, Clone, Copy)]
+struct EdgeLayer {
+    timeout: Option<Duration>,
+}
+
+impl<S> Layer<S> for EdgeLayer {
+    type Service = Edge<S>;
+
+    fn layer(&self, inner: S) -> Edge<S> {
+        Edge {
+            inner,
+            timeout: self.timeout,
+        }
+    }
+}
+
+/// See [`EdgeLayer`].
+#[derive(Debug, Clone)]
+struct Edge<S> {
+    inner: S,
+    timeout: Option<Duration>,
+}
+
+impl<S> Service<Request> for Edge<S>
+where
+    S: Service<Request, Error = Infallible>,
+    S::Response: IntoResponse,
+    S::Future: Send + 'static,
+{
+    type Response = Response;
+    type Error = Infallible;
+    type Future = Pin<Box<dyn Future<Output = Result<Response, Infallible>> + Send>>;
+
+    fn poll_ready(&mut self, cx: &mut Context<'_>) -> Poll<Result<(), Infallible>> {
+        self.inner.poll_ready(cx)
+    }
+
+    fn call(&mut self, req: Request) -> Self::Future {
+        let started = Instant::now();
+        let route = req.extensions().get::<MatchedPath>().cloned();
+        let method = method_label(req.method());
+        let timeout = self.timeout;
+        let answer = self.inner.call(req);
+        Box::pin(async move {
+            let response = match timeout {
+                None => answer.await?.into_response(),
+                Some(limit) => match tokio::time::timeout(limit, answer).await {
+                    Ok(response) => response?.into_response(),
+                    Err(_) => ApiError(ServiceError::RequestTimeout(format!(
+                        "the request was not answered within {} ms (the server's request \
+                         timeout); it may or may not have taken effect",
+                        limit.as_millis()
+                    )))
+                    .into_response(),
+                },
+            };
+            let route = route.as_ref().map_or("unmatched", MatchedPath::as_str);
+            request_histogram(method, route, response.status().as_u16())
+                .record(started.elapsed().as_secs_f64());
+            Ok(response)
+        })
+    }
 }

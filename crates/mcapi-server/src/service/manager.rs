@@ -503,7 +503,9 @@ impl SessionManager {
             UpdateMode::Lockstep if inline => {
                 let started = Instant::now();
                 let observed = session.observe(&batch, true);
-                metrics::histogram!("mcapi_tick_seconds").record(started.elapsed().as_secs_f64());
+                tick::meters()
+                    .tick_seconds
+                    .record(started.elapsed().as_secs_f64());
                 if let Err(e @ ServiceError::Algo(mcapi_core::AlgoError::Numerical(_))) =
                     &observed.result
                 {
@@ -545,7 +547,8 @@ impl SessionManager {
                 if inline && observed.result.is_ok() {
                     let started = Instant::now();
                     match session.plan_if_needed() {
-                        Ok(true) => metrics::histogram!("mcapi_tick_seconds")
+                        Ok(true) => tick::meters()
+                            .tick_seconds
                             .record(started.elapsed().as_secs_f64()),
                         Ok(false) => {}
                         Err(e) => tick::log_plan_error(&session, &e),
@@ -559,7 +562,7 @@ impl SessionManager {
                 observed.durable().await?
             }
         };
-        metrics::counter!("mcapi_observations_total").increment(n);
+        tick::meters().observations.increment(n);
         Ok(out)
     }
 

@@ -13,7 +13,7 @@
 //! about a tenth of a core under light load on a 2-core machine).
 
 use std::collections::VecDeque;
-use std::sync::Arc;
+use std::sync::{Arc, OnceLock};
 use std::thread::JoinHandle;
 use std::time::Instant;
 
@@ -103,7 +103,7 @@ impl TickPool {
         let n = q.jobs.len() + q.running;
         drop(q);
         self.shared.ready.notify_one();
-        metrics::gauge!("mcapi_tick_queue_length").set(n as f64);
+        meters().queue_length.set(n as f64);
         Ok(())
     }
 
@@ -152,11 +152,32 @@ fn worker(shared: &Shared) {
         q.running -= 1;
         let n = q.jobs.len() + q.running;
         drop(q);
-        metrics::gauge!("mcapi_tick_queue_length").set(n as f64);
+        meters().queue_length.set(n as f64);
     }
 }
 
 /// Runs one job on the calling thread.
+/// The meters of the tick path, each resolved from the metrics recorder
+/// once, at first use (by then `mcapi serve` has installed it): recording
+/// then costs no registry lookup.
+pub(super) struct Meters {
+    /// `mcapi_tick_seconds`: one LSTDQ update or observation, as run.
+    pub tick_seconds: metrics::Histogram,
+    /// `mcapi_tick_queue_length`: jobs queued or running.
+    pub queue_length: metrics::Gauge,
+    /// `mcapi_observations_total`.
+    pub observations: metrics::Counter,
+}
+
+pub(super) fn meters() -> &'static Meters {
+    static METERS: OnceLock<Meters> = OnceLock::new();
+    METERS.get_or_init(|| Meters {
+        tick_seconds: metrics::histogram!("mcapi_tick_seconds"),
+        queue_length: metrics::gauge!("mcapi_tick_queue_length"),
+        observations: metrics::counter!("mcapi_observations_total"),
+    })
+}
+
 fn run(job: Job) {
     let started = Instant::now();
     match job {
@@ -180,7 +201,9 @@ fn run(job: Job) {
             let _ = reply.send(result);
         }
     }
-    metrics::histogram!("mcapi_tick_seconds").record(started.elapsed().as_secs_f64());
+    meters()
+        .tick_seconds
+        .record(started.elapsed().as_secs_f64());
 }
 
 /// Logs a failed policy update.
