@@ -30,7 +30,7 @@ use redb::Database;
 
 use super::db::{self, DbFailure};
 use super::wal;
-use super::{MAX_BACKOFF, MIN_BACKOFF, Shared, StoreError, Write};
+use super::{Retry, Shared, StoreError, Write};
 
 /// Longest a durable frame waits before it is applied to redb.
 pub const CHECKPOINT_INTERVAL: Duration = Duration::from_millis(500);
@@ -64,9 +64,7 @@ pub(super) struct Checkpointer {
     /// When the oldest waiting write arrived.
     oldest: Option<Instant>,
     /// While the database is down: when to try reopening next.
-    retry_at: Option<Instant>,
-    /// The wait before the next attempt.
-    backoff: Duration,
+    retry: Retry,
 }
 
 impl Checkpointer {
@@ -79,17 +77,19 @@ impl Checkpointer {
             waiting_bytes: 0,
             newest: applied,
             oldest: None,
-            retry_at: None,
-            backoff: MIN_BACKOFF,
+            retry: Retry::new(),
         }
     }
 
     pub(super) fn run(mut self, rx: &Receiver<ToCheckpoint>) {
         loop {
-            let due = [self.oldest.map(|t| t + CHECKPOINT_INTERVAL), self.retry_at]
-                .into_iter()
-                .flatten()
-                .min();
+            let due = [
+                self.oldest.map(|t| t + CHECKPOINT_INTERVAL),
+                self.retry.at(),
+            ]
+            .into_iter()
+            .flatten()
+            .min();
             let msg = match due {
                 None => rx.recv().map_err(|_| RecvTimeoutError::Disconnected),
                 Some(at) => rx.recv_timeout(at.saturating_duration_since(Instant::now())),
@@ -116,7 +116,7 @@ impl Checkpointer {
                     }
                 }
                 Err(RecvTimeoutError::Timeout) => {
-                    if self.retry_at.is_some_and(|at| Instant::now() >= at) {
+                    if self.retry.is_due(Instant::now()) {
                         self.try_reopen();
                     }
                     if self
@@ -149,11 +149,11 @@ impl Checkpointer {
         if self.waiting.is_empty() {
             return Ok(());
         }
-        if self.retry_at.is_some_and(|at| Instant::now() >= at) {
+        if self.retry.is_due(Instant::now()) {
             self.try_reopen();
         }
         let db = match self.shared.db() {
-            Ok(db) if self.retry_at.is_none() => db,
+            Ok(db) if !self.retry.is_scheduled() => db,
             Ok(_) | Err(_) => {
                 return Err(self.shared.db().err().unwrap_or_else(|| {
                     StoreError::Unavailable("the database is being reopened".into())
@@ -171,7 +171,7 @@ impl Checkpointer {
                 self.waiting.clear();
                 self.waiting_bytes = 0;
                 self.oldest = None;
-                self.backoff = MIN_BACKOFF;
+                self.retry.worked();
                 self.shared.applied.store(self.newest, Ordering::Release);
                 metrics::histogram!("mcapi_store_checkpoint_writes").record(writes as f64);
                 self.remove_segments(self.newest);
@@ -228,10 +228,7 @@ impl Checkpointer {
                 self.release(db);
             }
         }
-        if self.retry_at.is_none() {
-            self.retry_at = Some(Instant::now() + self.backoff);
-            self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
-        }
+        self.retry.went_down();
     }
 
     /// Closes a handle once the readers still holding it are done (redb
@@ -284,7 +281,7 @@ impl Checkpointer {
                     *self.shared.db.write() = Some(Arc::new(db));
                     metrics::counter!("mcapi_store_reopens_total").increment(1);
                 }
-                self.retry_at = None;
+                self.retry.cleared();
                 self.shared.clear_fault(&self.shared.db_fault);
                 tracing::info!(
                     part = "database",
@@ -298,9 +295,8 @@ impl Checkpointer {
             }
             Err(e) => {
                 self.shared.set_fault(&self.shared.db_fault, &e.to_string());
-                self.retry_at = Some(Instant::now() + self.backoff);
-                tracing::warn!(part = "database", error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store cannot be reopened yet");
-                self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
+                let wait = self.retry.attempt_failed();
+                tracing::warn!(part = "database", error = %e, retry_in_ms = wait.as_millis() as u64, "the store cannot be reopened yet");
             }
         }
     }

@@ -75,6 +75,65 @@ const MAX_GROUP: usize = 8192;
 const MIN_BACKOFF: Duration = Duration::from_millis(50);
 /// Longest wait between two repair or reopening attempts.
 const MAX_BACKOFF: Duration = Duration::from_secs(1);
+
+/// When a failed part of the store (the log, the database) is tried again:
+/// [`MIN_BACKOFF`] after the first failure, twice as long after every
+/// failed attempt up to [`MAX_BACKOFF`], back to the start once the part
+/// has done its work again.
+#[derive(Debug)]
+struct Retry {
+    /// When to try next, while the part is down.
+    at: Option<Instant>,
+    /// The wait after the next failed attempt.
+    backoff: Duration,
+}
+
+impl Retry {
+    fn new() -> Self {
+        Self {
+            at: None,
+            backoff: MIN_BACKOFF,
+        }
+    }
+
+    /// When the next attempt is due, while the part is down.
+    fn at(&self) -> Option<Instant> {
+        self.at
+    }
+
+    fn is_due(&self, now: Instant) -> bool {
+        self.at.is_some_and(|at| now >= at)
+    }
+
+    fn is_scheduled(&self) -> bool {
+        self.at.is_some()
+    }
+
+    /// The part went down: an attempt is scheduled unless one already is.
+    fn went_down(&mut self) {
+        if self.at.is_none() {
+            self.attempt_failed();
+        }
+    }
+
+    /// An attempt failed: the next one is scheduled; the wait until it.
+    fn attempt_failed(&mut self) -> Duration {
+        let wait = self.backoff;
+        self.at = Some(Instant::now() + wait);
+        self.backoff = (wait * 2).min(MAX_BACKOFF);
+        wait
+    }
+
+    /// The part is up again (the backoff stays until [`Self::worked`]).
+    fn cleared(&mut self) {
+        self.at = None;
+    }
+
+    /// The part did its work: the next failure waits [`MIN_BACKOFF`].
+    fn worked(&mut self) {
+        self.backoff = MIN_BACKOFF;
+    }
+}
 /// The probe file's name in the data directory (written and removed).
 const PROBE_FILE: &str = "probe.tmp";
 
@@ -369,8 +428,7 @@ impl Store {
             durability,
             shared: Arc::clone(&shared),
             checkpoint: checkpoint_tx.clone(),
-            retry_at: None,
-            backoff: MIN_BACKOFF,
+            retry: Retry::new(),
             dirty: false,
             sync_due: None,
         };
@@ -589,9 +647,7 @@ struct Writer {
     shared: Arc<Shared>,
     checkpoint: Sender<ToCheckpoint>,
     /// While the log is down: when to try repairing it next.
-    retry_at: Option<Instant>,
-    /// The wait before the next attempt.
-    backoff: Duration,
+    retry: Retry,
     /// A failed write may have left part of a frame in the segment.
     dirty: bool,
     /// Under [`Durability::Os`]: when the unsynced frames must be synced.
@@ -601,7 +657,7 @@ struct Writer {
 impl Writer {
     fn run(mut self, rx: &Receiver<Pending>) {
         loop {
-            let due = [self.retry_at, self.sync_due].into_iter().flatten().min();
+            let due = [self.retry.at(), self.sync_due].into_iter().flatten().min();
             let first = match due {
                 None => match rx.recv() {
                     Ok(p) => p,
@@ -648,7 +704,7 @@ impl Writer {
                 self.down(&format!("syncing the log: {e}"));
             }
         }
-        if self.retry_at.is_some_and(|at| now >= at) {
+        if self.retry.is_due(now) {
             self.try_repair();
         }
     }
@@ -706,7 +762,7 @@ impl Writer {
             // Nothing to store (a wake-up, a resume, or every write refused).
             return Ok(());
         }
-        if self.retry_at.is_some_and(|at| Instant::now() >= at) {
+        if self.retry.is_due(Instant::now()) {
             self.try_repair();
         }
         if let Some(why) = self.shared.fault() {
@@ -759,7 +815,7 @@ impl Writer {
         }
         metrics::histogram!("mcapi_store_commit_seconds").record(started.elapsed().as_secs_f64());
         metrics::histogram!("mcapi_store_commit_writes").record(writes as f64);
-        self.backoff = MIN_BACKOFF;
+        self.retry.worked();
         let logged: Vec<Write> = group
             .iter_mut()
             .flat_map(|p| std::mem::take(&mut p.writes))
@@ -807,10 +863,7 @@ impl Writer {
     /// The log failed: every write fails at once until a repair succeeds.
     fn down(&mut self, why: &str) {
         self.shared.set_fault(&self.shared.wal_fault, why);
-        if self.retry_at.is_none() {
-            self.retry_at = Some(Instant::now() + self.backoff);
-            self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
-        }
+        self.retry.went_down();
     }
 
     /// One repair attempt: cut the segment back to its last whole frame if
@@ -845,15 +898,14 @@ impl Writer {
         })();
         match attempt {
             Ok(()) => {
-                self.retry_at = None;
+                self.retry.cleared();
                 self.shared.clear_fault(&self.shared.wal_fault);
                 tracing::info!(part = "log", "store reopened after a storage fault");
             }
             Err(e) => {
                 self.shared.set_fault(&self.shared.wal_fault, &e);
-                self.retry_at = Some(Instant::now() + self.backoff);
-                tracing::warn!(part = "log", error = %e, retry_in_ms = self.backoff.as_millis() as u64, "the store cannot be reopened yet");
-                self.backoff = (self.backoff * 2).min(MAX_BACKOFF);
+                let wait = self.retry.attempt_failed();
+                tracing::warn!(part = "log", error = %e, retry_in_ms = wait.as_millis() as u64, "the store cannot be reopened yet");
             }
         }
     }
