@@ -10,37 +10,15 @@
 
 use std::time::{Duration, Instant};
 
-use clap::Parser;
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::config::ServeConfig;
 use serde_json::{Value, json};
 use tonic::Code;
 use tonic::transport::Channel;
 
-#[derive(Parser)]
-struct Cli {
-    #[command(flatten)]
-    serve: ServeConfig,
-}
+mod common;
 
-async fn start(data: &std::path::Path) -> mcapi_server::server::Running {
-    let cfg = Cli::parse_from([
-        "mcapi",
-        "--http",
-        "127.0.0.1:0",
-        "--grpc",
-        "127.0.0.1:0",
-        "--workers",
-        "2",
-        "--data-dir",
-        data.to_str().expect("utf-8 path"),
-    ])
-    .serve;
-    mcapi_server::server::start(&cfg)
-        .await
-        .expect("server starts")
-}
+use common::start_in_process as start;
 
 async fn grpc_client(running: &mcapi_server::server::Running) -> AgentsClient<Channel> {
     AgentsClient::connect(format!("http://{}", running.grpc_addr))

@@ -5,17 +5,11 @@
 // more release, docs/grpc.md).
 #![allow(deprecated)]
 
-use clap::Parser;
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::config::ServeConfig;
 use serde_json::{Value, json};
 
-#[derive(Parser)]
-struct Cli {
-    #[command(flatten)]
-    serve: ServeConfig,
-}
+mod common;
 
 const SEED: u64 = 2024;
 
@@ -31,21 +25,7 @@ fn stimulus(state: usize) -> Vec<f64> {
 async fn rest_and_grpc_give_identical_trajectories() {
     // On the durable store: parity must hold with group commit in the path.
     let data = tempfile::tempdir().expect("data dir");
-    let cfg = Cli::parse_from([
-        "mcapi",
-        "--http",
-        "127.0.0.1:0",
-        "--grpc",
-        "127.0.0.1:0",
-        "--workers",
-        "2",
-        "--data-dir",
-        data.path().to_str().expect("utf-8 path"),
-    ])
-    .serve;
-    let running = mcapi_server::server::start(&cfg)
-        .await
-        .expect("server starts");
+    let running = common::start_in_process(data.path()).await;
     let base = format!("http://{}", running.http_addr);
     let http = reqwest::Client::new();
     let mut grpc = AgentsClient::connect(format!("http://{}", running.grpc_addr))

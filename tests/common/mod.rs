@@ -1,5 +1,6 @@
 //! Shared helpers of the tests that run the real `mcapi` binary
-//! (`tests/crash.rs`, `tests/durability.rs`): starting, killing and stopping
+//! (`tests/crash.rs`, `tests/durability.rs`) or the full server in-process
+//! (`tests/parity.rs`, `tests/grpc_model.rs`): starting, killing and stopping
 //! a server, REST and gRPC calls with an API key, the client-side hallway
 //! and the exact in-memory replay a recovered session is compared with.
 
@@ -25,6 +26,34 @@ use tonic::transport::Channel;
 pub const ACTIONS: [&str; 3] = ["left", "right", "stay"];
 /// States of the hallway.
 pub const STATES: usize = 50;
+
+/// `mcapi serve`'s options, parsed as the binary parses them.
+#[derive(clap::Parser)]
+struct ServeCli {
+    #[command(flatten)]
+    serve: mcapi_server::config::ServeConfig,
+}
+
+/// The full server in this process (`server::start`: both ports on
+/// loopback port 0, 2 tick workers, the durable store in `data`).
+pub async fn start_in_process(data: &Path) -> mcapi_server::server::Running {
+    use clap::Parser;
+    let cfg = ServeCli::parse_from([
+        "mcapi",
+        "--http",
+        "127.0.0.1:0",
+        "--grpc",
+        "127.0.0.1:0",
+        "--workers",
+        "2",
+        "--data-dir",
+        data.to_str().expect("utf-8 path"),
+    ])
+    .serve;
+    mcapi_server::server::start(&cfg)
+        .await
+        .expect("server starts")
+}
 
 /// Two distinct ports nothing listens on right now (HTTP, gRPC). Both
 /// listeners are held until both ports are known: binding port 0 twice,
