@@ -14,9 +14,8 @@ mod loadgen;
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use clap::{Args, Parser, Subcommand};
-use mcapi_core::{LearnedParams, Optimism};
 use mcapi_experiments::curiosity;
-use mcapi_experiments::paper::{ModelChoice, Variant};
+use mcapi_experiments::paper::{LearnedModelParams, ModelChoice, Optimism, Variant};
 use mcapi_experiments::run::results_table;
 use mcapi_experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
 use mcapi_server::config::{LogFormat, ServeConfig};
