@@ -244,7 +244,9 @@ impl Experiment {
     /// world slippery for every configuration.
     pub fn with_variant(kind: ExperimentKind, variant: &Variant) -> Result<Self, AlgoError> {
         let mut exp = Self::new(kind);
-        if variant.slip > 0.0 {
+        // Any slip but exactly 0 goes through `slippery`, which refuses
+        // negative, NaN and too-large values.
+        if variant.slip != 0.0 {
             exp.preset.model = slippery(&exp.preset.model, variant.slip)?;
             exp.slip = variant.slip;
         }
@@ -701,6 +703,15 @@ mod tests {
             assert!((q - r).abs() < 1e-12, "{t}: {q} vs {r}");
         }
         assert!(slippery(&model, 0.95).is_err());
+        for bad in [-0.1, f64::NAN] {
+            let variant = Variant {
+                slip: bad,
+                ..Default::default()
+            };
+            let e = Experiment::with_variant(ExperimentKind::ThreeRoom, &variant)
+                .expect_err("bad slip");
+            assert!(e.to_string().contains("`slip`"), "{e}");
+        }
         let exp = learned_variant(ExperimentKind::ThreeRoom, 0.2);
         assert!(!exp.preset.model.is_deterministic());
         assert_eq!(exp.slip, 0.2);
