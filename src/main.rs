@@ -15,6 +15,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use clap::{Args, Parser, Subcommand};
 use mcapi_experiments::curiosity;
+use mcapi_experiments::paper::{LearnedModelParams, ModelChoice, Optimism, Variant};
 use mcapi_experiments::run::results_table;
 use mcapi_experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
 use mcapi_server::config::{LogFormat, ServeConfig};
@@ -91,6 +92,30 @@ struct ExperimentArgs {
     /// No progress bar.
     #[arg(long, short)]
     quiet: bool,
+    /// Transition model of the MCA-PI agents: `known` (the paper) or
+    /// `learned` (P̂ from the agent's own transitions, run against the known
+    /// model on the same seeds; hallway and three-room).
+    #[arg(long, value_enum, default_value_t = ModelChoice::Known)]
+    model: ModelChoice,
+    /// Slip probability of the world: with probability p a move goes to the
+    /// result of a random available action (hallway and three-room).
+    #[arg(long, default_value_t = 0.0)]
+    slip: f64,
+    /// Learned model: visits m after which a pair's row of P̂ is trusted.
+    #[arg(long)]
+    known_after: Option<u32>,
+    /// Learned model: how unknown pairs are optimistic.
+    #[arg(long, value_enum)]
+    optimism: Option<OptimismArg>,
+}
+
+/// `--optimism`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum OptimismArg {
+    /// R-max: unknown pairs lead to an absorbing state worth R_max forever.
+    Absorbing,
+    /// Unknown pairs loop on their state; Ξ's initialisation is the optimism.
+    Stimulus,
 }
 
 fn main() -> ExitCode {
@@ -120,7 +145,18 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
         Which::ThreeRoom => ExperimentKind::ThreeRoom,
         Which::Curiosity => return curiosity_experiment(args),
     };
-    let exp = Experiment::new(kind);
+    let variant = Variant {
+        model: args.model,
+        slip: args.slip,
+        learned: LearnedModelParams {
+            known_after: args.known_after,
+            optimism: args.optimism.map(|o| match o {
+                OptimismArg::Absorbing => Optimism::Absorbing,
+                OptimismArg::Stimulus => Optimism::Stimulus,
+            }),
+        },
+    };
+    let exp = Experiment::with_variant(kind, &variant)?;
     let opts = RunOptions {
         trials: args.trials,
         steps: args.steps.unwrap_or(exp.default_steps),
@@ -133,11 +169,13 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
     let output = run_experiment(&exp, &opts)?;
     let order: Vec<&str> = exp.configs.iter().map(|c| c.name).collect();
     println!(
-        "{}: {} trials x {} ticks, seed {} ({:.2} s)\n",
+        "{}: {} trials x {} ticks, seed {}, model {:?}, slip {} ({:.2} s)\n",
         exp.name(),
         opts.trials,
         opts.steps,
         opts.seed,
+        args.model,
+        exp.slip,
         started.elapsed().as_secs_f64()
     );
     print!("{}", results_table(&output.summary, &order));
@@ -151,6 +189,10 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
 
 /// `mcapi experiment curiosity` (Experiment 3, docs/algorithm.md §7).
 fn curiosity_experiment(args: ExperimentArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.model == ModelChoice::Known && args.slip == 0.0,
+        "`--model learned` and `--slip` apply to the hallway and the three-room maze"
+    );
     let started = Instant::now();
     let opts = RunOptions {
         trials: args.trials,

@@ -17,6 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use super::drive::Drive;
 use super::error::{AlgoError, MAX_STIMULUS, Result};
+use super::learned::{LearnedModel, LearnedSnapshot, TransitionCounts, ValidLearnedParams};
 use super::lstdq::{PlanOutcome, Planner, PlannerStats, PlanningModel};
 use super::params::ValidParams;
 use super::stimulus::StimulusFunction;
@@ -164,12 +165,38 @@ pub struct Agent {
     policy_version: u64,
     /// R changed since the last plan.
     dirty: bool,
+    /// The learned transition model P̂, when the model has no posted P
+    /// (issue 17); `None` plans on the known P of `ctx`.
+    learned: Option<Box<LearnedModel>>,
 }
 
 impl Agent {
     /// A fresh agent: Ξ ~ N(0, σ²), D = |N(0, I)| normalised, π₀ uniformly
     /// random over valid actions, drawn in that order from ChaCha8(seed) (§3).
     pub fn new(ctx: Arc<PlanningModel>, params: ValidParams) -> Self {
+        Self::with_learned(ctx, params, None)
+    }
+
+    /// A fresh agent that learns P (issue 17): `ctx` gives the states,
+    /// actions, valid pairs and basis (its P is never read), the agent
+    /// counts the transitions it makes and plans on P̂ (see
+    /// [`crate::learned`]). Ξ, D and π₀ are drawn exactly as in
+    /// [`Agent::new`], so a learned and a known agent with the same seed
+    /// start alike.
+    pub fn new_learned(
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+        learned: ValidLearnedParams,
+    ) -> Result<Self> {
+        let learned = LearnedModel::new(&ctx, learned)?;
+        Ok(Self::with_learned(ctx, params, Some(Box::new(learned))))
+    }
+
+    fn with_learned(
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+        learned: Option<Box<LearnedModel>>,
+    ) -> Self {
         let model = ctx.model();
         let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
         let stimulus = StimulusFunction::new(
@@ -179,14 +206,19 @@ impl Agent {
             &mut rng,
         );
         let drive = Drive::new(&params.priorities, params.eta, &mut rng);
-        let policy = (0..model.states())
+        let mut policy: Vec<u32> = (0..model.states())
             .map(|s| {
                 let range = model.pairs_of(s);
                 rng.random_range(range) as u32
             })
             .collect();
-        let planner = Planner::new(&ctx, policy);
-        let n_pairs = model.n_pairs();
+        let plan_ctx = learned.as_ref().map_or(&*ctx, |l| l.planning_model());
+        if plan_ctx.model().states() > model.states() {
+            // The absorbing state s* has one pair, numbered last.
+            policy.push(model.n_pairs() as u32);
+        }
+        let planner = Planner::new(plan_ctx, policy);
+        let n_pairs = plan_ctx.model().n_pairs();
         let n = model.n_stimuli();
         Self {
             ctx,
@@ -204,6 +236,7 @@ impl Agent {
             last_plan: PlanOutcome::default(),
             policy_version: 0,
             dirty: false,
+            learned,
         }
     }
 
@@ -272,7 +305,13 @@ impl Agent {
         let pair = self.validate(obs)?;
         if let (Some(p), Some(xi)) = (pair, obs.stimulus) {
             self.stimulus.update(p, xi, self.params.stimulus_rate);
+            if let Some(learned) = &mut self.learned
+                && learned.record(p, obs.state)
+            {
+                self.planner.model_changed(learned.planning_model());
+            }
             self.last_reward = self.drive.update(xi).abs();
+            debug_assert!((super::drive::norm(self.drive.vector()) - 1.0).abs() < 1e-9);
             self.tick += 1;
             self.dirty = true;
         }
@@ -292,9 +331,12 @@ impl Agent {
     /// improvement of π.
     pub fn plan(&mut self) -> Result<PlanOutcome> {
         self.refresh_rewards();
-        let ctx = Arc::clone(&self.ctx);
+        let ctx = match &self.learned {
+            Some(learned) => learned.planning_model(),
+            None => &*self.ctx,
+        };
         let outcome = self.planner.update(
-            &ctx,
+            ctx,
             &self.rewards,
             self.params.gamma,
             self.params.ridge,
@@ -316,8 +358,13 @@ impl Agent {
         {
             *s = d * l;
         }
-        self.stimulus
-            .rewards_into(&self.scaled_drive, &mut self.rewards);
+        let pairs = self.ctx.model().n_pairs();
+        let (real, absorbing) = self.rewards.split_at_mut(pairs);
+        self.stimulus.rewards_into(&self.scaled_drive, real);
+        if let Some(r_star) = absorbing.first_mut() {
+            // R-max (issue 17): s* earns the best reward of any valid pair.
+            *r_star = real.iter().copied().fold(0.0, f64::max);
+        }
     }
 
     /// a_{t+1}: π(s_{t+1}), or with probability ε a uniformly random valid
@@ -376,9 +423,21 @@ impl Agent {
         &self.planner
     }
 
-    /// R as of the last plan.
+    /// R as of the last plan, one entry per valid pair.
     pub fn rewards(&self) -> &[f64] {
-        &self.rewards
+        &self.rewards[..self.ctx.model().n_pairs()]
+    }
+
+    /// The learned transition model, for an agent created by
+    /// [`Agent::new_learned`].
+    pub fn learned(&self) -> Option<&LearnedModel> {
+        self.learned.as_deref()
+    }
+
+    /// How much of the model is known: the fraction of valid pairs seen at
+    /// least m times for a learned model, 1 for a known one.
+    pub fn known_fraction(&self) -> f64 {
+        self.learned.as_ref().map_or(1.0, |l| l.known_fraction())
     }
 
     /// Ticks so far.
@@ -521,8 +580,44 @@ impl Agent {
         params: ValidParams,
         snap: AgentSnapshot,
     ) -> Result<Self> {
+        Self::restore_with(ctx, params, snap, None)
+    }
+
+    /// The resumable state of an agent with a learned model: its snapshot
+    /// and the counts N(s, a, s′); `None` for a known model.
+    pub fn learned_snapshot(&self) -> Option<LearnedSnapshot> {
+        self.learned.as_ref().map(|l| LearnedSnapshot {
+            agent: self.snapshot(),
+            counts: l.counts().clone(),
+        })
+    }
+
+    /// An agent with a learned model resumed from its snapshot: P̂ is
+    /// rebuilt from the counts, so it continues exactly as the live agent
+    /// would have.
+    pub fn restore_learned(
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+        learned: ValidLearnedParams,
+        snap: LearnedSnapshot,
+    ) -> Result<Self> {
+        Self::restore_with(ctx, params, snap.agent, Some((learned, snap.counts)))
+    }
+
+    fn restore_with(
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+        snap: AgentSnapshot,
+        learned: Option<(ValidLearnedParams, TransitionCounts)>,
+    ) -> Result<Self> {
+        let learned = learned
+            .map(|(p, counts)| LearnedModel::from_counts(&ctx, p, counts).map(Box::new))
+            .transpose()?;
         let model = ctx.model();
         let (pairs, n) = (model.n_pairs(), model.n_stimuli());
+        let plan_pairs = learned
+            .as_ref()
+            .map_or(pairs, |l| l.planning_model().model().n_pairs());
         let bad = |what: String| Err(AlgoError::InvalidSnapshot(what));
         if snap.drive.vector().len() != n || snap.drive.inv_rho().len() != n {
             return bad(format!(
@@ -550,9 +645,9 @@ impl Agent {
                 "Ξ's own column does not fit {pairs} pairs x {n} stimuli"
             ));
         }
-        if snap.rewards.len() != pairs {
+        if snap.rewards.len() != plan_pairs {
             return bad(format!(
-                "R has {} pairs; the model has {pairs}",
+                "R has {} pairs; the model has {plan_pairs}",
                 snap.rewards.len()
             ));
         }
@@ -566,7 +661,8 @@ impl Agent {
             }
             _ => {}
         }
-        let planner = Planner::restore(&ctx, snap.policy, snap.q, snap.planner_stats)?;
+        let plan_ctx = learned.as_ref().map_or(&*ctx, |l| l.planning_model());
+        let planner = Planner::restore(plan_ctx, snap.policy, snap.q, snap.planner_stats)?;
         Ok(Self {
             rng: snap.rng.resume(),
             drive: snap.drive,
@@ -581,6 +677,7 @@ impl Agent {
             last_plan: snap.last_plan,
             policy_version: snap.policy_version,
             dirty: snap.dirty,
+            learned,
             ctx,
             params,
         })
@@ -592,6 +689,7 @@ mod tests {
     use super::*;
     use crate::basis::Basis;
     use crate::drive::norm;
+    use crate::learned::LearnedSnapshot;
     use crate::model::hallway;
     use crate::params::AgentParams;
 
@@ -644,6 +742,111 @@ mod tests {
             a.snapshot() == b.snapshot(),
             "identical state after 500 ticks"
         );
+    }
+
+    fn learned_hallway_agent(seed: u64, optimism: crate::learned::Optimism) -> Agent {
+        let params = AgentParams {
+            seed: Some(seed),
+            ..Default::default()
+        }
+        .check(2, 0)
+        .expect("params");
+        let learned = crate::learned::LearnedParams {
+            optimism: Some(optimism),
+            ..Default::default()
+        }
+        .check()
+        .expect("learned params");
+        Agent::new_learned(
+            Arc::new(PlanningModel::new(hallway().model, Basis::Indicator)),
+            params,
+            learned,
+        )
+        .expect("learned agent")
+    }
+
+    /// Walks the hallway for `ticks` ticks following the agent's advice.
+    fn walk(agent: &mut Agent, state: &mut usize, ticks: usize) -> Vec<(usize, Vec<f64>)> {
+        let mut out = Vec::new();
+        for _ in 0..ticks {
+            let action = agent.advised_action().expect("advised");
+            *state = match action {
+                0 => state.saturating_sub(1),
+                1 => (*state + 1).min(49),
+                _ => *state,
+            };
+            let xi = [f64::from(*state == 10) * 6.0, f64::from(*state == 40) * 6.0];
+            let step = agent.step(&Observation::new(*state, &xi)).expect("step");
+            out.push((step.action, agent.drive().vector().to_vec()));
+        }
+        out
+    }
+
+    #[test]
+    fn a_restored_learned_agent_continues_exactly() {
+        for optimism in [
+            crate::learned::Optimism::Absorbing,
+            crate::learned::Optimism::Stimulus,
+        ] {
+            let mut a = learned_hallway_agent(9, optimism);
+            let mut state = 25;
+            a.step(&Observation::first(state)).expect("first");
+            // Early, while part of the model is still unknown.
+            walk(&mut a, &mut state, 40);
+            let known = a.known_fraction();
+            assert!(known > 0.0 && known < 1.0, "{optimism:?}: {known}");
+            let snap = a.learned_snapshot().expect("learned");
+            let bytes = serde_json::to_vec(&snap).expect("encode");
+            let back: LearnedSnapshot = serde_json::from_slice(&bytes).expect("decode");
+            assert_eq!(back, snap);
+            let learned = a.learned().expect("learned").params();
+            let mut b = Agent::restore_learned(
+                Arc::clone(a.planning_model()),
+                a.params().clone(),
+                learned,
+                back,
+            )
+            .expect("restore");
+            assert_eq!(
+                b.learned().expect("learned").planning_model().model(),
+                a.learned().expect("learned").planning_model().model(),
+                "P̂ is rebuilt exactly"
+            );
+            let mut state_b = state;
+            let ta = walk(&mut a, &mut state, 500);
+            let tb = walk(&mut b, &mut state_b, 500);
+            assert_eq!(
+                ta, tb,
+                "{optimism:?}: the restored agent must follow the same path"
+            );
+            assert!(a.learned_snapshot() == b.learned_snapshot(), "{optimism:?}");
+        }
+    }
+
+    #[test]
+    fn unknown_pairs_are_worth_r_max_forever() {
+        let mut a = learned_hallway_agent(4, crate::learned::Optimism::Absorbing);
+        let mut state = 25;
+        a.step(&Observation::first(state)).expect("first");
+        walk(&mut a, &mut state, 20);
+        let gamma = a.params().gamma;
+        let r = a.rewards();
+        let r_max = r.iter().copied().fold(0.0, f64::max);
+        let q = a.planner().q();
+        let learned = a.learned().expect("learned");
+        assert_eq!(q.len(), 149, "Q has the absorbing pair last");
+        assert!((q[148] - r_max / (1.0 - gamma)).abs() < 1e-9 * (1.0 + q[148]));
+        let mut unknown = 0;
+        for p in (0..148).filter(|&p| !learned.is_known(p)) {
+            let expected = r[p] + gamma * r_max / (1.0 - gamma);
+            assert!(
+                (q[p] - expected).abs() < 1e-9 * (1.0 + expected),
+                "pair {p}"
+            );
+            unknown += 1;
+        }
+        assert!(unknown > 100, "20 ticks leave most of the hallway unknown");
+        assert_eq!(learned.known_pairs(), 148 - unknown);
     }
 
     #[test]

@@ -20,6 +20,7 @@ pub mod curiosity;
 pub mod curious_agent;
 pub mod drive;
 pub mod error;
+pub mod learned;
 pub mod lstdq;
 pub mod model;
 pub mod params;
@@ -36,6 +37,9 @@ pub use curious_agent::{
 };
 pub use drive::Drive;
 pub use error::AlgoError;
+pub use learned::{
+    LearnedModel, LearnedParams, LearnedSnapshot, Optimism, TransitionCounts, ValidLearnedParams,
+};
 pub use lstdq::{PlanOutcome, Planner, PlanningModel};
 pub use model::{EnvModel, GridMap, Preset, Source};
 pub use params::{AgentParams, StimulusRate, ValidParams};

@@ -97,6 +97,45 @@ impl PlanningModel {
         }
     }
 
+    /// The same basis on another model with the same states and actions
+    /// (a learned P̂, issue 17); ΦᵀΦ and M are computed for it.
+    pub fn with_model(&self, model: EnvModel) -> Result<Self> {
+        if let Basis::StateBlocks(f) = &self.basis
+            && f.states() != model.states()
+        {
+            return Err(AlgoError::InvalidBasis(format!(
+                "the basis has features for {} states; the model has {}",
+                f.states(),
+                model.states()
+            )));
+        }
+        Ok(Self::new(model, self.basis.clone()))
+    }
+
+    /// Replaces P(·|p) by `next` (one row of a learned P̂) and keeps M in
+    /// step: M[s'] loses P_old(s'|p) φ(p) and gains P_new(s'|p) φ(p), O(k)
+    /// per successor (§5). A planner on this model must then be told with
+    /// [`Planner::model_changed`].
+    pub fn set_successors(&mut self, p: usize, next: &[(u32, f64)]) {
+        if let (Some(cache), Basis::StateBlocks(f)) = (&mut self.features, &self.basis) {
+            let (s, a) = (self.model.pair_state(p), self.model.pair_action(p));
+            let (k, v) = (cache.k, f.row(s));
+            let (old_next, old_prob) = self.model.successors(p);
+            let moves = old_next
+                .iter()
+                .zip(old_prob)
+                .map(|(&t, &q)| (t, -q))
+                .chain(next.iter().copied());
+            for (t, q) in moves {
+                let mut col = cache.m.column_mut(t as usize);
+                for i in 0..k {
+                    col[a * k + i] += q * v[i];
+                }
+            }
+        }
+        self.model.set_successors(p, next);
+    }
+
     /// The environment model.
     pub fn model(&self) -> &EnvModel {
         &self.model
@@ -332,6 +371,24 @@ impl Planner {
         planner.q = q;
         planner.stats = stats;
         Ok(planner)
+    }
+
+    /// Tells the planner that P changed (a learned P̂, issue 17): a model
+    /// that is no longer deterministic moves the functional-graph engine to
+    /// Gauss–Seidel, warm-started from its V; a feature basis rebuilds A
+    /// (which holds P through M) at the next update.
+    pub fn model_changed(&mut self, ctx: &PlanningModel) {
+        match &mut self.engine {
+            Engine::FunctionalGraph(fg) if !ctx.model.is_deterministic() => {
+                let v = std::mem::take(&mut fg.v);
+                self.engine = Engine::GaussSeidel { v };
+            }
+            Engine::Features(fe) => {
+                fe.stale = true;
+                fe.evaluated = false;
+            }
+            _ => {}
+        }
     }
 
     /// Q over valid pairs.
@@ -1127,6 +1184,51 @@ mod tests {
             assert_eq!(memo.stats(), full.stats(), "tick {t}");
         }
         assert!(skipped > 40, "only {skipped} evaluations skipped");
+    }
+
+    #[test]
+    fn a_changed_row_of_p_updates_m_and_the_plan() {
+        let model = hallway().model;
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let rows: Vec<Vec<f64>> = (0..50)
+            .map(|_| (0..4).map(|_| rng.random::<f64>() - 0.5).collect())
+            .collect();
+        let spec = BasisSpec::Custom {
+            state_features: rows,
+        };
+        let basis = Basis::build(&spec, &model).expect("basis");
+        let mut ctx = PlanningModel::new(model.clone(), basis.clone());
+        let r: Vec<f64> = (0..model.n_pairs()).map(|_| rng.random::<f64>()).collect();
+        let mut planner = Planner::new(&ctx, first_action_policy(&model));
+        planner.update(&ctx, &r, 0.9, 1e-6, &mut rng).expect("plan");
+        // Pair (20, right) becomes slippery: 0.7 to 21, 0.3 stays.
+        let p = model.pair(20, 1).expect("right");
+        ctx.set_successors(p, &[(21, 0.7), (20, 0.3)]);
+        planner.model_changed(&ctx);
+        let fresh = PlanningModel::new(ctx.model().clone(), basis);
+        let (m, m_ref) = (
+            &ctx.features.as_ref().expect("cache").m,
+            &fresh.features.as_ref().expect("cache").m,
+        );
+        assert!((m - m_ref).amax() < 1e-12, "M kept in step with P");
+        let mut reference = Planner::new(&fresh, planner.policy().to_vec());
+        let mut rng_ref = rng.clone();
+        planner.update(&ctx, &r, 0.9, 1e-6, &mut rng).expect("plan");
+        reference
+            .update(&fresh, &r, 0.9, 1e-6, &mut rng_ref)
+            .expect("reference plan");
+        for (a, b) in planner.q().iter().zip(reference.q()) {
+            assert!((a - b).abs() < 1e-9, "{a} vs {b}");
+        }
+        // The functional-graph engine moves to Gauss–Seidel.
+        let mut ind = PlanningModel::new(model.clone(), Basis::Indicator);
+        let mut fg = Planner::new(&ind, first_action_policy(&model));
+        fg.update(&ind, &r, 0.9, 1e-6, &mut rng).expect("plan");
+        ind.set_successors(p, &[(21, 0.7), (20, 0.3)]);
+        fg.model_changed(&ind);
+        assert!(matches!(fg.engine, Engine::GaussSeidel { .. }));
+        fg.update(&ind, &r, 0.9, 1e-6, &mut rng)
+            .expect("stochastic plan");
     }
 
     #[test]

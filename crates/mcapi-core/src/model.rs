@@ -284,6 +284,85 @@ impl EnvModel {
         Self::deterministic(next, names(&["left", "right", "stay"]), stimuli)
     }
 
+    /// The starting point of a learned transition model P̂ (issue 17): the
+    /// states, actions and valid pairs of `structure` (its P is ignored),
+    /// with every pair still unknown. An unknown pair moves to the absorbing
+    /// optimistic state s* = |S| when `absorbing` (R-max style: s* is one
+    /// extra state with a single self-looping pair, of action 0, numbered
+    /// last, so the pairs of the real states keep their indices), and stays
+    /// where it is otherwise. [`EnvModel::set_successors`] then writes the
+    /// rows that the counts make known.
+    pub fn unknown_of(structure: &EnvModel, absorbing: bool) -> Result<Self> {
+        let states = structure.states + usize::from(absorbing);
+        let n_actions = structure.n_actions();
+        if states.saturating_mul(n_actions) >= NONE as usize {
+            return Err(invalid("`states` x `actions` is too large"));
+        }
+        let mut rows: Vec<Vec<(usize, f64)>> = vec![Vec::new(); states * n_actions];
+        for p in 0..structure.n_pairs() {
+            let s = structure.pair_state(p);
+            let target = if absorbing { structure.states } else { s };
+            rows[s * n_actions + structure.pair_action(p)].push((target, 1.0));
+        }
+        if absorbing {
+            rows[structure.states * n_actions].push((structure.states, 1.0));
+        }
+        let state_names = structure.state_names.as_ref().map(|names| {
+            let mut names = names.clone();
+            if absorbing {
+                names.push("(unknown)".to_string());
+            }
+            names
+        });
+        Self::from_rows(
+            states,
+            structure.actions.clone(),
+            structure.stimuli.clone(),
+            state_names,
+            &rows,
+        )
+    }
+
+    /// Replaces the successors of pair `p` by `next` (states and
+    /// probabilities, which must sum to 1): the update of one row of a
+    /// learned P̂. It costs O(|next|) when the row keeps its length and one
+    /// shift of the later rows (a memmove over the stored transitions) when
+    /// it gains a successor, which happens at most once per distinct
+    /// successor of the pair.
+    pub fn set_successors(&mut self, p: usize, next: &[(u32, f64)]) {
+        debug_assert!(!next.is_empty());
+        debug_assert!(
+            (next.iter().map(|&(_, q)| q).sum::<f64>() - 1.0).abs() <= PROBABILITY_TOLERANCE,
+            "a row of P̂ must sum to 1"
+        );
+        debug_assert!(next.iter().all(|&(t, _)| (t as usize) < self.states));
+        let (a, b) = (self.succ_start[p] as usize, self.succ_start[p + 1] as usize);
+        let old_len = b - a;
+        if old_len == next.len() {
+            for ((st, pr), &(t, q)) in self.succ_state[a..b]
+                .iter_mut()
+                .zip(&mut self.succ_prob[a..b])
+                .zip(next)
+            {
+                *st = t;
+                *pr = q;
+            }
+        } else {
+            self.succ_state.splice(a..b, next.iter().map(|&(t, _)| t));
+            self.succ_prob.splice(a..b, next.iter().map(|&(_, q)| q));
+            let grow = next.len() as i64 - old_len as i64;
+            for start in &mut self.succ_start[p + 1..] {
+                *start = (i64::from(*start) + grow) as u32;
+            }
+        }
+        if next.len() > 1 {
+            self.deterministic = false;
+        } else if old_len > 1 {
+            self.deterministic =
+                (0..self.n_pairs()).all(|q| self.succ_start[q + 1] - self.succ_start[q] == 1);
+        }
+    }
+
     /// Number of states |S|.
     pub fn states(&self) -> usize {
         self.states

@@ -135,6 +135,19 @@ pub fn trial_metrics(rec: &TrialRecord, sources: &[usize]) -> TrialMetrics {
     let err_mean = rec.lstdq_error.iter().sum::<f64>() / steps.max(1) as f64;
     m.insert("lstdq_error_mean".into(), err_mean);
     m.insert("factorisation_reuse".into(), rec.reuse_fraction);
+    // How much of the model is known at the end, and from which tick on
+    // all of it (issue 17; 1 and tick 1 for a known model).
+    m.insert(
+        "model_known".into(),
+        rec.known.last().map_or(1.0, |&k| f64::from(k)),
+    );
+    m.insert(
+        "model_known_tick".into(),
+        rec.known
+            .iter()
+            .position(|&k| k >= 1.0)
+            .map_or(never, |t| (t + 1) as f64),
+    );
     m
 }
 
@@ -208,6 +221,7 @@ mod tests {
             source_values: vec![],
             snapshots: vec![],
             reuse_fraction: 0.5,
+            known: vec![0.25, 0.5, 1.0, 1.0],
         };
         let m = trial_metrics(&rec, &[10, 40]);
         assert_eq!(m["cumulative_abs_reward"], 10.0);
@@ -219,6 +233,8 @@ mod tests {
         assert_eq!(m["all_sources_found"], 3.0);
         assert_eq!(m["fraction_at_source_1"], 0.5);
         assert_eq!(m["lstdq_error_mean"], 0.5);
+        assert_eq!(m["model_known"], 1.0);
+        assert_eq!(m["model_known_tick"], 3.0);
         let s = Stat::of(&[1.0, 3.0]);
         assert_eq!((s.mean, s.min, s.max), (2.0, 1.0, 3.0));
         assert!((s.sd - 2f64.sqrt()).abs() < 1e-15);

@@ -9,11 +9,14 @@ use rand_distr::{Distribution, Normal};
 
 use mcapi_core::model::{Preset, hallway, three_room};
 use mcapi_core::{
-    Agent, AgentParams, AlgoError, Basis, BasisSpec, Drive, Observation, PlanningModel, Step,
-    ValidParams,
+    Agent, AgentParams, AlgoError, Basis, BasisSpec, Drive, EnvModel, LearnedParams, Observation,
+    PlanningModel, Step, ValidLearnedParams, ValidParams,
 };
 
 use super::dominance::DominanceTracker;
+
+/// The learned-model parameters, for the CLI.
+pub use mcapi_core::{LearnedParams as LearnedModelParams, Optimism};
 
 /// Magnitude of a source's stimulus on its own dimension.
 pub const SOURCE_STIMULUS: f64 = 6.0;
@@ -55,6 +58,9 @@ pub enum Controller {
         basis: BasisSpec,
         /// Exploration ε.
         epsilon: f64,
+        /// `Some`: the agent learns P̂ from its own transitions instead of
+        /// planning on the world's P (issue 17).
+        learned: Option<ValidLearnedParams>,
     },
     /// Brownian exploration on a chain: step = round(N(0, σ)), clipped.
     Brownian {
@@ -89,6 +95,78 @@ pub struct Experiment {
     pub configs: Vec<Config>,
     /// Default ticks per trial.
     pub default_steps: usize,
+    /// Slip probability p of the world (0: the paper's deterministic world).
+    pub slip: f64,
+}
+
+/// Which transition model the MCA-PI agents of an experiment plan on.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, clap::ValueEnum)]
+pub enum ModelChoice {
+    /// The world's P, known to the agent (the paper).
+    #[default]
+    Known,
+    /// P̂ learned from the agent's own transitions, reported against the
+    /// known model on the same seeds (issue 17).
+    Learned,
+}
+
+/// Variations of an experiment beyond the paper's (`mcapi experiment` flags).
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct Variant {
+    /// Known or learned model.
+    pub model: ModelChoice,
+    /// Slip probability p in [0, 1): with probability p a move goes to the
+    /// result of a uniformly random available action of the state instead.
+    pub slip: f64,
+    /// Parameters of the learned model.
+    pub learned: LearnedParams,
+}
+
+/// Largest slip probability accepted.
+pub const MAX_SLIP: f64 = 0.9;
+
+/// The slippery version of a deterministic model: P(·|s, a) = (1 − p)
+/// δ(next(s, a)) + p · mean over the available a′ of δ(next(s, a′)), so with
+/// probability p the move goes to a random neighbour of s (or stays, when
+/// staying is available). The simulator samples it; a known-model agent
+/// plans on it.
+pub fn slippery(model: &EnvModel, p: f64) -> Result<EnvModel, AlgoError> {
+    if !(0.0..=MAX_SLIP).contains(&p) {
+        return Err(AlgoError::InvalidParameter {
+            name: "slip",
+            reason: format!("{p} is not in [0, {MAX_SLIP}]"),
+        });
+    }
+    if !model.is_deterministic() {
+        return Err(AlgoError::InvalidModel(
+            "only a deterministic world can be made slippery".into(),
+        ));
+    }
+    let mut spec = model.to_spec();
+    let next = spec.next.take().unwrap_or_default();
+    let mut transitions = Vec::with_capacity(model.n_pairs());
+    for (s, row) in next.iter().enumerate() {
+        let moves: Vec<usize> = row.iter().flatten().copied().collect();
+        let share = p / moves.len() as f64;
+        for (a, target) in row.iter().enumerate() {
+            let Some(target) = *target else { continue };
+            let mut out: Vec<(usize, f64)> = vec![(target, 1.0 - p)];
+            for &t in &moves {
+                match out.iter_mut().find(|(u, _)| *u == t) {
+                    Some((_, q)) => *q += share,
+                    None => out.push((t, share)),
+                }
+            }
+            out.retain(|&(_, q)| q > 0.0);
+            transitions.push(mcapi_core::TransitionSpec {
+                state: s,
+                action: mcapi_core::ActionRef::Index(a),
+                next: out,
+            });
+        }
+    }
+    spec.transitions = Some(transitions);
+    EnvModel::from_spec(&spec)
 }
 
 impl Experiment {
@@ -106,6 +184,7 @@ impl Experiment {
                         controller: Controller::McaPi {
                             basis: BasisSpec::Indicator,
                             epsilon: 0.0,
+                            learned: None,
                         },
                     },
                     Config {
@@ -116,6 +195,7 @@ impl Experiment {
                     },
                 ],
                 default_steps: 5000,
+                slip: 0.0,
             },
             ExperimentKind::ThreeRoom => Self {
                 kind,
@@ -128,6 +208,7 @@ impl Experiment {
                         controller: Controller::McaPi {
                             basis: BasisSpec::Indicator,
                             epsilon: 0.0,
+                            learned: None,
                         },
                     },
                     Config {
@@ -135,6 +216,7 @@ impl Experiment {
                         controller: Controller::McaPi {
                             basis: BasisSpec::ProtoValue { k: 30 },
                             epsilon: 0.0,
+                            learned: None,
                         },
                     },
                     Config {
@@ -142,6 +224,7 @@ impl Experiment {
                         controller: Controller::McaPi {
                             basis: BasisSpec::ProtoValue { k: 30 },
                             epsilon: 0.3,
+                            learned: None,
                         },
                     },
                     Config {
@@ -150,8 +233,43 @@ impl Experiment {
                     },
                 ],
                 default_steps: 10_000,
+                slip: 0.0,
             },
         }
+    }
+
+    /// The experiment with a variant: `--model learned` replaces the
+    /// configurations by the known-model MCA-PI (indicator basis), its
+    /// learned twin `<name>_learned` and the baseline; `--slip p` makes the
+    /// world slippery for every configuration.
+    pub fn with_variant(kind: ExperimentKind, variant: &Variant) -> Result<Self, AlgoError> {
+        let mut exp = Self::new(kind);
+        // Any slip but exactly 0 goes through `slippery`, which refuses
+        // negative, NaN and too-large values.
+        if variant.slip != 0.0 {
+            exp.preset.model = slippery(&exp.preset.model, variant.slip)?;
+            exp.slip = variant.slip;
+        }
+        if variant.model == ModelChoice::Learned {
+            let learned = variant.learned.check()?;
+            let (known, learned_name, baseline) = match kind {
+                ExperimentKind::Hallway => ("mca_pi", "mca_pi_learned", "brownian"),
+                ExperimentKind::ThreeRoom => ("indicator", "indicator_learned", "random_walk"),
+            };
+            let find = |name: &str| exp.configs.iter().find(|c| c.name == name).cloned();
+            let (Some(known), Some(baseline)) = (find(known), find(baseline)) else {
+                return Err(AlgoError::Numerical(
+                    "experiment without its configs".into(),
+                ));
+            };
+            let mut twin = known.clone();
+            twin.name = learned_name;
+            if let Controller::McaPi { learned: l, .. } = &mut twin.controller {
+                *l = Some(learned);
+            }
+            exp.configs = vec![known, twin, baseline];
+        }
+        Ok(exp)
     }
 
     /// Name used in files and `summary.json`.
@@ -231,6 +349,9 @@ pub struct TrialRecord {
     pub snapshots: Vec<Snapshot>,
     /// Fraction of LSTDQ updates that reused the factorisation.
     pub reuse_fraction: f64,
+    /// Fraction of valid pairs the agent's model knows after each tick (1
+    /// for a known model and for controllers that do not plan).
+    pub known: Vec<f32>,
 }
 
 impl TrialRecord {
@@ -318,6 +439,7 @@ pub fn run_trial(
         source_values: Vec::with_capacity(steps * n_src),
         snapshots: Vec::new(),
         reuse_fraction: 0.0,
+        known: Vec::with_capacity(steps),
     };
     let mut xi = vec![0.0; n];
     let params = AgentParams {
@@ -332,10 +454,10 @@ pub fn run_trial(
     }
     .check(n, agent_seed)?;
     match &config.controller {
-        Controller::McaPi { .. } => {
+        Controller::McaPi { learned, .. } => {
             let ctx =
                 ctx.ok_or_else(|| AlgoError::Numerical("MCA-PI needs a planning model".into()))?;
-            let mut sim = Simulation::with_world(world, start, Arc::clone(ctx), params)?;
+            let mut sim = Simulation::with_world(world, start, Arc::clone(ctx), params, *learned)?;
             let mut tracker = DominanceTracker::new(sim.agent.drive().vector());
             rec.initial_drive = sim.agent.drive().vector().to_vec();
             for _ in 0..steps {
@@ -353,6 +475,7 @@ pub fn run_trial(
                 for src in &exp.preset.sources {
                     rec.source_values.push(agent.planner().value(src.state));
                 }
+                rec.known.push(agent.known_fraction() as f32);
                 tracker.observe(agent.drive().vector());
                 let dom = tracker.current();
                 if record_snapshots
@@ -392,6 +515,7 @@ pub fn run_trial(
                 world.stimulus(state as usize, &mut xi);
                 let r = drive.update(&xi).abs();
                 rec.push(state as usize, moved as i32, drive.vector(), r, &xi);
+                rec.known.push(1.0);
                 rec.lstdq_error.push(0.0);
                 rec.source_values.extend(std::iter::repeat_n(0.0, n_src));
             }
@@ -408,6 +532,7 @@ pub fn run_trial(
                 world.stimulus(state, &mut xi);
                 let r = drive.update(&xi).abs();
                 rec.push(state, action as i32, drive.vector(), r, &xi);
+                rec.known.push(1.0);
                 rec.lstdq_error.push(0.0);
                 rec.source_values.extend(std::iter::repeat_n(0.0, n_src));
             }
@@ -440,7 +565,20 @@ impl<'a> Simulation<'a> {
     ) -> Result<Self, AlgoError> {
         let mut world = World::new(&exp.preset, world_seed)?;
         let start = world.rng.random_range(0..exp.preset.model.states());
-        Self::with_world(world, start, ctx, params)
+        Self::with_world(world, start, ctx, params, None)
+    }
+
+    /// Like [`Simulation::new`], for an agent that learns P̂ (issue 17).
+    pub fn new_learned(
+        exp: &'a Experiment,
+        ctx: Arc<PlanningModel>,
+        params: ValidParams,
+        learned: ValidLearnedParams,
+        world_seed: u64,
+    ) -> Result<Self, AlgoError> {
+        let mut world = World::new(&exp.preset, world_seed)?;
+        let start = world.rng.random_range(0..exp.preset.model.states());
+        Self::with_world(world, start, ctx, params, Some(learned))
     }
 
     fn with_world(
@@ -448,8 +586,12 @@ impl<'a> Simulation<'a> {
         start: usize,
         ctx: Arc<PlanningModel>,
         params: ValidParams,
+        learned: Option<ValidLearnedParams>,
     ) -> Result<Self, AlgoError> {
-        let mut agent = Agent::new(ctx, params);
+        let mut agent = match learned {
+            None => Agent::new(ctx, params),
+            Some(l) => Agent::new_learned(ctx, params, l)?,
+        };
         let action = agent.step(&Observation::first(start))?.action;
         let n = world.preset.model.n_stimuli();
         Ok(Self {
@@ -495,5 +637,83 @@ impl TrialRecord {
         self.drive.extend_from_slice(drive);
         self.abs_reward.push(abs_reward);
         self.stimulus.extend_from_slice(xi);
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metrics::trial_metrics;
+
+    fn learned_variant(kind: ExperimentKind, slip: f64) -> Experiment {
+        Experiment::with_variant(
+            kind,
+            &Variant {
+                model: ModelChoice::Learned,
+                slip,
+                learned: LearnedParams::default(),
+            },
+        )
+        .expect("variant")
+    }
+
+    #[test]
+    fn a_learned_agent_finds_both_hallway_sources() {
+        let exp = learned_variant(ExperimentKind::Hallway, 0.0);
+        let names: Vec<&str> = exp.configs.iter().map(|c| c.name).collect();
+        assert_eq!(names, ["mca_pi", "mca_pi_learned", "brownian"]);
+        let ctxs = exp.planning_models().expect("models");
+        let sources: Vec<usize> = exp.preset.sources.iter().map(|s| s.state).collect();
+        for trial in 0..3 {
+            let rec = run_trial(
+                &exp,
+                &exp.configs[1],
+                ctxs[1].as_ref(),
+                7,
+                trial,
+                1500,
+                false,
+            )
+            .expect("trial");
+            let m = trial_metrics(&rec, &sources);
+            assert!(m["all_sources_found"] <= 1500.0, "trial {trial}: {m:?}");
+            assert!(
+                m["balance"] > 0.5,
+                "trial {trial}: balance {}",
+                m["balance"]
+            );
+            assert_eq!(m["model_known"], 1.0, "trial {trial}: the hallway is small");
+            assert!(rec.known[0] < 0.1, "almost nothing is known at first");
+        }
+    }
+
+    #[test]
+    fn the_slippery_world_moves_with_probability_p_to_a_random_neighbour() {
+        let model = hallway().model;
+        let slip = slippery(&model, 0.3).expect("slippery");
+        assert_eq!(slip.n_pairs(), model.n_pairs());
+        // (10, right): 0.7 to 11, and 0.1 each to 9, 11, 10.
+        let p = slip.pair(10, 1).expect("right");
+        let (next, prob) = slip.successors(p);
+        let mut row: Vec<(u32, f64)> = next.iter().copied().zip(prob.iter().copied()).collect();
+        row.sort_by_key(|&(t, _)| t);
+        let expected = [(9, 0.1), (10, 0.1), (11, 0.8)];
+        for ((t, q), (u, r)) in row.iter().zip(expected) {
+            assert_eq!(*t, u);
+            assert!((q - r).abs() < 1e-12, "{t}: {q} vs {r}");
+        }
+        assert!(slippery(&model, 0.95).is_err());
+        for bad in [-0.1, f64::NAN] {
+            let variant = Variant {
+                slip: bad,
+                ..Default::default()
+            };
+            let e = Experiment::with_variant(ExperimentKind::ThreeRoom, &variant)
+                .expect_err("bad slip");
+            assert!(e.to_string().contains("`slip`"), "{e}");
+        }
+        let exp = learned_variant(ExperimentKind::ThreeRoom, 0.2);
+        assert!(!exp.preset.model.is_deterministic());
+        assert_eq!(exp.slip, 0.2);
     }
 }

@@ -462,18 +462,26 @@ fn draw_hallway(
     let brown = records(grouped, "brownian")?;
     let mut files = Vec::new();
     let abs_r = |r: &TrialRecord| r.abs_reward.clone();
+    let mut series = vec![
+        mean_band("MCA-PI", PALETTE[0], &cumulative_per_trial(mca, abs_r)),
+        mean_band(
+            "Brownian, 4 states/tick",
+            PALETTE[1],
+            &cumulative_per_trial(brown, abs_r),
+        ),
+    ];
+    if let Ok(learned) = records(grouped, "mca_pi_learned") {
+        series.push(mean_band(
+            "MCA-PI, learned model",
+            PALETTE[2],
+            &cumulative_per_trial(learned, abs_r),
+        ));
+    }
     let fig_b = LineChart {
         title: "Fig. 2(b) Hallway: cumulative |r|".into(),
         x_label: "tick".into(),
         y_label: "cumulative |r|".into(),
-        series: vec![
-            mean_band("MCA-PI", PALETTE[0], &cumulative_per_trial(mca, abs_r)),
-            mean_band(
-                "Brownian, 4 states/tick",
-                PALETTE[1],
-                &cumulative_per_trial(brown, abs_r),
-            ),
-        ],
+        series,
     };
     files.extend(save(&fig_b, out, "fig2b_cumulative_reward", SIZE)?);
     files.extend(drive_and_error(exp, mca, "2", "Hallway", out)?);
@@ -508,6 +516,47 @@ fn draw_hallway(
     Ok(files)
 }
 
+/// Cumulative stimulus (all sources) of the known and the learned model,
+/// and how much of the learned model is known (issue 17).
+fn learned_vs_known(
+    known: &[TrialRecord],
+    learned: &[TrialRecord],
+    out: &Path,
+) -> Result<Vec<PathBuf>> {
+    let total = |r: &TrialRecord| {
+        r.stimulus
+            .chunks_exact(r.dims)
+            .map(|x| x.iter().sum())
+            .collect()
+    };
+    let fig = LineChart {
+        title: "Three-room maze: cumulative stimulus, known vs learned model".into(),
+        x_label: "tick".into(),
+        y_label: "cumulative stimulus (all sources)".into(),
+        series: vec![
+            mean_band("known P", PALETTE[0], &cumulative_per_trial(known, total)),
+            mean_band(
+                "learned P-hat",
+                PALETTE[2],
+                &cumulative_per_trial(learned, total),
+            ),
+        ],
+    };
+    let mut files = save(&fig, out, "fig3h_learned_vs_known", SIZE)?;
+    let fraction: Vec<Vec<f64>> = learned
+        .iter()
+        .map(|r| r.known.iter().map(|&k| f64::from(k)).collect())
+        .collect();
+    let fig = LineChart {
+        title: "Three-room maze: fraction of state-action pairs known".into(),
+        x_label: "tick".into(),
+        y_label: "known pairs / valid pairs".into(),
+        series: vec![mean_band("learned P-hat", PALETTE[2], &fraction)],
+    };
+    files.extend(save(&fig, out, "fig3i_model_known", SIZE)?);
+    Ok(files)
+}
+
 fn draw_maze(
     exp: &Experiment,
     grouped: &[(&'static str, Vec<TrialRecord>)],
@@ -532,6 +581,9 @@ fn draw_maze(
         series,
     };
     files.extend(save(&fig_b, out, "fig3b_cumulative_stimulus", SIZE)?);
+    if let Ok(learned) = records(grouped, "indicator_learned") {
+        files.extend(learned_vs_known(ind, learned, out)?);
+    }
     files.extend(drive_and_error(exp, ind, "3", "Three-room maze", out)?);
     let grid = exp
         .preset

@@ -48,6 +48,75 @@ pub struct Summary {
     pub seed: u64,
     /// `{config: {metric: {mean, sd, min, max}}}`.
     pub configs: BTreeMap<String, BTreeMap<String, Stat>>,
+    /// Slip probability of the world (0: deterministic).
+    #[serde(default)]
+    pub slip: f64,
+    /// Learned against known model on the same seeds (issue 17):
+    /// `{"<learned>_vs_<known>": {metric: Stat}}`, where the `*_ratio`
+    /// metrics are per-trial ratios learned / known and
+    /// `stimulus_ratio_of_means` is mean learned / mean known.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub comparisons: BTreeMap<String, BTreeMap<String, Stat>>,
+}
+
+/// The paired comparison of each `<name>_learned` configuration with
+/// `<name>` on the same trials (trial i of both shares its seeds).
+pub fn learned_vs_known(
+    per_config: &BTreeMap<String, Vec<TrialMetrics>>,
+) -> BTreeMap<String, BTreeMap<String, Stat>> {
+    let mut out = BTreeMap::new();
+    for (name, learned) in per_config {
+        let Some(known) = name
+            .strip_suffix("_learned")
+            .and_then(|k| per_config.get(k).map(|m| (k, m)))
+        else {
+            continue;
+        };
+        let (known_name, known) = known;
+        let mut m = BTreeMap::new();
+        let paired = |key: &str| -> Vec<(f64, f64)> {
+            learned
+                .iter()
+                .zip(known)
+                .filter_map(|(l, k)| Some((*l.get(key)?, *k.get(key)?)))
+                .collect()
+        };
+        for (key, label) in [
+            ("total_stimulus", "stimulus_ratio"),
+            ("cumulative_abs_reward", "reward_ratio"),
+        ] {
+            let pairs = paired(key);
+            let ratios: Vec<f64> = pairs
+                .iter()
+                .filter(|(_, k)| *k > 0.0)
+                .map(|(l, k)| l / k)
+                .collect();
+            if !ratios.is_empty() {
+                m.insert(label.to_string(), Stat::of(&ratios));
+            }
+            if key == "total_stimulus" && !pairs.is_empty() {
+                let n = pairs.len() as f64;
+                let (l, k) = pairs
+                    .iter()
+                    .fold((0.0, 0.0), |(a, b), (l, k)| (a + l, b + k));
+                if k > 0.0 {
+                    m.insert(
+                        "stimulus_ratio_of_means".to_string(),
+                        Stat::of(&[(l / n) / (k / n)]),
+                    );
+                }
+            }
+        }
+        let diffs: Vec<f64> = paired("all_sources_found")
+            .iter()
+            .map(|(l, k)| l - k)
+            .collect();
+        if !diffs.is_empty() {
+            m.insert("all_sources_found_delay".to_string(), Stat::of(&diffs));
+        }
+        out.insert(format!("{name}_vs_{known_name}"), m);
+    }
+    out
 }
 
 /// Everything an experiment produced.
@@ -91,10 +160,12 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
 
     let sources: Vec<usize> = exp.preset.sources.iter().map(|s| s.state).collect();
     let mut configs = BTreeMap::new();
+    let mut per_config = BTreeMap::new();
     for (name, recs) in &grouped {
         let per_trial: Vec<TrialMetrics> =
             recs.iter().map(|r| trial_metrics(r, &sources)).collect();
         configs.insert(name.to_string(), summarise(&per_trial));
+        per_config.insert(name.to_string(), per_trial);
     }
     let summary = Summary {
         experiment: exp.name().to_string(),
@@ -102,6 +173,8 @@ pub fn run_experiment(exp: &Experiment, opts: &RunOptions) -> Result<ExperimentO
         steps: opts.steps,
         seed: opts.seed,
         configs,
+        slip: exp.slip,
+        comparisons: learned_vs_known(&per_config),
     };
     let mut files = vec![write_summary(&summary, &opts.out)?];
     if opts.figures {
@@ -234,8 +307,8 @@ fn write_csv(
 /// The short results table printed after a run (Markdown).
 pub fn results_table(summary: &Summary, order: &[&str]) -> String {
     let mut out = String::from(
-        "| config | cumulative abs reward | balance | switches | period | all sources found | stuck |\n\
-         |---|---|---|---|---|---|---|\n",
+        "| config | cumulative abs reward | cumulative stimulus | balance | switches | period | all sources found | model known | stuck |\n\
+         |---|---|---|---|---|---|---|---|---|\n",
     );
     for name in order {
         let Some(m) = summary.configs.get(*name) else {
@@ -248,17 +321,35 @@ pub fn results_table(summary: &Summary, order: &[&str]) -> String {
             })
         };
         out.push_str(&format!(
-            "| {name} | {} | {} | {} | {} | {} | {} |\n",
+            "| {name} | {} | {} | {} | {} | {} | {} | {} | {} |\n",
             fmt("cumulative_abs_reward", 0),
+            fmt("total_stimulus", 0),
             fmt("balance", 3),
             fmt("switches", 1),
             fmt("period", 1),
             fmt("all_sources_found", 0),
+            fmt("model_known", 3),
             get("stuck").map_or("-".to_string(), |s| format!(
                 "{:.0}/{}",
                 s.mean * summary.trials as f64,
                 summary.trials
             )),
+        ));
+    }
+    for (name, m) in &summary.comparisons {
+        let fmt = |k: &str| {
+            m.get(k).map_or("-".to_string(), |s| {
+                format!("{:.3} ± {:.3} (min {:.3})", s.mean, s.sd, s.min)
+            })
+        };
+        out.push_str(&format!(
+            "\n{name}: cumulative stimulus ratio per trial {}, ratio of means {}; \
+             all sources found later by {} ticks\n",
+            fmt("stimulus_ratio"),
+            m.get("stimulus_ratio_of_means")
+                .map_or("-".to_string(), |s| format!("{:.3}", s.mean)),
+            m.get("all_sources_found_delay")
+                .map_or("-".to_string(), |s| format!("{:.0} ± {:.0}", s.mean, s.sd)),
         ));
     }
     out

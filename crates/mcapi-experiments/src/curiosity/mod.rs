@@ -358,6 +358,8 @@ pub fn run_curiosity(opts: &RunOptions) -> Result<(ExperimentOutput, Grouped)> {
         steps: opts.steps,
         seed: opts.seed,
         configs,
+        slip: 0.0,
+        comparisons: BTreeMap::new(),
     };
     let mut files = vec![write_summary(&summary, &opts.out)?];
     if opts.figures {
