@@ -46,6 +46,11 @@ async fn stopped(mut rx: watch::Receiver<bool>) {
 pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     cfg.validate().map_err(anyhow::Error::msg)?;
     let mut options = cfg.manager_options();
+    let placement = cfg.placement().map_err(anyhow::Error::msg)?.map(Arc::new);
+    if let Some(p) = &placement {
+        tracing::info!(replica = %p.replica(), epoch = p.epoch(), shards = p.owned_count(), "serving as one replica of a cluster");
+    }
+    options.placement = placement.clone();
     if cfg.store == StoreKind::Redb {
         let store =
             Store::open_with(&cfg.data_dir, cfg.durability).context("opening the session store")?;
@@ -69,7 +74,8 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     limits.warn_on_fd_limit();
     // One budget of watch streams per caller for both transports.
     let streams = StreamLimiter::new(limits.max_streams_per_key);
-    let app = router(state)
+    let replica = placement.as_ref().map(|p| p.replica().to_string());
+    let app = crate::api::router::with_replica_header(router(state), replica.as_deref())
         // Ends the dashboard's event streams at shutdown.
         .layer(axum::Extension(Stopping(stop_rx.clone())))
         .layer(axum::Extension(Arc::clone(&streams)))
@@ -88,6 +94,7 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
             stream_buffer: cfg.stream_buffer,
             limits,
             streams,
+            replica,
         };
         async move {
             crate::api::grpc::serve_with(grpc, manager, opts, stopped(stop_rx))

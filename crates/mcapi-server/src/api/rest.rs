@@ -19,7 +19,7 @@ use crate::api::extract::{
     AppState, Auth, JsonBody, JsonValue, OBSERVE_OBJECTS, query, require_objects,
 };
 use crate::api::schemas::{
-    BadRequest, InternalError, NotFound, ObserveBatchReply, ObserveReply, ObserveRequest,
+    BadRequest, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply, ObserveReply, ObserveRequest,
     PayloadTooLarge, TooManyRequests, Unauthorized, Unavailable,
 };
 use crate::service::{
@@ -158,6 +158,7 @@ pub(crate) async fn list_sessions(
         (status = 200, description = "The session.", body = SessionInfo),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 pub(crate) async fn get_session(
@@ -182,6 +183,7 @@ pub(crate) async fn get_session(
         (status = 204, description = "Deleted."),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 503, response = Unavailable)))]
 pub(crate) async fn delete_session(
     State(state): State<AppState>,
@@ -214,6 +216,7 @@ struct ObserveBatch {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 413, response = PayloadTooLarge),
         (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
@@ -283,6 +286,7 @@ pub(crate) struct ValuesQuery {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 413, response = PayloadTooLarge),
         (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
@@ -321,6 +325,7 @@ pub(crate) struct HistoryQuery {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 413, response = PayloadTooLarge),
         (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]

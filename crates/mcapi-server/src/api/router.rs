@@ -53,6 +53,24 @@ pub fn router(state: AppState) -> Router {
         .with_state(state)
 }
 
+/// The response header naming the replica that answered (docs/cluster.md).
+pub const REPLICA_HEADER: &str = "x-mcapi-replica";
+
+/// Adds `x-mcapi-replica: <name>` to every response of a clustered
+/// replica; a single node (`None`) sends no such header.
+pub fn with_replica_header(router: Router, replica: Option<&str>) -> Router {
+    let Some(value) = replica.and_then(|r| axum::http::HeaderValue::from_str(r).ok()) else {
+        return router;
+    };
+    router.layer(middleware::map_response(move |mut response: Response| {
+        let value = value.clone();
+        async move {
+            response.headers_mut().insert(REPLICA_HEADER, value);
+            response
+        }
+    }))
+}
+
 async fn not_found(method: axum::http::Method, uri: axum::http::Uri) -> ApiError {
     ApiError(ServiceError::UnknownRoute(format!(
         "{method} {}",
