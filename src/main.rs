@@ -17,8 +17,8 @@ use clap::{Args, Parser, Subcommand};
 use mcapi_experiments::curiosity;
 use mcapi_experiments::run::results_table;
 use mcapi_experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
-use mcapi_server::config::{LogFormat, ServeConfig};
 use mcapi_server::cluster::{self, cli::ClusterCommand};
+use mcapi_server::config::{LogFormat, ServeConfig};
 use mcapi_server::{server, telemetry};
 
 /// Motivated reinforcement-learning agents (MCA-PI, Kompella et al. 2014).

@@ -233,7 +233,10 @@ async fn start_router(dir: &Path, map: &Path, replicas: &[(&str, &Server)]) -> R
             "the router did not reach every replica: {seen:?}; log:\n{}",
             router.log_text()
         );
-        if let Ok(r) = client.get(format!("{}/v1/sessions", router.base())).send().await
+        if let Ok(r) = client
+            .get(format!("{}/v1/sessions", router.base()))
+            .send()
+            .await
             && r.status() == 200
             && let Some(v) = r.headers().get("x-mcapi-replica")
         {
@@ -280,11 +283,19 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
         assert_eq!(status, 201, "{body}");
         let id = body["id"].as_str().expect("id").to_string();
         let replica = replica.expect("x-mcapi-replica on a create");
-        assert_eq!(owner_of(&map, &id), replica, "{id} minted outside its replica's shards");
+        assert_eq!(
+            owner_of(&map, &id),
+            replica,
+            "{id} minted outside its replica's shards"
+        );
         *created_on.entry(replica).or_default() += 1;
         ids.push(id);
     }
-    assert_eq!(created_on.len(), 3, "creates reach every replica: {created_on:?}");
+    assert_eq!(
+        created_on.len(),
+        3,
+        "creates reach every replica: {created_on:?}"
+    );
 
     // gRPC creates too, without session metadata: round-robin.
     let mut grpc = router.grpc().await;
@@ -319,7 +330,11 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
             Some(json!({"state": 25})),
         )
         .await;
-        assert_eq!((status, replica.as_deref()), (200, Some(owner.as_str())), "{id}: {body}");
+        assert_eq!(
+            (status, replica.as_deref()),
+            (200, Some(owner.as_str())),
+            "{id}: {body}"
+        );
         let reply = grpc
             .observe(grpc_request(
                 pb::ObserveRequest {
@@ -375,7 +390,13 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
     .await;
     assert_eq!(status, 421, "{body}");
     assert_eq!(body["code"], "wrong_replica");
-    assert!(body["message"].as_str().expect("message").contains(&format!("`{owner}`")), "{body}");
+    assert!(
+        body["message"]
+            .as_str()
+            .expect("message")
+            .contains(&format!("`{owner}`")),
+        "{body}"
+    );
     assert_eq!(owner_header.as_deref(), Some(owner.as_str()));
     assert_eq!(replica.as_deref(), Some(*other));
     let e = wrong
@@ -392,7 +413,10 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
         .expect_err("misdirected");
     assert_eq!(e.code(), Code::Unavailable, "{e:?}");
     assert_eq!(meta(e.metadata(), "x-mcapi-owner"), Some(owner.clone()));
-    assert_eq!(meta(e.metadata(), "x-mcapi-error-code").as_deref(), Some("wrong_replica"));
+    assert_eq!(
+        meta(e.metadata(), "x-mcapi-error-code").as_deref(),
+        Some("wrong_replica")
+    );
 
     // Flip the session's shard to another replica live (Runtime API, no
     // reload): the router sends it there at once, and that replica, the
@@ -400,8 +424,11 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
     let shard = shard_of_id(id).expect("shard");
     let to = ReplicaName::parse(other).expect("name");
     set_owner(&router.socket, &router.map_path, shard, &to).expect("set map");
-    let shown = runtime_command(&router.socket, &format!("show map {}", router.map_path.display()))
-        .expect("show map");
+    let shown = runtime_command(
+        &router.socket,
+        &format!("show map {}", router.map_path.display()),
+    )
+    .expect("show map");
     assert!(
         shown.contains(&format!("{} {other}", shard_key(shard))),
         "the live map has the flip: {}",
@@ -427,7 +454,10 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
         .await
         .expect_err("flipped");
     assert_eq!(e.code(), Code::Unavailable);
-    assert_eq!(meta(e.metadata(), "x-mcapi-replica").as_deref(), Some(*other));
+    assert_eq!(
+        meta(e.metadata(), "x-mcapi-replica").as_deref(),
+        Some(*other)
+    );
     // Only that shard moved: a session of another shard still reaches its owner.
     let steady = ids
         .iter()
@@ -456,7 +486,11 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
         None,
     )
     .await;
-    assert_eq!((status, replica.as_deref()), (200, Some(owner.as_str())), "{body}");
+    assert_eq!(
+        (status, replica.as_deref()),
+        (200, Some(owner.as_str())),
+        "{body}"
+    );
     assert_eq!(body["tick"], 4);
     // The Runtime API refuses a key the map does not have.
     assert!(
@@ -481,7 +515,11 @@ async fn a_restarted_replica_keeps_but_does_not_serve_shards_it_lost() {
             Some(json!({"model": {"preset": "hallway"}})),
         )
         .await;
-        assert_eq!((status, replica.as_deref()), (201, Some("mcapi-0")), "{body}");
+        assert_eq!(
+            (status, replica.as_deref()),
+            (201, Some("mcapi-0")),
+            "{body}"
+        );
         ids.push(body["id"].as_str().expect("id").to_string());
     }
     assert!(ids.iter().all(|id| owner_of(&map, id) == "mcapi-0"));
@@ -492,7 +530,11 @@ async fn a_restarted_replica_keeps_but_does_not_serve_shards_it_lost() {
     let mut owners = map.owners();
     owners[usize::from(lost)] = ReplicaName::parse("mcapi-1").expect("name");
     let v2 = dir.path().join("v2.map");
-    std::fs::write(&v2, ShardMap::from_owners(2, &owners).expect("map").to_text()).expect("write");
+    std::fs::write(
+        &v2,
+        ShardMap::from_owners(2, &owners).expect("map").to_text(),
+    )
+    .expect("write");
     let mut server = start_replica(dir.path(), &v2, "mcapi-0", &[]).await;
     let (status, _, owner, body) = call(
         &client,
@@ -502,7 +544,13 @@ async fn a_restarted_replica_keeps_but_does_not_serve_shards_it_lost() {
     )
     .await;
     assert_eq!((status, owner.as_deref()), (421, Some("mcapi-1")), "{body}");
-    assert!(body["message"].as_str().expect("message").contains("epoch 2"), "{body}");
+    assert!(
+        body["message"]
+            .as_str()
+            .expect("message")
+            .contains("epoch 2"),
+        "{body}"
+    );
     for id in ids.iter().filter(|i| shard_of_id(i) != Some(lost)) {
         let (status, _, _, body) = call(
             &client,
@@ -526,7 +574,10 @@ async fn a_restarted_replica_keeps_but_does_not_serve_shards_it_lost() {
         .iter()
         .filter_map(|s| s["id"].as_str())
         .collect();
-    assert!(!listed.contains(&ids[0].as_str()), "a lost shard's session is not listed");
+    assert!(
+        !listed.contains(&ids[0].as_str()),
+        "a lost shard's session is not listed"
+    );
     let events = common::log_events(
         &server.log_text(),
         "stored sessions of shards this replica does not own are kept in the store, not served",
@@ -569,7 +620,10 @@ fn absurd_shard_maps_and_cluster_flags_are_refused_before_any_port_opens() {
             .join("\n")
             .as_bytes(),
     );
-    let epoch = write("epoch.map", text.replace("epoch 1", "epoch zero").as_bytes());
+    let epoch = write(
+        "epoch.map",
+        text.replace("epoch 1", "epoch zero").as_bytes(),
+    );
     let huge = write("huge.map", &vec![b'#'; 8 << 20]);
     let binary = write("binary.map", &[0xff; 64]);
     let (http, grpc) = free_ports();
@@ -593,8 +647,14 @@ fn absurd_shard_maps_and_cluster_flags_are_refused_before_any_port_opens() {
     };
     let p = |p: &PathBuf| p.to_str().expect("utf-8").to_string();
     for (file, want) in [
-        (&dup, "line 1027: shard s0002 is assigned again (first on line 5)"),
-        (&missing, "256 of the 1024 shards have no owner: s0100, s0101"),
+        (
+            &dup,
+            "line 1027: shard s0002 is assigned again (first on line 5)",
+        ),
+        (
+            &missing,
+            "256 of the 1024 shards have no owner: s0100, s0101",
+        ),
         (&epoch, "line 2: the epoch `zero` is not a whole number"),
         (&huge, "larger than 262144 bytes"),
         (&binary, "not UTF-8"),
@@ -605,7 +665,10 @@ fn absurd_shard_maps_and_cluster_flags_are_refused_before_any_port_opens() {
         assert!(!e.contains("binding"), "refused before binding: {e}");
     }
     let e = serve(&["--shard-map", &p(&good), "--replica", "mcapi-7"]);
-    assert!(e.contains("`mcapi-7` owns no shard") && e.contains("mcapi-0, mcapi-1"), "{e}");
+    assert!(
+        e.contains("`mcapi-7` owns no shard") && e.contains("mcapi-0, mcapi-1"),
+        "{e}"
+    );
     let e = serve(&["--shard-map", &p(&good), "--replica", "Not_A_Name"]);
     assert!(e.contains("only a-z, 0-9 and `-`"), "{e}");
     let e = serve(&["--shard-map", &p(&good)]);
@@ -618,9 +681,12 @@ fn absurd_shard_maps_and_cluster_flags_are_refused_before_any_port_opens() {
     assert!(out.status.success(), "{}", stderr(&out));
     let next = ShardMap::parse(&String::from_utf8_lossy(&out.stdout)).expect("a map on stdout");
     assert_eq!(next.epoch(), 2);
-    let moved = (0..1024u16).filter(|&s| next.owner(s) != map.owner(s)).count();
+    let moved = (0..1024u16)
+        .filter(|&s| next.owner(s) != map.owner(s))
+        .count();
     assert!(
-        stderr(&out).contains(&format!("{moved} of 1024 shards move")) && stderr(&out).contains(&format!("{moved} to mcapi-2")),
+        stderr(&out).contains(&format!("{moved} of 1024 shards move"))
+            && stderr(&out).contains(&format!("{moved} to mcapi-2")),
         "{}",
         stderr(&out)
     );

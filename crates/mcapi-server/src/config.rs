@@ -245,8 +245,9 @@ impl ServeConfig {
             (Some(path), Some(name)) => {
                 let replica = ReplicaName::parse(name)
                     .map_err(|e| format!("--replica / MCAPI_REPLICA: {e}"))?;
-                let map = ShardMap::read(path)
-                    .map_err(|e| format!("--shard-map / MCAPI_SHARD_MAP {}: {e}", path.display()))?;
+                let map = ShardMap::read(path).map_err(|e| {
+                    format!("--shard-map / MCAPI_SHARD_MAP {}: {e}", path.display())
+                })?;
                 Placement::new(map, replica)
                     .map(Some)
                     .map_err(|e| format!("--replica / MCAPI_REPLICA: {e}"))

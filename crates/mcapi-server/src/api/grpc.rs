@@ -556,14 +556,16 @@ pub async fn serve_with(
         .and_then(|r| axum::http::HeaderValue::from_str(r).ok());
     let layers = tower::ServiceBuilder::new()
         .layer(grpc_panic_layer())
-        .map_response(move |mut response: axum::http::Response<tonic::body::Body>| {
-            if let Some(value) = &replica {
+        .map_response(
+            move |mut response: axum::http::Response<tonic::body::Body>| {
+                if let Some(value) = &replica {
+                    response
+                        .headers_mut()
+                        .insert(crate::api::router::REPLICA_HEADER, value.clone());
+                }
                 response
-                    .headers_mut()
-                    .insert(crate::api::router::REPLICA_HEADER, value.clone());
-            }
-            response
-        })
+            },
+        )
         .layer(guard);
     tonic::transport::Server::builder()
         .max_concurrent_streams(limits.http2_max_streams)

@@ -8,8 +8,8 @@ use utoipa::OpenApi;
 
 use crate::api::error::ErrorBody;
 use crate::api::schemas::{
-    BadRequest, BearerAuth, InternalError, NotFound, ObserveBatchReply, PayloadTooLarge, SseEvent,
-    TooManyRequests, Unauthorized, Unavailable, request_schemas, MisdirectedRequest,
+    BadRequest, BearerAuth, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply,
+    PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized, Unavailable, request_schemas,
 };
 use crate::service::Limits;
 

@@ -19,8 +19,8 @@ use crate::api::extract::{
     AppState, Auth, JsonBody, JsonValue, OBSERVE_OBJECTS, query, require_objects,
 };
 use crate::api::schemas::{
-    BadRequest, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply, ObserveReply, ObserveRequest,
-    PayloadTooLarge, TooManyRequests, Unauthorized, Unavailable,
+    BadRequest, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply, ObserveReply,
+    ObserveRequest, PayloadTooLarge, TooManyRequests, Unauthorized, Unavailable,
 };
 use crate::service::{
     CreateSession, HistoryEntry, ObservationIn, ServiceError, SessionInfo, SessionPage,

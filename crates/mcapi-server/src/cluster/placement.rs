@@ -109,9 +109,8 @@ impl Placement {
     /// Whether a stored session of this id is served here (at start, the
     /// sessions of other shards stay in the store but are not loaded).
     pub fn holds(&self, id: &str) -> bool {
-        shard_of_id(id).is_some_and(|s| {
-            matches!(self.state(s), ShardState::Owned | ShardState::Frozen)
-        })
+        shard_of_id(id)
+            .is_some_and(|s| matches!(self.state(s), ShardState::Owned | ShardState::Frozen))
     }
 
     /// `Ok` if requests for session `id` are served here now; otherwise the
@@ -182,7 +181,12 @@ mod tests {
         assert!(p.check(&own_id).is_ok());
         assert!(p.holds(&own_id));
         match p.check(&their_id) {
-            Err(ServiceError::WrongReplica { owner, replica, epoch, .. }) => {
+            Err(ServiceError::WrongReplica {
+                owner,
+                replica,
+                epoch,
+                ..
+            }) => {
                 assert_eq!(owner, "mcapi-1");
                 assert_eq!(replica, "mcapi-0");
                 assert_eq!(epoch, 1);
@@ -190,11 +194,17 @@ mod tests {
             other => panic!("expected WrongReplica, got {other:?}"),
         }
         assert!(!p.holds(&their_id));
-        assert!(matches!(p.check("nonsense"), Err(ServiceError::NotFound(_))));
+        assert!(matches!(
+            p.check("nonsense"),
+            Err(ServiceError::NotFound(_))
+        ));
         p.set_state(mine[0], ShardState::Frozen);
         assert!(matches!(
             p.check(&own_id),
-            Err(ServiceError::ShardFrozen { retry_after_secs: 1, .. })
+            Err(ServiceError::ShardFrozen {
+                retry_after_secs: 1,
+                ..
+            })
         ));
         assert!(p.holds(&own_id), "a frozen shard's sessions stay loaded");
     }
@@ -205,7 +215,9 @@ mod tests {
         let p = Placement::new(map.clone(), names[1].clone()).expect("placement");
         let owned = map.shards_of(&names[1]);
         for pick in 0..5000u64 {
-            let s = p.mint_shard(pick.wrapping_mul(0x9e37_79b9_7f4a_7c15)).expect("a shard");
+            let s = p
+                .mint_shard(pick.wrapping_mul(0x9e37_79b9_7f4a_7c15))
+                .expect("a shard");
             assert_eq!(map.owner(s), &names[1]);
         }
         p.set_state(owned[0], ShardState::Frozen);
@@ -219,8 +231,8 @@ mod tests {
     #[test]
     fn a_replica_missing_from_the_map_is_refused() {
         let (map, _) = two();
-        let e = Placement::new(map, ReplicaName::parse("mcapi-9").expect("name"))
-            .expect_err("refused");
+        let e =
+            Placement::new(map, ReplicaName::parse("mcapi-9").expect("name")).expect_err("refused");
         assert!(e.contains("mcapi-0, mcapi-1"), "{e}");
     }
 }

@@ -157,11 +157,12 @@ mod tests {
 
     #[test]
     fn weights_are_fixed() {
-        // Pinned: a change of the hash would move shards between versions.
-        let a = weight(0, &names(1)[0]);
-        assert_eq!(a, weight(0, &names(1)[0]));
-        assert_ne!(a, weight(1, &names(1)[0]));
-        assert_eq!(format!("{a:016x}").len(), 16);
+        // Pinned (computed independently: the first 8 bytes, big-endian, of
+        // SHA-256 over b"mcapi-shard-v1\0", the shard as u16 BE and the
+        // name): a change of the hash would move shards between versions.
+        assert_eq!(weight(0, &names(1)[0]), 0x6e49_f601_ffb5_6d68);
+        assert_eq!(weight(0x3a7, &names(3)[2]), 0xc424_3bb3_5cc7_9f1a);
+        assert_ne!(weight(1, &names(1)[0]), weight(0, &names(1)[0]));
         let again = plan(&names(3), None).expect("plan");
         assert_eq!(plan(&names(3), None).expect("plan").map, again.map);
     }
@@ -197,7 +198,10 @@ mod tests {
                 "{n}->{}: {moved} moved, ideal {ideal:.1}",
                 n + 1
             );
-            assert!(p.moved.iter().all(|m| &m.to == new), "{n}: not all to {new}");
+            assert!(
+                p.moved.iter().all(|m| &m.to == new),
+                "{n}: not all to {new}"
+            );
             // No move among the old replicas.
             assert!(p.moved.iter().all(|m| &m.from != new));
         }

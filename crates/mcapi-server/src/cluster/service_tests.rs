@@ -71,14 +71,19 @@ async fn a_replica_serves_its_shards_and_refuses_the_others() {
         assert_eq!(status, StatusCode::CREATED, "{body}");
         assert_eq!(headers["x-mcapi-replica"], "mcapi-1");
         let id = body["id"].as_str().expect("id").to_string();
-        assert_eq!(map.owner(shard_of_id(&id).expect("shard")).as_str(), "mcapi-1");
+        assert_eq!(
+            map.owner(shard_of_id(&id).expect("shard")).as_str(),
+            "mcapi-1"
+        );
         ids.push(id);
     }
 
     // A foreign shard: 421 naming its owner, before any lookup.
-    let foreign = format!("{}.01JDX4AAAAAAAAAAAAAAAAAAAA", shard_key(map.shards_of(&names[0])[0]));
-    let (status, headers, body) =
-        send(&app, "GET", &format!("/v1/sessions/{foreign}"), None).await;
+    let foreign = format!(
+        "{}.01JDX4AAAAAAAAAAAAAAAAAAAA",
+        shard_key(map.shards_of(&names[0])[0])
+    );
+    let (status, headers, body) = send(&app, "GET", &format!("/v1/sessions/{foreign}"), None).await;
     assert_eq!(status, StatusCode::MISDIRECTED_REQUEST, "{body}");
     assert_eq!(body["code"], "wrong_replica");
     assert_eq!(headers["x-mcapi-owner"], "mcapi-0");
@@ -133,7 +138,13 @@ async fn a_single_node_sends_no_replica_header_and_owns_every_shard() {
     let (status, headers, body) = send(&app, "POST", "/v1/sessions", Some(HALLWAY)).await;
     assert_eq!(status, StatusCode::CREATED, "{body}");
     assert!(headers.get("x-mcapi-replica").is_none());
-    let (status, _, _) = send(&app, "GET", "/v1/sessions/s03ff.01JDX4AAAAAAAAAAAAAAAAAAAA", None).await;
+    let (status, _, _) = send(
+        &app,
+        "GET",
+        "/v1/sessions/s03ff.01JDX4AAAAAAAAAAAAAAAAAAAA",
+        None,
+    )
+    .await;
     assert_eq!(status, StatusCode::NOT_FOUND);
 }
 
@@ -147,7 +158,13 @@ fn grpc_refusals_carry_the_owner() {
         epoch: 4,
     });
     assert_eq!(status.code(), tonic::Code::Unavailable);
-    assert_eq!(status.metadata().get("x-mcapi-owner").map(|v| v.to_str().ok()), Some(Some("mcapi-2")));
+    assert_eq!(
+        status
+            .metadata()
+            .get("x-mcapi-owner")
+            .map(|v| v.to_str().ok()),
+        Some(Some("mcapi-2"))
+    );
     assert!(status.message().contains("epoch 4"), "{}", status.message());
     let frozen = to_status(ServiceError::ShardFrozen {
         shard: "s0001".into(),
@@ -155,7 +172,10 @@ fn grpc_refusals_carry_the_owner() {
     });
     assert_eq!(frozen.code(), tonic::Code::Unavailable);
     assert_eq!(
-        frozen.metadata().get("x-mcapi-error-code").map(|v| v.to_str().ok()),
+        frozen
+            .metadata()
+            .get("x-mcapi-error-code")
+            .map(|v| v.to_str().ok()),
         Some(Some("shard_moving"))
     );
 }
