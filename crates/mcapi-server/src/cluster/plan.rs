@@ -88,10 +88,10 @@ pub fn plan(replicas: &[ReplicaName], from: Option<&ShardMap>) -> Result<Plan, M
         })
         .collect();
     // Owners over capacity give up the shards they rank lowest.
-    for r in 0..n {
+    for (r, name) in names.iter().enumerate() {
         let mut held: Vec<(u64, usize)> = (0..SHARDS)
             .filter(|&s| owner[s] == Some(r))
-            .map(|s| (weight(s as u16, &names[r]), s))
+            .map(|s| (weight(s as u16, name), s))
             .collect();
         if held.len() <= capacity {
             continue;
