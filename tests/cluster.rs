@@ -335,6 +335,22 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
             (200, Some(owner.as_str())),
             "{id}: {body}"
         );
+        // Two requests in a row for one session: round-robin would send
+        // them to two different replicas, so both reaching the owner shows
+        // the routing by shard (the creates above ran in the same rotation,
+        // which one request per session could match by chance).
+        let (status, replica, _, body) = call(
+            &client,
+            reqwest::Method::GET,
+            &format!("{}/v1/sessions/{id}/history?limit=1", router.base()),
+            None,
+        )
+        .await;
+        assert_eq!(
+            (status, replica.as_deref()),
+            (200, Some(owner.as_str())),
+            "{id}: {body}"
+        );
         let reply = grpc
             .observe(grpc_request(
                 pb::ObserveRequest {
@@ -346,8 +362,24 @@ async fn three_replicas_behind_haproxy_route_by_shard() {
             ))
             .await
             .unwrap_or_else(|s| panic!("gRPC observe {id} (#{k}): {s:?}"));
-        assert_eq!(meta(reply.metadata(), "x-mcapi-replica"), Some(owner));
+        assert_eq!(
+            meta(reply.metadata(), "x-mcapi-replica").as_deref(),
+            Some(owner.as_str())
+        );
         assert_eq!(reply.into_inner().steps[0].tick, 1);
+        // Again right after: the routing is by metadata, not the rotation.
+        let reply = grpc
+            .get_history(grpc_request(
+                pb::GetHistoryRequest {
+                    session_id: id.clone(),
+                    limit: Some(1),
+                },
+                None,
+                Some(id),
+            ))
+            .await
+            .unwrap_or_else(|s| panic!("gRPC history {id} (#{k}): {s:?}"));
+        assert_eq!(meta(reply.metadata(), "x-mcapi-replica"), Some(owner));
     }
 
     // A bidirectional stream through the router, on its session's owner.
