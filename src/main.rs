@@ -18,6 +18,7 @@ use mcapi_experiments::curiosity;
 use mcapi_experiments::paper::{LearnedModelParams, ModelChoice, Optimism, Variant};
 use mcapi_experiments::run::results_table;
 use mcapi_experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
+use mcapi_server::cluster::{self, cli::ClusterCommand};
 use mcapi_server::config::{LogFormat, ServeConfig};
 use mcapi_server::{server, telemetry};
 
@@ -39,6 +40,11 @@ enum Command {
     Healthcheck(HealthcheckArgs),
     /// Load-test a running server over real sockets (REST, gRPC, memory) and print the results.
     Loadgen(loadgen::LoadgenArgs),
+    /// Shard maps and the router of a cluster of replicas (docs/cluster.md).
+    Cluster {
+        #[command(subcommand)]
+        command: ClusterCommand,
+    },
 }
 
 #[derive(Debug, Args)]
@@ -128,6 +134,7 @@ fn main() -> ExitCode {
         }
         Command::Healthcheck(args) => healthcheck(&args),
         Command::Loadgen(args) => loadgen::run(args),
+        Command::Cluster { command } => cluster::cli::run(command),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -67,6 +67,8 @@ fn every_operation_is_tagged_and_documents_its_errors() {
                 }
                 if path.contains("{id}") {
                     assert!(responses.contains_key("404"), "{method} {path}: 404");
+                    // A clustered replica refuses another replica's session.
+                    assert!(responses.contains_key("421"), "{method} {path}: 421");
                 }
                 if op["parameters"]
                     .as_array()

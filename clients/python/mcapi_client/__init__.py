@@ -61,7 +61,9 @@ from .errors import (
     Unauthenticated,
     Unavailable,
     UnknownRoute,
+    WrongReplica,
 )
+from .retry import DEFAULT_RETRY, RetryPolicy
 from .types import (
     AgentConfig,
     AgentOptions,
@@ -149,8 +151,11 @@ __all__ = [
     "SessionFailed",
     "Unavailable",
     "TransportError",
+    "WrongReplica",
     "Timeout",
     "InternalError",
+    "RetryPolicy",
+    "DEFAULT_RETRY",
     "AgentConfig",
     "AgentOptions",
     "BasisSummary",

@@ -19,7 +19,7 @@ from typing import Any
 from ._normalise import as_float, as_opt_int
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._sansio import Op, SessionCache
-from .errors import McapiError, Timeout, TransportError, error_for
+from .errors import McapiError, Timeout, TransportError, WrongReplica, error_for
 from .models import ModelLike, model_json
 from .types import (
     ActionRef,
@@ -52,6 +52,9 @@ SESSION_METADATA = "x-mcapi-session"
 
 ERROR_CODE_TRAILER = "x-mcapi-error-code"
 """Trailer carrying the server's stable error code."""
+
+OWNER_TRAILER = "x-mcapi-owner"
+"""Trailer naming the replica that owns a misdirected session's shard."""
 
 Metadata = tuple[tuple[str, str], ...]
 
@@ -470,9 +473,12 @@ def rpc_error(e: BaseException) -> McapiError:
     name = getattr(code, "name", None) or "UNKNOWN"
     message = _call(e, "details") or str(e)
     stable = None
+    owner = None
     for key, value in _call(e, "trailing_metadata") or ():
         if key == ERROR_CODE_TRAILER:
             stable = value if isinstance(value, str) else value.decode()
+        elif key == OWNER_TRAILER:
+            owner = value if isinstance(value, str) else value.decode()
     if stable is None:
         # No answer from mcapi itself: the network or the client gave up.
         if name == "UNAVAILABLE":
@@ -481,7 +487,10 @@ def rpc_error(e: BaseException) -> McapiError:
             return Timeout(message, code="timeout", grpc_code=name)
         if name == "CANCELLED":
             return McapiError(message, code="cancelled", grpc_code=name)
-    return error_for(stable, message, grpc_code=name)
+    err = error_for(stable, message, grpc_code=name)
+    if isinstance(err, WrongReplica):
+        err.owner = owner
+    return err
 
 
 def _call(e: BaseException, method: str) -> Any:

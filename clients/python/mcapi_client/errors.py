@@ -35,6 +35,7 @@ __all__ = [
     "SessionFailed",
     "Unavailable",
     "TransportError",
+    "WrongReplica",
     "Timeout",
     "InternalError",
     "ERROR_CODES",
@@ -143,6 +144,20 @@ class Unavailable(McapiError):
     DEADLINE_EXCEEDED with ``request_timeout``). Worth retrying later."""
 
 
+class WrongReplica(Unavailable):
+    """A replica of a cluster was asked about a session whose shard another
+    replica owns (HTTP 421, gRPC UNAVAILABLE, ``wrong_replica``): the router's
+    map was stale. Nothing was done; the clients retry it through the router
+    (see :class:`~mcapi_client.RetryPolicy`).
+
+    Attributes:
+        owner: The replica that owns the shard (the ``x-mcapi-owner`` header
+            or trailer), when the server named it.
+    """
+
+    owner: str | None = None
+
+
 class TransportError(Unavailable):
     """The server could not be reached, or the connection broke (client-side
     code ``transport_error``; no status)."""
@@ -188,6 +203,8 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "request_timeout": (Unavailable, 503),
     "unavailable": (Unavailable, 503),
     "storage_unavailable": (Unavailable, 503),
+    "wrong_replica": (WrongReplica, 421),
+    "shard_moving": (Unavailable, 503),
     "numerical_failure": (InternalError, 500),
     "internal": (InternalError, 500),
 }

@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import asyncio
 import queue
+import time
 from collections.abc import AsyncIterator, Iterable, Iterator, Sequence
 from types import TracebackType
 from typing import Any
@@ -54,7 +55,8 @@ from ._pb import ERROR_CODE_TRAILER, SESSION_METADATA, Call, Metadata, rpc_error
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
 from ._sansio import adrive, drive
-from .errors import Unavailable
+from .errors import McapiError, Unavailable
+from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .models import ModelLike
 from .types import (
     ActionRef,
@@ -295,6 +297,9 @@ class GrpcClient:
         timeout: Seconds per unary call (streams have none).
         credentials: TLS channel credentials; plaintext when ``None``.
         options: Extra channel options, e.g. ``[("grpc.max_receive_message_length", n)]``.
+        retry: Which refusals of unary calls to retry and for how long (a
+            cluster's ``wrong_replica``, ``shard_moving``, ``unavailable``;
+            see :mod:`mcapi_client.retry`); ``None``: never.
 
     Offers the REST client's operations, with the same results. Use as a
     context manager, or call :meth:`close`.
@@ -308,8 +313,10 @@ class GrpcClient:
         *,
         credentials: grpc.ChannelCredentials | None = None,
         options: Sequence[tuple[str, Any]] = (),
+        retry: RetryPolicy | None = DEFAULT_RETRY,
     ) -> None:
         self.target = target
+        self.retry = retry
         opts = _channel_options(options)
         self._channel = (
             grpc.secure_channel(target, credentials, options=opts)
@@ -333,10 +340,16 @@ class GrpcClient:
     def _send(self, call: Call) -> Any:
         method = getattr(self._stub, call.rpc)
         metadata = self._protocol.metadata(call.session_id)
-        try:
-            return method(call.request, metadata=metadata, timeout=self._timeout)
-        except grpc.RpcError as e:
-            raise rpc_error(e) from e
+        attempts = Attempts(self.retry, time.monotonic())
+        while True:
+            try:
+                return method(call.request, metadata=metadata, timeout=self._timeout)
+            except grpc.RpcError as e:
+                err: McapiError = rpc_error(e)
+                wait = attempts.next_wait(err, time.monotonic())
+                if wait is None:
+                    raise err from e
+            time.sleep(wait)
 
     def ready(self, timeout: float = 1.0) -> bool:
         """Whether the channel connects within ``timeout`` seconds."""
@@ -605,6 +618,7 @@ class AsyncGrpcClient:
         timeout: Seconds per unary call (streams have none).
         credentials: TLS channel credentials; plaintext when ``None``.
         options: Extra channel options.
+        retry: As :class:`GrpcClient`'s.
 
     Create it inside the event loop that uses it (``grpc.aio`` channels
     belong to one loop), as ``async with AsyncGrpcClient(...) as mc:``, or
@@ -622,8 +636,10 @@ class AsyncGrpcClient:
         *,
         credentials: grpc.ChannelCredentials | None = None,
         options: Sequence[tuple[str, Any]] = (),
+        retry: RetryPolicy | None = DEFAULT_RETRY,
     ) -> None:
         self.target = target
+        self.retry = retry
         opts = _channel_options(options)
         self._channel = (
             grpc.aio.secure_channel(target, credentials, options=opts)
@@ -647,10 +663,16 @@ class AsyncGrpcClient:
     async def _send(self, call: Call) -> Any:
         method = getattr(self._stub, call.rpc)
         metadata = self._protocol.metadata(call.session_id)
-        try:
-            return await method(call.request, metadata=metadata, timeout=self._timeout)
-        except grpc.RpcError as e:
-            raise rpc_error(e) from e
+        attempts = Attempts(self.retry, time.monotonic())
+        while True:
+            try:
+                return await method(call.request, metadata=metadata, timeout=self._timeout)
+            except grpc.RpcError as e:
+                err: McapiError = rpc_error(e)
+                wait = attempts.next_wait(err, time.monotonic())
+                if wait is None:
+                    raise err from e
+            await asyncio.sleep(wait)
 
     async def ready(self, timeout: float = 1.0) -> bool:
         """Whether the channel connects within ``timeout`` seconds."""

@@ -17,6 +17,8 @@ request over httpx. Numbers may be numpy scalars and vectors numpy arrays.
 
 from __future__ import annotations
 
+import asyncio
+import time
 from collections.abc import AsyncIterator, Iterable, Iterator, Mapping
 from typing import Any
 
@@ -33,7 +35,8 @@ from ._normalise import FloatsLike, IntLike
 from ._protocol import READY, Request, RestProtocol, read_reply
 from ._protocol import headers as request_headers
 from ._sansio import adrive, drive
-from .errors import McapiError, Timeout, TransportError
+from .errors import McapiError, Timeout, TransportError, WrongReplica
+from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .models import ModelLike
 from .types import (
     ActionRef,
@@ -58,6 +61,24 @@ DEFAULT_URL = "http://127.0.0.1:8080"
 """Where ``mcapi serve`` listens for REST by default."""
 
 
+def _reply(response: httpx.Response) -> Any:
+    """The reply's JSON, or its error with the owner a misdirected one names."""
+    try:
+        return read_reply(response.status_code, response.content, response.reason_phrase)
+    except WrongReplica as e:
+        e.owner = response.headers.get("x-mcapi-owner")
+        raise
+
+
+def _retry_after(response: httpx.Response | None) -> float | None:
+    """A ``Retry-After`` in seconds, if the refusal carried one."""
+    value = response.headers.get("retry-after") if response is not None else None
+    try:
+        return float(value) if value is not None else None
+    except ValueError:
+        return None
+
+
 def _transport_error(e: httpx.HTTPError, url: str) -> McapiError:
     if isinstance(e, httpx.TimeoutException):
         return Timeout(f"{url}: {e or type(e).__name__}", code="timeout")
@@ -73,6 +94,8 @@ class Client:
         timeout: Seconds per request (or an ``httpx.Timeout``).
         headers: Extra headers for every request.
         transport: An httpx transport (tests, proxies, retries).
+        retry: Which refusals to retry and for how long (a cluster's 421
+            and 503s, see :mod:`mcapi_client.retry`); ``None``: never.
 
     Every method raises a :class:`~mcapi_client.McapiError` subclass on
     failure. Use as a context manager, or call :meth:`close`.
@@ -86,7 +109,9 @@ class Client:
         *,
         headers: Mapping[str, str] | None = None,
         transport: httpx.BaseTransport | None = None,
+        retry: RetryPolicy | None = DEFAULT_RETRY,
     ) -> None:
+        self.retry = retry
         self.base_url = base_url.rstrip("/")
         self._http = httpx.Client(
             base_url=self.base_url,
@@ -107,13 +132,21 @@ class Client:
         self.close()
 
     def _send(self, request: Request) -> Any:
-        try:
-            response = self._http.request(
-                request.method, request.path, params=request.params, json=request.json
-            )
-        except httpx.HTTPError as e:
-            raise _transport_error(e, self.base_url + request.path) from e
-        return read_reply(response.status_code, response.content, response.reason_phrase)
+        attempts = Attempts(self.retry, time.monotonic())
+        while True:
+            try:
+                response = self._http.request(
+                    request.method, request.path, params=request.params, json=request.json
+                )
+            except httpx.HTTPError as e:
+                raise _transport_error(e, self.base_url + request.path) from e
+            try:
+                return _reply(response)
+            except McapiError as e:
+                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response))
+                if wait is None:
+                    raise
+            time.sleep(wait)
 
     def ready(self) -> bool:
         """Whether the server answers ``/readyz`` with 200 (up and recovered)."""
@@ -273,6 +306,7 @@ class AsyncClient:
         timeout: Seconds per request (or an ``httpx.Timeout``).
         headers: Extra headers for every request.
         transport: An httpx async transport.
+        retry: As :class:`Client`'s.
 
     Use as ``async with AsyncClient(...) as mc:``, or call :meth:`aclose`.
     """
@@ -285,7 +319,9 @@ class AsyncClient:
         *,
         headers: Mapping[str, str] | None = None,
         transport: httpx.AsyncBaseTransport | None = None,
+        retry: RetryPolicy | None = DEFAULT_RETRY,
     ) -> None:
+        self.retry = retry
         self.base_url = base_url.rstrip("/")
         self._http = httpx.AsyncClient(
             base_url=self.base_url,
@@ -306,13 +342,21 @@ class AsyncClient:
         await self.aclose()
 
     async def _send(self, request: Request) -> Any:
-        try:
-            response = await self._http.request(
-                request.method, request.path, params=request.params, json=request.json
-            )
-        except httpx.HTTPError as e:
-            raise _transport_error(e, self.base_url + request.path) from e
-        return read_reply(response.status_code, response.content, response.reason_phrase)
+        attempts = Attempts(self.retry, time.monotonic())
+        while True:
+            try:
+                response = await self._http.request(
+                    request.method, request.path, params=request.params, json=request.json
+                )
+            except httpx.HTTPError as e:
+                raise _transport_error(e, self.base_url + request.path) from e
+            try:
+                return _reply(response)
+            except McapiError as e:
+                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response))
+                if wait is None:
+                    raise
+            await asyncio.sleep(wait)
 
     async def ready(self) -> bool:
         """Whether the server answers ``/readyz`` with 200 (up and recovered)."""

@@ -9,6 +9,7 @@ use clap::{Args, ValueEnum};
 use serde::Serialize;
 
 use crate::api::conn::ConnLimits;
+use crate::cluster::{Placement, ReplicaName, ShardMap};
 use crate::service::{ApiKeys, Limits, ManagerOptions};
 
 /// Log output format.
@@ -176,6 +177,16 @@ pub struct ServeConfig {
     /// connection (both ports), so dead peers are noticed.
     #[arg(long, env = "MCAPI_TCP_KEEPALIVE_SECS", default_value_t = ConnLimits::default().tcp_keepalive_secs)]
     pub tcp_keepalive_secs: u64,
+
+    // Cluster (docs/cluster.md)
+    /// Shard map file (`mcapi cluster plan`): run as one replica of a
+    /// cluster, serving only the shards the map gives --replica. Needs
+    /// --replica; without both, a single node owning every shard.
+    #[arg(long, env = "MCAPI_SHARD_MAP", requires = "replica")]
+    pub shard_map: Option<PathBuf>,
+    /// This replica's name in the shard map (e.g. `mcapi-0`). Needs --shard-map.
+    #[arg(long, env = "MCAPI_REPLICA", requires = "shard_map")]
+    pub replica: Option<String>,
 }
 
 impl ServeConfig {
@@ -223,6 +234,26 @@ impl ServeConfig {
             http2_keepalive_ms: self.http2_keepalive_ms,
             http2_keepalive_timeout_ms: self.http2_keepalive_timeout_ms,
             tcp_keepalive_secs: self.tcp_keepalive_secs,
+        }
+    }
+
+    /// The replica's view of the shard map when clustered (`--shard-map`
+    /// and `--replica`), read and checked; `None` for a single node.
+    pub fn placement(&self) -> Result<Option<Placement>, String> {
+        match (&self.shard_map, &self.replica) {
+            (None, None) => Ok(None),
+            (Some(path), Some(name)) => {
+                let replica = ReplicaName::parse(name)
+                    .map_err(|e| format!("--replica / MCAPI_REPLICA: {e}"))?;
+                let map = ShardMap::read(path).map_err(|e| {
+                    format!("--shard-map / MCAPI_SHARD_MAP {}: {e}", path.display())
+                })?;
+                Placement::new(map, replica)
+                    .map(Some)
+                    .map_err(|e| format!("--replica / MCAPI_REPLICA: {e}"))
+            }
+            (Some(_), None) => Err("--shard-map needs --replica (MCAPI_REPLICA) too".into()),
+            (None, Some(_)) => Err("--replica needs --shard-map (MCAPI_SHARD_MAP) too".into()),
         }
     }
 
@@ -300,6 +331,7 @@ impl ServeConfig {
         if self.max_roc_centres < 2 {
             return Err("--max-roc-centres must be at least 2 (ROC merges a pair)".into());
         }
+        self.placement()?;
         self.conn_limits().validate()
     }
 }

@@ -10,10 +10,13 @@
 //!   loop, limits, recovery).
 //! - [`api`]: thin transport adapters over [`service`], with one error
 //!   mapping.
+//! - [`cluster`]: the shard map, placement on replicas and the router's
+//!   configuration (`mcapi cluster`).
 //! - [`config`], [`telemetry`], [`server`]: `mcapi serve`'s one config
 //!   struct, logging and metrics, and the start-up that binds both ports.
 
 pub mod api;
+pub mod cluster;
 pub mod config;
 pub mod server;
 pub mod service;

@@ -46,6 +46,11 @@ async fn stopped(mut rx: watch::Receiver<bool>) {
 pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     cfg.validate().map_err(anyhow::Error::msg)?;
     let mut options = cfg.manager_options();
+    let placement = cfg.placement().map_err(anyhow::Error::msg)?.map(Arc::new);
+    if let Some(p) = &placement {
+        tracing::info!(replica = %p.replica(), epoch = p.epoch(), shards = p.owned_count(), "serving as one replica of a cluster");
+    }
+    options.placement = placement.clone();
     if cfg.store == StoreKind::Redb {
         let store =
             Store::open_with(&cfg.data_dir, cfg.durability).context("opening the session store")?;
@@ -88,6 +93,7 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
             stream_buffer: cfg.stream_buffer,
             limits,
             streams,
+            replica: placement.as_ref().map(|p| p.replica().to_string()),
         };
         async move {
             crate::api::grpc::serve_with(grpc, manager, opts, stopped(stop_rx))

@@ -219,6 +219,7 @@ struct EndEvent<'a> {
         (status = 400, response = crate::api::schemas::BadRequest),
         (status = 401, response = crate::api::schemas::Unauthorized),
         (status = 404, response = crate::api::schemas::NotFound),
+        (status = 421, response = crate::api::schemas::MisdirectedRequest),
         (status = 429, response = crate::api::schemas::TooManyRequests),
         (status = 500, response = crate::api::schemas::InternalError),
         (status = 503, response = crate::api::schemas::Unavailable)))]

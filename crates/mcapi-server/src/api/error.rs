@@ -85,6 +85,14 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
             G::DeadlineExceeded,
             "request_timeout",
         ),
+        // RFC 9110 §15.5.20: not authoritative here, retry elsewhere; for
+        // gRPC, UNAVAILABLE is the code a client may retry as is.
+        ServiceError::WrongReplica { .. } => {
+            (H::MISDIRECTED_REQUEST, G::Unavailable, "wrong_replica")
+        }
+        ServiceError::ShardFrozen { .. } => {
+            (H::SERVICE_UNAVAILABLE, G::Unavailable, "shard_moving")
+        }
     }
 }
 
@@ -169,6 +177,11 @@ impl IntoResponse for ApiError {
                 axum::http::HeaderValue::from_static("Bearer realm=\"mcapi\""),
             );
         }
+        for (name, value) in cluster_headers(&self.0) {
+            if let Ok(v) = axum::http::HeaderValue::from_str(&value) {
+                response.headers_mut().insert(name, v);
+            }
+        }
         response
     }
 }
@@ -181,5 +194,26 @@ pub fn to_status(e: ServiceError) -> tonic::Status {
     if let Ok(v) = stable.parse() {
         status.metadata_mut().insert("x-mcapi-error-code", v);
     }
+    for (name, value) in cluster_headers(&e) {
+        if let Ok(v) = value.parse() {
+            status.metadata_mut().insert(name, v);
+        }
+    }
     status
+}
+
+/// Header (REST) or trailer (gRPC) naming the owner of a misdirected
+/// session's shard (docs/cluster.md).
+pub const OWNER_HEADER: &str = "x-mcapi-owner";
+
+/// The headers a cluster refusal carries besides its body: the owner of a
+/// misdirected session's shard, the wait for a frozen one.
+fn cluster_headers(e: &ServiceError) -> Vec<(&'static str, String)> {
+    match e {
+        ServiceError::WrongReplica { owner, .. } => vec![(OWNER_HEADER, owner.clone())],
+        ServiceError::ShardFrozen {
+            retry_after_secs, ..
+        } => vec![("retry-after", retry_after_secs.to_string())],
+        _ => Vec::new(),
+    }
 }

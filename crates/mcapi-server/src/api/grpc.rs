@@ -426,6 +426,9 @@ pub struct GrpcOptions {
     pub limits: ConnLimits,
     /// Concurrent `Watch` streams per caller.
     pub streams: Arc<StreamLimiter>,
+    /// Clustered: this replica's name, sent as `x-mcapi-replica` response
+    /// metadata on every call (docs/cluster.md). `None` on a single node.
+    pub replica: Option<String>,
 }
 
 impl GrpcOptions {
@@ -436,6 +439,7 @@ impl GrpcOptions {
             stream_buffer,
             streams: StreamLimiter::new(limits.max_streams_per_key),
             limits,
+            replica: None,
         }
     }
 }
@@ -546,8 +550,22 @@ pub async fn serve_with(
         let _ = stop_tx.send(true);
     };
     let limits = &opts.limits;
+    let replica = opts
+        .replica
+        .as_deref()
+        .and_then(|r| axum::http::HeaderValue::from_str(r).ok());
     let layers = tower::ServiceBuilder::new()
         .layer(grpc_panic_layer())
+        .map_response(
+            move |mut response: axum::http::Response<tonic::body::Body>| {
+                if let Some(value) = &replica {
+                    response
+                        .headers_mut()
+                        .insert(crate::api::router::REPLICA_HEADER, value.clone());
+                }
+                response
+            },
+        )
         .layer(guard);
     tonic::transport::Server::builder()
         .max_concurrent_streams(limits.http2_max_streams)

@@ -8,8 +8,8 @@ use utoipa::OpenApi;
 
 use crate::api::error::ErrorBody;
 use crate::api::schemas::{
-    BadRequest, BearerAuth, InternalError, NotFound, ObserveBatchReply, PayloadTooLarge, SseEvent,
-    TooManyRequests, Unauthorized, Unavailable, request_schemas,
+    BadRequest, BearerAuth, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply,
+    PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized, Unavailable, request_schemas,
 };
 use crate::service::Limits;
 
@@ -38,7 +38,7 @@ use crate::service::Limits;
     ),
     components(
         schemas(ErrorBody, ObserveBatchReply, SseEvent),
-        responses(BadRequest, Unauthorized, NotFound, PayloadTooLarge, TooManyRequests, InternalError, Unavailable)
+        responses(BadRequest, Unauthorized, NotFound, MisdirectedRequest, PayloadTooLarge, TooManyRequests, InternalError, Unavailable)
     ),
     modifiers(&BearerAuth),
     security(("api_key" = []), ()),

@@ -18,8 +18,8 @@ use crate::api::error::ApiError;
 use crate::api::extract::{AppState, Auth, JsonBody, query};
 use crate::api::observe_body::ObserveBody;
 use crate::api::schemas::{
-    BadRequest, InternalError, NotFound, ObserveBatchReply, ObserveReply, ObserveRequest,
-    PayloadTooLarge, TooManyRequests, Unauthorized, Unavailable,
+    BadRequest, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply, ObserveReply,
+    ObserveRequest, PayloadTooLarge, TooManyRequests, Unauthorized, Unavailable,
 };
 use crate::service::{
     CreateSession, HistoryEntry, ServiceError, SessionInfo, SessionPage, ValueSelection, Values,
@@ -156,6 +156,7 @@ pub(crate) async fn list_sessions(
         (status = 200, description = "The session.", body = SessionInfo),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
 pub(crate) async fn get_session(
@@ -180,6 +181,7 @@ pub(crate) async fn get_session(
         (status = 204, description = "Deleted."),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 503, response = Unavailable)))]
 pub(crate) async fn delete_session(
     State(state): State<AppState>,
@@ -204,6 +206,7 @@ pub(crate) async fn delete_session(
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 413, response = PayloadTooLarge),
         (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
@@ -267,6 +270,7 @@ pub(crate) struct ValuesQuery {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 413, response = PayloadTooLarge),
         (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]
@@ -305,6 +309,7 @@ pub(crate) struct HistoryQuery {
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
         (status = 413, response = PayloadTooLarge),
         (status = 500, response = InternalError),
         (status = 503, response = Unavailable)))]

@@ -14,6 +14,7 @@ use std::time::{Duration, Instant};
 
 use axum::Router;
 use axum::extract::{DefaultBodyLimit, MatchedPath, Request};
+use axum::http::HeaderValue;
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use parking_lot::RwLock;
@@ -39,8 +40,14 @@ use crate::service::ServiceError;
 pub fn router(state: AppState) -> Router {
     let body_limit = state.manager.limits().max_body_bytes;
     let timeout = state.serving.as_ref().map(|s| s.request_timeout);
+    // A replica of a cluster names itself on every reply; a single node
+    // sends no such header.
+    let replica = state
+        .manager
+        .placement()
+        .and_then(|p| HeaderValue::from_str(p.replica().as_str()).ok());
     let per_route = ServiceBuilder::new()
-        .layer(EdgeLayer { timeout })
+        .layer(EdgeLayer { timeout, replica })
         // A panicking handler answers 500 `internal`, and is recorded.
         .layer(conn::rest_panic_layer())
         .layer(DefaultBodyLimit::max(body_limit))
@@ -63,6 +70,9 @@ pub fn router(state: AppState) -> Router {
         .layer(per_route)
         .with_state(state)
 }
+
+/// The response header naming the replica that answered (docs/cluster.md).
+pub const REPLICA_HEADER: &str = "x-mcapi-replica";
 
 async fn not_found(method: axum::http::Method, uri: axum::http::Uri) -> ApiError {
     ApiError(ServiceError::UnknownRoute(format!(
@@ -123,13 +133,15 @@ fn request_histogram(method: &'static str, route: &str, status: u16) -> metrics:
 
 /// The edge of every route: request latency by method, route and status
 /// (every label from a bounded set: the method from [`method_label`], the
-/// route as declared or `unmatched`, the status code), and the request
-/// timeout of `mcapi serve`: a request not answered within it (body read
-/// included) gets 503 `request_timeout`. Only the response head is timed,
-/// so an open event stream is not cut.
-#[derive(Debug, Clone, Copy)]
+/// route as declared or `unmatched`, the status code); the request timeout
+/// of `mcapi serve`: a request not answered within it (body read included)
+/// gets 503 `request_timeout` (only the response head is timed, so an open
+/// event stream is not cut); and, on a replica of a cluster, the
+/// [`REPLICA_HEADER`] naming it.
+#[derive(Debug, Clone)]
 struct EdgeLayer {
     timeout: Option<Duration>,
+    replica: Option<HeaderValue>,
 }
 
 impl<S> Layer<S> for EdgeLayer {
@@ -139,6 +151,7 @@ impl<S> Layer<S> for EdgeLayer {
         Edge {
             inner,
             timeout: self.timeout,
+            replica: self.replica.clone(),
         }
     }
 }
@@ -148,6 +161,7 @@ impl<S> Layer<S> for EdgeLayer {
 struct Edge<S> {
     inner: S,
     timeout: Option<Duration>,
+    replica: Option<HeaderValue>,
 }
 
 impl<S> Service<Request> for Edge<S>
@@ -169,9 +183,10 @@ where
         let route = req.extensions().get::<MatchedPath>().cloned();
         let method = method_label(req.method());
         let timeout = self.timeout;
+        let replica = self.replica.clone();
         let answer = self.inner.call(req);
         Box::pin(async move {
-            let response = match timeout {
+            let mut response = match timeout {
                 None => answer.await?.into_response(),
                 Some(limit) => match tokio::time::timeout(limit, answer).await {
                     Ok(response) => response?.into_response(),
@@ -183,6 +198,9 @@ where
                     .into_response(),
                 },
             };
+            if let Some(replica) = replica {
+                response.headers_mut().insert(REPLICA_HEADER, replica);
+            }
             let route = route.as_ref().map_or("unmatched", MatchedPath::as_str);
             request_histogram(method, route, response.status().as_u16())
                 .record(started.elapsed().as_secs_f64());

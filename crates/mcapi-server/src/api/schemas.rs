@@ -998,11 +998,21 @@ error_responses! {
         "session_failed",
         "session `s0001.01J0000000000000000000000` failed while applying an update and is quarantined; its state is not served. Delete it and create it again"
     );
+    /// 421.
+    MisdirectedRequest = (
+        "Clustered replicas only (docs/cluster.md): the session's shard belongs to another \
+         replica, named in the message and the `x-mcapi-owner` header (`wrong_replica`). \
+         Nothing was done; retry through the router.",
+        "wrong_replica",
+        "session `s0001.01J0000000000000000000000` is in shard s0001, owned by replica `mcapi-2` (shard map epoch 3), not by this replica `mcapi-0`; retry through the router"
+    );
     /// 503.
     Unavailable = (
         "The server is recovering its sessions, stopping, its tick queue is full, its \
-         store failed, or the request took longer than the server's request timeout \
-         (`unavailable`, `storage_unavailable`, `request_timeout`); may be retried.",
+         store failed, the request took longer than the server's request timeout, or \
+         (clustered) the session's shard is being moved (`unavailable`, \
+         `storage_unavailable`, `request_timeout`, `shard_moving` with `Retry-After`); \
+         may be retried.",
         "unavailable",
         "the server is recovering its stored sessions; retry shortly"
     );

@@ -62,6 +62,35 @@ pub enum ServiceError {
     /// The request did not finish within the server's request timeout.
     #[error("{0}")]
     RequestTimeout(String),
+    /// The session's shard belongs to another replica (docs/cluster.md): a
+    /// router with a stale map sent the request here. Nothing was done;
+    /// retrying through the router succeeds once it follows the map.
+    #[error(
+        "session `{id}` is in shard {shard}, owned by replica `{owner}` (shard map epoch {epoch}), not by this replica `{replica}`; retry through the router"
+    )]
+    WrongReplica {
+        /// The session.
+        id: String,
+        /// Its shard's key (`s03a7`).
+        shard: String,
+        /// The replica that owns it.
+        owner: String,
+        /// This replica.
+        replica: String,
+        /// The epoch of this replica's map.
+        epoch: u64,
+    },
+    /// The session's shard is being moved to another replica: nothing was
+    /// done; retry after `retry_after_secs`.
+    #[error(
+        "shard {shard} is being moved to another replica; nothing was done, retry in {retry_after_secs} s"
+    )]
+    ShardFrozen {
+        /// The shard's key.
+        shard: String,
+        /// Seconds to wait (`Retry-After`).
+        retry_after_secs: u64,
+    },
 }
 
 impl ServiceError {

@@ -32,6 +32,7 @@ use super::wire::{
     CreateSession, CuriosityInfo, HistoryEntry, ModelSummary, ObservationIn, SessionCost,
     SessionInfo, SessionPage, SessionStats, SessionSummary, StepOut, Values,
 };
+use crate::cluster::Placement;
 
 /// Number of virtual shards in session ids (fixed forever, docs/sessions.md).
 pub const SHARDS: u64 = 1024;
@@ -62,6 +63,9 @@ pub struct ManagerOptions {
     pub snapshot_every: u64,
     /// API keys; none means no authentication.
     pub keys: ApiKeys,
+    /// With a shard map (`--shard-map`, `--replica`): the shards this
+    /// replica serves. `None`: a single node owning every shard.
+    pub placement: Option<Arc<Placement>>,
 }
 
 /// Default of [`ManagerOptions::snapshot_every`].
@@ -77,6 +81,7 @@ impl ManagerOptions {
             store: None,
             snapshot_every: DEFAULT_SNAPSHOT_EVERY,
             keys: ApiKeys::default(),
+            placement: None,
         }
     }
 }
@@ -95,6 +100,8 @@ pub struct SessionManager {
     ready: AtomicBool,
     /// Held while a session is reloaded after a storage failure.
     reloading: Mutex<()>,
+    /// The shards served here, when clustered.
+    placement: Option<Arc<Placement>>,
 }
 
 impl SessionManager {
@@ -112,6 +119,7 @@ impl SessionManager {
             store,
             snapshot_every,
             keys,
+            placement,
         } = opts;
         let ready = AtomicBool::new(store.is_none());
         let durability = store.map(|store| Durability {
@@ -130,7 +138,13 @@ impl SessionManager {
             keys,
             ready,
             reloading: Mutex::new(()),
+            placement,
         })
+    }
+
+    /// The shards this replica serves, when clustered (docs/cluster.md).
+    pub fn placement(&self) -> Option<&Arc<Placement>> {
+        self.placement.as_ref()
     }
 
     /// The limits in force.
@@ -255,11 +269,17 @@ impl SessionManager {
         let cost = cost::estimate(&summary, &config);
         self.limits
             .check_cost(&cost, self.sessions.read().usage(&owner))?;
-        let id = format!(
-            "s{:04x}.{}",
-            self.setup.fresh_u64() % SHARDS,
-            ulid::Ulid::new()
-        );
+        let shard = match &self.placement {
+            // Only in a shard owned here, so a create is never misdirected.
+            Some(p) => p.mint_shard(self.setup.fresh_u64()).ok_or_else(|| {
+                ServiceError::Unavailable(format!(
+                    "replica `{}` owns no shard open for new sessions right now; retry (the router sends creates to every replica in turn)",
+                    p.replica()
+                ))
+            })?,
+            None => (self.setup.fresh_u64() % SHARDS) as u16,
+        };
+        let id = format!("s{shard:04x}.{}", ulid::Ulid::new());
         if let (Some(d), Some(model)) = (&self.durability, model_text) {
             let record = durable::SessionRecord {
                 model,
@@ -336,7 +356,14 @@ impl SessionManager {
     /// `delete`). A session whose commit failed is first rolled back to its
     /// durable state (reloaded), so nothing that was not made durable is
     /// ever served; while that cannot be done, `Storage`.
+    ///
+    /// Clustered, a session whose shard is not served here is refused
+    /// before it is looked up ([`Placement::check`]): 421 naming the owner,
+    /// or 503 while the shard moves; both transports come through here.
     pub fn visible_session(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
+        if let Some(p) = &self.placement {
+            p.check(id)?;
+        }
         let session = self.session(id)?;
         if !caller.may_see(session.owner.as_ref()) {
             return Err(ServiceError::NotFound(id.to_string()));
@@ -657,7 +684,15 @@ impl SessionManager {
             self.ready.store(true, Ordering::Release);
             return Ok(RecoveryReport::default());
         };
-        let (rebuilt, report) = recovery::recover_all(&self.setup, &self.limits, d)?;
+        let placement = self.placement.as_deref();
+        let (rebuilt, report) = recovery::recover_all(&self.setup, &self.limits, d, placement)?;
+        if report.not_owned > 0 {
+            tracing::warn!(
+                sessions = report.not_owned,
+                store = %d.store.path().display(),
+                "stored sessions of shards this replica does not own are kept in the store, not served"
+            );
+        }
         let mut sessions = self.sessions.write();
         for session in rebuilt {
             sessions.insert(session.id.clone(), session);

@@ -15,6 +15,7 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
+use crate::cluster::Placement;
 use crate::store::{StoreError, StoredSession};
 use mcapi_core::{Agent, CuriousAgent};
 
@@ -40,6 +41,10 @@ pub struct RecoveryReport {
     pub skipped: u64,
     /// The ids of the skipped sessions.
     pub skipped_ids: Vec<String>,
+    /// Clustered: stored sessions of shards this replica does not own,
+    /// left in the store untouched and not loaded (a shard move will need
+    /// them; docs/cluster.md, "Recovery").
+    pub not_owned: u64,
     /// Wall time.
     pub seconds: f64,
 }
@@ -72,15 +77,24 @@ pub(super) fn recover_all(
     setup: &Setup,
     limits: &Limits,
     d: &Durability,
+    placement: Option<&Placement>,
 ) -> Result<(Vec<SessionRef>, RecoveryReport), ServiceError> {
     use rayon::prelude::*;
     let started = std::time::Instant::now();
-    let stored = d.store.sessions()?;
+    let mut stored = d.store.sessions()?;
+    let before = stored.len();
+    if let Some(p) = placement {
+        stored.retain(|s| p.holds(&s.id));
+    }
+    let not_owned = (before - stored.len()) as u64;
     let recovered: Vec<(String, Rebuilt)> = stored
         .into_par_iter()
         .map(|s| (s.id.clone(), rebuild(setup, limits, d, s)))
         .collect();
-    let mut report = RecoveryReport::default();
+    let mut report = RecoveryReport {
+        not_owned,
+        ..RecoveryReport::default()
+    };
     let mut rebuilt = Vec::with_capacity(recovered.len());
     for (id, r) in recovered {
         match r {

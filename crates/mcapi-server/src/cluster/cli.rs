@@ -1,0 +1,192 @@
+//! `mcapi cluster ...`: the command-line side of the cluster (the binary's
+//! `main.rs` only dispatches here). This is a CLI: it prints.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Subcommand};
+
+use super::haproxy::{self, Backend, RouterSpec};
+use super::map::{ReplicaName, ShardMap};
+use super::plan::{self, ordinal_names};
+
+/// `mcapi cluster` subcommands.
+#[derive(Debug, Subcommand)]
+pub enum ClusterCommand {
+    /// Propose a shard map by rendezvous hashing (from an earlier map: with the fewest moves).
+    Plan(PlanArgs),
+    /// Write an HAProxy 2.6 configuration and map file from a shard map.
+    HaproxyConfig(HaproxyArgs),
+}
+
+/// `mcapi cluster plan`.
+#[derive(Debug, Args)]
+pub struct PlanArgs {
+    /// Number of replicas, named PREFIX-0 .. PREFIX-(N-1) (a StatefulSet's pods).
+    #[arg(long, required_unless_present = "names")]
+    pub replicas: Option<usize>,
+    /// Prefix of the replica names.
+    #[arg(long, default_value = "mcapi")]
+    pub prefix: String,
+    /// Explicit replica names instead of --replicas (comma-separated).
+    #[arg(long, value_delimiter = ',', conflicts_with = "replicas")]
+    pub names: Vec<String>,
+    /// The map in force: shards stay where they are unless their replica is
+    /// gone or over its share; the epoch becomes its epoch + 1.
+    #[arg(long)]
+    pub from: Option<PathBuf>,
+    /// Write the map here (default: standard output).
+    #[arg(long, short)]
+    pub out: Option<PathBuf>,
+}
+
+/// `mcapi cluster haproxy-config`.
+#[derive(Debug, Args)]
+pub struct HaproxyArgs {
+    /// The shard map.
+    #[arg(long)]
+    pub map: PathBuf,
+    /// Directory for haproxy.cfg and shards.map (created if missing).
+    #[arg(long)]
+    pub out_dir: PathBuf,
+    /// A replica's addresses: NAME=REST_HOST:PORT,GRPC_HOST:PORT (repeat).
+    #[arg(long = "backend")]
+    pub backends: Vec<String>,
+    /// Addresses of the replicas without --backend, `{replica}` standing for
+    /// the name: REST_TEMPLATE,GRPC_TEMPLATE, e.g.
+    /// `{replica}.mcapi-headless:8080,{replica}.mcapi-headless:50051`.
+    #[arg(long)]
+    pub backend_template: Option<String>,
+    /// The router's REST listen address.
+    #[arg(long, default_value = ":8080")]
+    pub rest_bind: String,
+    /// The router's gRPC listen address (h2c).
+    #[arg(long, default_value = ":50051")]
+    pub grpc_bind: String,
+    /// Where HAProxy will find shards.map (default: in --out-dir).
+    #[arg(long)]
+    pub map_path: Option<PathBuf>,
+    /// The Runtime API socket (default: admin.sock in --out-dir).
+    #[arg(long)]
+    pub stats_socket: Option<PathBuf>,
+}
+
+/// Runs a `mcapi cluster` subcommand.
+pub fn run(cmd: ClusterCommand) -> Result<()> {
+    match cmd {
+        ClusterCommand::Plan(args) => run_plan(&args),
+        ClusterCommand::HaproxyConfig(args) => run_haproxy(&args),
+    }
+}
+
+fn read_map(path: &Path) -> Result<ShardMap> {
+    ShardMap::read(path).with_context(|| format!("shard map {}", path.display()))
+}
+
+fn run_plan(args: &PlanArgs) -> Result<()> {
+    let names: Vec<ReplicaName> = if args.names.is_empty() {
+        let n = args.replicas.unwrap_or(0);
+        if n == 0 || n > super::map::MAX_REPLICAS {
+            bail!(
+                "--replicas must be between 1 and {}",
+                super::map::MAX_REPLICAS
+            );
+        }
+        ordinal_names(&args.prefix, n).map_err(anyhow::Error::msg)?
+    } else {
+        args.names
+            .iter()
+            .map(|n| ReplicaName::parse(n.trim()))
+            .collect::<Result<_, _>>()
+            .map_err(anyhow::Error::msg)?
+    };
+    let from = args.from.as_deref().map(read_map).transpose()?;
+    let p = plan::plan(&names, from.as_ref())?;
+    let text = p.map.to_text();
+    match &args.out {
+        Some(path) => write_atomic(path, &text)?,
+        None => print!("{text}"),
+    }
+    let counts = p.map.counts();
+    let min = counts.iter().map(|(_, c)| *c).min().unwrap_or(0);
+    let max = counts.iter().map(|(_, c)| *c).max().unwrap_or(0);
+    eprintln!(
+        "epoch {}: {} replicas, {min}-{max} shards each",
+        p.map.epoch(),
+        counts.len()
+    );
+    if let Some(old) = &from {
+        let mut to: Vec<(ReplicaName, usize)> = Vec::new();
+        for m in &p.moved {
+            match to.iter_mut().find(|(r, _)| *r == m.to) {
+                Some((_, c)) => *c += 1,
+                None => to.push((m.to.clone(), 1)),
+            }
+        }
+        let to: Vec<String> = to.iter().map(|(r, c)| format!("{c} to {r}")).collect();
+        eprintln!(
+            "from epoch {}: {} of 1024 shards move ({:.1}%){}{}",
+            old.epoch(),
+            p.moved.len(),
+            100.0 * p.moved.len() as f64 / 1024.0,
+            if to.is_empty() { "" } else { ": " },
+            to.join(", ")
+        );
+    }
+    Ok(())
+}
+
+fn run_haproxy(args: &HaproxyArgs) -> Result<()> {
+    let map = read_map(&args.map)?;
+    let mut backends: Vec<Backend> = args
+        .backends
+        .iter()
+        .map(|b| Backend::parse(b))
+        .collect::<Result<_, _>>()
+        .map_err(anyhow::Error::msg)?;
+    if let Some(t) = &args.backend_template {
+        let (rest, grpc) = t
+            .split_once(',')
+            .context("--backend-template: expected REST_TEMPLATE,GRPC_TEMPLATE")?;
+        for r in map.replicas() {
+            if !backends.iter().any(|b| &b.replica == r) {
+                backends.push(Backend::from_templates(r, rest, grpc).map_err(anyhow::Error::msg)?);
+            }
+        }
+    }
+    std::fs::create_dir_all(&args.out_dir)
+        .with_context(|| format!("creating {}", args.out_dir.display()))?;
+    let out_dir = std::fs::canonicalize(&args.out_dir)?;
+    let spec = RouterSpec {
+        rest_bind: args.rest_bind.clone(),
+        grpc_bind: args.grpc_bind.clone(),
+        map_path: args
+            .map_path
+            .clone()
+            .unwrap_or_else(|| out_dir.join("shards.map")),
+        stats_socket: args
+            .stats_socket
+            .clone()
+            .unwrap_or_else(|| out_dir.join("admin.sock")),
+        backends,
+    };
+    let cfg = haproxy::config(&map, &spec).map_err(anyhow::Error::msg)?;
+    write_atomic(&out_dir.join("shards.map"), &haproxy::map_file(&map))?;
+    write_atomic(&out_dir.join("haproxy.cfg"), &cfg)?;
+    eprintln!(
+        "wrote {0}/haproxy.cfg and {0}/shards.map (epoch {1}, {2} replicas); run: haproxy -f {0}/haproxy.cfg",
+        out_dir.display(),
+        map.epoch(),
+        map.replicas().len()
+    );
+    Ok(())
+}
+
+/// Writes a file through a temporary sibling and a rename, so a reader
+/// never sees half of it.
+fn write_atomic(path: &Path, text: &str) -> Result<()> {
+    let tmp = path.with_extension("tmp");
+    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
+    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;
+    Ok(())
+}
