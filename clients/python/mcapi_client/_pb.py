@@ -232,24 +232,37 @@ def create_request(model: dict[str, Any], agent: AgentOptions) -> pb.CreateSessi
     return pb.CreateSessionRequest(model_json=json.dumps(model), agent=cfg)
 
 
+def _unsigned(value: int, field: str, bits: int) -> int:
+    """``value`` if the message's unsigned field can hold it; otherwise the
+    ``bad_request`` the REST server answers for a negative or too large
+    index, instead of protobuf's own ``ValueError``."""
+    if not 0 <= value < 1 << bits:
+        raise error_for(
+            "bad_request",
+            f"malformed observation: `{field}` must be an integer from 0 to 2^{bits} - 1, not {value}",
+        )
+    return value
+
+
 def observation_message(obs: Observation, session_id: str = "") -> pb.Observation:
     """One observation message (``session_id`` empty: the metadata names it).
 
     Non-finite stimulus values are sent as they are: the server answers them
-    (``non_finite_number``).
+    (``non_finite_number``). A negative or too large state, action index or
+    signal source is refused here as ``bad_request``, as over REST.
     """
-    msg = pb.Observation(session_id=session_id, state=obs.state)
+    msg = pb.Observation(session_id=session_id, state=_unsigned(obs.state, "state", 64))
     if obs.stimulus is not None:
         msg.stimulus.values.extend(obs.stimulus)
         msg.stimulus.SetInParent()  # an empty stimulus is still sent as given
     if isinstance(obs.action_taken, str):
         msg.action_name = obs.action_taken
     elif obs.action_taken is not None:
-        msg.action_index = obs.action_taken
+        msg.action_index = _unsigned(obs.action_taken, "action_taken", 32)
     if obs.signal is not None:
         msg.signal.extend(check_signal(obs.signal))
     if obs.signal_source is not None:
-        msg.signal_source = obs.signal_source
+        msg.signal_source = _unsigned(obs.signal_source, "signal_source", 32)
     return msg
 
 

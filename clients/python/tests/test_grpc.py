@@ -11,6 +11,7 @@ import grpc
 import pytest
 
 from mcapi_client import (
+    BadRequest,
     Client,
     GrpcClient,
     InvalidObservation,
@@ -145,7 +146,7 @@ def test_interact_error_ends_the_stream_after_applied_observations(grpc_client: 
         with pytest.raises(InvalidObservation) as e:
             stream.step(5, [0.0])
         assert e.value.code == "stimulus_length" and e.value.grpc_code == "INVALID_ARGUMENT"
-    assert grpc_client.get_session(sid).tick == 1, "the observations before the error stay applied"
+    assert grpc_client.get_session(sid).tick == before, "the observations before the error stay applied"
 
 
 def test_interact_unknown_session(grpc_client: GrpcClient) -> None:
@@ -290,3 +291,34 @@ def test_models_the_typed_form_cannot_carry_go_as_json(client: Client, grpc_clie
         grpc_client.create_session(bad)
     assert type(over_rest.value) is type(over_grpc.value)
     assert getattr(over_rest.value, "code", None) == getattr(over_grpc.value, "code", None)
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "field"),
+    [
+        ({"state": -1}, "state"),
+        ({"state": 1 << 64}, "state"),
+        ({"state": 3, "stimulus": [0.0, 0.0], "action_taken": -2}, "action_taken"),
+        ({"state": 3, "stimulus": [0.0, 0.0], "action_taken": 1 << 32}, "action_taken"),
+    ],
+)
+def test_out_of_range_indices_are_bad_requests_as_over_rest(
+    client: Client, grpc_client: GrpcClient, kwargs: dict, field: str
+) -> None:
+    """Protobuf cannot carry a negative or too large index; the gRPC client
+    answers it with the ``bad_request`` REST gives, not protobuf's own
+    ``ValueError``, and the session is untouched."""
+    sid = grpc_client.create_session("hallway").id
+    grpc_client.observe(sid, 5)
+    before = grpc_client.get_session(sid).tick
+    with pytest.raises(BadRequest) as over_grpc:
+        grpc_client.observe(sid, **kwargs)
+    assert over_grpc.value.code == "bad_request"
+    assert f"`{field}`" in over_grpc.value.message
+    # REST refuses it too (`bad_request`, or for an index the server can
+    # read but the session does not have, `invalid_observation`).
+    with pytest.raises(BadRequest):
+        client.observe(sid, **kwargs)
+    with grpc_client.interact(sid) as stream, pytest.raises(BadRequest):
+        stream.step(**kwargs)
+    assert grpc_client.get_session(sid).tick == before
