@@ -150,10 +150,19 @@ figures: release
 	  | tee docs/figures/three_room_results.md
 	./target/release/mcapi experiment curiosity --trials 20 --steps 10000 --seed 1 --out out/curiosity --no-csv \
 	  | tee docs/figures/curiosity_results.md
+	./target/release/mcapi experiment three-room --model learned --trials 20 --steps 10000 --seed 1 --out out/three-room-learned --no-csv \
+	  | tee docs/figures/three_room_learned_results.md
+	./target/release/mcapi experiment three-room --model learned --slip 0.2 --trials 20 --steps 10000 --seed 1 --out out/three-room-slip --no-csv \
+	  | tee docs/figures/three_room_slip_results.md
 	cp out/hallway/fig2* out/three-room/fig3* out/curiosity/fig4* docs/figures/
+	cp out/three-room-learned/fig3h* out/three-room-learned/fig3i* docs/figures/
+	for f in out/three-room-slip/fig3h* out/three-room-slip/fig3i*; do \
+	  b=$$(basename $$f); cp $$f docs/figures/$${b%.*}_slip.$${b##*.}; done
 	cp out/hallway/summary.json docs/figures/hallway_summary.json
 	cp out/three-room/summary.json docs/figures/three_room_summary.json
 	cp out/curiosity/summary.json docs/figures/curiosity_summary.json
+	cp out/three-room-learned/summary.json docs/figures/three_room_learned_summary.json
+	cp out/three-room-slip/summary.json docs/figures/three_room_slip_summary.json
 
 clean:
 	$(CARGO) clean
