@@ -50,7 +50,7 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     if let Some(p) = &placement {
         tracing::info!(replica = %p.replica(), epoch = p.epoch(), shards = p.owned_count(), "serving as one replica of a cluster");
     }
-    options.placement = placement.clone();
+    options.placement = placement;
     if cfg.store == StoreKind::Redb {
         let store =
             Store::open_with(&cfg.data_dir, cfg.durability).context("opening the session store")?;
@@ -93,7 +93,6 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
             stream_buffer: cfg.stream_buffer,
             limits,
             streams,
-            replica: placement.as_ref().map(|p| p.replica().to_string()),
         };
         async move {
             crate::api::grpc::serve_with(grpc, manager, opts, stopped(stop_rx))

@@ -426,9 +426,6 @@ pub struct GrpcOptions {
     pub limits: ConnLimits,
     /// Concurrent `Watch` streams per caller.
     pub streams: Arc<StreamLimiter>,
-    /// Clustered: this replica's name, sent as `x-mcapi-replica` response
-    /// metadata on every call (docs/cluster.md). `None` on a single node.
-    pub replica: Option<String>,
 }
 
 impl GrpcOptions {
@@ -439,7 +436,6 @@ impl GrpcOptions {
             stream_buffer,
             streams: StreamLimiter::new(limits.max_streams_per_key),
             limits,
-            replica: None,
         }
     }
 }
@@ -539,6 +535,8 @@ pub async fn serve_with(
 ) -> Result<(), ServeError> {
     let (stop_tx, stop_rx) = watch::channel(false);
     let guard = guard::GuardLayer::new(Arc::clone(&manager), opts.limits.request_timeout());
+    // Clustered, every call's response metadata names this replica.
+    let replica = crate::api::router::replica_header(&manager);
     let routes = router_with(manager, &opts, stop_rx).await?;
     if let Ok(addr) = listener.local_addr() {
         tracing::info!(%addr, "gRPC listening");
@@ -550,10 +548,6 @@ pub async fn serve_with(
         let _ = stop_tx.send(true);
     };
     let limits = &opts.limits;
-    let replica = opts
-        .replica
-        .as_deref()
-        .and_then(|r| axum::http::HeaderValue::from_str(r).ok());
     let layers = tower::ServiceBuilder::new()
         .layer(grpc_panic_layer())
         .map_response(

@@ -29,7 +29,7 @@ use crate::api::rest::{
     observe, readyz, values,
 };
 use crate::api::{conn, dashboard};
-use crate::service::ServiceError;
+use crate::service::{ServiceError, SessionManager};
 
 /// The REST router with every route, limits and metrics middleware.
 ///
@@ -40,12 +40,7 @@ use crate::service::ServiceError;
 pub fn router(state: AppState) -> Router {
     let body_limit = state.manager.limits().max_body_bytes;
     let timeout = state.serving.as_ref().map(|s| s.request_timeout);
-    // A replica of a cluster names itself on every reply; a single node
-    // sends no such header.
-    let replica = state
-        .manager
-        .placement()
-        .and_then(|p| HeaderValue::from_str(p.replica().as_str()).ok());
+    let replica = replica_header(&state.manager);
     let per_route = ServiceBuilder::new()
         .layer(EdgeLayer { timeout, replica })
         // A panicking handler answers 500 `internal`, and is recorded.
@@ -73,6 +68,14 @@ pub fn router(state: AppState) -> Router {
 
 /// The response header naming the replica that answered (docs/cluster.md).
 pub const REPLICA_HEADER: &str = "x-mcapi-replica";
+
+/// The [`REPLICA_HEADER`] value a replica of a cluster sends on every REST
+/// and gRPC reply; `None` on a single node, which sends no such header.
+pub(crate) fn replica_header(manager: &SessionManager) -> Option<HeaderValue> {
+    manager
+        .placement()
+        .and_then(|p| HeaderValue::from_str(p.replica().as_str()).ok())
+}
 
 async fn not_found(method: axum::http::Method, uri: axum::http::Uri) -> ApiError {
     ApiError(ServiceError::UnknownRoute(format!(
