@@ -712,21 +712,6 @@ mod tests {
         let mut a = hallway_agent(9);
         let mut state = 25;
         a.step(&Observation::first(state)).expect("first");
-        let walk = |agent: &mut Agent, state: &mut usize, ticks: usize| {
-            let mut out = Vec::new();
-            for _ in 0..ticks {
-                let action = agent.advised_action().expect("advised");
-                *state = match action {
-                    0 => state.saturating_sub(1),
-                    1 => (*state + 1).min(49),
-                    _ => *state,
-                };
-                let xi = [f64::from(*state == 10) * 6.0, f64::from(*state == 40) * 6.0];
-                let step = agent.step(&Observation::new(*state, &xi)).expect("step");
-                out.push((step.action, agent.drive().vector().to_vec()));
-            }
-            out
-        };
         walk(&mut a, &mut state, 300);
         let snap = a.snapshot();
         let bytes = serde_json::to_vec(&snap).expect("encode");
