@@ -145,10 +145,11 @@ if "$MCAPI" serve --help 2>/dev/null | grep -q -- '--durability'; then
   rest_pair durable-os --durability os
 fi
 
-# Row 3: gRPC Interact, 64 streams over 1 and 4 HTTP/2 connections.
+# Row 3: gRPC Interact, 64 streams over 1 and 4 HTTP/2 connections, then
+# the same 64 sessions as vectorised worlds: InteractBatch, 4 streams of 16.
 start_server grpc --store memory
-loadgen grpc-1 --scenario grpc --modes async --grpc-streams 64 --grpc-connections 1
-loadgen grpc-4 --scenario grpc --modes async --grpc-streams 64 --grpc-connections 4
+loadgen grpc-1 --scenario grpc --modes async --grpc-streams 64 --grpc-connections 1 --grpc-batch 16
+loadgen grpc-4 --scenario grpc --modes async --grpc-streams 64 --grpc-connections 4 --grpc-batch 16
 stop_server
 
 # Row 5: idle hallway sessions, then all deleted. Limits raised so the count
@@ -230,6 +231,13 @@ for c in 1 4; do
   rate=$(num "grpc-$c" '.grpc[0].summary.rate')
   row "3. gRPC \`Interact\` server CPU per observation, memory store ($c conn., 64 streams)" \
     "**$(fmt "$us" 1) µs** ($(fmt "$rate") obs/s)" "≤ 5 µs" "$(met "$us" '<=' 5)"
+done
+for c in 1 4; do
+  us=$(num "grpc-$c" '.grpc[] | select(.method == "InteractBatch") | .server_cpu_us_per_observation')
+  rate=$(num "grpc-$c" '.grpc[] | select(.method == "InteractBatch") | .summary.rate')
+  single=$(num "grpc-$c" '.grpc[] | select(.method == "Interact") | .server_cpu_us_per_observation')
+  row "3. gRPC \`InteractBatch\` server CPU per observation, memory store ($c conn., 4 streams × 16 sessions)" \
+    "**$(fmt "$us" 1) µs** ($(fmt "$rate") obs/s; $(fmt "$(ratio "$us" "$single")" 2)× \`Interact\`'s)" "≤ 5 µs" "$(met "$us" '<=' 5)"
 done
 
 # Row 4.

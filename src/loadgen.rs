@@ -18,7 +18,10 @@
 //!   and latency counts from the release (no coordinated omission).
 //! - **grpc**: `Interact` over `--grpc-streams` bidirectional streams, one
 //!   hallway session each, spread over `--grpc-connections` HTTP/2
-//!   connections; one observation in flight per stream.
+//!   connections; one observation in flight per stream. Then, with
+//!   `--grpc-batch` N > 1, as many sessions driven as vectorised worlds:
+//!   `InteractBatch` streams of N sessions each, one message (N
+//!   observations) in flight per stream.
 //! - **memory**: the server's resident memory (`VmRSS`) with 10,000 and
 //!   100,000 idle hallway sessions, after one observation each, and after
 //!   deleting them (at once and `--settle-secs` later); it reports KiB per
@@ -111,6 +114,10 @@ pub struct LoadgenArgs {
     /// HTTP/2 connections the gRPC streams are spread over.
     #[arg(long, default_value_t = 1)]
     pub grpc_connections: usize,
+    /// Sessions per `InteractBatch` stream in the gRPC scenario's batched
+    /// run (1: no batched run).
+    #[arg(long, default_value_t = 16, value_parser = clap::value_parser!(u16).range(1..=10_000))]
+    pub grpc_batch: u16,
     /// Session counts at which the memory scenario reads the server's RSS.
     #[arg(long, value_delimiter = ',', default_value = "10000,100000")]
     pub memory_sessions: Vec<usize>,
@@ -1194,6 +1201,102 @@ async fn grpc_worker(mut client: AgentsClient<Channel>, id: String, phase: Phase
     Ok(tally)
 }
 
+/// One `InteractBatch` stream through a phase: its sessions as a vectorised
+/// world, one message (an observation per session) in flight.
+async fn grpc_batch_worker(
+    mut client: AgentsClient<Channel>,
+    ids: Vec<String>,
+    phase: Phase,
+) -> Result<Tally> {
+    let (tx, rx) = mpsc::channel(1);
+    let mut steps = client
+        .interact_batch(ReceiverStream::new(rx))
+        .await?
+        .into_inner();
+    let mut worlds: Vec<Hallway> = ids.iter().map(|_| Hallway::new()).collect();
+    let mut tally = Tally::default();
+    while !phase.over() {
+        let observations = ids
+            .iter()
+            .zip(&worlds)
+            .map(|(id, world)| pb::Observation {
+                session_id: id.clone(),
+                ..world.proto()
+            })
+            .collect();
+        let issued = Instant::now();
+        tx.send(pb::ObservationBatch { observations })
+            .await
+            .map_err(|_| anyhow!("the InteractBatch stream closed"))?;
+        let reply = steps
+            .message()
+            .await?
+            .ok_or_else(|| anyhow!("the server ended the InteractBatch stream"))?;
+        let done = Instant::now();
+        ensure!(
+            reply.results.len() == worlds.len(),
+            "{} results for {} observations",
+            reply.results.len(),
+            worlds.len()
+        );
+        for (world, result) in worlds.iter_mut().zip(reply.results) {
+            match result.outcome {
+                Some(pb::step_result::Outcome::Step(step)) => {
+                    world.advance(step.action_index as usize);
+                    tally.record(&phase, issued, done, Ok(()));
+                }
+                Some(pb::step_result::Outcome::Error(e)) => {
+                    tally.record(
+                        &phase,
+                        issued,
+                        done,
+                        Err(format!("{}: {}", e.code, e.message)),
+                    );
+                }
+                None => bail!("a result with neither a step nor an error"),
+            }
+        }
+    }
+    drop(tx);
+    while steps.message().await?.is_some() {}
+    Ok(tally)
+}
+
+/// `n` hallway sessions in `mode`, seeded 0..n.
+async fn create_grpc_sessions(
+    admin: &mut AgentsClient<Channel>,
+    n: usize,
+    mode: Mode,
+) -> Result<Vec<String>> {
+    let mut ids = Vec::with_capacity(n);
+    for i in 0..n {
+        let info = admin
+            .create_session(pb::CreateSessionRequest {
+                model: Some(pb::Model::preset("hallway")),
+                agent: Some(pb::SessionConfig {
+                    seed: Some(i as u64),
+                    update_mode: mode.to_pb().into(),
+                    ..Default::default()
+                }),
+                ..Default::default()
+            })
+            .await?
+            .into_inner();
+        ids.push(info.id);
+    }
+    Ok(ids)
+}
+
+/// One row of the gRPC table.
+struct GrpcRow {
+    mode: Mode,
+    method: &'static str,
+    streams: usize,
+    batch: usize,
+    summary: Summary,
+    cpu: CpuUse,
+}
+
 async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<Value> {
     let endpoint = Endpoint::from_shared(args.grpc.clone())?.tcp_nodelay(true);
     let mut channels = Vec::with_capacity(args.grpc_connections);
@@ -1205,67 +1308,64 @@ async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<Value> {
                 .with_context(|| format!("connecting to {}", args.grpc))?,
         );
     }
+    let mut admin = AgentsClient::new(channels[0].clone());
+    let batch = usize::from(args.grpc_batch);
     let mut rows = Vec::new();
     for &mode in &args.modes {
         eprintln!(
-            "grpc: {} {} streams over {} connections",
+            "grpc: Interact, {} {} streams over {} connections",
             args.grpc_streams,
             mode.as_str(),
             args.grpc_connections
         );
-        let mut admin = AgentsClient::new(channels[0].clone());
-        let mut ids = Vec::with_capacity(args.grpc_streams);
-        for i in 0..args.grpc_streams {
-            let info = admin
-                .create_session(pb::CreateSessionRequest {
-                    model: Some(pb::Model::preset("hallway")),
-                    agent: Some(pb::SessionConfig {
-                        seed: Some(i as u64),
-                        update_mode: mode.to_pb().into(),
-                        ..Default::default()
-                    }),
-                    ..Default::default()
-                })
-                .await?
-                .into_inner();
-            ids.push(info.id);
-        }
+        let ids = create_grpc_sessions(&mut admin, args.grpc_streams, mode).await?;
         let phase = Phase::new(args);
         let mut set = JoinSet::new();
         for (i, id) in ids.iter().enumerate() {
             let client = AgentsClient::new(channels[i % channels.len()].clone());
             set.spawn(grpc_worker(client, id.clone(), phase));
         }
-        let cpu = measure_window(phase, pid, None).await.cpu;
-        let mut tally = Tally::default();
-        while let Some(joined) = set.join_next().await {
-            tally.merge(joined??);
+        rows.push(grpc_row(mode, "Interact", args.grpc_streams, 1, set, phase, pid).await?);
+        delete_grpc_sessions(&mut admin, ids).await?;
+        if batch <= 1 {
+            continue;
         }
-        let summary = tally.summary(&phase);
-        eprintln!("  {:.0} observations/s", summary.rate);
-        for id in ids {
-            admin
-                .delete_session(pb::DeleteSessionRequest { session_id: id })
-                .await?;
+        let streams = args.grpc_streams.div_ceil(batch);
+        eprintln!(
+            "grpc: InteractBatch, {} {} sessions in {streams} streams of up to {batch}",
+            args.grpc_streams,
+            mode.as_str(),
+        );
+        let ids = create_grpc_sessions(&mut admin, args.grpc_streams, mode).await?;
+        let phase = Phase::new(args);
+        let mut set = JoinSet::new();
+        for (i, chunk) in ids.chunks(batch).enumerate() {
+            let client = AgentsClient::new(channels[i % channels.len()].clone());
+            set.spawn(grpc_batch_worker(client, chunk.to_vec(), phase));
         }
-        rows.push((mode, summary, cpu));
+        rows.push(grpc_row(mode, "InteractBatch", streams, batch, set, phase, pid).await?);
+        delete_grpc_sessions(&mut admin, ids).await?;
     }
-    println!("## gRPC: Interact (closed loop)\n");
+    println!("## gRPC: Interact and InteractBatch (closed loop)\n");
     println!(
-        "{} bidirectional streams, one hallway session each, over {} HTTP/2 connections; \
-         each stream waits for its step before sending the next observation.\n",
+        "{} hallway sessions over {} HTTP/2 connections: `Interact` with one stream per \
+         session, `InteractBatch` with streams of up to {batch} sessions (one observation \
+         each per message); each stream waits for its reply before sending again.\n",
         args.grpc_streams, args.grpc_connections
     );
     println!(
-        "| mode | observations/s | p50 / p99 / max | server CPU µs/obs | \
-         CPU: server / loadgen / other |"
+        "| mode | method | streams × batch | observations/s | p50 / p99 / max | \
+         server CPU µs/obs | CPU: server / loadgen / other |"
     );
-    println!("|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|");
     let mut out = Vec::with_capacity(rows.len());
-    for (mode, s, cpu) in rows {
+    for r in rows {
+        let (s, cpu) = (&r.summary, r.cpu);
         out.push(json!({
-            "mode": mode.as_str(),
-            "streams": args.grpc_streams,
+            "mode": r.mode.as_str(),
+            "method": r.method,
+            "streams": r.streams,
+            "batch": r.batch,
             "connections": args.grpc_connections,
             "summary": s.json(),
             "cpu_server": cpu.server,
@@ -1274,8 +1374,11 @@ async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<Value> {
             "server_cpu_us_per_observation": server_us(cpu, s.rate),
         }));
         println!(
-            "| {} | {} | {} / {} / {} | {} | {} |",
-            mode.as_str(),
+            "| {} | {} | {} × {} | {} | {} / {} / {} | {} | {} |",
+            r.mode.as_str(),
+            r.method,
+            r.streams,
+            r.batch,
             thousands(s.rate),
             latency(s.p50),
             latency(s.p99),
@@ -1286,6 +1389,48 @@ async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<Value> {
     }
     println!();
     Ok(Value::Array(out))
+}
+
+/// Waits for a phase's workers and measures it.
+async fn grpc_row(
+    mode: Mode,
+    method: &'static str,
+    streams: usize,
+    batch: usize,
+    mut set: JoinSet<Result<Tally>>,
+    phase: Phase,
+    pid: Option<u32>,
+) -> Result<GrpcRow> {
+    let cpu = measure_window(phase, pid, None).await.cpu;
+    let mut tally = Tally::default();
+    while let Some(joined) = set.join_next().await {
+        tally.merge(joined??);
+    }
+    let summary = tally.summary(&phase);
+    eprintln!("  {:.0} observations/s", summary.rate);
+    if let Some(e) = &summary.first_error {
+        bail!(
+            "{method}: {} observations failed, the first: {e}",
+            summary.errors
+        );
+    }
+    Ok(GrpcRow {
+        mode,
+        method,
+        streams,
+        batch,
+        summary,
+        cpu,
+    })
+}
+
+async fn delete_grpc_sessions(admin: &mut AgentsClient<Channel>, ids: Vec<String>) -> Result<()> {
+    for id in ids {
+        admin
+            .delete_session(pb::DeleteSessionRequest { session_id: id })
+            .await?;
+    }
+    Ok(())
 }
 
 // ------------------------------------------------------------------ memory

@@ -87,9 +87,11 @@ from .types import (
 
 if TYPE_CHECKING:
     from .grpc_client import (
+        AsyncBatchInteraction,
         AsyncGrpcClient,
         AsyncInteraction,
         AsyncWatch,
+        BatchInteraction,
         GrpcClient,
         Interaction,
         Watch,
@@ -104,6 +106,8 @@ _TRANSPORTS = {
     "AsyncGrpcClient": "grpc_client",
     "Interaction": "grpc_client",
     "AsyncInteraction": "grpc_client",
+    "BatchInteraction": "grpc_client",
+    "AsyncBatchInteraction": "grpc_client",
     "Watch": "grpc_client",
     "AsyncWatch": "grpc_client",
 }
@@ -132,6 +136,8 @@ __all__ = [
     "AsyncGrpcClient",
     "Interaction",
     "AsyncInteraction",
+    "BatchInteraction",
+    "AsyncBatchInteraction",
     "Watch",
     "AsyncWatch",
     "models",

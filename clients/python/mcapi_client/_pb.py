@@ -285,6 +285,51 @@ def observations(obs: Iterable[ObservationLike]) -> list[pb.Observation]:
     return [observation_message(as_observation(o)) for o in obs]
 
 
+def observation_batch(entries: Iterable[tuple[str, ObservationLike]]) -> pb.ObservationBatch:
+    """One ``InteractBatch`` message: ``(session_id, observation)`` pairs."""
+    return pb.ObservationBatch(
+        observations=[observation_message(as_observation(o), str(sid)) for sid, o in entries]
+    )
+
+
+def step_results(m: pb.StepBatch) -> list[Step | McapiError]:
+    """An ``InteractBatch`` reply: a step, or the error of a refused observation."""
+    out: list[Step | McapiError] = []
+    for r in m.results:
+        if r.HasField("step"):
+            out.append(step(r.step))
+            continue
+        e = r.error
+        name = _GRPC_CODE_NAMES.get(e.status, "UNKNOWN")
+        err = error_for(e.code or None, e.message, grpc_code=name)
+        if isinstance(err, WrongReplica):
+            err.owner = e.owner or None
+        out.append(err)
+    return out
+
+
+# gRPC status names by number (the `status` of a StepError).
+_GRPC_CODE_NAMES = {
+    0: "OK",
+    1: "CANCELLED",
+    2: "UNKNOWN",
+    3: "INVALID_ARGUMENT",
+    4: "DEADLINE_EXCEEDED",
+    5: "NOT_FOUND",
+    6: "ALREADY_EXISTS",
+    7: "PERMISSION_DENIED",
+    8: "RESOURCE_EXHAUSTED",
+    9: "FAILED_PRECONDITION",
+    10: "ABORTED",
+    11: "OUT_OF_RANGE",
+    12: "UNIMPLEMENTED",
+    13: "INTERNAL",
+    14: "UNAVAILABLE",
+    15: "DATA_LOSS",
+    16: "UNAUTHENTICATED",
+}
+
+
 def tick_curiosity(m: pb.TickCuriosity) -> TickCuriosity:
     """The curiosity channel at one tick."""
     return TickCuriosity(

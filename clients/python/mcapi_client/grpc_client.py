@@ -77,9 +77,11 @@ from .types import (
 __all__ = [
     "GrpcClient",
     "Interaction",
+    "BatchInteraction",
     "Watch",
     "AsyncGrpcClient",
     "AsyncInteraction",
+    "AsyncBatchInteraction",
     "AsyncWatch",
     "DEFAULT_TARGET",
     "SESSION_METADATA",
@@ -243,6 +245,76 @@ class Interaction(_Stream):
         exc: BaseException | None,
         tb: TracebackType | None,
     ) -> None:
+        self.close()
+
+
+class BatchInteraction:
+    """One ``InteractBatch`` stream: several sessions stepped together, as a
+    vectorised simulator steps its worlds.
+
+    Get one from :meth:`GrpcClient.interact_batch` and use it as a context
+    manager. Each :meth:`step` sends one message of ``(session_id,
+    observation)`` pairs and returns one result per pair, in order: the
+    :class:`~mcapi_client.Step`, or the :class:`~mcapi_client.McapiError` of
+    an observation the server refused (returned, not raised: the other
+    sessions' steps stand and the stream goes on):
+
+        with client.interact_batch() as stream:
+            results = stream.step([(a, (25,)), (b, (3,))])
+            for r in results:
+                if isinstance(r, McapiError): ...
+
+    A session's observations in one message are applied in order; after one
+    is refused, its later ones are not applied. A failure of the stream
+    itself (a message with more than ``--max-batch`` observations, the
+    server shutting down) raises.
+    """
+
+    def __init__(self, stub: pb_grpc.AgentsStub, metadata: Metadata) -> None:
+        self._outbox: queue.SimpleQueue[pb.ObservationBatch | None] = queue.SimpleQueue()
+        self._call = stub.InteractBatch(self._requests(), metadata=metadata)
+        self._closed = False
+
+    def _requests(self) -> Iterator[pb.ObservationBatch]:
+        while True:
+            msg = self._outbox.get()
+            if msg is None:
+                return
+            yield msg
+
+    def step(
+        self, entries: Iterable[tuple[str, ObservationLike]]
+    ) -> list[Step | McapiError]:
+        """Sends one message and returns its results, one per entry.
+
+        Args:
+            entries: ``(session_id, observation)`` pairs; an observation is
+                an :class:`~mcapi_client.Observation`, a mapping or a tuple
+                ``(state, stimulus[, action_taken[, signal[, signal_source]]])``.
+        """
+        if self._closed:
+            raise RuntimeError("this interaction is closed")
+        self._outbox.put(_pb.observation_batch(entries))
+        try:
+            msg = next(self._call)
+        except StopIteration:
+            raise _stream_ended() from None
+        except grpc.RpcError as e:
+            raise rpc_error(e) from e
+        return _pb.step_results(msg)
+
+    def close(self) -> None:
+        """Ends the stream."""
+        if self._closed:
+            return
+        self._closed = True
+        self._outbox.put(None)
+        self._call.cancel()
+
+    def __enter__(self) -> BatchInteraction:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
         self.close()
 
 
@@ -454,6 +526,11 @@ class GrpcClient:
         """Opens an ``Interact`` stream on a session; see :class:`Interaction`."""
         return Interaction(self._stub, session_id, self._protocol.metadata(session_id))
 
+    def interact_batch(self) -> BatchInteraction:
+        """Opens an ``InteractBatch`` stream (several sessions per message);
+        see :class:`BatchInteraction`."""
+        return BatchInteraction(self._stub, self._protocol.metadata())
+
     def watch(self, session_id: str, interval: FloatLike = 1.0) -> Watch:
         """Snapshots of a session every ``interval`` seconds (0.01 to 3600),
         the first at once; see :class:`Watch`.
@@ -555,6 +632,55 @@ class AsyncInteraction(_Stream):
         self._call.cancel()
 
     async def __aenter__(self) -> AsyncInteraction:
+        return self
+
+    async def __aexit__(self, *exc: object) -> None:
+        self.close()
+
+
+class AsyncBatchInteraction:
+    """One ``InteractBatch`` stream under asyncio; :class:`BatchInteraction`'s twin.
+
+        async with client.interact_batch() as stream:
+            results = await stream.step([(a, (25,)), (b, (3,))])
+    """
+
+    def __init__(self, stub: pb_grpc.AgentsStub, metadata: Metadata) -> None:
+        self._outbox: asyncio.Queue[pb.ObservationBatch | None] = asyncio.Queue()
+        self._call = stub.InteractBatch(self._requests(), metadata=metadata)
+        self._closed = False
+
+    async def _requests(self) -> AsyncIterator[pb.ObservationBatch]:
+        while True:
+            msg = await self._outbox.get()
+            if msg is None:
+                return
+            yield msg
+
+    async def step(
+        self, entries: Iterable[tuple[str, ObservationLike]]
+    ) -> list[Step | McapiError]:
+        """Sends one message and returns its results; see :meth:`BatchInteraction.step`."""
+        if self._closed:
+            raise RuntimeError("this interaction is closed")
+        self._outbox.put_nowait(_pb.observation_batch(entries))
+        try:
+            msg = await self._call.read()
+        except grpc.RpcError as e:
+            raise rpc_error(e) from e
+        if msg is grpc.aio.EOF:
+            raise _stream_ended()
+        return _pb.step_results(msg)
+
+    def close(self) -> None:
+        """Ends the stream."""
+        if self._closed:
+            return
+        self._closed = True
+        self._outbox.put_nowait(None)
+        self._call.cancel()
+
+    async def __aenter__(self) -> AsyncBatchInteraction:
         return self
 
     async def __aexit__(self, *exc: object) -> None:
@@ -772,6 +898,10 @@ class AsyncGrpcClient:
     def interact(self, session_id: str) -> AsyncInteraction:
         """Opens an ``Interact`` stream on a session; see :class:`AsyncInteraction`."""
         return AsyncInteraction(self._stub, session_id, self._protocol.metadata(session_id))
+
+    def interact_batch(self) -> AsyncBatchInteraction:
+        """Opens an ``InteractBatch`` stream; see :class:`AsyncBatchInteraction`."""
+        return AsyncBatchInteraction(self._stub, self._protocol.metadata())
 
     def watch(self, session_id: str, interval: FloatLike = 1.0) -> AsyncWatch:
         """Snapshots of a session every ``interval`` seconds (0.01 to 3600),

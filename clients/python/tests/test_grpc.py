@@ -15,6 +15,7 @@ from mcapi_client import (
     Client,
     GrpcClient,
     InvalidObservation,
+    McapiError,
     NotFound,
     Observation,
     models,
@@ -154,6 +155,54 @@ def test_interact_unknown_session(grpc_client: GrpcClient) -> None:
         with pytest.raises(NotFound) as e:
             stream.step(0)
     assert e.value.status == 404
+
+
+def test_interact_batch_steps_sessions_together_like_interact(grpc_client: GrpcClient) -> None:
+    """Three sessions stepped as vectorised worlds over one InteractBatch
+    stream get the very steps that three Interact streams get; a refused
+    observation is a result, not the end of the stream."""
+    world = models.hallway()
+    seeds = [7, 8, 9]
+    batched = [grpc_client.create_session(world, seed=s).id for s in seeds]
+    single = [grpc_client.create_session(world, seed=s).id for s in seeds]
+    rng = random.Random(11)
+    starts = [25, 3, 47]
+    states = list(starts)
+    with grpc_client.interact_batch() as stream:
+        first = stream.step([(sid, Observation(s)) for sid, s in zip(batched, states)])
+        for t in range(1, 120):
+            entries = []
+            for i, sid in enumerate(batched):
+                step = first[i]
+                assert not isinstance(step, McapiError), step
+                states[i] = world.sample_next(states[i], step.action_index, rng)
+                entries.append((sid, (states[i], world.stimulus(states[i]))))
+            if t == 60:  # a wrong stimulus length for the middle session, sent first
+                entries.insert(0, (batched[1], (states[1], [0.0])))
+            results = stream.step(entries)
+            if t == 60:
+                bad, skipped = results[0], results[2]
+                assert isinstance(bad, InvalidObservation) and bad.code == "stimulus_length"
+                assert bad.grpc_code == "INVALID_ARGUMENT"
+                assert isinstance(skipped, BadRequest) and "not applied" in skipped.message
+                results = [results[1], results[2], results[3]]
+                # Resend the middle one alone; the others already moved on.
+                (results[1],) = stream.step([(batched[1], (states[1], world.stimulus(states[1])))])
+            first = results
+        unknown = stream.step([("s0000.01AAAAAAAAAAAAAAAAAAAAAAAA", (1,))])
+        assert isinstance(unknown[0], NotFound) and unknown[0].status == 404
+        assert stream.step([]) == []
+    # The same observations through Interact, one stream per session.
+    for b, s, start in zip(batched, single, starts):
+        log = grpc_client.history(b)  # ticks 1 to 119; tick 0 is the start
+        assert len(log) == 119
+        with grpc_client.interact(s) as stream:
+            stream.send(start)
+            for e in log:
+                stream.send(e.state, e.stimulus)
+            replayed = list(stream)
+        assert replayed[-1].drive == grpc_client.get_session(b).drive
+        assert grpc_client.get_session(s).tick == grpc_client.get_session(b).tick == 119
 
 
 def test_interact_sends_the_session_metadata(server: object) -> None:

@@ -140,6 +140,25 @@ async def test_interact_errors_end_the_stream(server: Server) -> None:
 
 
 @async_test
+async def test_interact_batch_matches_interact(server: Server) -> None:
+    world = models.hallway()
+    async with AsyncGrpcClient(server.grpc_target) as mc:
+        batched = [(await mc.create_session(world, seed=s)).id for s in (1, 2)]
+        single = [(await mc.create_session(world, seed=s)).id for s in (1, 2)]
+        log = [Observation(25)] + [Observation(s, world.stimulus(s)) for s in range(24, 0, -1)]
+        async with mc.interact_batch() as stream:
+            steps = [await stream.step([(b, o) for b in batched]) for o in log]
+            errors = await stream.step([(batched[0], (1, [0.0])), (UNKNOWN_ID, (1,))])
+        assert [type(e) for e in errors] == [InvalidObservation, NotFound]
+        for k, sid in enumerate(single):
+            async with mc.interact(sid) as one:
+                assert [await one.step(o.state, o.stimulus) for o in log] == [s[k] for s in steps]
+        stream.close()
+        with pytest.raises(RuntimeError):
+            await stream.step([])
+
+
+@async_test
 async def test_watch_snapshots_until_deleted_or_cancelled(server: Server) -> None:
     async with AsyncGrpcClient(server.grpc_target) as mc:
         sid = (await mc.create_session("hallway", seed=1)).id

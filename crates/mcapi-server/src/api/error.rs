@@ -202,6 +202,22 @@ pub fn to_status(e: ServiceError) -> tonic::Status {
     status
 }
 
+/// An `InteractBatch` entry's error: what [`to_status`] would end an
+/// `Interact` stream with, as a message.
+pub fn step_error(e: ServiceError) -> mcapi_proto::StepError {
+    let (http, code, stable) = classify(&e);
+    let owner = match &e {
+        ServiceError::WrongReplica { owner, .. } => owner.clone(),
+        _ => String::new(),
+    };
+    mcapi_proto::StepError {
+        status: code as u32,
+        code: stable.to_string(),
+        message: public_message(&e, http),
+        owner,
+    }
+}
+
 /// Header (REST) or trailer (gRPC) naming the owner of a misdirected
 /// session's shard (docs/cluster.md).
 pub const OWNER_HEADER: &str = "x-mcapi-owner";

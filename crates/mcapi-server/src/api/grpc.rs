@@ -21,11 +21,13 @@
 pub mod convert;
 pub mod guard;
 
+use std::collections::HashMap;
 use std::future::Future;
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
+use futures_util::future::join_all;
 use thiserror::Error;
 use tokio::net::TcpListener;
 use tokio::sync::{mpsc, watch};
@@ -37,9 +39,9 @@ use tonic::{Request, Response, Status, Streaming};
 use tracing::Instrument;
 
 use crate::api::conn::{ConnLimits, grpc_panic_layer, limited_incoming};
-use crate::api::error::to_status;
+use crate::api::error::{step_error, to_status};
 use crate::api::streams::{StreamLimiter, StreamSlot};
-use crate::service::{Caller, ServiceError, SessionManager};
+use crate::service::{Caller, ObservationIn, ServiceError, SessionManager, StepOut};
 
 use pb::agents_server::{Agents, AgentsServer};
 
@@ -92,6 +94,65 @@ impl AgentsService {
     pub fn with_streams(mut self, streams: Arc<StreamLimiter>) -> Self {
         self.streams = Some(streams);
         self
+    }
+
+    /// Starts an `Interact`-like stream: each message in is answered by
+    /// `answer` with one message out, in order; the next message is read
+    /// only once the reply found room in the stream's buffer. An error
+    /// reply ends the stream, as do the client going away and shutdown.
+    fn interact_stream<In, Out, F, Fut>(
+        &self,
+        request: Request<Streaming<In>>,
+        name: &'static str,
+        answer: F,
+    ) -> Result<Response<ReceiverStream<Result<Out, Status>>>, Status>
+    where
+        In: Send + 'static,
+        Out: Send + 'static,
+        F: Fn(In, Arc<SessionManager>, Caller, Arc<Option<String>>) -> Fut + Send + 'static,
+        Fut: Future<Output = Result<Out, Status>> + Send,
+    {
+        let caller = caller(&self.manager, &request)?;
+        let meta = Arc::new(metadata_session(request.metadata())?);
+        let span = tracing::info_span!(
+            "stream",
+            method = name,
+            session = meta.as_deref().unwrap_or("")
+        );
+        let mut inbound = request.into_inner();
+        let (tx, rx) = mpsc::channel(self.stream_buffer);
+        let manager = Arc::clone(&self.manager);
+        let stopping = self.stopping.clone();
+        let closed = tx.clone();
+        let serve = async move {
+            loop {
+                let reply = match inbound.message().await {
+                    Ok(Some(message)) => {
+                        answer(message, Arc::clone(&manager), caller, Arc::clone(&meta)).await
+                    }
+                    Ok(None) => return,
+                    // A malformed message or a broken connection.
+                    Err(status) => Err(status),
+                };
+                let failed = reply.is_err();
+                if tx.send(reply).await.is_err() || failed {
+                    return;
+                }
+            }
+        };
+        tokio::spawn(
+            async move {
+                tokio::select! {
+                    () = serve => {}
+                    () = closed.closed() => tracing::debug!("client went away"),
+                    () = stopped(stopping) => {
+                        let _ = closed.send(Err(shutting_down())).await;
+                    }
+                }
+            }
+            .instrument(span),
+        );
+        Ok(Response::new(ReceiverStream::new(rx)))
     }
 
     /// A slot for a new `Watch` stream of `caller`.
@@ -242,26 +303,39 @@ impl Agents for AgentsService {
         &self,
         request: Request<Streaming<pb::Observation>>,
     ) -> Result<Response<Self::InteractStream>, Status> {
-        let caller = caller(&self.manager, &request)?;
-        let meta = metadata_session(request.metadata())?;
-        let span = tracing::info_span!("interact", session = meta.as_deref().unwrap_or(""));
-        let inbound = request.into_inner();
-        let (tx, rx) = mpsc::channel(self.stream_buffer);
-        let manager = Arc::clone(&self.manager);
-        let stopping = self.stopping.clone();
-        tokio::spawn(
-            async move {
-                tokio::select! {
-                    () = interact_loop(&manager, caller, inbound, meta.as_deref(), &tx) => {}
-                    () = tx.closed() => tracing::debug!("client went away"),
-                    () = stopped(stopping) => {
-                        let _ = tx.send(Err(shutting_down())).await;
-                    }
-                }
-            }
-            .instrument(span),
-        );
-        Ok(Response::new(ReceiverStream::new(rx)))
+        self.interact_stream(
+            request,
+            "interact",
+            |obs, manager, caller, meta| async move {
+                let reply = match convert::observation(obs, meta.as_deref()) {
+                    Ok((id, obs)) => manager.observe(caller, &id, vec![obs]).await,
+                    Err(e) => Err(e),
+                };
+                // An error ends the stream.
+                reply
+                    .and_then(one_step)
+                    .map(convert::step)
+                    .map_err(to_status)
+            },
+        )
+    }
+
+    type InteractBatchStream = ReceiverStream<Result<pb::StepBatch, Status>>;
+
+    async fn interact_batch(
+        &self,
+        request: Request<Streaming<pb::ObservationBatch>>,
+    ) -> Result<Response<Self::InteractBatchStream>, Status> {
+        self.interact_stream(
+            request,
+            "interact_batch",
+            |batch, manager, caller, meta| async move {
+                let results = observe_batch(&manager, caller, batch.observations, meta.as_deref());
+                Ok(pb::StepBatch {
+                    results: results.await,
+                })
+            },
+        )
     }
 
     type WatchStream = ReceiverStream<Result<pb::SessionInfo, Status>>;
@@ -339,47 +413,81 @@ impl Agents for AgentsService {
     }
 }
 
-/// Observations in, steps out, one at a time and in order. The next
-/// observation is read only after the previous step found room in `tx`.
-/// Ends when the client closes its side, or after sending an error.
-async fn interact_loop(
+/// The one step of a one-observation batch.
+fn one_step(steps: Vec<StepOut>) -> Result<StepOut, ServiceError> {
+    steps
+        .into_iter()
+        .next()
+        .ok_or_else(|| ServiceError::Internal("observe returned no step".into()))
+}
+
+/// The results of one `InteractBatch` message, one per observation in
+/// order. Each session's observations are applied in order, one at a time;
+/// the sessions run concurrently (so a durable store commits them together).
+/// After a session's observation is refused, its later ones in the message
+/// are not applied.
+async fn observe_batch(
     manager: &SessionManager,
     caller: Caller,
-    mut inbound: Streaming<pb::Observation>,
+    observations: Vec<pb::Observation>,
     meta: Option<&str>,
-    tx: &mpsc::Sender<Result<pb::Step, Status>>,
-) {
-    loop {
-        let obs = match inbound.message().await {
-            Ok(Some(obs)) => obs,
-            Ok(None) => return,
-            Err(status) => {
-                // A malformed message or a broken connection.
-                let _ = tx.send(Err(status)).await;
-                return;
-            }
-        };
-        let reply = match convert::observation(obs, meta) {
-            Ok((id, obs)) => manager.observe(caller, &id, vec![obs]).await,
-            Err(e) => Err(e),
-        };
-        let reply = reply.and_then(|steps| {
-            steps
-                .into_iter()
-                .next()
-                .ok_or_else(|| ServiceError::Internal("observe returned no step".into()))
-        });
-        match reply {
-            Ok(step) => {
-                if tx.send(Ok(convert::step(step))).await.is_err() {
-                    return;
+) -> Vec<pb::StepResult> {
+    let n = observations.len();
+    let mut results = vec![pb::StepResult::default(); n];
+    // The observations by session, sessions in order of first appearance.
+    let mut groups: Vec<(String, Vec<(usize, ObservationIn)>)> = Vec::new();
+    let mut group_of: HashMap<String, usize> = HashMap::with_capacity(n);
+    for (i, obs) in observations.into_iter().enumerate() {
+        match convert::observation(obs, meta) {
+            Ok((id, obs)) => match group_of.get(&id) {
+                Some(&g) => groups[g].1.push((i, obs)),
+                None => {
+                    group_of.insert(id.clone(), groups.len());
+                    groups.push((id, vec![(i, obs)]));
                 }
-            }
-            Err(e) => {
-                let _ = tx.send(Err(to_status(e))).await;
-                return;
-            }
+            },
+            Err(e) => results[i] = refused(e),
         }
+    }
+    let per_session = groups.into_iter().map(|(id, items)| async move {
+        let mut out = Vec::with_capacity(items.len());
+        let mut refused_at: Option<usize> = None;
+        for (i, obs) in items {
+            let outcome = match refused_at {
+                Some(first) => Err(ServiceError::BadRequest(format!(
+                    "not applied: observations[{first}] of the same session was refused \
+                     earlier in this message"
+                ))),
+                None => manager
+                    .observe(caller, &id, vec![obs])
+                    .await
+                    .and_then(one_step),
+            };
+            out.push((
+                i,
+                match outcome {
+                    Ok(step) => pb::StepResult {
+                        outcome: Some(pb::step_result::Outcome::Step(convert::step(step))),
+                    },
+                    Err(e) => {
+                        refused_at.get_or_insert(i);
+                        refused(e)
+                    }
+                },
+            ));
+        }
+        out
+    });
+    for (i, result) in join_all(per_session).await.into_iter().flatten() {
+        results[i] = result;
+    }
+    results
+}
+
+/// A refused observation's result.
+fn refused(e: ServiceError) -> pb::StepResult {
+    pb::StepResult {
+        outcome: Some(pb::step_result::Outcome::Error(step_error(e))),
     }
 }
 

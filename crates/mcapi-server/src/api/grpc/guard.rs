@@ -21,7 +21,10 @@
 //! - `Interact`'s messages (one observation each) are checked by their
 //!   gRPC length prefix as they stream in: one above
 //!   [`INTERACT_MESSAGE_LIMIT`] ends the call with RESOURCE_EXHAUSTED
-//!   before it is buffered.
+//!   before it is buffered. `InteractBatch`'s messages are checked the same
+//!   way, and their observations counted as the bytes pass ([`EntryCounter`]):
+//!   more than `max_batch` in one message ends the call with
+//!   RESOURCE_EXHAUSTED (`limit_exceeded`) before it is decoded.
 
 use std::future::Future;
 use std::pin::Pin;
@@ -142,6 +145,7 @@ where
         let method = match method {
             "Observe" => Method::Observe,
             "Interact" => Method::Interact,
+            "InteractBatch" => Method::InteractBatch,
             _ => Method::Other,
         };
         match authenticate(&self.cfg.manager, req.headers()) {
@@ -163,13 +167,12 @@ where
                         Ok(req) => req,
                         Err(status) => return Ok(status.into_http()),
                     },
-                    Method::Interact => req.map(|body| {
-                        Body::new(FrameLimit {
-                            inner: body,
-                            max: cfg.interact_max,
-                            head: Vec::with_capacity(FRAME_HEAD),
-                            left: 0,
-                        })
+                    Method::Interact => {
+                        req.map(|body| Body::new(FrameLimit::new(body, cfg.interact_max, None)))
+                    }
+                    Method::InteractBatch => req.map(|body| {
+                        let counter = EntryCounter::new(BATCH_FIELD, cfg.max_batch);
+                        Body::new(FrameLimit::new(body, cfg.interact_max, Some(counter)))
                     }),
                     Method::Other => req,
                 };
@@ -193,8 +196,12 @@ where
 enum Method {
     Observe,
     Interact,
+    InteractBatch,
     Other,
 }
+
+/// Field number of `ObservationBatch.observations`.
+const BATCH_FIELD: u64 = 1;
 
 /// Buffers an `Observe` body (at most the body limit) and refuses it if
 /// it holds more observations than a batch may.
@@ -282,6 +289,8 @@ fn varint(buf: &mut &[u8]) -> Option<u64> {
 /// A streaming request body whose gRPC messages may each be at most `max`
 /// bytes: the length prefix is read as the data passes, and a larger one
 /// ends the body with RESOURCE_EXHAUSTED before the message is buffered.
+/// With a [`EntryCounter`], each uncompressed message's entries are also
+/// counted as they pass.
 struct FrameLimit {
     inner: Body,
     max: usize,
@@ -289,14 +298,35 @@ struct FrameLimit {
     head: Vec<u8>,
     /// Bytes of the current message still to pass.
     left: usize,
+    /// Counts the current message's entries, when it is counted.
+    counter: Option<EntryCounter>,
+    /// Whether the current message is counted (it is not compressed).
+    counting: bool,
 }
 
 impl FrameLimit {
-    /// Follows the frame heads in `data`; an error when a message is too large.
+    fn new(inner: Body, max: usize, counter: Option<EntryCounter>) -> Self {
+        Self {
+            inner,
+            max,
+            head: Vec::with_capacity(FRAME_HEAD),
+            left: 0,
+            counter,
+            counting: false,
+        }
+    }
+
+    /// Follows the frame heads in `data`; an error when a message is too
+    /// large or holds too many entries.
     fn scan(&mut self, mut data: &[u8]) -> Result<(), Status> {
         while !data.is_empty() {
             if self.left > 0 {
                 let n = self.left.min(data.len());
+                if self.counting
+                    && let Some(counter) = &mut self.counter
+                {
+                    counter.feed(&data[..n])?;
+                }
                 self.left -= n;
                 data = &data[n..];
                 continue;
@@ -308,6 +338,9 @@ impl FrameLimit {
                 let len =
                     u32::from_be_bytes([self.head[1], self.head[2], self.head[3], self.head[4]])
                         as usize;
+                // A compressed message is not counted: the server accepts
+                // no compression, so tonic refuses it undecoded.
+                self.counting = self.head[0] == 0;
                 self.head.clear();
                 if len > self.max {
                     return Err(to_status(ServiceError::LimitExceeded(format!(
@@ -315,11 +348,121 @@ impl FrameLimit {
                         self.max
                     ))));
                 }
+                if let Some(counter) = &mut self.counter {
+                    counter.start();
+                }
                 self.left = len;
             }
         }
         Ok(())
     }
+}
+
+/// Counts the top-level entries of one length-delimited field in protobuf
+/// messages that pass in pieces, and refuses a message with more than
+/// `max` of them (or one malformed at the top level, which decoding would
+/// refuse anyway, only after allocating).
+#[derive(Debug)]
+struct EntryCounter {
+    field: u64,
+    max: usize,
+    count: usize,
+    state: Scan,
+    /// The varint being read: its value so far and the shift of its next byte.
+    value: u64,
+    shift: u32,
+}
+
+/// Where an [`EntryCounter`] is in a message.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Scan {
+    /// Reading a field's key.
+    Key,
+    /// Reading a varint field's value.
+    Varint,
+    /// Reading a length-delimited field's length.
+    Length,
+    /// Skipping this many bytes of a field's value.
+    Skip(u64),
+}
+
+impl EntryCounter {
+    fn new(field: u64, max: usize) -> Self {
+        Self {
+            field,
+            max,
+            count: 0,
+            state: Scan::Key,
+            value: 0,
+            shift: 0,
+        }
+    }
+
+    /// A new message begins.
+    fn start(&mut self) {
+        self.count = 0;
+        self.state = Scan::Key;
+        self.value = 0;
+        self.shift = 0;
+    }
+
+    /// Reads the next bytes of the current message.
+    fn feed(&mut self, mut data: &[u8]) -> Result<(), Status> {
+        while let Some((&byte, rest)) = data.split_first() {
+            if let Scan::Skip(left) = self.state {
+                let n = usize::try_from(left).unwrap_or(usize::MAX).min(data.len());
+                data = &data[n..];
+                self.state = match left - n as u64 {
+                    0 => Scan::Key,
+                    more => Scan::Skip(more),
+                };
+                continue;
+            }
+            data = rest;
+            if self.shift >= 64 {
+                return Err(malformed());
+            }
+            self.value |= u64::from(byte & 0x7f) << self.shift;
+            self.shift += 7;
+            if byte & 0x80 != 0 {
+                continue;
+            }
+            let value = std::mem::take(&mut self.value);
+            self.shift = 0;
+            self.state = match self.state {
+                Scan::Key => match value & 7 {
+                    0 => Scan::Varint,
+                    1 => Scan::Skip(8),
+                    2 => {
+                        if value >> 3 == self.field {
+                            self.count += 1;
+                            if self.count > self.max {
+                                return Err(to_status(ServiceError::LimitExceeded(format!(
+                                    "an InteractBatch message has more than {} observations \
+                                     (`--max-batch`)",
+                                    self.max
+                                ))));
+                            }
+                        }
+                        Scan::Length
+                    }
+                    5 => Scan::Skip(4),
+                    _ => return Err(malformed()),
+                },
+                Scan::Length if value > 0 => Scan::Skip(value),
+                // A varint value or an empty field ends here (`Skip` is
+                // handled above and never gets here).
+                Scan::Varint | Scan::Length | Scan::Skip(_) => Scan::Key,
+            };
+        }
+        Ok(())
+    }
+}
+
+fn malformed() -> Status {
+    to_status(ServiceError::BadRequest(
+        "an InteractBatch message is not a valid protobuf message".into(),
+    ))
 }
 
 impl HttpBody for FrameLimit {
@@ -384,12 +527,7 @@ mod tests {
 
     #[test]
     fn frame_limit_follows_heads_across_chunks() {
-        let mut limit = FrameLimit {
-            inner: Body::default(),
-            max: 10,
-            head: Vec::new(),
-            left: 0,
-        };
+        let mut limit = FrameLimit::new(Body::default(), 10, None);
         let ok = frame(&[7; 10]);
         let mut stream = ok.clone();
         stream.extend(&ok);
@@ -403,5 +541,43 @@ mod tests {
         let err = limit.scan(&big[..3]).and_then(|()| limit.scan(&big[3..]));
         let status = err.expect_err("over the limit");
         assert_eq!(status.code(), tonic::Code::ResourceExhausted);
+    }
+
+    /// Feeds `stream` to a counting frame limit `chunk` bytes at a time.
+    fn count_stream(stream: &[u8], chunk: usize, max: usize) -> Result<(), Status> {
+        let mut limit = FrameLimit::new(
+            Body::default(),
+            1 << 20,
+            Some(EntryCounter::new(BATCH_FIELD, max)),
+        );
+        stream.chunks(chunk).try_for_each(|c| limit.scan(c))
+    }
+
+    #[test]
+    fn batch_entries_are_counted_as_they_pass() {
+        // Three observations (one with state 300, a two-byte varint, and one
+        // with a fixed64 field), then an unknown varint field 2.
+        let msg = [
+            0x0a, 0, 0x0a, 3, 0x10, 0xac, 0x02, 0x0a, 9, 0x19, 1, 2, 3, 4, 5, 6, 7, 8, 0x10, 7,
+        ];
+        let mut two = frame(&msg);
+        two.extend(frame(&msg));
+        for chunk in [1, 2, 3, 7, two.len()] {
+            // Each message is counted on its own: 3 per message passes a
+            // limit of 3, not of 2.
+            count_stream(&two, chunk, 3).expect("three per message");
+            let status = count_stream(&two, chunk, 2).expect_err("over the limit");
+            assert_eq!(status.code(), tonic::Code::ResourceExhausted, "{status:?}");
+            assert!(status.message().contains("more than 2"), "{status:?}");
+        }
+        // A compressed message is not counted (tonic refuses it).
+        let mut compressed = frame(&msg);
+        compressed[0] = 1;
+        count_stream(&compressed, 1, 0).expect("not counted");
+        // Group wire types and over-long varints are malformed at the top level.
+        for bad in [&[0x0b_u8][..], &[0x80; 11][..]] {
+            let status = count_stream(&frame(bad), 1, 10).expect_err("malformed");
+            assert_eq!(status.code(), tonic::Code::InvalidArgument, "{status:?}");
+        }
     }
 }

@@ -65,6 +65,11 @@ class AgentsStub:
                 request_serializer=mcapi_dot_v1_dot_agents__pb2.Observation.SerializeToString,
                 response_deserializer=mcapi_dot_v1_dot_agents__pb2.Step.FromString,
                 _registered_method=True)
+        self.InteractBatch = channel.stream_stream(
+                '/mcapi.v1.Agents/InteractBatch',
+                request_serializer=mcapi_dot_v1_dot_agents__pb2.ObservationBatch.SerializeToString,
+                response_deserializer=mcapi_dot_v1_dot_agents__pb2.StepBatch.FromString,
+                _registered_method=True)
         self.Watch = channel.unary_stream(
                 '/mcapi.v1.Agents/Watch',
                 request_serializer=mcapi_dot_v1_dot_agents__pb2.WatchRequest.SerializeToString,
@@ -131,6 +136,17 @@ class AgentsServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def InteractBatch(self, request_iterator, context):
+        """Interact for a vectorised simulator: each message carries several
+        observations (typically one per session of its worlds), each reply one
+        result per observation, in order. The observations of one session are
+        applied in order, different sessions' in parallel. A refused observation
+        gets its error in its result and the stream goes on.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def Watch(self, request, context):
         """Snapshots of a session at a fixed interval, the first at once. Ends with
         NOT_FOUND when the session is deleted.
@@ -185,6 +201,11 @@ def add_AgentsServicer_to_server(servicer, server):
                     servicer.Interact,
                     request_deserializer=mcapi_dot_v1_dot_agents__pb2.Observation.FromString,
                     response_serializer=mcapi_dot_v1_dot_agents__pb2.Step.SerializeToString,
+            ),
+            'InteractBatch': grpc.stream_stream_rpc_method_handler(
+                    servicer.InteractBatch,
+                    request_deserializer=mcapi_dot_v1_dot_agents__pb2.ObservationBatch.FromString,
+                    response_serializer=mcapi_dot_v1_dot_agents__pb2.StepBatch.SerializeToString,
             ),
             'Watch': grpc.unary_stream_rpc_method_handler(
                     servicer.Watch,
@@ -365,6 +386,33 @@ class Agents:
             '/mcapi.v1.Agents/Interact',
             mcapi_dot_v1_dot_agents__pb2.Observation.SerializeToString,
             mcapi_dot_v1_dot_agents__pb2.Step.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def InteractBatch(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/mcapi.v1.Agents/InteractBatch',
+            mcapi_dot_v1_dot_agents__pb2.ObservationBatch.SerializeToString,
+            mcapi_dot_v1_dot_agents__pb2.StepBatch.FromString,
             options,
             channel_credentials,
             insecure,
