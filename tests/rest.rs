@@ -565,3 +565,81 @@ async fn posted_and_grid_models_report_their_basis() {
     assert_eq!(info["model"]["stimuli"], json!(["a", "b"]));
     assert_eq!(info["model"]["basis"], json!({"kind": "indicator", "k": 0}));
 }
+
+/// An open `side` × `side` grid with sources `a` and `b` in opposite corners.
+fn open_grid(side: usize) -> Vec<String> {
+    let mut rows = vec![".".repeat(side); side];
+    rows[0].replace_range(0..1, "a");
+    rows[side - 1].replace_range(side - 1..side, "b");
+    rows
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn grids_of_ten_and_a_hundred_thousand_states_are_served() {
+    let server = start(Limits::default()).await;
+    let client = reqwest::Client::new();
+    let url = format!("{}/v1/sessions", server.base);
+    for side in [100usize, 316] {
+        let states = side * side;
+        let body = json!({
+            "model": {"grid": open_grid(side), "sources": {"a": 0, "b": 1}, "basis": {"kind": "indicator"}},
+            "agent": {"seed": 3, "update_mode": "lockstep", "history": 16}
+        });
+        let (status, info) = post(&client, &url, &body).await;
+        assert_eq!(status, 201, "{side}×{side}: {info}");
+        assert_eq!(info["model"]["states"], json!(states));
+        let id = info["id"].as_str().expect("id");
+        let observe = format!("{url}/{id}/observations");
+        // Walk 30 advised steps from the centre (row-major states; actions
+        // left, right, north, south, stay).
+        let (mut r, mut c) = (side / 2, side / 2);
+        let mut stimulus = None;
+        for t in 0..30u64 {
+            let mut obs = json!({"state": r * side + c});
+            if let Some(xi) = stimulus {
+                obs["stimulus"] = json!(xi);
+            }
+            let (status, step) = post(&client, &observe, &obs).await;
+            assert_eq!(status, 200, "{side}×{side} at t={t}: {step}");
+            assert_eq!(step["tick"], json!(t));
+            let drive: Vec<f64> = serde_json::from_value(step["drive"].clone()).expect("drive");
+            let norm = drive.iter().map(|d| d * d).sum::<f64>().sqrt();
+            assert!((norm - 1.0).abs() < 1e-9, "|D| = {norm}");
+            match step["action"].as_str().expect("action") {
+                "left" => c -= 1,
+                "right" => c += 1,
+                "north" => r -= 1,
+                "south" => r += 1,
+                "stay" => {}
+                other => panic!("unknown action {other}"),
+            }
+            stimulus = Some([0.0, 0.0]);
+        }
+        let (status, err) = post(
+            &client,
+            &observe,
+            &json!({"state": states, "stimulus": [0, 0]}),
+        )
+        .await;
+        assert_eq!(
+            (status, err["code"].as_str()),
+            (400, Some("unknown_state")),
+            "{err}"
+        );
+    }
+    // A grid of more than `--max-pairs` cells is refused before it is built.
+    let body = json!({"model": {"grid": open_grid(1001), "sources": {"a": 0, "b": 1}, "basis": {"kind": "indicator"}}});
+    let (status, err) = post(&client, &url, &body).await;
+    assert_eq!(
+        (status, err["code"].as_str()),
+        (413, Some("limit_exceeded")),
+        "{err}"
+    );
+    assert!(
+        err["message"]
+            .as_str()
+            .expect("message")
+            .contains("1000000"),
+        "{err}"
+    );
+}

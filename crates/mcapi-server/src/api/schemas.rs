@@ -979,7 +979,7 @@ error_responses! {
          estimated CPU time, history length, a session's estimated memory or CPU time per \
          observation, the size of a response of value tables or history).",
         "limit_exceeded",
-        "`model` states x actions is 300000; the limit is 200000"
+        "`model` states x actions is 1500000; the limit is 1000000"
     );
     /// 429.
     TooManyRequests = (

@@ -68,7 +68,7 @@ impl Default for Limits {
     fn default() -> Self {
         Self {
             max_sessions: 250_000,
-            max_pairs: 200_000,
+            max_pairs: 1_000_000,
             max_transitions: 2_000_000,
             max_features: 1024,
             max_pvf_states: 800,
