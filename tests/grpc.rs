@@ -660,6 +660,16 @@ async fn bad_inputs_get_the_right_codes() {
     );
     assert_code(
         client
+            .get_history(pb::GetHistoryRequest {
+                session_id: id.clone(),
+                limit: Some(0),
+            })
+            .await,
+        Code::InvalidArgument,
+        "`limit`: must be at least 1",
+    );
+    assert_code(
+        client
             .list_sessions(pb::ListSessionsRequest {
                 after: None,
                 limit: Some(0),

@@ -438,7 +438,15 @@ pub fn history_request(
         session_id: id,
         limit,
     } = req;
-    Ok((session_id(id, metadata_id)?, limit.map(|l| l as usize)))
+    let id = session_id(id, metadata_id)?;
+    match limit {
+        // As REST refuses `?limit=0`.
+        Some(0) => Err(ServiceError::field(
+            "limit",
+            "must be at least 1 (leave it unset for every tick kept)",
+        )),
+        limit => Ok((id, limit.map(|l| l as usize))),
+    }
 }
 
 /// `GetValues`: the session and the tables, parsed as REST's `?include=`.
