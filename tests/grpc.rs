@@ -36,7 +36,11 @@ struct Server {
 
 impl Server {
     async fn start() -> Self {
-        let manager = Arc::new(SessionManager::new(Limits::default(), 2).expect("session manager"));
+        Self::start_with(Limits::default()).await
+    }
+
+    async fn start_with(limits: Limits) -> Self {
+        let manager = Arc::new(SessionManager::new(limits, 2).expect("session manager"));
         let listener = TcpListener::bind("127.0.0.1:0")
             .await
             .expect("bind a free port");
@@ -846,6 +850,54 @@ async fn interact_batch_steps_several_sessions_as_the_core_does() {
             "session {i}"
         );
     }
+    server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_interact_batch_message_is_bounded_by_its_estimated_cpu_time() {
+    let server = Server::start_with(Limits {
+        max_batch_ms: 1,
+        ..Limits::default()
+    })
+    .await;
+    let mut client = server.client().await;
+    let id = create_hallway(&mut client, pb::UpdateMode::Lockstep)
+        .await
+        .id;
+    let (tx, rx) = mpsc::channel(4);
+    let mut replies = client
+        .interact_batch(ReceiverStream::new(rx))
+        .await
+        .expect("interact_batch")
+        .into_inner();
+    // A few observations fit in a millisecond...
+    let first = vec![observation(&id, START, None)];
+    tx.send(pb::ObservationBatch {
+        observations: first,
+    })
+    .await
+    .expect("send");
+    let reply = replies.message().await.expect("reply").expect("open");
+    assert!(outcome(&reply.results[0]).is_ok(), "{reply:?}");
+    // ... ten thousand lockstep ticks do not: the message is refused whole.
+    let many = vec![observation(&id, START, Some(vec![0.0, 0.0])); 10_000];
+    tx.send(pb::ObservationBatch { observations: many })
+        .await
+        .expect("send");
+    let status = replies.message().await.expect_err("the stream ends");
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert!(status.message().contains("--max-batch-ms"), "{status:?}");
+    let info = client
+        .get_session(with_session(
+            &id,
+            pb::GetSessionRequest {
+                session_id: id.clone(),
+            },
+        ))
+        .await
+        .expect("get")
+        .into_inner();
+    assert_eq!(info.tick, 0, "nothing of the refused message was applied");
     server.stop().await;
 }
 

@@ -332,7 +332,7 @@ impl Agents for AgentsService {
             |batch, manager, caller, meta| async move {
                 let results = observe_batch(&manager, caller, batch.observations, meta.as_deref());
                 Ok(pb::StepBatch {
-                    results: results.await,
+                    results: results.await.map_err(to_status)?,
                 })
             },
         )
@@ -425,13 +425,14 @@ fn one_step(steps: Vec<StepOut>) -> Result<StepOut, ServiceError> {
 /// order. Each session's observations are applied in order, one at a time;
 /// the sessions run concurrently (so a durable store commits them together).
 /// After a session's observation is refused, its later ones in the message
-/// are not applied.
+/// are not applied. A message whose estimated CPU time is over
+/// `--max-batch-ms` is refused whole (it ends the stream).
 async fn observe_batch(
     manager: &SessionManager,
     caller: Caller,
     observations: Vec<pb::Observation>,
     meta: Option<&str>,
-) -> Vec<pb::StepResult> {
+) -> Result<Vec<pb::StepResult>, ServiceError> {
     let n = observations.len();
     let mut results = vec![pb::StepResult::default(); n];
     // The observations by session, sessions in order of first appearance.
@@ -449,6 +450,10 @@ async fn observe_batch(
             Err(e) => results[i] = refused(e),
         }
     }
+    manager.check_message_cost(
+        caller,
+        groups.iter().map(|(id, items)| (id.as_str(), items.len())),
+    )?;
     let per_session = groups.into_iter().map(|(id, items)| async move {
         let mut out = Vec::with_capacity(items.len());
         let mut refused_at: Option<usize> = None;
@@ -481,7 +486,7 @@ async fn observe_batch(
     for (i, result) in join_all(per_session).await.into_iter().flatten() {
         results[i] = result;
     }
-    results
+    Ok(results)
 }
 
 /// A refused observation's result.

@@ -516,6 +516,33 @@ impl SessionManager {
         result
     }
 
+    /// Checks the estimated CPU time of one `InteractBatch` message: `n`
+    /// observations for each of its sessions, together at most
+    /// `--max-batch-ms`, as one `Observe` batch. Sessions the caller cannot
+    /// see count nothing (their observations are refused anyway).
+    pub fn check_message_cost<'a>(
+        &self,
+        caller: Caller,
+        sessions: impl IntoIterator<Item = (&'a str, usize)>,
+    ) -> Result<(), ServiceError> {
+        let mut us = 0u64;
+        for (id, n) in sessions {
+            if let Ok(session) = self.visible_session(caller, id) {
+                let tick_us = cost::estimate(&session.model, &session.config).tick_us;
+                us = us.saturating_add(tick_us.saturating_mul(n as u64));
+            }
+        }
+        if us / 1000 > self.limits.max_batch_ms {
+            return Err(ServiceError::LimitExceeded(format!(
+                "the message's observations cost an estimated {} ms in all; the limit per \
+                 message is {} ms (--max-batch-ms): send fewer per message",
+                us / 1000,
+                self.limits.max_batch_ms
+            )));
+        }
+        Ok(())
+    }
+
     async fn observe_on(
         &self,
         session: &SessionRef,
