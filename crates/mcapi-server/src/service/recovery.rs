@@ -257,10 +257,26 @@ pub fn replay(
 fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError> {
     let ctx = Arc::clone(base.agent().planning_model());
     let params = base.agent().params().clone();
+    let learned = base.agent().learned().map(|l| l.params());
     match (snap, base.curious()) {
+        (LearnerSnapshot::Plain(_), None) if learned.is_some() => Err(RecordError::Mismatch(
+            "its snapshot has no learned transitions, its record learns them",
+        )),
         (LearnerSnapshot::Plain(s), None) => Agent::restore(ctx, params, s)
             .map(Learner::Plain)
             .map_err(RecordError::Restore),
+        // docs/algorithm.md §8: P̂ is rebuilt from the counts.
+        (LearnerSnapshot::Learned(s), None) => match learned {
+            Some(l) => Agent::restore_learned(ctx, params, l, *s)
+                .map(Learner::Plain)
+                .map_err(RecordError::Restore),
+            None => Err(RecordError::Mismatch(
+                "its snapshot has learned transitions, its record posted ones",
+            )),
+        },
+        (LearnerSnapshot::Learned(_), Some(_)) => Err(RecordError::Mismatch(
+            "its snapshot has learned transitions, its record a curiosity channel",
+        )),
         (LearnerSnapshot::Curious(s), Some(c)) => {
             let channel = c.channel();
             CuriousAgent::restore(ctx, params, channel.params(), channel.signal_dim(), *s)

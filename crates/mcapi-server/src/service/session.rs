@@ -36,6 +36,9 @@ pub struct SessionState {
     deleting: bool,
     /// Policy updates to fail on purpose (tests of the failure path).
     fail_plans: u32,
+    /// For a model whose transitions the agent learns: the most (pair,
+    /// successor) entries it may store (`LearnedSummary::max_transitions`).
+    learned_cap: Option<usize>,
 }
 
 /// Where a session's observations are made durable.
@@ -136,6 +139,7 @@ impl Session {
         durability: Option<Durability>,
         resumed: Resumed,
     ) -> Self {
+        let learned_cap = model.learned.as_ref().map(|l| l.max_transitions);
         Self {
             id,
             mode: config.update_mode,
@@ -152,6 +156,7 @@ impl Session {
                 deleted: false,
                 deleting: false,
                 fail_plans: 0,
+                learned_cap,
             }),
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
@@ -594,6 +599,9 @@ impl SessionState {
             .signal
             .as_deref()
             .map(|x| (obs.signal_source.unwrap_or(0), x));
+        if let Some(cap) = self.learned_cap {
+            self.learner.check_learned_room(&observation, cap)?;
+        }
         let observed = self.learner.observe(&observation, signal)?;
         // Algorithm 1 lines 8-10, as `Agent::step`: act even if planning
         // failed, so the agent stays consistent.
