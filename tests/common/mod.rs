@@ -589,7 +589,17 @@ pub fn replay(
     applied: &[(Obs, Option<Reply>)],
     ctx: &str,
 ) -> (Agent, Vec<Expected>) {
-    let mut agent = core_agent(params);
+    replay_on(core_agent(params), applied, ctx)
+}
+
+/// [`replay`] through a given fresh agent (one that learns its
+/// transitions, say): the counts N(s, a, s′) are pure functions of the
+/// observations too.
+pub fn replay_on(
+    mut agent: Agent,
+    applied: &[(Obs, Option<Reply>)],
+    ctx: &str,
+) -> (Agent, Vec<Expected>) {
     let mut history = Vec::new();
     for (i, (obs, reply)) in applied.iter().enumerate() {
         let out = agent
@@ -663,6 +673,17 @@ pub fn assert_session_matches(
         agent.stimulus().constant_columns(),
         "{ctx}: constant stimuli"
     );
+    match agent.learned() {
+        Some(l) => assert_eq!(
+            values["known_fraction"].as_f64().map(f64::to_bits),
+            Some(l.known_fraction().to_bits()),
+            "{ctx}: known fraction of the learned model"
+        ),
+        None => assert!(
+            values.get("known_fraction").is_none(),
+            "{ctx}: a session with posted transitions has no known fraction: {values}"
+        ),
+    }
     let model = agent.planning_model().model();
     let xi = values["xi"].as_array().expect("xi");
     assert_eq!(xi.len(), model.states(), "{ctx}: Ξ rows");
@@ -726,6 +747,20 @@ pub async fn check_session(
     ctx: &str,
 ) {
     let (agent, expected) = replay(params, applied, ctx);
+    check_replayed(client, base, key, id, &agent, &expected, ctx).await;
+}
+
+/// GETs a session, its Ξ table and its history and checks them against an
+/// agent that replayed its observations (and the history it gave).
+pub async fn check_replayed(
+    client: &reqwest::Client,
+    base: &str,
+    key: Option<&str>,
+    id: &str,
+    agent: &Agent,
+    expected: &[Expected],
+    ctx: &str,
+) {
     let (status, info) = rest_get(client, base, key, id).await;
     assert_eq!(status, 200, "{ctx}: get: {info}");
     let (status, values) = rest(
@@ -746,7 +781,7 @@ pub async fn check_session(
     )
     .await;
     assert_eq!(status, 200, "{ctx}: history: {history}");
-    assert_session_matches(&agent, &expected, &info, &values, &history, ctx);
+    assert_session_matches(agent, expected, &info, &values, &history, ctx);
 }
 
 /// serde_json in this test build reads back every f64 it writes exactly

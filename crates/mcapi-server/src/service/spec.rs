@@ -459,12 +459,78 @@ mod tests {
                    "transitions": [{"state": 0, "action": "go", "next": [[1, 0.1], [0, 0.9]]},
                                    {"state": 1, "action": 0, "next": [[0, 1.0]]}],
                    "basis": {"kind": "custom", "state_features": [[0.1], [1e-300]]}}),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}, "learn": true}),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}, "learn": true,
+                   "learning": {"known_after": 7, "optimism": "stimulus"}}),
+            json!({"states": 3, "actions": ["l", "r"], "stimuli": ["x"], "transitions": "learn"}),
+            json!({"states": 3, "state_names": ["a", "b", "c"], "actions": ["l", "r"],
+                   "stimuli": ["x"], "transitions": "learn", "basis": {"kind": "indicator"},
+                   "learning": {"known_after": 1}}),
         ];
         for value in models {
             let input = ModelInput::parse(value.clone()).expect("valid model");
             let text = input.to_json_text().expect("encodes");
             let back: Value = serde_json::from_str(&text).expect("JSON");
             assert_eq!(ModelInput::parse(back).expect("parses"), input, "{value}");
+        }
+    }
+
+    /// A learned model's parameters are checked once, at parsing, and
+    /// written back in full, so a recovered session learns with the
+    /// parameters it was created with whatever the defaults become.
+    #[test]
+    fn learned_models_parse_with_checked_parameters() {
+        let grid = ModelInput::parse(
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0}, "learn": true}),
+        )
+        .expect("grid");
+        let l = grid.learning().expect("learns");
+        assert_eq!(
+            (l.known_after, l.optimism),
+            (3, mcapi_core::Optimism::Absorbing)
+        );
+        let text = grid.to_json_text().expect("encodes");
+        assert!(
+            text.contains(r#""learning":{"known_after":3,"optimism":"absorbing"}"#),
+            "{text}"
+        );
+        let known =
+            ModelInput::parse(json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0}}))
+                .expect("grid");
+        assert!(known.learning().is_none());
+        assert!(!known.to_json_text().expect("encodes").contains("learn"));
+        assert_ne!(
+            known.cache_key(),
+            grid.cache_key(),
+            "a learned grid is another model"
+        );
+        for (model, needle) in [
+            (
+                json!({"grid": ["#a#"], "sources": {"a": 0}, "learning": {"known_after": 2}}),
+                "only taken with",
+            ),
+            (
+                json!({"grid": ["#a#"], "sources": {"a": 0}, "learn": true,
+                       "learning": {"known_after": 0}}),
+                "`known_after` 0 is not in 1..=1000000",
+            ),
+            (
+                json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "learn",
+                       "learning": {"optimism": "hopeful"}}),
+                "unknown variant `hopeful`",
+            ),
+            (
+                json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "guess"}),
+                "unknown variant `guess`, expected `learn`",
+            ),
+            (
+                json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "learn",
+                       "next": [[0], [1]]}),
+                "unknown field `next`",
+            ),
+        ] {
+            let e = ModelInput::parse(model.clone()).expect_err("invalid");
+            assert!(e.to_string().contains(needle), "{model}: {e}");
         }
     }
 }
