@@ -444,7 +444,7 @@ async fn invalid_typed_models_get_the_code_of_their_rest_json() {
             "bad_request",
         ),
         (
-            "learned absorbing with proto-value functions",
+            "learned with proto-value functions (no graph)",
             form(Form::Full(pb::FullModel {
                 basis: basis(Kind::ProtoValue(pb::ProtoValueBasis { k: 2 })),
                 ..full(
@@ -457,7 +457,7 @@ async fn invalid_typed_models_get_the_code_of_their_rest_json() {
             json!({"states": 4, "actions": ["go", "stay"], "stimuli": ["x"],
                    "transitions": "learn", "basis": {"kind": "proto_value", "k": 2},
                    "learning": {"optimism": "absorbing"}}),
-            "invalid_parameter",
+            "bad_request",
         ),
         (
             "probabilities summing to 0.9",

@@ -279,6 +279,14 @@ impl ModelInput {
             }
             Self::Learned(spec) => {
                 limits.check_learned_spec(spec)?;
+                if matches!(spec.basis, Some(BasisSpec::ProtoValue { .. })) {
+                    return Err(ServiceError::field(
+                        "model.basis",
+                        "proto-value functions come from the transition graph, which a model \
+                         that learns its transitions does not have; use `indicator` or `custom` \
+                         (a grid map with `\"learn\": true` takes them: its map is the graph)",
+                    ));
+                }
                 (spec.structure()?, spec.basis.clone())
             }
         };
