@@ -579,6 +579,9 @@ pub struct Expected {
     pub reward: f64,
     /// The advised action, if the reply was seen.
     pub action: Option<usize>,
+    /// The known fraction after the tick, for an agent that learns its
+    /// transitions.
+    pub known_fraction: Option<f64>,
 }
 
 /// Replays `applied` observations through a core agent (observe only: Ξ,
@@ -629,6 +632,7 @@ pub fn replay_on(
                 drive: agent.drive().vector().to_vec(),
                 reward: out.reward,
                 action: reply.as_ref().map(|r| r.action),
+                known_fraction: agent.learned().map(|l| l.known_fraction()),
             });
         }
     }
@@ -724,6 +728,11 @@ pub fn assert_session_matches(
             got["reward"].as_f64().map(f64::to_bits),
             Some(want.reward.to_bits()),
             "{ctx}: history reward at tick {t}"
+        );
+        assert_eq!(
+            got["known_fraction"].as_f64().map(f64::to_bits),
+            want.known_fraction.map(f64::to_bits),
+            "{ctx}: history known fraction at tick {t}"
         );
         if let Some(a) = want.action {
             assert_eq!(

@@ -231,6 +231,9 @@ def history(entries: Sequence[Json], actions: Sequence[str]) -> list[HistoryEntr
                 lstdq_error=float(e["lstdq_error"]),
                 stimulus=None if stimulus is None else _floats(stimulus),
                 curiosity=tick_curiosity(e.get("curiosity")),
+                known_fraction=None
+                if e.get("known_fraction") is None
+                else float(e["known_fraction"]),
             )
         )
     return out

@@ -504,6 +504,7 @@ def history(m: pb.History, actions: Sequence[str]) -> list[HistoryEntry]:
             lstdq_error=e.lstdq_error,
             stimulus=list(e.stimulus.values) if e.HasField("stimulus") else None,
             curiosity=tick_curiosity(e.curiosity) if e.HasField("curiosity") else None,
+            known_fraction=e.known_fraction if e.HasField("known_fraction") else None,
         )
         for e in m.entries
     ]

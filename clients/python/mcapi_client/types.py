@@ -605,6 +605,9 @@ class HistoryEntry:
     lstdq_error: float
     stimulus: list[float] | None = None
     curiosity: TickCuriosity | None = None
+    known_fraction: float | None = None
+    """For a session that learns its transitions: the fraction of pairs seen
+    at least m times after this tick (``None`` otherwise)."""
 
 
 @dataclass(frozen=True, slots=True, init=False)

@@ -227,6 +227,9 @@ def test_learned_models_are_explored_through_every_client(any_client: Any) -> No
             fractions.append(any_client.values(info.id).known_fraction)
     assert fractions[0] == 0.0
     assert fractions == sorted(fractions) and fractions[-1] > 0.5, fractions
+    history = any_client.history(info.id, 1)
+    assert history[-1].known_fraction == fractions[-1]
+    assert len(any_client.history(known.id)) == 0
     assert set(g.source_states("a") + g.source_states("b")) <= seen, "both sources found"
     # A full model posted with "transitions": "learn" needs every action in
     # every state; the hallway's ends have none to the wall.

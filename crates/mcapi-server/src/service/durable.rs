@@ -84,7 +84,18 @@ pub enum LearnerSnapshot {
     /// snapshot and the counts N(s, a, s′), from which P̂ is rebuilt. Last:
     /// postcard numbers variants by position, so stored snapshots of the
     /// variants above still decode.
-    Learned(Box<LearnedSnapshot>),
+    Learned(Box<LearnedRecord>),
+}
+
+/// A learned agent as a snapshot keeps it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LearnedRecord {
+    /// The agent and its counts.
+    pub agent: LearnedSnapshot,
+    /// The known fraction after each tick of the history ring, oldest
+    /// first ([`TickRecord`] has no field for it; its layout is fixed by
+    /// the record version).
+    pub history_known: Vec<Option<f64>>,
 }
 
 /// A session snapshot.
@@ -318,7 +329,10 @@ mod tests {
         for s in [4, 5, 5, 6] {
             agent.step(&Observation::new(s, &[1.0, 0.0])).expect("step");
         }
-        let snap = agent.learned_snapshot().expect("a learned agent");
+        let snap = LearnedRecord {
+            agent: agent.learned_snapshot().expect("a learned agent"),
+            history_known: vec![Some(0.25), None],
+        };
         let bytes = encode(&LearnerSnapshot::Learned(Box::new(snap.clone()))).expect("encode");
         assert_eq!(bytes[1], 2, "Learned is the third variant");
         let back: LearnerSnapshot = postcard::from_bytes(&bytes[1..]).expect("decode");

@@ -3,7 +3,7 @@
 
 use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation, PlanOutcome};
 
-use super::durable::LearnerSnapshot;
+use super::durable::{LearnedRecord, LearnerSnapshot};
 use super::error::ServiceError;
 use super::wire::TickCuriosity;
 
@@ -167,7 +167,11 @@ impl Learner {
     pub fn snapshot(&self) -> LearnerSnapshot {
         match self {
             Self::Plain(a) => match a.learned_snapshot() {
-                Some(s) => LearnerSnapshot::Learned(Box::new(s)),
+                // The history's known fractions are the session's to add.
+                Some(agent) => LearnerSnapshot::Learned(Box::new(LearnedRecord {
+                    agent,
+                    history_known: Vec::new(),
+                })),
                 None => LearnerSnapshot::Plain(a.snapshot()),
             },
             Self::Curious(c) => LearnerSnapshot::Curious(Box::new(c.snapshot())),

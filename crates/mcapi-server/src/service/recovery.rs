@@ -160,8 +160,17 @@ pub(super) fn rebuild(
     let mut after = None;
     if let Some((seq, bytes)) = &stored.snapshot {
         let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(|e| bad(e.into()))?;
+        let known = match &snap.learner {
+            LearnerSnapshot::Learned(l) => l.history_known.clone(),
+            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => Vec::new(),
+        };
         learner = restore(&learner, snap.learner).map_err(&bad)?;
-        history = snap.history.iter().map(RingTick::from).collect();
+        history = snap
+            .history
+            .iter()
+            .enumerate()
+            .map(|(i, t)| RingTick::from(t).with_known_fraction(known.get(i).copied().flatten()))
+            .collect();
         after = Some(*seq);
     }
     let mut next_seq = after.map_or(0, |s| s + 1);
@@ -245,6 +254,7 @@ pub fn replay(
             out.reward,
             entry.lstdq_error,
             out.curiosity,
+            learner.agent().learned().map(|l| l.known_fraction()),
         );
         push_tick(history, history_cap, tick);
     }
@@ -267,7 +277,7 @@ fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError
             .map_err(RecordError::Restore),
         // docs/algorithm.md §8: P̂ is rebuilt from the counts.
         (LearnerSnapshot::Learned(s), None) => match learned {
-            Some(l) => Agent::restore_learned(ctx, params, l, *s)
+            Some(l) => Agent::restore_learned(ctx, params, l, s.agent)
                 .map(Learner::Plain)
                 .map_err(RecordError::Restore),
             None => Err(RecordError::Mismatch(

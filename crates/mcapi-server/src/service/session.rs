@@ -13,7 +13,7 @@ use mcapi_core::spec::ActionRef;
 use mcapi_core::{AlgoError, Observation};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
-use super::durable::{LogEntry, SnapshotRecord, TickRecord, encode};
+use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
 use super::history::{RingTick, push_tick};
 use super::learner::Learner;
@@ -459,8 +459,12 @@ pub struct Resumed {
 
 impl SessionState {
     fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
+        let mut learner = self.learner.snapshot();
+        if let LearnerSnapshot::Learned(l) = &mut learner {
+            l.history_known = self.history.iter().map(RingTick::known_fraction).collect();
+        }
         let record = SnapshotRecord {
-            learner: self.learner.snapshot(),
+            learner,
             history: self.history.iter().map(TickRecord::from).collect(),
         };
         self.since_snapshot = 0;
@@ -632,6 +636,7 @@ impl SessionState {
                 observed.reward,
                 agent.last_plan().lstdq_error,
                 observed.curiosity,
+                agent.learned().map(|l| l.known_fraction()),
             );
             push_tick(&mut self.history, history_cap, tick);
         }

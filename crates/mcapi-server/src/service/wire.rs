@@ -228,6 +228,11 @@ pub struct HistoryEntry {
     /// The curiosity channel at this tick, for a session with one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curiosity: Option<TickCuriosity>,
+    /// For a session that learns its transitions (docs/algorithm.md §8):
+    /// the fraction of valid pairs seen at least m times after this tick;
+    /// absent for a session with posted transitions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub known_fraction: Option<f64>,
 }
 
 /// A session as `get` returns it.

@@ -795,6 +795,7 @@ pub fn history(entries: Vec<HistoryEntry>) -> pb::History {
                      lstdq_error,
                      stimulus,
                      curiosity,
+                     known_fraction,
                  }| pb::HistoryEntry {
                     tick,
                     state: state as u64,
@@ -804,6 +805,7 @@ pub fn history(entries: Vec<HistoryEntry>) -> pb::History {
                     lstdq_error,
                     stimulus: stimulus.map(|values| pb::Stimulus { values }),
                     curiosity: curiosity.map(tick_curiosity),
+                    known_fraction,
                 },
             )
             .collect(),

@@ -594,7 +594,7 @@ class GetHistoryRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., limit: _Optional[int] = ...) -> None: ...
 
 class HistoryEntry(_message.Message):
-    __slots__ = ("tick", "state", "action_index", "drive", "reward", "lstdq_error", "stimulus", "curiosity")
+    __slots__ = ("tick", "state", "action_index", "drive", "reward", "lstdq_error", "stimulus", "curiosity", "known_fraction")
     TICK_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
@@ -603,6 +603,7 @@ class HistoryEntry(_message.Message):
     LSTDQ_ERROR_FIELD_NUMBER: _ClassVar[int]
     STIMULUS_FIELD_NUMBER: _ClassVar[int]
     CURIOSITY_FIELD_NUMBER: _ClassVar[int]
+    KNOWN_FRACTION_FIELD_NUMBER: _ClassVar[int]
     tick: int
     state: int
     action_index: int
@@ -611,7 +612,8 @@ class HistoryEntry(_message.Message):
     lstdq_error: float
     stimulus: Stimulus
     curiosity: TickCuriosity
-    def __init__(self, tick: _Optional[int] = ..., state: _Optional[int] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., lstdq_error: _Optional[float] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ...) -> None: ...
+    known_fraction: float
+    def __init__(self, tick: _Optional[int] = ..., state: _Optional[int] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., lstdq_error: _Optional[float] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ..., known_fraction: _Optional[float] = ...) -> None: ...
 
 class History(_message.Message):
     __slots__ = ("entries",)
