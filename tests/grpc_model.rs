@@ -726,6 +726,32 @@ async fn exactly_one_of_model_and_model_json() {
         grpc.create_session(typed(no_action)).await,
         "model.transitions[0].action",
     );
+    // An optimism the proto does not define, and `learning` without `learn`.
+    let unknown_optimism = form(pb::model::Form::Full(full(
+        2,
+        &["go"],
+        &["x"],
+        pb::full_model::Transitions::Learn(pb::LearnedTransitions {
+            known_after: None,
+            optimism: 7,
+        }),
+    )));
+    assert_invalid(
+        grpc.create_session(typed(unknown_optimism)).await,
+        "`model.learning.optimism`: unknown value 7",
+    );
+    let learning_alone = form(pb::model::Form::Grid(pb::GridModel {
+        rows: strings(&["#####", "#a.b#", "#####"]),
+        sources: [("a".to_string(), 0)].into(),
+        stimuli: vec![],
+        basis: None,
+        learn: false,
+        learning: Some(learned(Some(2), pb::Optimism::Unspecified)),
+    }));
+    assert_invalid(
+        grpc.create_session(typed(learning_alone)).await,
+        "`model.learning`: is only taken with `learn` set",
+    );
     // The deprecated field alone still works.
     let old = grpc
         .create_session(legacy(&json!({"preset": "hallway"})))

@@ -701,7 +701,19 @@ async fn learned_sessions_recover_after_kill9_bit_equal_to_a_core_replay() {
         }
         server.kill9();
         server = Server::start(&launch, logs.path().join(format!("run-{round}.log"))).await;
-        let recovered = common::log_events(&server.log_text(), "sessions recovered");
+        for t in &sessions {
+            t.check(&server, &format!("after kill -9 number {round}"))
+                .await;
+        }
+        // The recovery's log line may follow readiness by a moment.
+        let deadline = std::time::Instant::now() + std::time::Duration::from_secs(10);
+        let recovered = loop {
+            let lines = common::log_events(&server.log_text(), "sessions recovered");
+            if !lines.is_empty() || std::time::Instant::now() > deadline {
+                break lines;
+            }
+            tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+        };
         assert_eq!(recovered.len(), 1, "one recovery line");
         assert_eq!(recovered[0]["sessions"], json!(2));
         // Each session's log after its last snapshot (every 37 entries)
@@ -711,10 +723,6 @@ async fn learned_sessions_recover_after_kill9_bit_equal_to_a_core_replay() {
             replayed > 0 && replayed < 2 * 37,
             "{replayed} entries replayed"
         );
-        for t in &sessions {
-            t.check(&server, &format!("after kill -9 number {round}"))
-                .await;
-        }
     }
     // Driving on after the recoveries: the replies follow the replay (the
     // counts and Ξ came back exactly, or ticks, D and rewards would part).
