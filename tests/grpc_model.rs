@@ -134,7 +134,26 @@ fn summary_json(m: &pb::ModelSummary) -> Value {
             "marks": l.marks.iter().map(|m| json!({"mark": m.mark, "state": m.state})).collect::<Vec<_>>(),
         });
     }
+    if let Some(l) = &m.learned {
+        let optimism = match pb::Optimism::try_from(l.optimism) {
+            Ok(pb::Optimism::Absorbing) => "absorbing",
+            Ok(pb::Optimism::Stimulus) => "stimulus",
+            other => panic!("the server sent optimism {other:?}"),
+        };
+        v["learned"] = json!({
+            "known_after": l.known_after,
+            "optimism": optimism,
+            "max_transitions": l.max_transitions,
+        });
+    }
     v
+}
+
+fn learned(known_after: Option<u32>, optimism: pb::Optimism) -> pb::LearnedTransitions {
+    pb::LearnedTransitions {
+        known_after,
+        optimism: optimism.into(),
+    }
 }
 
 /// Every valid model in both encodings: (name, typed, REST JSON).
@@ -162,6 +181,8 @@ fn valid_models() -> Vec<(&'static str, pb::Model, Value)> {
                 sources: [("a".to_string(), 0), ("b".to_string(), 1)].into(),
                 stimuli: strings(&["food", "water"]),
                 basis: basis(Kind::Indicator(pb::IndicatorBasis {})),
+                learn: false,
+                learning: None,
             })),
             json!({
                 "grid": ["#######", "#a..#.#", "#.#...#", "#..b..#", "#######"],
@@ -177,8 +198,51 @@ fn valid_models() -> Vec<(&'static str, pb::Model, Value)> {
                 sources: [("b".to_string(), 0), ("a".to_string(), 1)].into(),
                 stimuli: vec![],
                 basis: None,
+                learn: false,
+                learning: None,
             })),
             json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"b": 0, "a": 1}}),
+        ),
+        (
+            "grid, learned with defaults",
+            form(Form::Grid(pb::GridModel {
+                rows: strings(&["#####", "#a.b#", "#####"]),
+                sources: [("a".to_string(), 0), ("b".to_string(), 1)].into(),
+                stimuli: vec![],
+                basis: None,
+                learn: true,
+                learning: None,
+            })),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1},
+                   "learn": true}),
+        ),
+        (
+            "grid, learned with m and optimism",
+            form(Form::Grid(pb::GridModel {
+                rows: strings(&["#####", "#a.b#", "#####"]),
+                sources: [("a".to_string(), 0), ("b".to_string(), 1)].into(),
+                stimuli: vec![],
+                basis: None,
+                learn: true,
+                learning: Some(learned(Some(5), pb::Optimism::Stimulus)),
+            })),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1},
+                   "learn": true, "learning": {"known_after": 5, "optimism": "stimulus"}}),
+        ),
+        (
+            "full, learned",
+            form(Form::Full(pb::FullModel {
+                state_names: strings(&["left end", "middle", "right end"]),
+                ..full(
+                    3,
+                    &["left", "right"],
+                    &["x"],
+                    pb::full_model::Transitions::Learn(learned(Some(1), pb::Optimism::Absorbing)),
+                )
+            })),
+            json!({"states": 3, "state_names": ["left end", "middle", "right end"],
+                   "actions": ["left", "right"], "stimuli": ["x"], "transitions": "learn",
+                   "learning": {"known_after": 1, "optimism": "absorbing"}}),
         ),
         (
             "full, deterministic",
@@ -329,7 +393,72 @@ async fn invalid_typed_models_get_the_code_of_their_rest_json() {
     let mut grpc = grpc_client(&running).await;
     let many: Vec<String> = (0..300_000).map(|i| format!("n{i}")).collect();
     let many_refs: Vec<&str> = many.iter().map(String::as_str).collect();
+    let learn = |l| pb::full_model::Transitions::Learn(l);
     let cases: Vec<(&str, pb::Model, Value, &str)> = vec![
+        (
+            "learned, m of 0",
+            form(Form::Full(full(
+                3,
+                &["go"],
+                &["x"],
+                learn(learned(Some(0), pb::Optimism::Unspecified)),
+            ))),
+            json!({"states": 3, "actions": ["go"], "stimuli": ["x"], "transitions": "learn",
+                   "learning": {"known_after": 0}}),
+            "invalid_parameter",
+        ),
+        (
+            "learned, m of 4 000 000 000",
+            form(Form::Full(full(
+                3,
+                &["go"],
+                &["x"],
+                learn(learned(Some(4_000_000_000), pb::Optimism::Unspecified)),
+            ))),
+            json!({"states": 3, "actions": ["go"], "stimuli": ["x"], "transitions": "learn",
+                   "learning": {"known_after": 4_000_000_000u64}}),
+            "invalid_parameter",
+        ),
+        (
+            "learned, 10^18 states",
+            form(Form::Full(full(
+                1_000_000_000_000_000_000,
+                &["go"],
+                &["x"],
+                learn(learned(None, pb::Optimism::Unspecified)),
+            ))),
+            json!({"states": 1_000_000_000_000_000_000u64, "actions": ["go"], "stimuli": ["x"],
+                   "transitions": "learn"}),
+            "limit_exceeded",
+        ),
+        (
+            "learned, 10^18 states without actions",
+            form(Form::Full(full(
+                1_000_000_000_000_000_000,
+                &[],
+                &["x"],
+                learn(learned(None, pb::Optimism::Unspecified)),
+            ))),
+            json!({"states": 1_000_000_000_000_000_000u64, "actions": [], "stimuli": ["x"],
+                   "transitions": "learn"}),
+            "bad_request",
+        ),
+        (
+            "learned with proto-value functions (no graph)",
+            form(Form::Full(pb::FullModel {
+                basis: basis(Kind::ProtoValue(pb::ProtoValueBasis { k: 2 })),
+                ..full(
+                    4,
+                    &["go", "stay"],
+                    &["x"],
+                    learn(learned(None, pb::Optimism::Absorbing)),
+                )
+            })),
+            json!({"states": 4, "actions": ["go", "stay"], "stimuli": ["x"],
+                   "transitions": "learn", "basis": {"kind": "proto_value", "k": 2},
+                   "learning": {"optimism": "absorbing"}}),
+            "bad_request",
+        ),
         (
             "probabilities summing to 0.9",
             form(Form::Full(full(
@@ -451,6 +580,8 @@ async fn invalid_typed_models_get_the_code_of_their_rest_json() {
                 sources: [("a".to_string(), u64::MAX)].into(),
                 stimuli: vec![],
                 basis: None,
+                learn: false,
+                learning: None,
             })),
             json!({"grid": ["#####", "#.a.#", "#####"], "sources": {"a": u64::MAX}}),
             "limit_exceeded",
@@ -462,6 +593,8 @@ async fn invalid_typed_models_get_the_code_of_their_rest_json() {
                 sources: [("z".to_string(), 0)].into(),
                 stimuli: vec![],
                 basis: None,
+                learn: false,
+                learning: None,
             })),
             json!({"grid": ["#####", "#.a.#", "#####"], "sources": {"z": 0}}),
             "bad_request",
@@ -473,6 +606,8 @@ async fn invalid_typed_models_get_the_code_of_their_rest_json() {
                 sources: [("a".to_string(), 0)].into(),
                 stimuli: strings(&["food", "water"]),
                 basis: None,
+                learn: false,
+                learning: None,
             })),
             json!({"grid": ["#####", "#.a.#", "#####"], "sources": {"a": 0},
                    "stimuli": ["food", "water"]}),
@@ -590,6 +725,32 @@ async fn exactly_one_of_model_and_model_json() {
     assert_invalid(
         grpc.create_session(typed(no_action)).await,
         "model.transitions[0].action",
+    );
+    // An optimism the proto does not define, and `learning` without `learn`.
+    let unknown_optimism = form(pb::model::Form::Full(full(
+        2,
+        &["go"],
+        &["x"],
+        pb::full_model::Transitions::Learn(pb::LearnedTransitions {
+            known_after: None,
+            optimism: 7,
+        }),
+    )));
+    assert_invalid(
+        grpc.create_session(typed(unknown_optimism)).await,
+        "`model.learning.optimism`: unknown value 7",
+    );
+    let learning_alone = form(pb::model::Form::Grid(pb::GridModel {
+        rows: strings(&["#####", "#a.b#", "#####"]),
+        sources: [("a".to_string(), 0)].into(),
+        stimuli: vec![],
+        basis: None,
+        learn: false,
+        learning: Some(learned(Some(2), pb::Optimism::Unspecified)),
+    }));
+    assert_invalid(
+        grpc.create_session(typed(learning_alone)).await,
+        "`model.learning`: is only taken with `learn` set",
     );
     // The deprecated field alone still works.
     let old = grpc

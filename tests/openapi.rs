@@ -232,7 +232,9 @@ fn every_body_form_is_a_closed_one_of_branch() {
             "#/components/schemas/PresetModel",
             "#/components/schemas/GridModel",
             "#/components/schemas/FullModelNext",
-            "#/components/schemas/FullModelTransitions"
+            "#/components/schemas/FullModelTransitions",
+            "#/components/schemas/GridModelLearned",
+            "#/components/schemas/FullModelLearned"
         ]
     );
     // Each branch is closed and requires its distinguishing key, so `{}` is
@@ -242,6 +244,8 @@ fn every_body_form_is_a_closed_one_of_branch() {
         ("GridModel", "grid"),
         ("FullModelNext", "next"),
         ("FullModelTransitions", "transitions"),
+        ("GridModelLearned", "learn"),
+        ("FullModelLearned", "transitions"),
     ] {
         let s = schema(&d, name);
         assert_eq!(s["additionalProperties"], false, "{name}");
@@ -317,7 +321,12 @@ async fn the_issues_three_cases_and_the_examples() {
     let (status, info) = call(&app, "POST", "/v1/sessions", Some(create)).await;
     assert_eq!(status, 201, "{info}");
     let id = info["id"].as_str().expect("id").to_string();
-    for form in ["PresetModel", "GridModel"] {
+    for form in [
+        "PresetModel",
+        "GridModel",
+        "GridModelLearned",
+        "FullModelLearned",
+    ] {
         let model = schema(&d, form)["examples"][0].clone();
         let (status, body) =
             call(&app, "POST", "/v1/sessions", Some(json!({"model": model}))).await;

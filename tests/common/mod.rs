@@ -579,6 +579,9 @@ pub struct Expected {
     pub reward: f64,
     /// The advised action, if the reply was seen.
     pub action: Option<usize>,
+    /// The known fraction after the tick, for an agent that learns its
+    /// transitions.
+    pub known_fraction: Option<f64>,
 }
 
 /// Replays `applied` observations through a core agent (observe only: Ξ,
@@ -589,7 +592,17 @@ pub fn replay(
     applied: &[(Obs, Option<Reply>)],
     ctx: &str,
 ) -> (Agent, Vec<Expected>) {
-    let mut agent = core_agent(params);
+    replay_on(core_agent(params), applied, ctx)
+}
+
+/// [`replay`] through a given fresh agent (one that learns its
+/// transitions, say): the counts N(s, a, s′) are pure functions of the
+/// observations too.
+pub fn replay_on(
+    mut agent: Agent,
+    applied: &[(Obs, Option<Reply>)],
+    ctx: &str,
+) -> (Agent, Vec<Expected>) {
     let mut history = Vec::new();
     for (i, (obs, reply)) in applied.iter().enumerate() {
         let out = agent
@@ -619,6 +632,7 @@ pub fn replay(
                 drive: agent.drive().vector().to_vec(),
                 reward: out.reward,
                 action: reply.as_ref().map(|r| r.action),
+                known_fraction: agent.learned().map(|l| l.known_fraction()),
             });
         }
     }
@@ -663,6 +677,17 @@ pub fn assert_session_matches(
         agent.stimulus().constant_columns(),
         "{ctx}: constant stimuli"
     );
+    match agent.learned() {
+        Some(l) => assert_eq!(
+            values["known_fraction"].as_f64().map(f64::to_bits),
+            Some(l.known_fraction().to_bits()),
+            "{ctx}: known fraction of the learned model"
+        ),
+        None => assert!(
+            values.get("known_fraction").is_none(),
+            "{ctx}: a session with posted transitions has no known fraction: {values}"
+        ),
+    }
     let model = agent.planning_model().model();
     let xi = values["xi"].as_array().expect("xi");
     assert_eq!(xi.len(), model.states(), "{ctx}: Ξ rows");
@@ -704,6 +729,11 @@ pub fn assert_session_matches(
             Some(want.reward.to_bits()),
             "{ctx}: history reward at tick {t}"
         );
+        assert_eq!(
+            got["known_fraction"].as_f64().map(f64::to_bits),
+            want.known_fraction.map(f64::to_bits),
+            "{ctx}: history known fraction at tick {t}"
+        );
         if let Some(a) = want.action {
             assert_eq!(
                 got["action"].as_u64(),
@@ -726,6 +756,20 @@ pub async fn check_session(
     ctx: &str,
 ) {
     let (agent, expected) = replay(params, applied, ctx);
+    check_replayed(client, base, key, id, &agent, &expected, ctx).await;
+}
+
+/// GETs a session, its Ξ table and its history and checks them against an
+/// agent that replayed its observations (and the history it gave).
+pub async fn check_replayed(
+    client: &reqwest::Client,
+    base: &str,
+    key: Option<&str>,
+    id: &str,
+    agent: &Agent,
+    expected: &[Expected],
+    ctx: &str,
+) {
     let (status, info) = rest_get(client, base, key, id).await;
     assert_eq!(status, 200, "{ctx}: get: {info}");
     let (status, values) = rest(
@@ -746,7 +790,7 @@ pub async fn check_session(
     )
     .await;
     assert_eq!(status, 200, "{ctx}: history: {history}");
-    assert_session_matches(&agent, &expected, &info, &values, &history, ctx);
+    assert_session_matches(agent, expected, &info, &values, &history, ctx);
 }
 
 /// serde_json in this test build reads back every f64 it writes exactly

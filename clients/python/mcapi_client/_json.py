@@ -13,6 +13,7 @@ from .types import (
     FrozenModule,
     GridLayout,
     HistoryEntry,
+    LearnedSummary,
     ModelSummary,
     SessionCost,
     SessionInfo,
@@ -101,6 +102,16 @@ def model_summary(d: Json) -> ModelSummary:
         basis=BasisSummary(kind=str(b["kind"]), k=int(b["k"])),
         features=int(d["features"]),
         layout=None if d.get("layout") is None else grid_layout(d["layout"]),
+        learned=None if d.get("learned") is None else learned_summary(d["learned"]),
+    )
+
+
+def learned_summary(d: Json) -> LearnedSummary:
+    """How a session learns its transitions."""
+    return LearnedSummary(
+        known_after=int(d["known_after"]),
+        optimism=str(d["optimism"]),
+        max_transitions=int(d["max_transitions"]),
     )
 
 
@@ -199,6 +210,7 @@ def values(d: Json) -> Values:
         if xi is None
         else [[None if x is None else _floats(x) for x in row] for row in xi],
         curiosity=curiosity_info(d.get("curiosity")),
+        known_fraction=None if d.get("known_fraction") is None else float(d["known_fraction"]),
     )
 
 
@@ -219,6 +231,9 @@ def history(entries: Sequence[Json], actions: Sequence[str]) -> list[HistoryEntr
                 lstdq_error=float(e["lstdq_error"]),
                 stimulus=None if stimulus is None else _floats(stimulus),
                 curiosity=tick_curiosity(e.get("curiosity")),
+                known_fraction=None
+                if e.get("known_fraction") is None
+                else float(e["known_fraction"]),
             )
         )
     return out

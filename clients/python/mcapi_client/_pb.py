@@ -31,6 +31,7 @@ from .types import (
     FrozenModule,
     GridLayout,
     HistoryEntry,
+    LearnedSummary,
     ModelSummary,
     Observation,
     ObservationLike,
@@ -116,8 +117,38 @@ def _basis(spec: Any, out: pb.Basis) -> None:
         raise _NotTyped
 
 
+_OPTIMISM = {"absorbing": pb.OPTIMISM_ABSORBING, "stimulus": pb.OPTIMISM_STIMULUS}
+_OPTIMISM_NAMES = {v: k for k, v in _OPTIMISM.items()}
+
+
+def _learning(learning: Any, out: pb.LearnedTransitions) -> None:
+    """REST ``learning`` (m and the optimism rule) as the typed message."""
+    if learning is None:
+        return
+    if not isinstance(learning, dict):
+        raise _NotTyped
+    _only(learning, "known_after", "optimism")
+    if learning.get("known_after") is not None:
+        known_after = _uint(learning["known_after"])
+        if known_after >= 1 << 32:
+            raise _NotTyped  # the server names the mistake, as REST does
+        out.known_after = known_after
+    optimism = learning.get("optimism")
+    if optimism is not None:
+        if optimism not in _OPTIMISM:
+            raise _NotTyped
+        out.optimism = _OPTIMISM[optimism]
+
+
 def _full(model: dict[str, Any], out: pb.FullModel) -> None:
-    _only(model, "states", "state_names", "actions", "next", "transitions", "stimuli", "basis")
+    learn = model.get("transitions") == "learn"
+    if learn:
+        # No table: the agent learns P (docs/algorithm.md section 8).
+        _only(model, "states", "state_names", "actions", "transitions", "stimuli", "basis",
+              "learning")
+    else:
+        _only(model, "states", "state_names", "actions", "next", "transitions", "stimuli",
+              "basis")
     out.states = _uint(model.get("states"))
     if model.get("state_names") is not None:
         out.state_names.extend(_strings(model["state_names"]))
@@ -126,9 +157,12 @@ def _full(model: dict[str, Any], out: pb.FullModel) -> None:
     out.actions.extend(_strings(model.get("actions")))
     out.stimuli.extend(_strings(model.get("stimuli")))
     nxt, transitions = model.get("next"), model.get("transitions")
-    if (nxt is None) == (transitions is None):
+    if learn:
+        out.learn.SetInParent()
+        _learning(model.get("learning"), out.learn)
+    elif (nxt is None) == (transitions is None):
         raise _NotTyped  # both or neither: the server says which, as REST does
-    if nxt is not None:
+    elif nxt is not None:
         if not isinstance(nxt, list):
             raise _NotTyped
         out.next.SetInParent()
@@ -176,7 +210,13 @@ def model_message(model: dict[str, Any]) -> pb.Model | None:
             if model.get("basis") is not None:
                 _basis(model["basis"], out.preset.basis)
         elif "grid" in model:
-            _only(model, "grid", "sources", "stimuli", "basis")
+            _only(model, "grid", "sources", "stimuli", "basis", "learn", "learning")
+            learn = model.get("learn", False)
+            if not isinstance(learn, bool) or (not learn and "learning" in model):
+                raise _NotTyped
+            out.grid.learn = learn
+            if learn and model.get("learning") is not None:
+                _learning(model["learning"], out.grid.learning)
             out.grid.rows.extend(_strings(model["grid"]))
             sources = model.get("sources", {})
             if not isinstance(sources, dict) or not all(isinstance(k, str) for k in sources):
@@ -407,6 +447,15 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
                 if model.HasField("layout")
                 else None
             ),
+            learned=(
+                LearnedSummary(
+                    known_after=model.learned.known_after,
+                    optimism=_OPTIMISM_NAMES.get(model.learned.optimism, "absorbing"),
+                    max_transitions=model.learned.max_transitions,
+                )
+                if model.HasField("learned")
+                else None
+            ),
         ),
         agent=AgentConfig(
             eta=agent.eta,
@@ -482,6 +531,7 @@ def values(m: pb.Values, states: int, actions: int) -> Values:
         r=_dense_values(m.r.pairs, states, actions) if m.HasField("r") else None,
         xi=_dense_vectors(m.xi.pairs, states, actions) if m.HasField("xi") else None,
         curiosity=curiosity_info(m.curiosity) if m.HasField("curiosity") else None,
+        known_fraction=m.known_fraction if m.HasField("known_fraction") else None,
     )
 
 
@@ -499,6 +549,7 @@ def history(m: pb.History, actions: Sequence[str]) -> list[HistoryEntry]:
             lstdq_error=e.lstdq_error,
             stimulus=list(e.stimulus.values) if e.HasField("stimulus") else None,
             curiosity=tick_curiosity(e.curiosity) if e.HasField("curiosity") else None,
+            known_fraction=e.known_fraction if e.HasField("known_fraction") else None,
         )
         for e in m.entries
     ]

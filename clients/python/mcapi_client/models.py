@@ -12,6 +12,9 @@ the examples drive their agents.
 - :func:`from_gymnasium`: a Gymnasium toy-text environment (FrozenLake, Taxi,
   CliffWalking) from its transition table ``env.unwrapped.P``; needs the
   ``gymnasium`` extra only to make the environment, not to build the model.
+- :func:`learned`: any of these posted *without* its transitions: the agent
+  learns them from its observations (docs/algorithm.md section 8), while the
+  client keeps simulating the world with the full model.
 
 Models are checked here by the server's rules (every state has an available
 action; probabilities in (0, 1] summing to 1 within 1e-9), so a mistake is a
@@ -47,6 +50,8 @@ __all__ = [
     "grid",
     "from_transition_table",
     "from_gymnasium",
+    "Learned",
+    "learned",
 ]
 
 PROBABILITY_TOLERANCE = 1e-9
@@ -727,7 +732,107 @@ def from_gymnasium(
     )
 
 
-ModelLike = Union[Model, Mapping[str, Any], str]
+@dataclass(frozen=True)
+class Learned:
+    """A model posted without its transitions: the agent learns them from
+    the observations it gets (docs/algorithm.md section 8). The client
+    still simulates the world with :attr:`model`
+    (:meth:`sample_next`, :meth:`stimulus`); the server never sees its P.
+
+    A :class:`GridModel` is posted as the grid form with ``"learn": true``
+    (the map gives the states, actions and which moves exist); any other
+    model as a full model with ``"transitions": "learn"``, in which every
+    action is available in every state, so its table must have no
+    unavailable action.
+
+    Attributes:
+        model: The world.
+        known_after: m: visits after which a pair's estimated row is used
+            (1 to 1,000,000; the server's default is 3).
+        optimism: ``"absorbing"`` (R-max, the default) or ``"stimulus"``.
+    """
+
+    model: Model
+    known_after: int | None = None
+    optimism: Literal["absorbing", "stimulus"] | None = None
+
+    def __post_init__(self) -> None:
+        if self.known_after is not None:
+            k = as_int(self.known_after, "known_after")
+            if not 1 <= k <= 1_000_000:
+                raise ValueError(f"`known_after` {k} is not in 1..=1000000")
+            object.__setattr__(self, "known_after", k)
+        if self.optimism not in (None, "absorbing", "stimulus"):
+            raise ValueError(
+                f"`optimism` {self.optimism!r} is not `absorbing` or `stimulus`"
+            )
+        if not isinstance(self.model, GridModel):
+            for s, row in enumerate(self.model.table):
+                for a, cell in enumerate(row):
+                    if cell is None:
+                        raise ValueError(
+                            f"action {self.model.actions[a]!r} is unavailable in state {s}: "
+                            "a learned full model has every action in every state "
+                            "(make the move stay put instead)"
+                        )
+
+    def sample_next(self, state: SupportsIndex, action: SupportsIndex, rng: random.Random) -> int:
+        """A next state drawn from the world's model."""
+        return self.model.sample_next(state, action, rng)
+
+    def stimulus(
+        self,
+        state: SupportsIndex,
+        *,
+        magnitude: float = 6.0,
+        noise_sd: float = 0.0,
+        rng: random.Random | None = None,
+    ) -> list[float]:
+        """The stimulus on arriving in ``state`` (see :meth:`Model.stimulus`)."""
+        return self.model.stimulus(state, magnitude=magnitude, noise_sd=noise_sd, rng=rng)
+
+    def to_json(self) -> dict[str, Any]:
+        """The model as the server takes it, without transitions."""
+        m = self.model
+        out: dict[str, Any]
+        if isinstance(m, GridModel):
+            mark_of = {state: mark for mark, state in reversed(m.marks)}
+            out = {
+                "grid": m.render(),
+                "sources": {mark_of[src.state]: src.dim for src in m.sources},
+                "stimuli": list(m.stimuli),
+                "learn": True,
+            }
+        else:
+            out = {"states": m.states, "actions": list(m.actions)}
+            if m.state_names is not None:
+                out["state_names"] = list(m.state_names)
+            out["stimuli"] = list(m.stimuli)
+            out["transitions"] = "learn"
+        learning: dict[str, Any] = {}
+        if self.known_after is not None:
+            learning["known_after"] = self.known_after
+        if self.optimism is not None:
+            learning["optimism"] = self.optimism
+        if learning:
+            out["learning"] = learning
+        if m.basis is not None:
+            out["basis"] = dict(m.basis)
+        return out
+
+
+def learned(
+    model: Model,
+    *,
+    known_after: int | None = None,
+    optimism: Literal["absorbing", "stimulus"] | None = None,
+) -> Learned:
+    """``model`` posted without its transitions, for the agent to learn
+    (docs/algorithm.md section 8); see :class:`Learned`."""
+    return Learned(model, known_after, optimism)
+
+
+ModelLike = Union[Model, Learned, Mapping[str, Any], str]
 """A model to create a session from: a :class:`Model`, the model's JSON as a
 mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
 "sources": {...}}``; numpy values allowed), or a preset name
@@ -736,7 +841,7 @@ mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
 
 def model_json(model: ModelLike) -> dict[str, Any]:
     """The ``model`` JSON of a create request (REST's body; gRPC sends it as the typed ``Model``)."""
-    if isinstance(model, Model):
+    if isinstance(model, (Model, Learned)):
         return model.to_json()
     if isinstance(model, str):
         return {"preset": model}

@@ -47,6 +47,7 @@ __all__ = [
     "Step",
     "BasisSummary",
     "ModelSummary",
+    "LearnedSummary",
     "AgentConfig",
     "AgentOptions",
     "SessionStats",
@@ -282,6 +283,9 @@ class ModelSummary:
         features: Number of features.
         layout: The map of a grid model (grid maps and ``three_room``), for
             drawing values over it; ``None`` for other models.
+        learned: How the agent learns the transitions, for a model posted
+            with ``"learn": true`` or ``"transitions": "learn"``
+            (docs/algorithm.md section 8); ``None`` when they were posted.
     """
 
     states: int
@@ -293,6 +297,23 @@ class ModelSummary:
     basis: BasisSummary
     features: int
     layout: GridLayout | None = None
+    learned: LearnedSummary | None = None
+
+
+@dataclass(frozen=True, slots=True)
+class LearnedSummary:
+    """How a session learns its transition model (docs/algorithm.md section 8).
+
+    Attributes:
+        known_after: m: a pair's estimated row is used once it was seen this often.
+        optimism: ``"absorbing"`` (R-max) or ``"stimulus"``.
+        max_transitions: The most (pair, successor) entries the session stores;
+            an observation that would store one more fails with ``limit_exceeded``.
+    """
+
+    known_after: int
+    optimism: str
+    max_transitions: int
 
 
 @dataclass(frozen=True, slots=True)
@@ -539,6 +560,9 @@ class Values:
         xi: Xi(s, a), the learned stimulus vector per pair.
         curiosity: The curiosity channel's state (always sent, whatever the
             tables asked for); ``None`` for a session without one.
+        known_fraction: For a session that learns its transitions, the
+            fraction of pairs seen at least m times (always sent); ``None``
+            for a session with posted transitions.
     """
 
     tick: int
@@ -549,6 +573,7 @@ class Values:
     r: list[list[float | None]] | None = None
     xi: list[list[list[float] | None]] | None = None
     curiosity: CuriosityInfo | None = None
+    known_fraction: float | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -580,6 +605,9 @@ class HistoryEntry:
     lstdq_error: float
     stimulus: list[float] | None = None
     curiosity: TickCuriosity | None = None
+    known_fraction: float | None = None
+    """For a session that learns its transitions: the fraction of pairs seen
+    at least m times after this tick (``None`` otherwise)."""
 
 
 @dataclass(frozen=True, slots=True, init=False)

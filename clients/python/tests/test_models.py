@@ -191,3 +191,55 @@ def test_the_server_accepts_the_built_models(client: Client) -> None:
     info = client.create_session(stochastic)
     assert (info.model.states, info.model.pairs) == (3, stochastic.pairs)
     assert info.model.transitions == stochastic.transitions and not info.model.deterministic
+
+
+def test_learned_models_are_explored_through_every_client(any_client: Any) -> None:
+    """A grid posted with ``learn`` (docs/algorithm.md section 8): the server
+    never sees the moves, the agent learns them from the observations, and
+    ``known_fraction`` rises from 0; the same seed and observations give the
+    same agent as the full-model form."""
+    g = models.grid(GRID, {"a": 0, "b": 1})
+    world = models.learned(g, known_after=1)
+    assert world.to_json() == {
+        "grid": [line for line in GRID if line],
+        "sources": {"a": 0, "b": 1},
+        "stimuli": ["a", "b"],
+        "learn": True,
+        "learning": {"known_after": 1},
+    }
+    info = any_client.create_session(world, seed=4)
+    learned = info.model.learned
+    assert learned is not None and (learned.known_after, learned.optimism) == (1, "absorbing")
+    assert learned.max_transitions == info.model.pairs * info.model.states
+    known = any_client.create_session(g, seed=4)
+    assert known.model.learned is None
+    assert any_client.values(known.id).known_fraction is None
+    rng = random.Random(5)
+    state = 0
+    step = any_client.observe(info.id, state)
+    fractions = [any_client.values(info.id).known_fraction]
+    seen = {state}
+    for t in range(1, 301):
+        state = world.sample_next(state, step.action_index, rng)
+        seen.add(state)
+        step = any_client.observe(info.id, state, world.stimulus(state))
+        if t % 100 == 0:
+            fractions.append(any_client.values(info.id).known_fraction)
+    assert fractions[0] == 0.0
+    assert fractions == sorted(fractions) and fractions[-1] > 0.5, fractions
+    history = any_client.history(info.id, 1)
+    assert history[-1].known_fraction == fractions[-1]
+    assert len(any_client.history(known.id)) == 0
+    assert set(g.source_states("a") + g.source_states("b")) <= seen, "both sources found"
+    # A full model posted with "transitions": "learn" needs every action in
+    # every state; the hallway's ends have none to the wall.
+    with pytest.raises(ValueError, match="unavailable in state 0"):
+        models.learned(models.hallway())
+    with pytest.raises(ValueError, match="known_after"):
+        models.learned(g, known_after=0)
+    chain = models.from_transition_table(
+        [[1, 0], [0, 1]], ["go", "stay"], {"x": [1]}
+    )
+    full = any_client.create_session(models.learned(chain, optimism="stimulus"), seed=1)
+    assert full.model.learned is not None and full.model.learned.optimism == "stimulus"
+    assert models.learned(chain).to_json()["transitions"] == "learn"

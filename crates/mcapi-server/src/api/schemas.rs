@@ -353,14 +353,56 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             .required("states")
             .required("actions")
             .required("stimuli")
-            .required(with);
-        if with == "next" {
-            o.property("next", next).property("transitions", null)
-        } else {
-            o.property("transitions", transitions)
+            .required(if with == "learn" { "transitions" } else { with });
+        match with {
+            "next" => o.property("next", next).property("transitions", null),
+            "learn" => o
+                .property(
+                    "transitions",
+                    typed(Type::String, false)
+                        .enum_values(Some(["learn"]))
+                        .description(Some(
+                            "no table: every action is available in every state and the \
+                             agent learns P from its observations (docs/algorithm.md §8)",
+                        )),
+                )
                 .property("next", null)
+                .property(
+                    "learning",
+                    nullable_ref(
+                        "LearnedParams",
+                        "m and the optimism rule (defaults: 3, absorbing)",
+                    ),
+                ),
+            _ => o
+                .property("transitions", transitions)
+                .property("next", null),
         }
     };
+    let learned_params = closed(
+        "How the agent learns its transition model (docs/algorithm.md §8). A pair seen \
+         fewer than `known_after` times is optimistic; `absorbing` (R-max) needs the \
+         indicator basis.",
+    )
+    .property(
+        "known_after",
+        integer(
+            1,
+            u64::from(mcapi_core::learned::MAX_KNOWN_AFTER),
+            true,
+            "m: visits after which a pair's row of P̂ is used (default 3)",
+        ),
+    )
+    .property(
+        "optimism",
+        typed(Type::String, true)
+            .enum_values(Some(["absorbing", "stimulus"]))
+            .description(Some(
+                "`absorbing` (default): unknown pairs lead to a state worth the largest \
+                 reward forever; `stimulus`: unknown pairs stay put, Ξ's optimistic start \
+                 is the only optimism",
+            )),
+    );
 
     let preset = closed("A model of the paper: the 50-state hallway or the three-room maze.")
         .property(
@@ -428,15 +470,56 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     )
     .required("grid")
     .required("sources")
-    .examples([json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}})]);
+    .build();
+    // The learned grid is the grid with `learn: true` required; the plain
+    // one takes `learn` only as `false`, so the two exclude each other.
+    let learn_flag = |value: bool, description: &str| -> RefOr<Schema> {
+        Schema::from(
+            typed(Type::Boolean, false)
+                .enum_values(Some([value]))
+                .description(Some(description)),
+        )
+        .into()
+    };
+    let mut grid_learned = grid.clone();
+    grid_learned.description = Some(
+        "A grid map whose transitions the agent learns (`\"learn\": true`, \
+         docs/algorithm.md §8): the map gives the states, actions and basis; the agent \
+         never sees its moves, only the observations."
+            .into(),
+    );
+    grid_learned.properties.insert(
+        "learn".into(),
+        learn_flag(true, "the agent learns the transitions"),
+    );
+    grid_learned.properties.insert(
+        "learning".into(),
+        nullable_ref(
+            "LearnedParams",
+            "m and the optimism rule (defaults: 3, absorbing)",
+        ),
+    );
+    grid_learned.required.push("learn".into());
+    grid_learned.examples = vec![json!({"grid": ["#####", "#a.b#", "#####"],
+        "sources": {"a": 0, "b": 1}, "learn": true, "learning": {"known_after": 3}})];
+    let mut grid = grid;
+    grid.properties.insert(
+        "learn".into(),
+        learn_flag(false, "`true`: see GridModelLearned"),
+    );
+    grid.examples = vec![json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}})];
     let model = OneOfBuilder::new()
         .item(reference("PresetModel"))
         .item(reference("GridModel"))
         .item(reference("FullModelNext"))
         .item(reference("FullModelTransitions"))
+        .item(reference("GridModelLearned"))
+        .item(reference("FullModelLearned"))
         .description(Some(
             "The environment model, in one of its forms: a preset, a grid map, or a full \
-             model with deterministic `next` or stochastic `transitions`.",
+             model with deterministic `next` or stochastic `transitions`; or a grid map or \
+             full model whose transitions the agent learns (`\"learn\": true`, \
+             `\"transitions\": \"learn\"`).",
         ));
 
     let stimulus_rate = OneOfBuilder::new()
@@ -812,6 +895,24 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             )
             .into(),
         ),
+        ("GridModelLearned", grid_learned.into()),
+        (
+            "FullModelLearned",
+            full_model(
+                "learn",
+                "A full model whose transitions the agent learns (`\"transitions\": \"learn\"`, \
+                 docs/algorithm.md §8): every action available in every state. Its basis is \
+                 `indicator` (the default) or `custom` with `\"optimism\": \"stimulus\"`; \
+                 proto-value functions are refused (no transition graph).",
+            )
+            .examples([
+                json!({"states": 3, "actions": ["left", "right"], "stimuli": ["food"],
+                              "transitions": "learn",
+                              "learning": {"known_after": 2, "optimism": "absorbing"}}),
+            ])
+            .into(),
+        ),
+        ("LearnedParams", learned_params.into()),
         ("Transition", transition.into()),
         ("ActionRef", action_ref.into()),
         ("Basis", basis.into()),

@@ -53,7 +53,12 @@ pub fn estimate(model: &ModelSummary, config: &EffectiveConfig) -> SessionCost {
     let states = model.states as u64;
     let actions = model.actions.len() as u64;
     let pairs = model.pairs as u64;
-    let transitions = model.transitions as u64;
+    // A learned model (docs/algorithm.md §8) is priced at the most
+    // transitions it may come to store, stochastic.
+    let (transitions, deterministic) = match &model.learned {
+        Some(l) => (l.max_transitions as u64, false),
+        None => (model.transitions as u64, model.deterministic),
+    };
     let n = model.stimuli.len() as u64;
     let features = model.features as u64;
     let k = model.basis.k as u64;
@@ -66,7 +71,8 @@ pub fn estimate(model: &ModelSummary, config: &EffectiveConfig) -> SessionCost {
         .chain(&model.stimuli)
         .map(|s| s.len() as u64 + 24)
         .sum();
-    let mut bytes = mul(transitions, 12) + mul(pairs, 16) + mul(mul(states, actions), 4) + names;
+    let mut bytes =
+        mul(model.transitions as u64, 12) + mul(pairs, 16) + mul(mul(states, actions), 4) + names;
     if feature_basis {
         // State features, ΦᵀΦ, M.
         bytes += mul(mul(states, k), 8) + mul(mul(features, features), 8);
@@ -75,6 +81,14 @@ pub fn estimate(model: &ModelSummary, config: &EffectiveConfig) -> SessionCost {
     // The learner: Ξ and its visit counts, R, Q twice, the policy, D.
     bytes += mul(mul(pairs, n), 8) + mul(pairs, 4) + mul(pairs, 24) + mul(states, 4);
     bytes += mul(n, 64);
+    if model.learned.is_some() {
+        // The agent's own planning model P̂ (with the absorbing state),
+        // copied from the shared structure, and the counts: N(s, a) per
+        // pair, one (s′, N(s, a, s′)) entry and its list's share per
+        // stored transition.
+        bytes += mul(transitions, 12) + mul(pairs + 1, 16) + mul(mul(states + 1, actions), 4);
+        bytes += mul(pairs, 8 + 24) + mul(transitions, 16);
+    }
     // The planner's engine.
     bytes += if feature_basis {
         mul(mul(features, features), 16) + mul(features, 40) + mul(states, 8)
@@ -93,7 +107,7 @@ pub fn estimate(model: &ModelSummary, config: &EffectiveConfig) -> SessionCost {
         // A rebuild and inversion (every REFRESH_AFTER rank-one updates,
         // and whenever a Sherman–Morrison step is unsafe) plus Q = Φw.
         f * f * f + (pairs * k) as f64 + (states * features) as f64
-    } else if model.deterministic {
+    } else if deterministic {
         // The functional-graph solve: a few passes over states and pairs.
         5.0 * (pairs + states) as f64
     } else {
@@ -196,6 +210,7 @@ mod tests {
             },
             features: states * actions,
             layout: None,
+            learned: None,
         }
     }
 
@@ -236,6 +251,25 @@ mod tests {
         slow.gamma = 0.999_999;
         let near_one = estimate(&summary(1000, 4, 3, false), &slow);
         assert!(near_one.tick_us > stochastic.tick_us);
+    }
+
+    #[test]
+    fn a_learned_model_is_priced_at_its_cap_on_stored_transitions() {
+        let known = estimate(&summary(100, 4, 2, true), &config(256, None));
+        let mut learned = summary(100, 4, 2, true);
+        learned.learned = Some(crate::service::wire::LearnedSummary {
+            known_after: 3,
+            optimism: mcapi_core::Optimism::Absorbing,
+            max_transitions: 400 * 100,
+        });
+        let cost = estimate(&learned, &config(256, None));
+        // 40,000 entries of the counts and of P̂, at least 28 bytes each.
+        assert!(
+            cost.bytes > known.bytes + 40_000 * 28,
+            "{cost:?} vs {known:?}"
+        );
+        // Planned as a stochastic model of 40,000 transitions.
+        assert!(cost.tick_us > 100 * known.tick_us, "{cost:?} vs {known:?}");
     }
 
     #[test]

@@ -18,7 +18,7 @@
 use serde::{Deserialize, Serialize};
 
 pub use crate::store::RECORD_V2;
-use mcapi_core::{AgentSnapshot, CuriousSnapshot};
+use mcapi_core::{AgentSnapshot, CuriousSnapshot, LearnedSnapshot};
 
 use super::agent_config::EffectiveConfig;
 use super::error::{DecodeError, DecodeFault, ServiceError};
@@ -80,6 +80,22 @@ pub enum LearnerSnapshot {
     Plain(AgentSnapshot),
     /// An agent with a curiosity channel.
     Curious(Box<CuriousSnapshot>),
+    /// An agent that learns its transitions (docs/algorithm.md §8): its
+    /// snapshot and the counts N(s, a, s′), from which P̂ is rebuilt. Last:
+    /// postcard numbers variants by position, so stored snapshots of the
+    /// variants above still decode.
+    Learned(Box<LearnedRecord>),
+}
+
+/// A learned agent as a snapshot keeps it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LearnedRecord {
+    /// The agent and its counts.
+    pub agent: LearnedSnapshot,
+    /// The known fraction after each tick of the history ring, oldest
+    /// first ([`TickRecord`] has no field for it; its layout is fixed by
+    /// the record version).
+    pub history_known: Vec<Option<f64>>,
 }
 
 /// A session snapshot.
@@ -271,7 +287,9 @@ mod tests {
         let snap = decode_snapshot(&bytes, "snapshot").expect("decode");
         match snap.learner {
             LearnerSnapshot::Plain(a) => assert_eq!(a, agent.snapshot()),
-            LearnerSnapshot::Curious(_) => panic!("a format-2 snapshot is a plain agent's"),
+            LearnerSnapshot::Curious(_) | LearnerSnapshot::Learned(_) => {
+                panic!("a format-2 snapshot is a plain agent's")
+            }
         }
         let h: Vec<_> = snap
             .history
@@ -289,5 +307,40 @@ mod tests {
         let bytes = encode(&new).expect("encode");
         let back = decode_snapshot(&bytes, "snapshot").expect("decode");
         assert_eq!(back.history, new.history);
+    }
+
+    /// The learned variant is appended: the tags of the stored variants do
+    /// not move (postcard numbers variants by position), and a learned
+    /// agent's snapshot, counts included, round-trips exactly.
+    #[test]
+    fn learned_snapshots_round_trip_and_old_tags_stay() {
+        use std::sync::Arc;
+
+        use mcapi_core::{Agent, AgentParams, Basis, LearnedParams, Observation, PlanningModel};
+        let preset = mcapi_core::model::hallway();
+        let params = AgentParams::default().check(2, 5).expect("params");
+        let ctx = Arc::new(PlanningModel::new(preset.model, Basis::Indicator));
+        let plain = Agent::new(Arc::clone(&ctx), params.clone());
+        let bytes = encode(&LearnerSnapshot::Plain(plain.snapshot())).expect("encode");
+        assert_eq!(bytes[1], 0, "Plain keeps tag 0");
+        let learned = LearnedParams::default().check().expect("learned params");
+        let mut agent = Agent::new_learned(ctx, params, learned).expect("learned agent");
+        agent.step(&Observation::first(3)).expect("first");
+        for s in [4, 5, 5, 6] {
+            agent.step(&Observation::new(s, &[1.0, 0.0])).expect("step");
+        }
+        let snap = LearnedRecord {
+            agent: agent.learned_snapshot().expect("a learned agent"),
+            history_known: vec![Some(0.25), None],
+        };
+        let bytes = encode(&LearnerSnapshot::Learned(Box::new(snap.clone()))).expect("encode");
+        assert_eq!(bytes[1], 2, "Learned is the third variant");
+        let back: LearnerSnapshot = postcard::from_bytes(&bytes[1..]).expect("decode");
+        match back {
+            LearnerSnapshot::Learned(s) => assert_eq!(*s, snap),
+            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => {
+                panic!("decoded as another variant")
+            }
+        }
     }
 }

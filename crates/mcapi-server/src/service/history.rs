@@ -18,12 +18,17 @@ pub struct RingTick {
     action: u32,
     reward: f64,
     lstdq_error: f64,
-    /// D, then the stimulus if there was one.
+    /// D, then the stimulus if there was one, then the known fraction of a
+    /// learned model (docs/algorithm.md §8) if [`KNOWN_FLAG`] is set.
     values: Box<[f64]>,
-    /// Components of D in `values`.
+    /// Components of D in `values`, and [`KNOWN_FLAG`].
     drive_len: u32,
     curiosity: Option<Box<TickCuriosity>>,
 }
+
+/// Set in `RingTick::drive_len` when the last of `values` is the known
+/// fraction of a learned model (D has at most a few dozen components).
+const KNOWN_FLAG: u32 = 1 << 31;
 
 /// State and action indices fit u32: the model indexes pairs with u32.
 fn index32(i: usize) -> u32 {
@@ -47,8 +52,14 @@ impl RingTick {
         reward: f64,
         lstdq_error: f64,
         curiosity: Option<TickCuriosity>,
+        known_fraction: Option<f64>,
     ) -> Self {
         let stimulus = stimulus.into_iter().flatten().copied();
+        let flag = if known_fraction.is_some() {
+            KNOWN_FLAG
+        } else {
+            0
+        };
         Self {
             tick,
             state: index32(state),
@@ -60,15 +71,44 @@ impl RingTick {
                 .copied()
                 .chain(stimulus)
                 .chain(xi_cur)
+                .chain(known_fraction)
                 .collect(),
-            drive_len: index32(drive.len()),
+            drive_len: (index32(drive.len()) & !KNOWN_FLAG) | flag,
             curiosity: curiosity.map(Box::new),
         }
     }
 
+    /// The known fraction of a learned model after this tick.
+    pub fn known_fraction(&self) -> Option<f64> {
+        (self.drive_len & KNOWN_FLAG != 0)
+            .then(|| self.values.last().copied())
+            .flatten()
+    }
+
+    /// This tick with the known fraction a snapshot kept for it (a
+    /// [`TickRecord`] does not hold it; a learned snapshot keeps it aside).
+    pub fn with_known_fraction(self, known_fraction: Option<f64>) -> Self {
+        let e = self.entry();
+        Self::new(
+            e.tick,
+            e.state,
+            e.action,
+            &e.drive,
+            e.stimulus.as_deref(),
+            None,
+            e.reward,
+            e.lstdq_error,
+            e.curiosity,
+            known_fraction,
+        )
+    }
+
     /// The entry readers get.
     pub fn entry(&self) -> HistoryEntry {
-        let (drive, stimulus) = self.values.split_at(self.drive_len as usize);
+        let known_fraction = self.known_fraction();
+        let end = self.values.len() - usize::from(known_fraction.is_some());
+        let (drive, stimulus) =
+            self.values[..end].split_at(((self.drive_len & !KNOWN_FLAG) as usize).min(end));
         HistoryEntry {
             tick: self.tick,
             state: self.state as usize,
@@ -78,6 +118,7 @@ impl RingTick {
             lstdq_error: self.lstdq_error,
             stimulus: (!stimulus.is_empty()).then(|| stimulus.to_vec()),
             curiosity: self.curiosity.as_deref().copied(),
+            known_fraction,
         }
     }
 }
@@ -94,6 +135,7 @@ impl From<&TickRecord> for RingTick {
             t.reward,
             t.lstdq_error,
             t.curiosity,
+            None,
         )
     }
 }
@@ -109,6 +151,8 @@ impl From<&RingTick> for TickRecord {
             lstdq_error,
             stimulus,
             curiosity,
+            // Kept aside by a learned snapshot (`LearnedRecord`).
+            known_fraction: _,
         } = t.entry();
         Self {
             tick,
@@ -166,6 +210,7 @@ mod tests {
                 modules: 1,
                 source: Some(0),
             }),
+            None,
         );
         let e = curious.entry();
         assert_eq!(e.drive, vec![0.6, 0.0, 0.8]);
@@ -173,14 +218,38 @@ mod tests {
         assert_eq!((e.tick, e.state, e.action), (7, 3, 2));
         assert_eq!(RingTick::from(&TickRecord::from(&curious)), curious);
         // A tick restored from a format-2 snapshot has no stimulus.
-        let old = RingTick::new(7, 3, 2, &[0.6, 0.8], None, None, 0.25, 0.125, None);
+        let old = RingTick::new(7, 3, 2, &[0.6, 0.8], None, None, 0.25, 0.125, None, None);
         assert_eq!(old.entry().stimulus, None);
         assert_eq!(RingTick::from(&TickRecord::from(&old)), old);
+        // A learned model's known fraction rides in the same allocation.
+        let learned = RingTick::new(
+            9,
+            1,
+            0,
+            &[0.6, 0.8],
+            Some(&[0.0, 1.0]),
+            None,
+            0.5,
+            0.0,
+            None,
+            Some(0.375),
+        );
+        assert!(std::mem::size_of::<RingTick>() <= 64);
+        let e = learned.entry();
+        assert_eq!(
+            (e.drive, e.stimulus),
+            (vec![0.6, 0.8], Some(vec![0.0, 1.0]))
+        );
+        assert_eq!(e.known_fraction, Some(0.375));
+        let back = RingTick::from(&TickRecord::from(&learned));
+        assert_eq!(back.known_fraction(), None, "a TickRecord does not keep it");
+        assert_eq!(back.with_known_fraction(Some(0.375)), learned);
     }
 
     #[test]
     fn the_ring_is_lazy_and_never_reserves_past_its_length() {
-        let tick = |t: u64| RingTick::new(t, 0, 0, &[1.0], Some(&[0.0]), None, 0.0, 0.0, None);
+        let tick =
+            |t: u64| RingTick::new(t, 0, 0, &[1.0], Some(&[0.0]), None, 0.0, 0.0, None, None);
         let mut ring = VecDeque::new();
         assert_eq!(
             ring.capacity(),

@@ -3,7 +3,7 @@
 
 use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation, PlanOutcome};
 
-use super::durable::LearnerSnapshot;
+use super::durable::{LearnedRecord, LearnerSnapshot};
 use super::error::ServiceError;
 use super::wire::TickCuriosity;
 
@@ -94,6 +94,37 @@ impl Learner {
         }
     }
 
+    /// Refuses an observation that would make a learned model store more
+    /// than `cap` (pair, successor) entries (docs/algorithm.md §8): only a
+    /// successor never seen before from its pair adds one. Nothing
+    /// changes; sessions with posted transitions always pass.
+    pub fn check_learned_room(
+        &self,
+        obs: &Observation<'_>,
+        cap: usize,
+    ) -> Result<(), ServiceError> {
+        let agent = self.agent();
+        let Some(learned) = agent.learned() else {
+            return Ok(());
+        };
+        let Some(p) = agent.validate(obs)? else {
+            return Ok(());
+        };
+        let counts = learned.counts();
+        let seen = counts
+            .successors(p)
+            .iter()
+            .any(|&(t, _)| t as usize == obs.state);
+        if !seen && counts.entries() >= cap {
+            return Err(ServiceError::LimitExceeded(format!(
+                "the learned model already stores {} transitions, its limit (|pairs| x |states|, at most --max-transitions); `state` {} was never reached from this state and action before, so it would be one more",
+                counts.entries(),
+                obs.state
+            )));
+        }
+        Ok(())
+    }
+
     /// True when R changed since the last policy update.
     pub fn needs_plan(&self) -> bool {
         self.agent().needs_plan()
@@ -131,10 +162,18 @@ impl Learner {
         }
     }
 
-    /// The resumable state.
+    /// The resumable state (with the learned counts for an agent that
+    /// learns its transitions, docs/algorithm.md §8).
     pub fn snapshot(&self) -> LearnerSnapshot {
         match self {
-            Self::Plain(a) => LearnerSnapshot::Plain(a.snapshot()),
+            Self::Plain(a) => match a.learned_snapshot() {
+                // The history's known fractions are the session's to add.
+                Some(agent) => LearnerSnapshot::Learned(Box::new(LearnedRecord {
+                    agent,
+                    history_known: Vec::new(),
+                })),
+                None => LearnerSnapshot::Plain(a.snapshot()),
+            },
             Self::Curious(c) => LearnerSnapshot::Curious(Box::new(c.snapshot())),
         }
     }

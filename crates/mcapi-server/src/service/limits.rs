@@ -12,6 +12,7 @@ use mcapi_core::{BasisSpec, EnvModel};
 
 use super::agent_config::SessionConfig;
 use super::error::ServiceError;
+use super::spec::LearnedSpec;
 use super::wire::SessionCost;
 
 /// Caps on what clients may ask of the server.
@@ -350,6 +351,58 @@ impl Limits {
             ));
         }
         Ok(())
+    }
+
+    /// Checks a full model whose transitions the agent learns before its
+    /// structure is built: names, states × actions (and states alone, so
+    /// that no action list makes the state count free), stimuli.
+    pub fn check_learned_spec(&self, spec: &LearnedSpec) -> Result<(), ServiceError> {
+        if spec.actions.is_empty() {
+            return Err(ServiceError::field(
+                "model.actions",
+                "must name at least one action",
+            ));
+        }
+        if spec.actions.len() > self.max_pairs {
+            return Err(exceeded(
+                "`model.actions` length",
+                spec.actions.len(),
+                self.max_pairs,
+            ));
+        }
+        if spec.states > self.max_pairs {
+            return Err(exceeded("`model.states`", spec.states, self.max_pairs));
+        }
+        self.check_names("model.actions", &spec.actions)?;
+        self.check_names("model.stimuli", &spec.stimuli)?;
+        if let Some(names) = &spec.state_names {
+            self.check_names("model.state_names", names)?;
+        }
+        let pairs = spec.states.saturating_mul(spec.actions.len());
+        if pairs > self.max_pairs {
+            return Err(exceeded("`model` states x actions", pairs, self.max_pairs));
+        }
+        if spec.stimuli.len() > self.max_stimuli {
+            return Err(exceeded(
+                "`model.stimuli` length",
+                spec.stimuli.len(),
+                self.max_stimuli,
+            ));
+        }
+        Ok(())
+    }
+
+    /// The most (pair, successor) entries a learned model of `model` may
+    /// store (docs/algorithm.md §8): every successor of every pair, at most
+    /// [`Limits::max_transitions`], the cap a posted model's table has too.
+    /// The session's cost is estimated at this many entries, and an
+    /// observation that would store one more is refused
+    /// (`SessionState::apply`).
+    pub fn learned_transitions(&self, model: &EnvModel) -> usize {
+        model
+            .n_pairs()
+            .saturating_mul(model.states())
+            .min(self.max_transitions)
     }
 
     /// Checks a built model.

@@ -160,8 +160,17 @@ pub(super) fn rebuild(
     let mut after = None;
     if let Some((seq, bytes)) = &stored.snapshot {
         let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(|e| bad(e.into()))?;
+        let known = match &snap.learner {
+            LearnerSnapshot::Learned(l) => l.history_known.clone(),
+            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => Vec::new(),
+        };
         learner = restore(&learner, snap.learner).map_err(&bad)?;
-        history = snap.history.iter().map(RingTick::from).collect();
+        history = snap
+            .history
+            .iter()
+            .enumerate()
+            .map(|(i, t)| RingTick::from(t).with_known_fraction(known.get(i).copied().flatten()))
+            .collect();
         after = Some(*seq);
     }
     let mut next_seq = after.map_or(0, |s| s + 1);
@@ -245,6 +254,7 @@ pub fn replay(
             out.reward,
             entry.lstdq_error,
             out.curiosity,
+            learner.agent().learned().map(|l| l.known_fraction()),
         );
         push_tick(history, history_cap, tick);
     }
@@ -257,10 +267,26 @@ pub fn replay(
 fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError> {
     let ctx = Arc::clone(base.agent().planning_model());
     let params = base.agent().params().clone();
+    let learned = base.agent().learned().map(|l| l.params());
     match (snap, base.curious()) {
+        (LearnerSnapshot::Plain(_), None) if learned.is_some() => Err(RecordError::Mismatch(
+            "its snapshot has no learned transitions, its record learns them",
+        )),
         (LearnerSnapshot::Plain(s), None) => Agent::restore(ctx, params, s)
             .map(Learner::Plain)
             .map_err(RecordError::Restore),
+        // docs/algorithm.md §8: P̂ is rebuilt from the counts.
+        (LearnerSnapshot::Learned(s), None) => match learned {
+            Some(l) => Agent::restore_learned(ctx, params, l, s.agent)
+                .map(Learner::Plain)
+                .map_err(RecordError::Restore),
+            None => Err(RecordError::Mismatch(
+                "its snapshot has learned transitions, its record posted ones",
+            )),
+        },
+        (LearnerSnapshot::Learned(_), Some(_)) => Err(RecordError::Mismatch(
+            "its snapshot has learned transitions, its record a curiosity channel",
+        )),
         (LearnerSnapshot::Curious(s), Some(c)) => {
             let channel = c.channel();
             CuriousAgent::restore(ctx, params, channel.params(), channel.signal_dim(), *s)

@@ -13,7 +13,7 @@ use mcapi_core::spec::ActionRef;
 use mcapi_core::{AlgoError, Observation};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
-use super::durable::{LogEntry, SnapshotRecord, TickRecord, encode};
+use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
 use super::history::{RingTick, push_tick};
 use super::learner::Learner;
@@ -36,6 +36,9 @@ pub struct SessionState {
     deleting: bool,
     /// Policy updates to fail on purpose (tests of the failure path).
     fail_plans: u32,
+    /// For a model whose transitions the agent learns: the most (pair,
+    /// successor) entries it may store (`LearnedSummary::max_transitions`).
+    learned_cap: Option<usize>,
 }
 
 /// Where a session's observations are made durable.
@@ -136,6 +139,7 @@ impl Session {
         durability: Option<Durability>,
         resumed: Resumed,
     ) -> Self {
+        let learned_cap = model.learned.as_ref().map(|l| l.max_transitions);
         Self {
             id,
             mode: config.update_mode,
@@ -152,6 +156,7 @@ impl Session {
                 deleted: false,
                 deleting: false,
                 fail_plans: 0,
+                learned_cap,
             }),
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
@@ -454,8 +459,12 @@ pub struct Resumed {
 
 impl SessionState {
     fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
+        let mut learner = self.learner.snapshot();
+        if let LearnerSnapshot::Learned(l) = &mut learner {
+            l.history_known = self.history.iter().map(RingTick::known_fraction).collect();
+        }
         let record = SnapshotRecord {
-            learner: self.learner.snapshot(),
+            learner,
             history: self.history.iter().map(TickRecord::from).collect(),
         };
         self.since_snapshot = 0;
@@ -594,6 +603,9 @@ impl SessionState {
             .signal
             .as_deref()
             .map(|x| (obs.signal_source.unwrap_or(0), x));
+        if let Some(cap) = self.learned_cap {
+            self.learner.check_learned_room(&observation, cap)?;
+        }
         let observed = self.learner.observe(&observation, signal)?;
         // Algorithm 1 lines 8-10, as `Agent::step`: act even if planning
         // failed, so the agent stays consistent.
@@ -624,6 +636,7 @@ impl SessionState {
                 observed.reward,
                 agent.last_plan().lstdq_error,
                 observed.curiosity,
+                agent.learned().map(|l| l.known_fraction()),
             );
             push_tick(&mut self.history, history_cap, tick);
         }

@@ -17,7 +17,7 @@ use super::error::ServiceError;
 use super::learner::Learner;
 use super::limits::Limits;
 use super::spec::ModelInput;
-use super::wire::{BasisSummary, GridLayout, ModelSummary};
+use super::wire::{BasisSummary, GridLayout, LearnedSummary, ModelSummary};
 
 /// A counting semaphore for model builds: at most `slots` at once, and at
 /// most `queue` more waiting; beyond that a create is refused with 503
@@ -79,6 +79,7 @@ fn summary_of(
     ctx: &PlanningModel,
     basis: BasisSummary,
     layout: Option<GridLayout>,
+    learned: Option<LearnedSummary>,
 ) -> ModelSummary {
     let model = ctx.model();
     ModelSummary {
@@ -91,6 +92,7 @@ fn summary_of(
         basis,
         features: ctx.n_features(),
         layout,
+        learned,
     }
 }
 
@@ -165,10 +167,16 @@ impl Setup {
         let (model, basis_spec) = input.build(limits, curious)?;
         let basis = Basis::build(&basis_spec, &model)?;
         let ctx = Arc::new(PlanningModel::new(model, basis));
+        let learned = input.learning().map(|l| LearnedSummary {
+            known_after: l.known_after,
+            optimism: l.optimism,
+            max_transitions: limits.learned_transitions(ctx.model()),
+        });
         let built = Arc::new(summary_of(
             &ctx,
             BasisSummary::of(&basis_spec),
             input.layout(),
+            learned,
         ));
         let mut models = self.models.lock();
         models.retain(|_, (w, _)| w.strong_count() > 0);
@@ -189,14 +197,26 @@ impl Setup {
         limits: &Limits,
     ) -> Result<(Learner, Arc<ModelSummary>, EffectiveConfig), ServiceError> {
         limits.check_config(agent)?;
+        if agent.curiosity.is_some() && input.learning().is_some() {
+            return Err(ServiceError::field(
+                "agent.curiosity",
+                "a curiosity channel needs a model with posted transitions; this model learns them (`learn`)",
+            ));
+        }
         let (ctx, summary) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
         let params = agent
             .params()
             .check(ctx.model().n_stimuli(), self.fresh_u64())?;
         let config = agent.effective(&params);
-        let learner = match &agent.curiosity {
-            None => Learner::Plain(Agent::new(ctx, params)),
-            Some(c) => {
+        let learner = match (&agent.curiosity, input.learning()) {
+            (None, None) => Learner::Plain(Agent::new(ctx, params)),
+            // docs/algorithm.md §8: the same agent, planning on P̂.
+            (None, Some(learned)) => Learner::Plain(
+                Agent::new_learned(ctx, params, learned)
+                    .map_err(|e| prefix("model.learning", e))?,
+            ),
+            // A learned model with a channel was refused above.
+            (Some(c), _) => {
                 let checked = c
                     .params
                     .check()

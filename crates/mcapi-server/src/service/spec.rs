@@ -1,6 +1,7 @@
 //! What clients send to create a session and what they get back: the
-//! environment model in its three forms (posted, preset, grid map), the
-//! agent configuration, and the summaries returned.
+//! environment model in its forms (posted, preset, grid map, and a posted
+//! or grid model whose transitions the agent learns, docs/algorithm.md §8),
+//! the agent configuration, and the summaries returned.
 
 use std::collections::BTreeMap;
 
@@ -9,7 +10,7 @@ use serde_json::Value;
 
 use mcapi_core::model::{GridMap, grid_preset, hallway, three_room};
 use mcapi_core::spec::ModelSpec;
-use mcapi_core::{BasisSpec, EnvModel};
+use mcapi_core::{BasisSpec, EnvModel, LearnedParams, ValidLearnedParams};
 
 use super::agent_config::CURIOSITY_DIMENSION;
 use super::error::ServiceError;
@@ -36,9 +37,77 @@ pub enum ModelInput {
         stimuli: Option<Vec<String>>,
         /// Basis override.
         basis: Option<BasisSpec>,
+        /// `"learn": true`: the agent learns P from its transitions instead
+        /// of planning on the map's (docs/algorithm.md §8), with these
+        /// parameters; `None` plans on the map.
+        learn: Option<ValidLearnedParams>,
     },
     /// A full model.
     Spec(Box<ModelSpec>),
+    /// A full model with `"transitions": "learn"`: states, actions and
+    /// stimuli only; the agent learns P (docs/algorithm.md §8).
+    Learned(Box<LearnedSpec>),
+}
+
+/// A full model whose transitions the agent learns (`"transitions":
+/// "learn"`): every action is available in every state (a move into a
+/// wall is a transition back to the same state, which the agent learns
+/// like any other), and P is estimated from the observations
+/// (docs/algorithm.md §8).
+#[derive(Debug, Clone, PartialEq)]
+pub struct LearnedSpec {
+    /// Number of states |S|.
+    pub states: usize,
+    /// Optional display names of the states.
+    pub state_names: Option<Vec<String>>,
+    /// Action names.
+    pub actions: Vec<String>,
+    /// Names of the stimulus dimensions.
+    pub stimuli: Vec<String>,
+    /// Feature basis; the default depends on the model's size.
+    pub basis: Option<BasisSpec>,
+    /// m and the optimism rule, checked.
+    pub learning: ValidLearnedParams,
+}
+
+/// The `"transitions": "learn"` marker of a learned full model.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+enum LearnMarker {
+    Learn,
+}
+
+#[derive(Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+struct LearnedForm {
+    states: usize,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    state_names: Option<Vec<String>>,
+    actions: Vec<String>,
+    transitions: LearnMarker,
+    stimuli: Vec<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    basis: Option<BasisSpec>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    learning: Option<LearnedParams>,
+}
+
+/// Checks learned-model parameters once (m in 1..=10⁶, the optimism rule),
+/// naming the field in the error.
+pub fn learned_params(
+    field: &'static str,
+    params: Option<LearnedParams>,
+) -> Result<ValidLearnedParams, ServiceError> {
+    params.unwrap_or_default().check().map_err(|e| match e {
+        mcapi_core::AlgoError::InvalidParameter { name, reason } => {
+            mcapi_core::AlgoError::InvalidParameter {
+                name: field,
+                reason: format!("`{name}` {reason}"),
+            }
+            .into()
+        }
+        e => ServiceError::field(field, e),
+    })
 }
 
 #[derive(Serialize, Deserialize)]
@@ -59,6 +128,10 @@ struct GridForm {
     stimuli: Option<Vec<String>>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     basis: Option<BasisSpec>,
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    learn: bool,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    learning: Option<LearnedParams>,
 }
 
 fn from_value<T: serde::de::DeserializeOwned>(value: Value) -> Result<T, ServiceError> {
@@ -79,12 +152,33 @@ impl ModelInput {
             })
         } else if obj.contains_key("grid") {
             let f: GridForm = from_value(value)?;
+            let learn = match (f.learn, f.learning) {
+                (false, Some(_)) => {
+                    return Err(ServiceError::field(
+                        "model.learning",
+                        "is only taken with `\"learn\": true`",
+                    ));
+                }
+                (false, None) => None,
+                (true, params) => Some(learned_params("model.learning", params)?),
+            };
             Ok(Self::Grid {
                 lines: f.grid,
                 sources: f.sources,
                 stimuli: f.stimuli,
                 basis: f.basis,
+                learn,
             })
+        } else if obj.get("transitions").is_some_and(Value::is_string) {
+            let f: LearnedForm = from_value(value)?;
+            Ok(Self::Learned(Box::new(LearnedSpec {
+                states: f.states,
+                state_names: f.state_names,
+                actions: f.actions,
+                stimuli: f.stimuli,
+                basis: f.basis,
+                learning: learned_params("model.learning", f.learning)?,
+            })))
         } else {
             Ok(Self::Spec(Box::new(from_value(value)?)))
         }
@@ -103,13 +197,17 @@ impl ModelInput {
                 sources,
                 stimuli,
                 basis,
+                learn,
             } => serde_json::to_string(&GridForm {
                 grid: lines.clone(),
                 sources: sources.clone(),
                 stimuli: stimuli.clone(),
                 basis: basis.clone(),
+                learn: learn.is_some(),
+                learning: learn.as_ref().map(ValidLearnedParams::to_params),
             }),
             Self::Spec(spec) => serde_json::to_string(spec),
+            Self::Learned(spec) => serde_json::to_string(&spec.form()),
         };
         text.map_err(|e| ServiceError::Internal(format!("encoding a model: {e}")))
     }
@@ -126,8 +224,13 @@ impl ModelInput {
                 sources,
                 stimuli,
                 basis,
-            } => format!("grid:{lines:?}:{sources:?}:{stimuli:?}:{basis:?}"),
+                learn,
+            } => format!("grid:{lines:?}:{sources:?}:{stimuli:?}:{basis:?}:{learn:?}"),
             Self::Spec(spec) => format!("spec:{}", serde_json::to_string(spec).unwrap_or_default()),
+            Self::Learned(spec) => format!(
+                "learned:{}",
+                serde_json::to_string(&spec.form()).unwrap_or_default()
+            ),
         };
         sha2::Sha256::digest(text.as_bytes())
             .iter()
@@ -162,6 +265,7 @@ impl ModelInput {
                 sources,
                 stimuli,
                 basis,
+                learn: _,
             } => {
                 limits.check_grid(lines, sources, stimuli.as_deref())?;
                 (
@@ -172,6 +276,18 @@ impl ModelInput {
             Self::Spec(spec) => {
                 limits.check_model_spec(spec)?;
                 (EnvModel::from_spec(spec)?, spec.basis.clone())
+            }
+            Self::Learned(spec) => {
+                limits.check_learned_spec(spec)?;
+                if matches!(spec.basis, Some(BasisSpec::ProtoValue { .. })) {
+                    return Err(ServiceError::field(
+                        "model.basis",
+                        "proto-value functions come from the transition graph, which a model \
+                         that learns its transitions does not have; use `indicator` or `custom` \
+                         (a grid map with `\"learn\": true` takes them: its map is the graph)",
+                    ));
+                }
+                (spec.structure()?, spec.basis.clone())
             }
         };
         let model = if curious {
@@ -274,9 +390,59 @@ impl ModelInput {
                 GridMap::from_text(mcapi_core::model::THREE_ROOM_MAP).ok()?
             }
             Self::Grid { lines, .. } => GridMap::parse(lines).ok()?,
-            Self::Preset { .. } | Self::Spec(_) => return None,
+            Self::Preset { .. } | Self::Spec(_) | Self::Learned(_) => return None,
         };
         Some(GridLayout::of(&grid))
+    }
+
+    /// The parameters of a model whose transitions the agent learns
+    /// (docs/algorithm.md §8); `None` for a model with posted transitions.
+    pub fn learning(&self) -> Option<ValidLearnedParams> {
+        match self {
+            Self::Grid { learn, .. } => *learn,
+            Self::Learned(spec) => Some(spec.learning),
+            Self::Preset { .. } | Self::Spec(_) => None,
+        }
+    }
+}
+
+impl LearnedSpec {
+    fn form(&self) -> LearnedForm {
+        let Self {
+            states,
+            state_names,
+            actions,
+            stimuli,
+            basis,
+            learning,
+        } = self;
+        LearnedForm {
+            states: *states,
+            state_names: state_names.clone(),
+            actions: actions.clone(),
+            transitions: LearnMarker::Learn,
+            stimuli: stimuli.clone(),
+            basis: basis.clone(),
+            learning: Some(learning.to_params()),
+        }
+    }
+
+    /// The structure the agent learns on: every action available in every
+    /// state. Its P (each pair back to its own state) is never planned on:
+    /// the agent's P̂ replaces it (`Agent::new_learned`). Call after
+    /// [`Limits::check_learned_spec`], which bounds states × actions.
+    pub fn structure(&self) -> Result<EnvModel, ServiceError> {
+        let n_actions = self.actions.len();
+        let spec = ModelSpec {
+            states: self.states,
+            state_names: self.state_names.clone(),
+            actions: self.actions.clone(),
+            next: Some((0..self.states).map(|s| vec![Some(s); n_actions]).collect()),
+            transitions: None,
+            stimuli: self.stimuli.clone(),
+            basis: None,
+        };
+        Ok(EnvModel::from_spec(&spec)?)
     }
 }
 
@@ -301,12 +467,78 @@ mod tests {
                    "transitions": [{"state": 0, "action": "go", "next": [[1, 0.1], [0, 0.9]]},
                                    {"state": 1, "action": 0, "next": [[0, 1.0]]}],
                    "basis": {"kind": "custom", "state_features": [[0.1], [1e-300]]}}),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}, "learn": true}),
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0, "b": 1}, "learn": true,
+                   "learning": {"known_after": 7, "optimism": "stimulus"}}),
+            json!({"states": 3, "actions": ["l", "r"], "stimuli": ["x"], "transitions": "learn"}),
+            json!({"states": 3, "state_names": ["a", "b", "c"], "actions": ["l", "r"],
+                   "stimuli": ["x"], "transitions": "learn", "basis": {"kind": "indicator"},
+                   "learning": {"known_after": 1}}),
         ];
         for value in models {
             let input = ModelInput::parse(value.clone()).expect("valid model");
             let text = input.to_json_text().expect("encodes");
             let back: Value = serde_json::from_str(&text).expect("JSON");
             assert_eq!(ModelInput::parse(back).expect("parses"), input, "{value}");
+        }
+    }
+
+    /// A learned model's parameters are checked once, at parsing, and
+    /// written back in full, so a recovered session learns with the
+    /// parameters it was created with whatever the defaults become.
+    #[test]
+    fn learned_models_parse_with_checked_parameters() {
+        let grid = ModelInput::parse(
+            json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0}, "learn": true}),
+        )
+        .expect("grid");
+        let l = grid.learning().expect("learns");
+        assert_eq!(
+            (l.known_after, l.optimism),
+            (3, mcapi_core::Optimism::Absorbing)
+        );
+        let text = grid.to_json_text().expect("encodes");
+        assert!(
+            text.contains(r#""learning":{"known_after":3,"optimism":"absorbing"}"#),
+            "{text}"
+        );
+        let known =
+            ModelInput::parse(json!({"grid": ["#####", "#a.b#", "#####"], "sources": {"a": 0}}))
+                .expect("grid");
+        assert!(known.learning().is_none());
+        assert!(!known.to_json_text().expect("encodes").contains("learn"));
+        assert_ne!(
+            known.cache_key(),
+            grid.cache_key(),
+            "a learned grid is another model"
+        );
+        for (model, needle) in [
+            (
+                json!({"grid": ["#a#"], "sources": {"a": 0}, "learning": {"known_after": 2}}),
+                "only taken with",
+            ),
+            (
+                json!({"grid": ["#a#"], "sources": {"a": 0}, "learn": true,
+                       "learning": {"known_after": 0}}),
+                "`known_after` 0 is not in 1..=1000000",
+            ),
+            (
+                json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "learn",
+                       "learning": {"optimism": "hopeful"}}),
+                "unknown variant `hopeful`",
+            ),
+            (
+                json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "guess"}),
+                "unknown variant `guess`, expected `learn`",
+            ),
+            (
+                json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "learn",
+                       "next": [[0], [1]]}),
+                "unknown field `next`",
+            ),
+        ] {
+            let e = ModelInput::parse(model.clone()).expect_err("invalid");
+            assert!(e.to_string().contains(needle), "{model}: {e}");
         }
     }
 }

@@ -135,5 +135,6 @@ pub fn tables(session: &Session, sel: ValueSelection) -> Values {
                 .collect()
         }),
         curiosity: st.learner.curious().map(CuriosityInfo::of),
+        known_fraction: agent.learned().map(|l| l.known_fraction()),
     }
 }

@@ -74,6 +74,32 @@ pub struct ModelSummary {
     /// `three_room` preset); absent for other models.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub layout: Option<GridLayout>,
+    /// For a model whose transitions the agent learns (`"transitions":
+    /// "learn"` or a grid's `"learn": true`, docs/algorithm.md §8): m, the
+    /// optimism rule and the cap on stored transitions; absent when the
+    /// transitions were posted. `transitions` and `deterministic` then
+    /// describe the structure only (each pair's placeholder successor),
+    /// not what the agent learned.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub learned: Option<LearnedSummary>,
+}
+
+/// How a session learns its transition model (docs/algorithm.md §8).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct LearnedSummary {
+    /// m: a pair's row of P̂ is used once the pair was seen this many times;
+    /// before that it is optimistic.
+    pub known_after: u32,
+    /// How unknown pairs are optimistic: `absorbing` (R-max: an extra state
+    /// worth the largest reward forever) or `stimulus` (unknown pairs stay
+    /// put; Ξ's optimistic start is the only optimism).
+    #[schema(value_type = String)]
+    pub optimism: mcapi_core::Optimism,
+    /// The most (pair, successor) entries the session stores: |pairs| ×
+    /// |states|, at most the server's `--max-transitions`. An observation
+    /// that would store one more is refused (`limit_exceeded`); the
+    /// session's cost is estimated at this many.
+    pub max_transitions: usize,
 }
 
 /// The map of a grid model: its size, the cell of each state and the marked
@@ -202,6 +228,11 @@ pub struct HistoryEntry {
     /// The curiosity channel at this tick, for a session with one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curiosity: Option<TickCuriosity>,
+    /// For a session that learns its transitions (docs/algorithm.md §8):
+    /// the fraction of valid pairs seen at least m times after this tick;
+    /// absent for a session with posted transitions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub known_fraction: Option<f64>,
 }
 
 /// A session as `get` returns it.
@@ -354,6 +385,11 @@ pub struct Values {
     /// The curiosity channel (ε, module library), for a session with one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curiosity: Option<CuriosityInfo>,
+    /// For a session that learns its transitions (docs/algorithm.md §8):
+    /// the fraction of valid pairs seen at least m times, in [0, 1];
+    /// absent for a session with posted transitions.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub known_fraction: Option<f64>,
 }
 
 /// The estimated cost of one session.

@@ -17,9 +17,11 @@ use crate::service::{
 use std::collections::BTreeMap;
 
 use crate::service::ModelInput;
+use crate::service::spec::{LearnedSpec, learned_params};
+use crate::service::wire::LearnedSummary;
 use mcapi_core::params::StimulusRateName;
 use mcapi_core::spec::{ActionRef, ModelSpec, TransitionSpec};
-use mcapi_core::{BasisSpec, StimulusRate};
+use mcapi_core::{BasisSpec, LearnedParams, Optimism, StimulusRate};
 
 use super::pb;
 
@@ -105,6 +107,8 @@ pub fn model_input(m: pb::Model) -> Result<ModelInput, ServiceError> {
             sources,
             stimuli,
             basis,
+            learn,
+            learning,
         })) => Ok(ModelInput::Grid {
             lines: rows,
             sources: sources
@@ -115,12 +119,55 @@ pub fn model_input(m: pb::Model) -> Result<ModelInput, ServiceError> {
             // the default (the marks).
             stimuli: (!stimuli.is_empty()).then_some(stimuli),
             basis: basis.map(basis_spec).transpose()?,
+            learn: match (learn, learning) {
+                (false, Some(_)) => {
+                    return Err(ServiceError::field(
+                        "model.learning",
+                        "is only taken with `learn` set",
+                    ));
+                }
+                (false, None) => None,
+                (true, l) => Some(learned_params(
+                    "model.learning",
+                    l.map(learned_transitions).transpose()?,
+                )?),
+            },
         }),
-        Some(Form::Full(full)) => Ok(ModelInput::Spec(Box::new(model_spec(full)?))),
+        Some(Form::Full(full)) => model_spec(full),
     }
 }
 
-fn model_spec(m: pb::FullModel) -> Result<ModelSpec, ServiceError> {
+/// The optional learned-model parameters (REST `learning`).
+fn learned_transitions(l: pb::LearnedTransitions) -> Result<LearnedParams, ServiceError> {
+    let pb::LearnedTransitions {
+        known_after,
+        optimism,
+    } = l;
+    let optimism = match pb::Optimism::try_from(optimism) {
+        Ok(pb::Optimism::Unspecified) => None,
+        Ok(pb::Optimism::Absorbing) => Some(Optimism::Absorbing),
+        Ok(pb::Optimism::Stimulus) => Some(Optimism::Stimulus),
+        Err(_) => {
+            return Err(ServiceError::field(
+                "model.learning.optimism",
+                format!("unknown value {optimism} (1: absorbing, 2: stimulus)"),
+            ));
+        }
+    };
+    Ok(LearnedParams {
+        known_after,
+        optimism,
+    })
+}
+
+fn optimism(o: Optimism) -> pb::Optimism {
+    match o {
+        Optimism::Absorbing => pb::Optimism::Absorbing,
+        Optimism::Stimulus => pb::Optimism::Stimulus,
+    }
+}
+
+fn model_spec(m: pb::FullModel) -> Result<ModelInput, ServiceError> {
     use pb::full_model::Transitions;
     let pb::FullModel {
         states,
@@ -132,6 +179,16 @@ fn model_spec(m: pb::FullModel) -> Result<ModelSpec, ServiceError> {
     } = m;
     let (next, transitions) = match transitions {
         None => (None, None),
+        Some(Transitions::Learn(l)) => {
+            return Ok(ModelInput::Learned(Box::new(LearnedSpec {
+                states: to_usize("model.states", states)?,
+                state_names: (!state_names.is_empty()).then_some(state_names),
+                actions,
+                stimuli,
+                basis: basis.map(basis_spec).transpose()?,
+                learning: learned_params("model.learning", Some(learned_transitions(l)?))?,
+            })));
+        }
         Some(Transitions::Next(pb::DeterministicTransitions { rows })) => {
             let next = rows
                 .into_iter()
@@ -162,7 +219,7 @@ fn model_spec(m: pb::FullModel) -> Result<ModelSpec, ServiceError> {
             (None, Some(t))
         }
     };
-    Ok(ModelSpec {
+    Ok(ModelInput::Spec(Box::new(ModelSpec {
         states: to_usize("model.states", states)?,
         // proto3 cannot tell an empty list from an absent one: empty is none.
         state_names: (!state_names.is_empty()).then_some(state_names),
@@ -171,7 +228,7 @@ fn model_spec(m: pb::FullModel) -> Result<ModelSpec, ServiceError> {
         transitions,
         stimuli,
         basis: basis.map(basis_spec).transpose()?,
-    })
+    })))
 }
 
 fn transition_spec(i: usize, t: pb::Transition) -> Result<TransitionSpec, ServiceError> {
@@ -492,6 +549,7 @@ fn model_summary(m: ModelSummary) -> pb::ModelSummary {
         basis: spec,
         features,
         layout,
+        learned,
     } = m;
     pb::ModelSummary {
         states: states as u64,
@@ -503,6 +561,17 @@ fn model_summary(m: ModelSummary) -> pb::ModelSummary {
         basis: Some(basis(spec)),
         features: features as u64,
         layout: layout.map(grid_layout),
+        learned: learned.map(
+            |LearnedSummary {
+                 known_after,
+                 optimism: o,
+                 max_transitions,
+             }| pb::LearnedSummary {
+                known_after,
+                optimism: optimism(o).into(),
+                max_transitions: max_transitions as u64,
+            },
+        ),
     }
 }
 
@@ -734,6 +803,7 @@ pub fn history(entries: Vec<HistoryEntry>) -> pb::History {
                      lstdq_error,
                      stimulus,
                      curiosity,
+                     known_fraction,
                  }| pb::HistoryEntry {
                     tick,
                     state: state as u64,
@@ -743,6 +813,7 @@ pub fn history(entries: Vec<HistoryEntry>) -> pb::History {
                     lstdq_error,
                     stimulus: stimulus.map(|values| pb::Stimulus { values }),
                     curiosity: curiosity.map(tick_curiosity),
+                    known_fraction,
                 },
             )
             .collect(),
@@ -781,6 +852,7 @@ pub fn values(v: Values) -> pb::Values {
         r,
         xi,
         curiosity,
+        known_fraction,
     } = v;
     pb::Values {
         tick,
@@ -799,6 +871,7 @@ pub fn values(v: Values) -> pb::Values {
                 .collect(),
         }),
         curiosity: curiosity.map(curiosity_info),
+        known_fraction,
     }
 }
 

@@ -7,6 +7,12 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class Optimism(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    OPTIMISM_UNSPECIFIED: _ClassVar[Optimism]
+    OPTIMISM_ABSORBING: _ClassVar[Optimism]
+    OPTIMISM_STIMULUS: _ClassVar[Optimism]
+
 class UpdateMode(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     UPDATE_MODE_UNSPECIFIED: _ClassVar[UpdateMode]
@@ -17,6 +23,9 @@ class StimulusRateRule(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     STIMULUS_RATE_RULE_UNSPECIFIED: _ClassVar[StimulusRateRule]
     STIMULUS_RATE_RULE_SAMPLE_MEAN: _ClassVar[StimulusRateRule]
+OPTIMISM_UNSPECIFIED: Optimism
+OPTIMISM_ABSORBING: Optimism
+OPTIMISM_STIMULUS: Optimism
 UPDATE_MODE_UNSPECIFIED: UpdateMode
 UPDATE_MODE_LOCKSTEP: UpdateMode
 UPDATE_MODE_ASYNC: UpdateMode
@@ -52,7 +61,7 @@ class PresetModel(_message.Message):
     def __init__(self, name: _Optional[str] = ..., basis: _Optional[_Union[Basis, _Mapping]] = ...) -> None: ...
 
 class GridModel(_message.Message):
-    __slots__ = ("rows", "sources", "stimuli", "basis")
+    __slots__ = ("rows", "sources", "stimuli", "basis", "learn", "learning")
     class SourcesEntry(_message.Message):
         __slots__ = ("key", "value")
         KEY_FIELD_NUMBER: _ClassVar[int]
@@ -64,20 +73,25 @@ class GridModel(_message.Message):
     SOURCES_FIELD_NUMBER: _ClassVar[int]
     STIMULI_FIELD_NUMBER: _ClassVar[int]
     BASIS_FIELD_NUMBER: _ClassVar[int]
+    LEARN_FIELD_NUMBER: _ClassVar[int]
+    LEARNING_FIELD_NUMBER: _ClassVar[int]
     rows: _containers.RepeatedScalarFieldContainer[str]
     sources: _containers.ScalarMap[str, int]
     stimuli: _containers.RepeatedScalarFieldContainer[str]
     basis: Basis
-    def __init__(self, rows: _Optional[_Iterable[str]] = ..., sources: _Optional[_Mapping[str, int]] = ..., stimuli: _Optional[_Iterable[str]] = ..., basis: _Optional[_Union[Basis, _Mapping]] = ...) -> None: ...
+    learn: bool
+    learning: LearnedTransitions
+    def __init__(self, rows: _Optional[_Iterable[str]] = ..., sources: _Optional[_Mapping[str, int]] = ..., stimuli: _Optional[_Iterable[str]] = ..., basis: _Optional[_Union[Basis, _Mapping]] = ..., learn: _Optional[bool] = ..., learning: _Optional[_Union[LearnedTransitions, _Mapping]] = ...) -> None: ...
 
 class FullModel(_message.Message):
-    __slots__ = ("states", "state_names", "actions", "stimuli", "next", "stochastic", "basis")
+    __slots__ = ("states", "state_names", "actions", "stimuli", "next", "stochastic", "learn", "basis")
     STATES_FIELD_NUMBER: _ClassVar[int]
     STATE_NAMES_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     STIMULI_FIELD_NUMBER: _ClassVar[int]
     NEXT_FIELD_NUMBER: _ClassVar[int]
     STOCHASTIC_FIELD_NUMBER: _ClassVar[int]
+    LEARN_FIELD_NUMBER: _ClassVar[int]
     BASIS_FIELD_NUMBER: _ClassVar[int]
     states: int
     state_names: _containers.RepeatedScalarFieldContainer[str]
@@ -85,8 +99,17 @@ class FullModel(_message.Message):
     stimuli: _containers.RepeatedScalarFieldContainer[str]
     next: DeterministicTransitions
     stochastic: StochasticTransitions
+    learn: LearnedTransitions
     basis: Basis
-    def __init__(self, states: _Optional[int] = ..., state_names: _Optional[_Iterable[str]] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., next: _Optional[_Union[DeterministicTransitions, _Mapping]] = ..., stochastic: _Optional[_Union[StochasticTransitions, _Mapping]] = ..., basis: _Optional[_Union[Basis, _Mapping]] = ...) -> None: ...
+    def __init__(self, states: _Optional[int] = ..., state_names: _Optional[_Iterable[str]] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., next: _Optional[_Union[DeterministicTransitions, _Mapping]] = ..., stochastic: _Optional[_Union[StochasticTransitions, _Mapping]] = ..., learn: _Optional[_Union[LearnedTransitions, _Mapping]] = ..., basis: _Optional[_Union[Basis, _Mapping]] = ...) -> None: ...
+
+class LearnedTransitions(_message.Message):
+    __slots__ = ("known_after", "optimism")
+    KNOWN_AFTER_FIELD_NUMBER: _ClassVar[int]
+    OPTIMISM_FIELD_NUMBER: _ClassVar[int]
+    known_after: int
+    optimism: Optimism
+    def __init__(self, known_after: _Optional[int] = ..., optimism: _Optional[_Union[Optimism, str]] = ...) -> None: ...
 
 class DeterministicTransitions(_message.Message):
     __slots__ = ("rows",)
@@ -231,7 +254,7 @@ class BasisSummary(_message.Message):
     def __init__(self, kind: _Optional[str] = ..., k: _Optional[int] = ...) -> None: ...
 
 class ModelSummary(_message.Message):
-    __slots__ = ("states", "actions", "stimuli", "pairs", "transitions", "deterministic", "basis", "features", "layout")
+    __slots__ = ("states", "actions", "stimuli", "pairs", "transitions", "deterministic", "basis", "features", "layout", "learned")
     STATES_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     STIMULI_FIELD_NUMBER: _ClassVar[int]
@@ -241,6 +264,7 @@ class ModelSummary(_message.Message):
     BASIS_FIELD_NUMBER: _ClassVar[int]
     FEATURES_FIELD_NUMBER: _ClassVar[int]
     LAYOUT_FIELD_NUMBER: _ClassVar[int]
+    LEARNED_FIELD_NUMBER: _ClassVar[int]
     states: int
     actions: _containers.RepeatedScalarFieldContainer[str]
     stimuli: _containers.RepeatedScalarFieldContainer[str]
@@ -250,7 +274,18 @@ class ModelSummary(_message.Message):
     basis: BasisSummary
     features: int
     layout: GridLayout
-    def __init__(self, states: _Optional[int] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., pairs: _Optional[int] = ..., transitions: _Optional[int] = ..., deterministic: _Optional[bool] = ..., basis: _Optional[_Union[BasisSummary, _Mapping]] = ..., features: _Optional[int] = ..., layout: _Optional[_Union[GridLayout, _Mapping]] = ...) -> None: ...
+    learned: LearnedSummary
+    def __init__(self, states: _Optional[int] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., pairs: _Optional[int] = ..., transitions: _Optional[int] = ..., deterministic: _Optional[bool] = ..., basis: _Optional[_Union[BasisSummary, _Mapping]] = ..., features: _Optional[int] = ..., layout: _Optional[_Union[GridLayout, _Mapping]] = ..., learned: _Optional[_Union[LearnedSummary, _Mapping]] = ...) -> None: ...
+
+class LearnedSummary(_message.Message):
+    __slots__ = ("known_after", "optimism", "max_transitions")
+    KNOWN_AFTER_FIELD_NUMBER: _ClassVar[int]
+    OPTIMISM_FIELD_NUMBER: _ClassVar[int]
+    MAX_TRANSITIONS_FIELD_NUMBER: _ClassVar[int]
+    known_after: int
+    optimism: Optimism
+    max_transitions: int
+    def __init__(self, known_after: _Optional[int] = ..., optimism: _Optional[_Union[Optimism, str]] = ..., max_transitions: _Optional[int] = ...) -> None: ...
 
 class GridLayout(_message.Message):
     __slots__ = ("rows", "cols", "cells", "marks")
@@ -561,7 +596,7 @@ class PairVectors(_message.Message):
     def __init__(self, pairs: _Optional[_Iterable[_Union[PairVector, _Mapping]]] = ...) -> None: ...
 
 class Values(_message.Message):
-    __slots__ = ("tick", "policy_version", "v", "q", "policy", "r", "xi", "curiosity")
+    __slots__ = ("tick", "policy_version", "v", "q", "policy", "r", "xi", "curiosity", "known_fraction")
     TICK_FIELD_NUMBER: _ClassVar[int]
     POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
     V_FIELD_NUMBER: _ClassVar[int]
@@ -570,6 +605,7 @@ class Values(_message.Message):
     R_FIELD_NUMBER: _ClassVar[int]
     XI_FIELD_NUMBER: _ClassVar[int]
     CURIOSITY_FIELD_NUMBER: _ClassVar[int]
+    KNOWN_FRACTION_FIELD_NUMBER: _ClassVar[int]
     tick: int
     policy_version: int
     v: StateValues
@@ -578,7 +614,8 @@ class Values(_message.Message):
     r: PairValues
     xi: PairVectors
     curiosity: CuriosityInfo
-    def __init__(self, tick: _Optional[int] = ..., policy_version: _Optional[int] = ..., v: _Optional[_Union[StateValues, _Mapping]] = ..., q: _Optional[_Union[PairValues, _Mapping]] = ..., policy: _Optional[_Union[Policy, _Mapping]] = ..., r: _Optional[_Union[PairValues, _Mapping]] = ..., xi: _Optional[_Union[PairVectors, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ...) -> None: ...
+    known_fraction: float
+    def __init__(self, tick: _Optional[int] = ..., policy_version: _Optional[int] = ..., v: _Optional[_Union[StateValues, _Mapping]] = ..., q: _Optional[_Union[PairValues, _Mapping]] = ..., policy: _Optional[_Union[Policy, _Mapping]] = ..., r: _Optional[_Union[PairValues, _Mapping]] = ..., xi: _Optional[_Union[PairVectors, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ..., known_fraction: _Optional[float] = ...) -> None: ...
 
 class GetHistoryRequest(_message.Message):
     __slots__ = ("session_id", "limit")
@@ -589,7 +626,7 @@ class GetHistoryRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., limit: _Optional[int] = ...) -> None: ...
 
 class HistoryEntry(_message.Message):
-    __slots__ = ("tick", "state", "action_index", "drive", "reward", "lstdq_error", "stimulus", "curiosity")
+    __slots__ = ("tick", "state", "action_index", "drive", "reward", "lstdq_error", "stimulus", "curiosity", "known_fraction")
     TICK_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
@@ -598,6 +635,7 @@ class HistoryEntry(_message.Message):
     LSTDQ_ERROR_FIELD_NUMBER: _ClassVar[int]
     STIMULUS_FIELD_NUMBER: _ClassVar[int]
     CURIOSITY_FIELD_NUMBER: _ClassVar[int]
+    KNOWN_FRACTION_FIELD_NUMBER: _ClassVar[int]
     tick: int
     state: int
     action_index: int
@@ -606,7 +644,8 @@ class HistoryEntry(_message.Message):
     lstdq_error: float
     stimulus: Stimulus
     curiosity: TickCuriosity
-    def __init__(self, tick: _Optional[int] = ..., state: _Optional[int] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., lstdq_error: _Optional[float] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ...) -> None: ...
+    known_fraction: float
+    def __init__(self, tick: _Optional[int] = ..., state: _Optional[int] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., lstdq_error: _Optional[float] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ..., known_fraction: _Optional[float] = ...) -> None: ...
 
 class History(_message.Message):
     __slots__ = ("entries",)
