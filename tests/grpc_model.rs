@@ -393,6 +393,9 @@ async fn invalid_typed_models_get_the_code_of_their_rest_json() {
     let mut grpc = grpc_client(&running).await;
     let many: Vec<String> = (0..300_000).map(|i| format!("n{i}")).collect();
     let many_refs: Vec<&str> = many.iter().map(String::as_str).collect();
+    // More actions than `--max-pairs` (1,000,000).
+    let too_many: Vec<String> = (0..1_000_001).map(|i| format!("n{i}")).collect();
+    let too_many_refs: Vec<&str> = too_many.iter().map(String::as_str).collect();
     let learn = |l| pb::full_model::Transitions::Learn(l);
     let cases: Vec<(&str, pb::Model, Value, &str)> = vec![
         (
@@ -531,9 +534,9 @@ async fn invalid_typed_models_get_the_code_of_their_rest_json() {
             "limit_exceeded",
         ),
         (
-            "300 000 actions",
-            form(Form::Full(full(1, &many_refs, &["x"], next(&[])))),
-            json!({"states": 1, "actions": many, "stimuli": ["x"], "next": []}),
+            "1 000 001 actions",
+            form(Form::Full(full(1, &too_many_refs, &["x"], next(&[])))),
+            json!({"states": 1, "actions": too_many, "stimuli": ["x"], "next": []}),
             "limit_exceeded",
         ),
         (

@@ -367,7 +367,7 @@ async fn absurd_learned_models_get_a_precise_4xx() {
             json!({}),
             413,
             "limit_exceeded",
-            "`model.states` is 1000000000000000000; the limit is 200000",
+            "`model.states` is 1000000000000000000; the limit is 1000000",
         ),
         (
             full(json!({"states": 1_000_000_000_000_000_000u64, "actions": []})),
@@ -377,11 +377,11 @@ async fn absurd_learned_models_get_a_precise_4xx() {
             "`model.actions`: must name at least one action",
         ),
         (
-            full(json!({"states": 100_000, "actions": ["a", "b", "c"]})),
+            full(json!({"states": 400_000, "actions": ["a", "b", "c"]})),
             json!({}),
             413,
             "limit_exceeded",
-            "`model` states x actions is 300000; the limit is 200000",
+            "`model` states x actions is 1200000; the limit is 1000000",
         ),
         (
             full(json!({"states": 0})),

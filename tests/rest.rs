@@ -627,6 +627,37 @@ async fn grids_of_ten_and_a_hundred_thousand_states_are_served() {
             "{err}"
         );
     }
+    // A learned 100 × 100 grid fits too: its cap on stored transitions is
+    // what the per-session budgets allow (priced as a stochastic model).
+    let body = json!({
+        "model": {"grid": open_grid(100), "sources": {"a": 0, "b": 1}, "learn": true, "basis": {"kind": "indicator"}},
+        "agent": {"seed": 3, "update_mode": "lockstep", "history": 16}
+    });
+    let (status, info) = post(&client, &url, &body).await;
+    assert_eq!(status, 201, "learned 100×100: {info}");
+    let cap = info["model"]["learned"]["max_transitions"]
+        .as_u64()
+        .expect("cap");
+    let pairs = info["model"]["pairs"].as_u64().expect("pairs");
+    assert!(cap >= pairs && cap < 2_000_000, "cap {cap}, pairs {pairs}");
+    let id = info["id"].as_str().expect("id");
+    let observe = format!("{url}/{id}/observations");
+    let (mut r, mut c) = (50usize, 50usize);
+    for t in 0..10u64 {
+        let mut obs = json!({"state": r * 100 + c});
+        if t > 0 {
+            obs["stimulus"] = json!([0.0, 0.0]);
+        }
+        let (status, step) = post(&client, &observe, &obs).await;
+        assert_eq!(status, 200, "learned 100×100 at t={t}: {step}");
+        match step["action"].as_str().expect("action") {
+            "left" => c -= 1,
+            "right" => c += 1,
+            "north" => r -= 1,
+            "south" => r += 1,
+            _ => {}
+        }
+    }
     // A grid of more than `--max-pairs` cells is refused before it is built.
     let body = json!({"model": {"grid": open_grid(1001), "sources": {"a": 0, "b": 1}, "basis": {"kind": "indicator"}}});
     let (status, err) = post(&client, &url, &body).await;

@@ -50,13 +50,63 @@ fn us(ops: f64) -> u64 {
 
 /// Estimates the cost of a session on `model` with `config`.
 pub fn estimate(model: &ModelSummary, config: &EffectiveConfig) -> SessionCost {
+    estimate_with(
+        model,
+        config,
+        model.learned.as_ref().map(|l| l.max_transitions),
+    )
+}
+
+/// The most transitions a learned session on `model` with `config` may
+/// store within the per-session budgets (`--max-session-bytes`,
+/// `--max-tick-us`): its cost is estimated at its cap, so the cap is the
+/// largest one that fits, up to `full` (every successor of every pair, at
+/// most `--max-transitions`). When not even one successor per pair fits,
+/// `full`: the session is then refused for its cost, with that message.
+pub fn learned_cap_within(
+    model: &ModelSummary,
+    config: &EffectiveConfig,
+    full: usize,
+    max_bytes: u64,
+    max_tick_us: u64,
+) -> usize {
+    let fits = |cap: usize| {
+        let cost = estimate_with(model, config, Some(cap));
+        cost.bytes <= max_bytes && cost.tick_us <= max_tick_us
+    };
+    // A fresh P̂ stores one successor per pair (unknown pairs lead to the
+    // absorbing state, or stay put).
+    let floor = model.pairs.min(full);
+    if fits(full) || !fits(floor) {
+        return full;
+    }
+    // The estimate grows with the cap: the largest cap that fits, in
+    // [floor, full).
+    let (mut lo, mut hi) = (floor, full);
+    while hi - lo > 1 {
+        let mid = lo + (hi - lo) / 2;
+        if fits(mid) {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+    }
+    lo
+}
+
+/// [`estimate`], a learned model priced at `learned_cap` transitions.
+fn estimate_with(
+    model: &ModelSummary,
+    config: &EffectiveConfig,
+    learned_cap: Option<usize>,
+) -> SessionCost {
     let states = model.states as u64;
     let actions = model.actions.len() as u64;
     let pairs = model.pairs as u64;
     // A learned model (docs/algorithm.md §8) is priced at the most
     // transitions it may come to store, stochastic.
-    let (transitions, deterministic) = match &model.learned {
-        Some(l) => (l.max_transitions as u64, false),
+    let (transitions, deterministic) = match learned_cap {
+        Some(cap) => (cap as u64, false),
         None => (model.transitions as u64, model.deterministic),
     };
     let n = model.stimuli.len() as u64;
@@ -81,7 +131,7 @@ pub fn estimate(model: &ModelSummary, config: &EffectiveConfig) -> SessionCost {
     // The learner: Ξ and its visit counts, R, Q twice, the policy, D.
     bytes += mul(mul(pairs, n), 8) + mul(pairs, 4) + mul(pairs, 24) + mul(states, 4);
     bytes += mul(n, 64);
-    if model.learned.is_some() {
+    if learned_cap.is_some() {
         // The agent's own planning model P̂ (with the absorbing state),
         // copied from the shared structure, and the counts: N(s, a) per
         // pair, one (s′, N(s, a, s′)) entry and its list's share per
@@ -270,6 +320,42 @@ mod tests {
         );
         // Planned as a stochastic model of 40,000 transitions.
         assert!(cost.tick_us > 100 * known.tick_us, "{cost:?} vs {known:?}");
+    }
+
+    #[test]
+    fn a_learned_cap_is_the_largest_that_fits_the_budgets() {
+        // A 100 × 100 grid: 10,000 states, 5 actions, 2 stimuli.
+        let mut learned = summary(10_000, 5, 2, true);
+        let full = 2_000_000;
+        learned.learned = Some(crate::service::wire::LearnedSummary {
+            known_after: 3,
+            optimism: mcapi_core::Optimism::Absorbing,
+            max_transitions: full,
+        });
+        let cfg = config(256, None);
+        let limits = crate::service::Limits::default();
+        let (bytes, us) = (limits.max_session_bytes, limits.max_tick_us);
+        assert!(
+            estimate(&learned, &cfg).tick_us > us,
+            "priced at `full`, it does not fit"
+        );
+        let cap = learned_cap_within(&learned, &cfg, full, bytes, us);
+        assert!(cap >= learned.pairs && cap < full, "{cap}");
+        let at = |cap| estimate_with(&learned, &cfg, Some(cap));
+        assert!(
+            at(cap).tick_us <= us && at(cap).bytes <= bytes,
+            "{:?}",
+            at(cap)
+        );
+        assert!(
+            at(cap + 1).tick_us > us || at(cap + 1).bytes > bytes,
+            "{:?}",
+            at(cap + 1)
+        );
+        // A cap that fits is kept; a model that cannot fit keeps `full` (and
+        // is refused for its cost).
+        assert_eq!(learned_cap_within(&learned, &cfg, 1_000, bytes, us), 1_000);
+        assert_eq!(learned_cap_within(&learned, &cfg, full, bytes, 1), full);
     }
 
     #[test]

@@ -117,7 +117,7 @@ impl Learner {
             .any(|&(t, _)| t as usize == obs.state);
         if !seen && counts.entries() >= cap {
             return Err(ServiceError::LimitExceeded(format!(
-                "the learned model already stores {} transitions, its limit (|pairs| x |states|, at most --max-transitions); `state` {} was never reached from this state and action before, so it would be one more",
+                "the learned model already stores {} transitions, its limit (`model.learned.max_transitions`: |pairs| x |states|, at most --max-transitions and what the session's budgets allow); `state` {} was never reached from this state and action before, so it would be one more",
                 counts.entries(),
                 obs.state
             )));

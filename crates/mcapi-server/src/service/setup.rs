@@ -13,6 +13,7 @@ use parking_lot::Mutex;
 use mcapi_core::{Agent, Basis, CuriousAgent, PlanningModel};
 
 use super::agent_config::{EffectiveConfig, SessionConfig};
+use super::cost;
 use super::error::ServiceError;
 use super::learner::Learner;
 use super::limits::Limits;
@@ -208,6 +209,7 @@ impl Setup {
             .params()
             .check(ctx.model().n_stimuli(), self.fresh_u64())?;
         let config = agent.effective(&params);
+        let summary = within_budget(summary, &config, limits);
         let learner = match (&agent.curiosity, input.learning()) {
             (None, None) => Learner::Plain(Agent::new(ctx, params)),
             // docs/algorithm.md §8: the same agent, planning on P̂.
@@ -229,4 +231,32 @@ impl Setup {
         };
         Ok((learner, summary, config))
     }
+}
+
+/// A learned session's summary with its cap on stored transitions lowered
+/// to what the per-session budgets allow for its configuration
+/// ([`cost::learned_cap_within`]); other summaries as they are (shared).
+fn within_budget(
+    summary: Arc<ModelSummary>,
+    config: &EffectiveConfig,
+    limits: &Limits,
+) -> Arc<ModelSummary> {
+    let Some(learned) = &summary.learned else {
+        return summary;
+    };
+    let cap = cost::learned_cap_within(
+        &summary,
+        config,
+        learned.max_transitions,
+        limits.max_session_bytes,
+        limits.max_tick_us,
+    );
+    if cap == learned.max_transitions {
+        return summary;
+    }
+    let mut own = (*summary).clone();
+    if let Some(l) = &mut own.learned {
+        l.max_transitions = cap;
+    }
+    Arc::new(own)
 }

@@ -96,9 +96,10 @@ pub struct LearnedSummary {
     #[schema(value_type = String)]
     pub optimism: mcapi_core::Optimism,
     /// The most (pair, successor) entries the session stores: |pairs| ×
-    /// |states|, at most the server's `--max-transitions`. An observation
-    /// that would store one more is refused (`limit_exceeded`); the
-    /// session's cost is estimated at this many.
+    /// |states|, at most the server's `--max-transitions`, and at most what
+    /// keeps the session's estimated cost (priced at this many, stochastic)
+    /// within `--max-session-bytes` and `--max-tick-us`. An observation that
+    /// would store one more is refused (`limit_exceeded`).
     pub max_transitions: usize,
 }
 
