@@ -1065,10 +1065,13 @@ async fn cluster_local_restarts_a_killed_replica_and_stops_everything() {
         .expect("victim entry");
     assert_eq!(entry["restarts"], 1, "{entry}");
     assert!(!process_exists(old_pid), "the killed replica is reaped");
-    // Served again through the router once it has recovered (the router
-    // may answer 503 meanwhile).
+    // Served again through the router, over both transports, once it has
+    // recovered (the router may answer 503 meanwhile, as it does to any
+    // client, which retries).
     let probe = &walks[0].id;
+    let (mut attempts, mut rest_back, mut grpc_back) = (0, None, None);
     loop {
+        attempts += 1;
         let (status, replica, _, body) = call(
             &client,
             reqwest::Method::GET,
@@ -1076,22 +1079,45 @@ async fn cluster_local_restarts_a_killed_replica_and_stops_everything() {
             None,
         )
         .await;
-        if status == 200 {
+        let grpc_ok = grpc
+            .get_session(grpc_request(
+                pb::GetSessionRequest {
+                    session_id: probe.clone(),
+                },
+                None,
+                Some(probe),
+            ))
+            .await;
+        let grpc_replica = grpc_ok
+            .as_ref()
+            .ok()
+            .and_then(|r| meta(r.metadata(), "x-mcapi-replica"));
+        if status == 200 && rest_back.is_none() {
+            rest_back = Some(killed_at.elapsed());
+        }
+        if grpc_ok.is_ok() && grpc_back.is_none() {
+            grpc_back = Some(killed_at.elapsed());
+        }
+        if status == 200 && grpc_ok.is_ok() {
             assert_eq!(replica.as_deref(), Some(victim.as_str()));
+            assert_eq!(grpc_replica.as_deref(), Some(victim.as_str()));
             break;
         }
         assert!(
             Instant::now() < deadline,
-            "{probe} not served again within 60 s of the kill: {status} {body}"
+            "{probe} not served again within 60 s of the kill: REST {status} {body}; gRPC {:?}",
+            grpc_ok.err()
         );
         tokio::time::sleep(Duration::from_millis(100)).await;
     }
     let served_in = killed_at.elapsed();
     let log = cluster.err();
+    let logged = |event: &str| {
+        log.lines()
+            .any(|l| l.contains(event) && l.contains(victim.as_str()))
+    };
     assert!(
-        log.contains("exited; starting it again after a backoff")
-            && log.contains("started again")
-            && log.contains(&format!("process={victim}")),
+        logged("exited; starting it again after a backoff") && logged("started again"),
         "the restart is logged:\n{log}"
     );
     // Every session bit-equal to a replay of its acknowledged observations,
@@ -1145,10 +1171,12 @@ async fn cluster_local_restarts_a_killed_replica_and_stops_everything() {
     let (status, _) = cluster.terminate();
     assert!(status.success(), "{}", cluster.err());
     eprintln!(
-        "cluster local: up in {:.1} s; killed replica started again in {:.2} s, served through the router in {:.2} s; stopped in {:.2} s",
+        "cluster local: up in {:.1} s; killed replica started again in {:.2} s, served through the router in {:.2} s ({attempts} attempts; REST from {:.2} s, gRPC from {:.2} s); stopped in {:.2} s",
         up_in.as_secs_f64(),
         restarted_in.as_secs_f64(),
         served_in.as_secs_f64(),
+        rest_back.unwrap_or_default().as_secs_f64(),
+        grpc_back.unwrap_or_default().as_secs_f64(),
         stop_in.as_secs_f64()
     );
 }
@@ -1182,7 +1210,7 @@ fn cluster_local_refuses_bad_flags_before_starting_anything() {
     };
     let http_flag = format!("127.0.0.1:{http}");
     for n in ["0", "65", "-1", "three"] {
-        let e = local(&["--replicas", n, "--http", &http_flag]);
+        let e = local(&[&format!("--replicas={n}"), "--http", &http_flag]);
         assert!(e.contains("--replicas"), "{n}: {e}");
     }
     let e = local(&["--replicas", "0", "--http", &http_flag]);

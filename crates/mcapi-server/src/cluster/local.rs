@@ -309,6 +309,7 @@ fn alive(pid: u32) -> bool {
 
 /// Runs `mcapi cluster local` until SIGTERM or Ctrl-C.
 pub fn run(args: &LocalArgs) -> Result<()> {
+    crate::telemetry::init_logging(crate::config::LogFormat::Text, "info");
     let setup = prepare(args)?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
