@@ -784,9 +784,12 @@ fn print_banner(dir: &Path, map: &ShardMap, cluster: &Cluster, cfg: &Path, socke
         socket.display(),
         cluster.state_file.display()
     ));
-    print!("{out}");
+    // Not `print!`, which panics when stdout is a closed pipe: the
+    // cluster runs on whether or not anyone reads the banner.
     use std::io::Write;
-    let _ = std::io::stdout().flush();
+    let mut stdout = std::io::stdout().lock();
+    let _ = stdout.write_all(out.as_bytes());
+    let _ = stdout.flush();
 }
 
 #[cfg(test)]
