@@ -45,5 +45,28 @@ if [[ $# -eq 0 ]]; then
     fi
 fi
 
+# A canary first: a manifest with an unknown field must be refused, or a
+# validator that passes everything (a schema missing, --strict ignored)
+# would pass the real manifests too.
+canary="$(mktemp --suffix=.yaml)"
+trap 'rm -f "$canary"' EXIT
+cat >"$canary" <<'YAML'
+apiVersion: v1
+kind: Service
+metadata:
+  name: canary
+spec:
+  selector:
+    app: canary
+  ports:
+    - port: 8080
+      targetPort: 8080
+  sessionAfinity: None
+YAML
+if "$kv" --strict --kubernetes-version "$K8S_VERSION" "$canary" >/dev/null 2>&1; then
+    echo "k8s-validate.sh: kubernetes-validate accepted an unknown field (sessionAfinity): it checks nothing" >&2
+    exit 1
+fi
+
 "$kv" --strict --kubernetes-version "$K8S_VERSION" "$@"
 echo "kubernetes-validate $KUBERNETES_VALIDATE_VERSION (Kubernetes $K8S_VERSION, strict): $# files valid"
