@@ -849,29 +849,11 @@ impl LocalCluster {
     /// SIGTERM; returns the exit status and how long it took.
     fn terminate(&mut self) -> (std::process::ExitStatus, Duration) {
         let started = Instant::now();
-        signal(u64::from(self.child.id()), "-TERM");
-        let deadline = started + Duration::from_secs(60);
-        loop {
-            if let Some(status) = self.child.try_wait().expect("try_wait") {
-                return (status, started.elapsed());
-            }
-            assert!(
-                Instant::now() < deadline,
-                "cluster local still runs 60 s after SIGTERM:\n{}",
-                self.err()
-            );
-            std::thread::sleep(Duration::from_millis(50));
-        }
+        let stderr = self.stderr.clone();
+        let log = move || std::fs::read_to_string(&stderr).unwrap_or_default();
+        let status = common::terminate(&mut self.child, Duration::from_secs(60), &log);
+        (status, started.elapsed())
     }
-}
-
-fn signal(pid: u64, sig: &str) {
-    let ok = Command::new("kill")
-        .args([sig, &pid.to_string()])
-        .status()
-        .expect("kill runs")
-        .success();
-    assert!(ok, "kill {sig} {pid}");
 }
 
 fn process_exists(pid: u64) -> bool {
@@ -1040,7 +1022,7 @@ async fn cluster_local_restarts_a_killed_replica_and_stops_everything() {
     let victim = owner_of(&map, &walks[0].id);
     let old_pid = cluster.pid(&victim).expect("the victim runs");
     let killed_at = Instant::now();
-    signal(old_pid, "-KILL");
+    common::signal(u32::try_from(old_pid).expect("a pid"), "-KILL");
     let deadline = killed_at + Duration::from_secs(60);
     let new_pid = loop {
         if let Some(pid) = cluster.pid(&victim)

@@ -46,6 +46,8 @@ pub const DEFAULT_REPLICAS: usize = 3;
 pub const MAP_FILE: &str = "shards.map";
 /// The state file in the data directory, present while the cluster runs.
 pub const STATE_FILE: &str = "cluster.json";
+/// The router's name among the supervised processes (and its log's).
+const ROUTER: &str = "haproxy";
 /// `serve` flags that `cluster local` sets itself for each replica.
 const MANAGED_FLAGS: [&str; 5] = ["--http", "--grpc", "--data-dir", "--shard-map", "--replica"];
 /// A Unix socket's path must fit `sockaddr_un.sun_path` (108 bytes with its NUL).
@@ -452,10 +454,10 @@ fn prepare(args: &LocalArgs) -> Result<Setup> {
         );
     }
     processes.push(Process {
-        name: "haproxy".into(),
+        name: ROUTER.into(),
         program: haproxy,
         args: vec!["-db".into(), "-f".into(), haproxy_cfg.clone().into()],
-        log: dir.join("logs").join("haproxy.log"),
+        log: dir.join("logs").join(format!("{ROUTER}.log")),
         ports: None,
         ready_url: format!("http://{}/readyz", args.http),
         run: Run::Stopped,
@@ -487,6 +489,12 @@ fn local_map(dir: &Path, replicas: Option<usize>) -> Result<ShardMap> {
                 "{} has {} replicas; `cluster local` runs at most {MAX_LOCAL_REPLICAS}",
                 path.display(),
                 names.len()
+            );
+        }
+        if names.contains(&ROUTER) {
+            bail!(
+                "{}: `{ROUTER}` names the router here; rename that replica",
+                path.display()
             );
         }
         if let Some(n) = replicas
@@ -906,6 +914,16 @@ mod tests {
                 .replicas()
                 .len(),
             DEFAULT_REPLICAS
+        );
+        // A replica may not take the router's name (its log would be the router's).
+        let odd = tempfile::tempdir().expect("tempdir");
+        let names = ["haproxy", "mcapi-1"].map(|n| ReplicaName::parse(n).expect("name"));
+        let map = plan::plan(&names, None).expect("plan").map;
+        std::fs::write(odd.path().join(MAP_FILE), map.to_text()).expect("write");
+        let e = local_map(odd.path(), None).expect_err("haproxy");
+        assert!(
+            format!("{e:#}").contains("`haproxy` names the router"),
+            "{e:#}"
         );
     }
 }
