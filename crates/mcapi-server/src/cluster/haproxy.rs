@@ -204,9 +204,16 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
     }
     let map_path = path_text(&spec.map_path)?;
     let socket = path_text(&spec.stats_socket)?;
-    let admin_tcp = match &spec.admin_bind {
-        Some(a) => format!("  stats socket ipv4@{} level admin\n", host_port(a)?),
-        None => String::new(),
+    let (admin_tcp, flip_tcp) = match &spec.admin_bind {
+        Some(a) => {
+            let a = host_port(a)?;
+            let (host, port) = a.rsplit_once(':').unwrap_or((a.as_str(), ""));
+            (
+                format!("  stats socket ipv4@{a} level admin\n"),
+                format!("#   (or | nc -q1 {host} {port}, the same Runtime API over TCP)\n"),
+            )
+        }
+        None => (String::new(), String::new()),
     };
     let found = format!("{{ var(txn.shard),map({map_path}) -m found }}");
     let mut c = String::new();
@@ -214,7 +221,9 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
         "# HAProxy 2.6 router of an mcapi cluster, shard map epoch {epoch}.\n\
          # Written by `mcapi cluster haproxy-config`; flip a shard live with\n\
          #   echo 'set map {map_path} s03a7 <replica>' | socat stdio unix:{socket}\n\
-         # and write the same line into {map_path} so a reload keeps it.\n\
+         {flip_tcp}\
+         # and write the same line into {map_path} (or into what it is made\n\
+         # from, such as a Kubernetes ConfigMap) so a reload keeps it.\n\
          global\n\
          \x20 stats socket {socket} mode 600 level admin\n\
          {admin_tcp}\
@@ -446,6 +455,7 @@ mod tests {
             cfg.contains("  stats socket ipv4@127.0.0.1:9999 level admin\n"),
             "{cfg}"
         );
+        assert!(cfg.contains("| nc -q1 127.0.0.1 9999,"), "{cfg}");
         assert!(cfg.contains(
             "server mcapi-1 mcapi-1.h.ns.svc:50051 proto h2 check port 8080 check-proto h1 resolvers dns init-addr none\n"
         ));
