@@ -2,9 +2,10 @@
 CARGO ?= cargo
 
 .PHONY: test lint-docker check-links fmt-check clippy unit build release bench bench-server figures peers clean \
-	python-venv python-test e2e contract fuzz checks container-base container-test container-bench
+	python-venv python-test e2e contract fuzz checks container-base container-test container-bench \
+	k8s-validate k8s-configmap
 
-CHECKS := lint-docker check-links fmt-check clippy unit contract python-test e2e
+CHECKS := lint-docker k8s-validate check-links fmt-check clippy unit contract python-test e2e
 
 # The checks run one after the other, as listed; the container's base images
 # (network and disk bound, 2-3 minutes from scratch) are made meanwhile, in
@@ -18,6 +19,19 @@ test:
 checks:
 	@MAKEFLAGS='$(filter-out -j% --jobserver-auth=% --jobserver-fds=%,$(MAKEFLAGS))' \
 	  $(MAKE) --no-print-directory $(CHECKS)
+
+# The Kubernetes manifests (deploy/k8s/) against the schemas of a named
+# Kubernetes version, offline and strictly (unknown fields fail):
+# kubernetes-validate, pinned, installed into .venv-tools/ on first use.
+# K8S_VERSION=1.33.0 for another version.
+k8s-validate:
+	bash tools/k8s-validate.sh
+
+# Rewrites deploy/k8s/10-mcapi-cluster.yaml (shard map and HAProxy
+# configuration) with the debug binary; tests/cluster.rs fails while the
+# committed file differs from what this writes.
+k8s-configmap: build
+	bash tools/k8s-configmap.sh
 
 # Every relative link in the repository's Markdown resolves (no link out of it).
 check-links:

@@ -56,8 +56,8 @@ struct HealthcheckArgs {
         default_value = "http://127.0.0.1:8080/healthz"
     )]
     url: String,
-    /// Give up after this many milliseconds.
-    #[arg(long, default_value_t = 3000)]
+    /// Give up after this many milliseconds (1 to 60000).
+    #[arg(long, default_value_t = 3000, value_parser = clap::value_parser!(u64).range(1..=60_000))]
     timeout_ms: u64,
 }
 
@@ -246,38 +246,7 @@ fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
     })
 }
 
-/// A plain HTTP/1.1 GET; success means a `200` status line.
+/// `mcapi healthcheck`: a plain HTTP/1.1 GET; success means a `200`.
 fn healthcheck(args: &HealthcheckArgs) -> anyhow::Result<()> {
-    use std::io::{Read, Write};
-    use std::net::{TcpStream, ToSocketAddrs};
-    use std::time::Duration;
-
-    let rest = args
-        .url
-        .strip_prefix("http://")
-        .ok_or_else(|| anyhow::anyhow!("--url must start with http://"))?;
-    let (host, path) = rest
-        .split_once('/')
-        .map_or((rest, "/".to_string()), |(h, p)| (h, format!("/{p}")));
-    let timeout = Duration::from_millis(args.timeout_ms);
-    let addr = host
-        .to_socket_addrs()?
-        .next()
-        .ok_or_else(|| anyhow::anyhow!("cannot resolve {host}"))?;
-    let mut stream = TcpStream::connect_timeout(&addr, timeout)?;
-    stream.set_read_timeout(Some(timeout))?;
-    stream.set_write_timeout(Some(timeout))?;
-    write!(
-        stream,
-        "GET {path} HTTP/1.1\r\nHost: {host}\r\nConnection: close\r\n\r\n"
-    )?;
-    let mut head = [0u8; 64];
-    let n = stream.read(&mut head)?;
-    let line = String::from_utf8_lossy(&head[..n]);
-    anyhow::ensure!(
-        line.starts_with("HTTP/1.1 200") || line.starts_with("HTTP/1.0 200"),
-        "unhealthy: {}",
-        line.lines().next().unwrap_or("no answer")
-    );
-    Ok(())
+    cluster::probe::http_ok(&args.url, std::time::Duration::from_millis(args.timeout_ms))
 }

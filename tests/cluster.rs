@@ -8,8 +8,16 @@
 //! restarted with a different map serves, and the shard maps a replica
 //! refuses before it opens a port.
 //!
+//! `mcapi cluster local` is tested whole as well: three replicas and HAProxy
+//! started by one command, sessions driven through the router over REST and
+//! gRPC, one replica killed with SIGKILL and started again by the
+//! supervisor with every session bit-equal to a replay of its acknowledged
+//! observations, SIGTERM leaving no process behind, and a second start on
+//! the same directory serving the same sessions.
+//!
 //! Needs `haproxy` (Debian's package; `.ci/run` installs it): without it on
-//! PATH the router test says so and returns.
+//! PATH these tests fail, unless `MCAPI_SKIP_HAPROXY` is set, when they say
+//! so and return.
 
 mod common;
 
@@ -17,10 +25,13 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-use common::{Launch, Server, free_ports, grpc_request, http_client};
+use common::{
+    Launch, Obs, Reply, Server, available, check_session, free_ports, grpc_create, grpc_request,
+    http_client, params, rest_create, step_state, stimulus,
+};
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::cluster::haproxy::{runtime_command, set_owner};
+use mcapi_server::cluster::haproxy::{find_haproxy, runtime_command, set_owner};
 use mcapi_server::cluster::{ReplicaName, ShardMap, shard_key, shard_of_id};
 use serde_json::{Value, json};
 use tokio::sync::mpsc;
@@ -41,14 +52,19 @@ fn stderr(o: &Output) -> String {
     String::from_utf8_lossy(&o.stderr).into_owned()
 }
 
-/// `haproxy` from PATH (Debian installs it in /usr/sbin, which a user's
-/// PATH may lack: that is looked at too).
-fn haproxy_bin() -> Option<PathBuf> {
-    let path = std::env::var_os("PATH").unwrap_or_default();
-    std::env::split_paths(&path)
-        .chain(["/usr/sbin".into(), "/usr/local/sbin".into()])
-        .map(|d| d.join("haproxy"))
-        .find(|p| p.is_file())
+/// Whether a test that needs `haproxy` can run. Missing, it fails the
+/// test, unless `MCAPI_SKIP_HAPROXY` is set: then the test says it skips
+/// and returns (CI installs haproxy, so there it always runs).
+fn haproxy_or_skip(test: &str) -> bool {
+    if find_haproxy().is_some() {
+        return true;
+    }
+    assert!(
+        std::env::var_os("MCAPI_SKIP_HAPROXY").is_some(),
+        "{test}: `haproxy` is not on PATH (apt-get install haproxy); set MCAPI_SKIP_HAPROXY=1 to skip this test"
+    );
+    eprintln!("SKIPPED {test}: `haproxy` is not on PATH and MCAPI_SKIP_HAPROXY is set");
+    false
 }
 
 /// A running HAProxy, killed when dropped.
@@ -169,7 +185,7 @@ async fn start_replica(dir: &Path, map: &Path, name: &str, extra: &[&str]) -> Se
 }
 
 async fn start_router(dir: &Path, map: &Path, replicas: &[(&str, &Server)]) -> Router {
-    let haproxy = haproxy_bin().expect("checked by the caller");
+    let haproxy = find_haproxy().expect("checked by the caller");
     let (rest, grpc) = free_ports();
     let out_dir = dir.join("router");
     let mut args: Vec<String> = [
@@ -250,10 +266,7 @@ async fn start_router(dir: &Path, map: &Path, replicas: &[(&str, &Server)]) -> R
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_replicas_behind_haproxy_route_by_shard() {
-    if haproxy_bin().is_none() {
-        eprintln!(
-            "SKIPPED three_replicas_behind_haproxy_route_by_shard: `haproxy` is not on PATH (apt-get install haproxy)"
-        );
+    if !haproxy_or_skip("three_replicas_behind_haproxy_route_by_shard") {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
@@ -723,4 +736,601 @@ fn absurd_shard_maps_and_cluster_flags_are_refused_before_any_port_opens() {
         stderr(&out)
     );
     assert!((330..=345).contains(&moved), "{moved}");
+}
+
+// ------------------------------------------------------- mcapi cluster local
+
+/// A running `mcapi cluster local`, killed (SIGKILL) when dropped; its
+/// children then get SIGTERM from the kernel (PR_SET_PDEATHSIG).
+struct LocalCluster {
+    child: Child,
+    dir: PathBuf,
+    http: u16,
+    grpc: u16,
+    stdout: PathBuf,
+    stderr: PathBuf,
+}
+
+impl Drop for LocalCluster {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+impl LocalCluster {
+    /// Starts it on fresh router ports and waits for its banner (every
+    /// replica and the router ready).
+    fn start(dir: &Path, extra: &[&str], run: &str) -> Self {
+        let (http, grpc) = free_ports();
+        let stdout = dir.join(format!("local-{run}.out"));
+        let stderr = dir.join(format!("local-{run}.err"));
+        let data = dir.join("cluster");
+        let mut args: Vec<String> = [
+            "cluster",
+            "local",
+            "--http",
+            &format!("127.0.0.1:{http}"),
+            "--grpc",
+            &format!("127.0.0.1:{grpc}"),
+            "--data-dir",
+            data.to_str().expect("utf-8"),
+        ]
+        .map(String::from)
+        .to_vec();
+        args.extend(extra.iter().map(|s| s.to_string()));
+        args.extend(["--", "--workers", "2"].map(String::from));
+        let child = Command::new(env!("CARGO_BIN_EXE_mcapi"))
+            .args(&args)
+            .env_remove("MCAPI_SHARD_MAP")
+            .env_remove("MCAPI_REPLICA")
+            .stdin(Stdio::null())
+            .stdout(Stdio::from(std::fs::File::create(&stdout).expect("stdout")))
+            .stderr(Stdio::from(std::fs::File::create(&stderr).expect("stderr")))
+            .spawn()
+            .expect("mcapi cluster local starts");
+        let mut cluster = Self {
+            child,
+            dir: data,
+            http,
+            grpc,
+            stdout,
+            stderr,
+        };
+        let deadline = Instant::now() + Duration::from_secs(120);
+        while !cluster
+            .out()
+            .contains("Ctrl-C or SIGTERM stops everything.")
+        {
+            if let Some(status) = cluster.child.try_wait().expect("try_wait") {
+                panic!(
+                    "cluster local exited ({status}) before it was up:\n{}",
+                    cluster.err()
+                );
+            }
+            assert!(
+                Instant::now() < deadline,
+                "cluster local not up after 120 s:\n{}",
+                cluster.err()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        cluster
+    }
+
+    fn out(&self) -> String {
+        std::fs::read_to_string(&self.stdout).unwrap_or_default()
+    }
+
+    fn err(&self) -> String {
+        std::fs::read_to_string(&self.stderr).unwrap_or_default()
+    }
+
+    fn base(&self) -> String {
+        format!("http://127.0.0.1:{}", self.http)
+    }
+
+    /// `cluster.json`.
+    fn state(&self) -> Value {
+        let text = std::fs::read_to_string(self.dir.join("cluster.json")).expect("cluster.json");
+        serde_json::from_str(&text).expect("cluster.json is JSON")
+    }
+
+    /// The pid of a process named in `cluster.json` (None while it waits to restart).
+    fn pid(&self, name: &str) -> Option<u64> {
+        self.state()["processes"]
+            .as_array()
+            .expect("processes")
+            .iter()
+            .find(|p| p["name"] == name)
+            .and_then(|p| p["pid"].as_u64())
+    }
+
+    /// SIGTERM; returns the exit status and how long it took.
+    fn terminate(&mut self) -> (std::process::ExitStatus, Duration) {
+        let started = Instant::now();
+        let stderr = self.stderr.clone();
+        let log = move || std::fs::read_to_string(&stderr).unwrap_or_default();
+        let status = common::terminate(&mut self.child, Duration::from_secs(60), &log);
+        (status, started.elapsed())
+    }
+}
+
+fn process_exists(pid: u64) -> bool {
+    Path::new(&format!("/proc/{pid}")).exists()
+}
+
+/// A session as its client knows it: the observations acknowledged, with
+/// their replies, for the replay `check_session` compares with.
+struct Walk {
+    id: String,
+    params: mcapi_core::AgentParams,
+    grpc: bool,
+    applied: Vec<(Obs, Option<Reply>)>,
+}
+
+impl Walk {
+    /// The next observation: the first puts the agent in state 25; then it
+    /// walks right (left at the end), reporting the action it took.
+    fn next(&self) -> Obs {
+        let Some((last, _)) = self.applied.last() else {
+            return Obs {
+                state: 25,
+                stimulus: None,
+                taken: None,
+                report: None,
+                by_name: false,
+            };
+        };
+        let a = if available(last.state, 1) { 1 } else { 0 };
+        let next = step_state(last.state, a);
+        Obs {
+            state: next,
+            stimulus: Some(stimulus(next)),
+            taken: Some(a),
+            report: Some(a),
+            by_name: self.applied.len() % 2 == 0,
+        }
+    }
+
+    /// One observation through the router, over the session's transport.
+    async fn step(
+        &mut self,
+        client: &reqwest::Client,
+        base: &str,
+        grpc: &mut AgentsClient<Channel>,
+    ) {
+        let obs = self.next();
+        let reply = if self.grpc {
+            let reply = grpc
+                .observe(grpc_request(
+                    pb::ObserveRequest {
+                        session_id: self.id.clone(),
+                        observations: vec![obs.pb(&self.id)],
+                    },
+                    None,
+                    Some(&self.id),
+                ))
+                .await
+                .unwrap_or_else(|s| panic!("gRPC observe {}: {s:?}", self.id))
+                .into_inner();
+            Reply::from_pb(&reply.steps[0])
+        } else {
+            let (status, _, _, body) = call(
+                client,
+                reqwest::Method::POST,
+                &format!("{base}/v1/sessions/{}/observations", self.id),
+                Some(obs.json()),
+            )
+            .await;
+            assert_eq!(status, 200, "observe {}: {body}", self.id);
+            Reply::from_json(&body)
+        };
+        self.applied.push((obs, Some(reply)));
+    }
+}
+
+/// Creates `rest` sessions over REST and `grpc` over gRPC through the router.
+async fn create_walks(
+    client: &reqwest::Client,
+    base: &str,
+    grpc: &mut AgentsClient<Channel>,
+    rest_n: u64,
+    grpc_n: u64,
+) -> Vec<Walk> {
+    let mut walks = Vec::new();
+    for seed in 0..rest_n + grpc_n {
+        let is_grpc = seed >= rest_n;
+        let id = if is_grpc {
+            grpc_create(grpc, None, seed, true, None).await
+        } else {
+            rest_create(
+                client,
+                base,
+                None,
+                json!({"seed": seed, "update_mode": "lockstep"}),
+            )
+            .await
+        };
+        walks.push(Walk {
+            id,
+            params: params(seed, None),
+            grpc: is_grpc,
+            applied: Vec::new(),
+        });
+    }
+    walks
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn cluster_local_restarts_a_killed_replica_and_stops_everything() {
+    if !haproxy_or_skip("cluster_local_restarts_a_killed_replica_and_stops_everything") {
+        return;
+    }
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let started = Instant::now();
+    let mut cluster = LocalCluster::start(tmp.path(), &["--replicas", "3"], "first");
+    let up_in = started.elapsed();
+    let state = cluster.state();
+    let names: Vec<String> = state["processes"]
+        .as_array()
+        .expect("processes")
+        .iter()
+        .map(|p| p["name"].as_str().expect("name").to_string())
+        .collect();
+    assert_eq!(
+        names,
+        ["mcapi-0", "mcapi-1", "mcapi-2", "haproxy"],
+        "{state}"
+    );
+    assert_eq!(
+        state["supervisor"].as_u64(),
+        Some(u64::from(cluster.child.id()))
+    );
+    let map = ShardMap::read(&cluster.dir.join("shards.map")).expect("the cluster's map");
+    for want in [
+        format!("REST  http://127.0.0.1:{}", cluster.http),
+        format!("gRPC  http://127.0.0.1:{}", cluster.grpc),
+        "mcapi-2".to_string(),
+    ] {
+        assert!(
+            cluster.out().contains(&want),
+            "banner lacks {want:?}:\n{}",
+            cluster.out()
+        );
+    }
+
+    // Sessions created and driven through the router, over both transports.
+    let client = http_client();
+    let base = cluster.base();
+    let mut grpc = AgentsClient::connect(format!("http://127.0.0.1:{}", cluster.grpc))
+        .await
+        .expect("gRPC through the router");
+    let mut walks = create_walks(&client, &base, &mut grpc, 18, 6).await;
+    for w in &mut walks {
+        for _ in 0..5 {
+            w.step(&client, &base, &mut grpc).await;
+        }
+    }
+    let mut on: std::collections::BTreeMap<String, usize> = Default::default();
+    for w in &walks {
+        *on.entry(owner_of(&map, &w.id)).or_default() += 1;
+    }
+    assert_eq!(on.len(), 3, "sessions on every replica: {on:?}");
+
+    // SIGKILL the replica of the first session; the supervisor starts it again.
+    let victim = owner_of(&map, &walks[0].id);
+    let old_pid = cluster.pid(&victim).expect("the victim runs");
+    let killed_at = Instant::now();
+    common::signal(u32::try_from(old_pid).expect("a pid"), "-KILL");
+    let deadline = killed_at + Duration::from_secs(60);
+    let new_pid = loop {
+        if let Some(pid) = cluster.pid(&victim)
+            && pid != old_pid
+        {
+            break pid;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{victim} not started again within 60 s:\n{}",
+            cluster.err()
+        );
+        tokio::time::sleep(Duration::from_millis(50)).await;
+    };
+    let restarted_in = killed_at.elapsed();
+    let entry = cluster.state()["processes"]
+        .as_array()
+        .expect("processes")
+        .iter()
+        .find(|p| p["name"] == victim.as_str())
+        .cloned()
+        .expect("victim entry");
+    assert_eq!(entry["restarts"], 1, "{entry}");
+    assert!(!process_exists(old_pid), "the killed replica is reaped");
+    // Served again through the router, over both transports, once it has
+    // recovered (the router may answer 503 meanwhile, as it does to any
+    // client, which retries).
+    let probe = &walks[0].id;
+    let (mut attempts, mut rest_back, mut grpc_back) = (0, None, None);
+    loop {
+        attempts += 1;
+        let (status, replica, _, body) = call(
+            &client,
+            reqwest::Method::GET,
+            &format!("{base}/v1/sessions/{probe}"),
+            None,
+        )
+        .await;
+        let grpc_ok = grpc
+            .get_session(grpc_request(
+                pb::GetSessionRequest {
+                    session_id: probe.clone(),
+                },
+                None,
+                Some(probe),
+            ))
+            .await;
+        let grpc_replica = grpc_ok
+            .as_ref()
+            .ok()
+            .and_then(|r| meta(r.metadata(), "x-mcapi-replica"));
+        if status == 200 && rest_back.is_none() {
+            rest_back = Some(killed_at.elapsed());
+        }
+        if grpc_ok.is_ok() && grpc_back.is_none() {
+            grpc_back = Some(killed_at.elapsed());
+        }
+        if status == 200 && grpc_ok.is_ok() {
+            assert_eq!(replica.as_deref(), Some(victim.as_str()));
+            assert_eq!(grpc_replica.as_deref(), Some(victim.as_str()));
+            break;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "{probe} not served again within 60 s of the kill: REST {status} {body}; gRPC {:?}",
+            grpc_ok.err()
+        );
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    }
+    let served_in = killed_at.elapsed();
+    let log = cluster.err();
+    let logged = |event: &str| {
+        log.lines()
+            .any(|l| l.contains(event) && l.contains(victim.as_str()))
+    };
+    assert!(
+        logged("exited; starting it again after a backoff") && logged("started again"),
+        "the restart is logged:\n{log}"
+    );
+    // Every session bit-equal to a replay of its acknowledged observations,
+    // and writable: the killed replica's through its new process.
+    for w in &mut walks {
+        check_session(&client, &base, None, &w.id, &w.params, &w.applied, &w.id).await;
+        w.step(&client, &base, &mut grpc).await;
+    }
+    drop(grpc);
+
+    // SIGTERM: replicas drained, then the router; no process left.
+    let mut pids: Vec<u64> = names.iter().filter_map(|n| cluster.pid(n)).collect();
+    assert_eq!(pids.len(), 4);
+    assert!(pids.contains(&new_pid));
+    pids.push(u64::from(cluster.child.id()));
+    let (status, stop_in) = cluster.terminate();
+    assert!(status.success(), "exit {status}:\n{}", cluster.err());
+    for pid in &pids {
+        assert!(
+            !process_exists(*pid),
+            "pid {pid} still exists after shutdown"
+        );
+    }
+    assert!(
+        std::net::TcpStream::connect(("127.0.0.1", cluster.http)).is_err(),
+        "the router's port is closed"
+    );
+    assert!(
+        !cluster.dir.join("cluster.json").exists(),
+        "the state file goes with the cluster"
+    );
+    let log = cluster.err();
+    assert!(log.contains("every process stopped"), "{log}");
+    drop(cluster);
+
+    // Started again on the same directory (its map, no --replicas): the
+    // sessions are all there.
+    let cluster = LocalCluster::start(tmp.path(), &[], "second");
+    assert_eq!(
+        ShardMap::read(&cluster.dir.join("shards.map"))
+            .expect("map")
+            .to_text(),
+        map.to_text(),
+        "the map is reused"
+    );
+    let base = cluster.base();
+    for w in &walks {
+        check_session(&client, &base, None, &w.id, &w.params, &w.applied, &w.id).await;
+    }
+    let mut cluster = cluster;
+    let (status, _) = cluster.terminate();
+    assert!(status.success(), "{}", cluster.err());
+    eprintln!(
+        "cluster local: up in {:.1} s; killed replica started again in {:.2} s, served through the router in {:.2} s ({attempts} attempts; REST from {:.2} s, gRPC from {:.2} s); stopped in {:.2} s",
+        up_in.as_secs_f64(),
+        restarted_in.as_secs_f64(),
+        served_in.as_secs_f64(),
+        rest_back.unwrap_or_default().as_secs_f64(),
+        grpc_back.unwrap_or_default().as_secs_f64(),
+        stop_in.as_secs_f64()
+    );
+}
+
+#[test]
+fn cluster_local_refuses_bad_flags_before_starting_anything() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("c");
+    let data_s = data.to_str().expect("utf-8").to_string();
+    let (http, grpc) = free_ports();
+    let local = |extra: &[&str]| {
+        let mut args = vec![
+            "cluster".to_string(),
+            "local".into(),
+            "--data-dir".into(),
+            data_s.clone(),
+            "--grpc".into(),
+            format!("127.0.0.1:{grpc}"),
+        ];
+        args.extend(extra.iter().map(|s| s.to_string()));
+        let refs: Vec<&str> = args.iter().map(String::as_str).collect();
+        let started = Instant::now();
+        let out = mcapi(&refs);
+        assert!(!out.status.success(), "{extra:?} was accepted");
+        assert!(started.elapsed() < Duration::from_secs(20));
+        assert!(
+            !data.join("cluster.json").exists() && !data.join("logs").exists(),
+            "{extra:?}: nothing started"
+        );
+        stderr(&out)
+    };
+    let http_flag = format!("127.0.0.1:{http}");
+    for n in ["0", "65", "-1", "three"] {
+        let e = local(&[&format!("--replicas={n}"), "--http", &http_flag]);
+        assert!(e.contains("--replicas"), "{n}: {e}");
+    }
+    let e = local(&["--replicas", "0", "--http", &http_flag]);
+    assert!(e.contains("1..=64"), "{e}");
+    let busy = std::net::TcpListener::bind("127.0.0.1:0").expect("bind");
+    let busy_addr = busy.local_addr().expect("addr").to_string();
+    let e = local(&["--http", &busy_addr]);
+    assert!(
+        e.contains(&format!("--http {busy_addr} is not free")),
+        "{e}"
+    );
+    let e = local(&["--http", &format!("127.0.0.1:{grpc}")]);
+    assert!(e.contains("--http and --grpc must differ"), "{e}");
+    let e = local(&["--http", &http_flag, "--haproxy", "/nonexistent/haproxy"]);
+    assert!(
+        e.contains("--haproxy /nonexistent/haproxy: no such file"),
+        "{e}"
+    );
+    let e = local(&["--http", &http_flag, "--", "--replica", "x"]);
+    assert!(e.contains("`--replica` is set by `cluster local`"), "{e}");
+    for (flag, arg) in [
+        ("--ready-timeout-secs", "0"),
+        ("--drain-timeout-secs", "301"),
+    ] {
+        let e = local(&["--http", &http_flag, flag, arg]);
+        assert!(e.contains(flag), "{e}");
+    }
+    // A directory whose map has 2 replicas is not started with 3 (the
+    // haproxy given is any file: the map is checked before it runs).
+    std::fs::create_dir_all(&data).expect("mkdir");
+    plan(&data.join("shards.map"), 2);
+    let e = local(&[
+        "--http",
+        &http_flag,
+        "--replicas",
+        "3",
+        "--haproxy",
+        "/bin/true",
+    ]);
+    assert!(
+        e.contains("has 2 replicas (mcapi-0, mcapi-1), not 3"),
+        "{e}"
+    );
+}
+
+// ------------------------------------------------------------- Kubernetes
+
+/// The text of `key: |` in a generated ConfigMap, de-indented.
+fn configmap_block(yaml: &str, key: &str) -> String {
+    let head = format!("\n  {key}: |\n");
+    let start = yaml
+        .find(&head)
+        .unwrap_or_else(|| panic!("no {key} in the ConfigMap"))
+        + head.len();
+    let mut out = String::new();
+    for line in yaml[start..].lines() {
+        if line.is_empty() {
+            out.push('\n');
+        } else if let Some(l) = line.strip_prefix("    ") {
+            out.push_str(l);
+            out.push('\n');
+        } else {
+            break;
+        }
+    }
+    out
+}
+
+#[test]
+fn the_committed_kubernetes_configmap_is_what_the_command_writes() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().expect("tempdir");
+    let out = dir.path().join("configmap.yaml");
+    let run = Command::new("bash")
+        .arg(root.join("tools/k8s-configmap.sh"))
+        .arg(&out)
+        .env("MCAPI_BIN", env!("CARGO_BIN_EXE_mcapi"))
+        .env_remove("REPLICAS")
+        .env_remove("MAP")
+        .output()
+        .expect("bash runs");
+    assert!(run.status.success(), "k8s-configmap.sh: {}", stderr(&run));
+    let generated = std::fs::read_to_string(&out).expect("generated");
+    let committed = std::fs::read_to_string(root.join("deploy/k8s/10-mcapi-cluster.yaml"))
+        .expect("deploy/k8s/10-mcapi-cluster.yaml");
+    assert!(
+        generated == committed,
+        "deploy/k8s/10-mcapi-cluster.yaml differs from what `bash tools/k8s-configmap.sh` writes now: run it (make k8s-configmap)"
+    );
+
+    // The StatefulSet runs exactly the map's replicas.
+    let map = ShardMap::parse(&configmap_block(&committed, "mcapi-shards.map")).expect("the map");
+    let sts = std::fs::read_to_string(root.join("deploy/k8s/20-replicas.yaml")).expect("sts");
+    let replicas: Vec<&str> = sts
+        .lines()
+        .filter_map(|l| l.strip_prefix("  replicas: "))
+        .collect();
+    assert_eq!(
+        replicas,
+        [map.replicas().len().to_string()],
+        "StatefulSet replicas"
+    );
+    for (k, name) in map.replicas().iter().enumerate() {
+        assert_eq!(
+            name.as_str(),
+            format!("mcapi-{k}"),
+            "pod names are the replica names"
+        );
+    }
+
+    // HAProxy accepts the configuration (with its two paths moved here).
+    let cfg = configmap_block(&committed, "haproxy.cfg");
+    assert!(cfg.contains("resolvers dns init-addr none"), "{cfg}");
+    if !haproxy_or_skip("the_committed_kubernetes_configmap_is_what_the_command_writes") {
+        return;
+    }
+    let map_path = dir.path().join("shards.map");
+    std::fs::write(&map_path, configmap_block(&committed, "shards.map")).expect("map");
+    let local = cfg
+        .replace(
+            "/usr/local/etc/haproxy/shards.map",
+            map_path.to_str().expect("utf-8"),
+        )
+        .replace(
+            "/var/run/haproxy/admin.sock",
+            dir.path().join("admin.sock").to_str().expect("utf-8"),
+        );
+    let cfg_path = dir.path().join("haproxy.cfg");
+    std::fs::write(&cfg_path, local).expect("cfg");
+    let check = Command::new(find_haproxy().expect("checked"))
+        .args(["-c", "-f"])
+        .arg(&cfg_path)
+        .output()
+        .expect("haproxy -c");
+    assert!(
+        check.status.success(),
+        "haproxy refuses the Kubernetes configuration: {}{}",
+        String::from_utf8_lossy(&check.stdout),
+        stderr(&check)
+    );
 }

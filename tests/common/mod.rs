@@ -243,27 +243,39 @@ impl Server {
     /// SIGTERM, then waits (at most 30 s) for the exit status.
     pub fn terminate(&mut self) -> ExitStatus {
         let mut child = self.child.take().expect("the server is running");
-        let ok = Command::new("kill")
-            .args(["-TERM", &child.id().to_string()])
-            .status()
-            .expect("kill runs")
-            .success();
-        assert!(ok, "kill -TERM failed");
-        let deadline = Instant::now() + Duration::from_secs(30);
-        loop {
-            if let Some(status) = child.try_wait().expect("try_wait") {
-                return status;
-            }
-            if Instant::now() > deadline {
-                let _ = child.kill();
-                let _ = child.wait();
-                panic!(
-                    "the server did not stop within 30 s of SIGTERM; log:\n{}",
-                    self.log_text()
-                );
-            }
-            std::thread::sleep(Duration::from_millis(20));
+        terminate(&mut child, Duration::from_secs(30), &|| self.log_text())
+    }
+}
+
+/// `kill <signal> <pid>`, e.g. `signal(pid, "-TERM")` (std sends SIGKILL only).
+pub fn signal(pid: u32, signal: &str) {
+    let ok = Command::new("kill")
+        .args([signal, &pid.to_string()])
+        .status()
+        .expect("kill runs")
+        .success();
+    assert!(ok, "kill {signal} {pid} failed");
+}
+
+/// SIGTERM to a child, then its exit status within `timeout`; past it, the
+/// child is killed and the test fails with `log()`.
+pub fn terminate(child: &mut Child, timeout: Duration, log: &dyn Fn() -> String) -> ExitStatus {
+    signal(child.id(), "-TERM");
+    let deadline = Instant::now() + timeout;
+    loop {
+        if let Some(status) = child.try_wait().expect("try_wait") {
+            return status;
         }
+        if Instant::now() > deadline {
+            let _ = child.kill();
+            let _ = child.wait();
+            panic!(
+                "{} did not stop within {timeout:?} of SIGTERM; log:\n{}",
+                child.id(),
+                log()
+            );
+        }
+        std::thread::sleep(Duration::from_millis(20));
     }
 }
 

@@ -17,6 +17,10 @@ pub enum ClusterCommand {
     Plan(PlanArgs),
     /// Write an HAProxy 2.6 configuration and map file from a shard map.
     HaproxyConfig(HaproxyArgs),
+    /// Run a whole cluster on this machine: N replicas and HAProxy on
+    /// loopback, supervised (a replica that dies is started again) until
+    /// SIGTERM or Ctrl-C.
+    Local(super::local::LocalArgs),
 }
 
 /// `mcapi cluster plan`.
@@ -69,6 +73,23 @@ pub struct HaproxyArgs {
     /// The Runtime API socket (default: admin.sock in --out-dir).
     #[arg(long)]
     pub stats_socket: Option<PathBuf>,
+    /// Serve the Runtime API on this TCP address too (e.g. 127.0.0.1:9999
+    /// inside a pod, reached with `kubectl port-forward`).
+    #[arg(long)]
+    pub admin_bind: Option<String>,
+    /// Follow the backends' DNS names at run time (an HAProxy `resolvers`
+    /// section over /etc/resolv.conf), as Kubernetes pod names need; the
+    /// names must be fully qualified.
+    #[arg(long)]
+    pub resolvers: bool,
+    /// Also write DIR/NAME.yaml: a Kubernetes ConfigMap NAME with
+    /// haproxy.cfg, HAProxy's shards.map and the shard map itself
+    /// (mcapi-shards.map, for the replicas).
+    #[arg(long, value_name = "NAME")]
+    pub configmap: Option<String>,
+    /// The ConfigMap's namespace.
+    #[arg(long, requires = "configmap")]
+    pub namespace: Option<String>,
 }
 
 /// Runs a `mcapi cluster` subcommand.
@@ -76,6 +97,7 @@ pub fn run(cmd: ClusterCommand) -> Result<()> {
     match cmd {
         ClusterCommand::Plan(args) => run_plan(&args),
         ClusterCommand::HaproxyConfig(args) => run_haproxy(&args),
+        ClusterCommand::Local(args) => super::local::run(&args),
     }
 }
 
@@ -168,11 +190,26 @@ fn run_haproxy(args: &HaproxyArgs) -> Result<()> {
             .stats_socket
             .clone()
             .unwrap_or_else(|| out_dir.join("admin.sock")),
+        admin_bind: args.admin_bind.clone(),
         backends,
+        resolvers: args.resolvers,
     };
-    let cfg = haproxy::config(&map, &spec).map_err(anyhow::Error::msg)?;
-    write_atomic(&out_dir.join("shards.map"), &haproxy::map_file(&map))?;
-    write_atomic(&out_dir.join("haproxy.cfg"), &cfg)?;
+    write_router(&out_dir, &map, &spec)?;
+    if let Some(name) = &args.configmap {
+        let label = |what: &str, v: &str| {
+            ReplicaName::parse(v).map_err(|e| anyhow::anyhow!("--{what}: {e}"))
+        };
+        let name = label("configmap", name)?;
+        let namespace = args
+            .namespace
+            .as_deref()
+            .map(|n| label("namespace", n))
+            .transpose()?;
+        let yaml = haproxy::configmap(&map, &spec, &name, namespace.as_ref())
+            .map_err(anyhow::Error::msg)?;
+        write_atomic(&out_dir.join(format!("{name}.yaml")), &yaml)?;
+        eprintln!("wrote {}/{name}.yaml", out_dir.display());
+    }
     eprintln!(
         "wrote {0}/haproxy.cfg and {0}/shards.map (epoch {1}, {2} replicas); run: haproxy -f {0}/haproxy.cfg",
         out_dir.display(),
@@ -182,9 +219,18 @@ fn run_haproxy(args: &HaproxyArgs) -> Result<()> {
     Ok(())
 }
 
+/// Writes `haproxy.cfg` and the HAProxy map file `shards.map` into
+/// `out_dir` (`haproxy-config`, and `cluster local` on every start).
+pub(crate) fn write_router(out_dir: &Path, map: &ShardMap, spec: &RouterSpec) -> Result<()> {
+    let cfg = haproxy::config(map, spec).map_err(anyhow::Error::msg)?;
+    write_atomic(&out_dir.join("shards.map"), &haproxy::map_file(map))?;
+    write_atomic(&out_dir.join("haproxy.cfg"), &cfg)?;
+    Ok(())
+}
+
 /// Writes a file through a temporary sibling and a rename, so a reader
 /// never sees half of it.
-fn write_atomic(path: &Path, text: &str) -> Result<()> {
+pub(crate) fn write_atomic(path: &Path, text: &str) -> Result<()> {
     let tmp = path.with_extension("tmp");
     std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
     std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;

@@ -98,9 +98,30 @@ pub struct RouterSpec {
     pub map_path: PathBuf,
     /// The Runtime API socket's path (absolute).
     pub stats_socket: PathBuf,
+    /// The Runtime API on a TCP address as well (`host:port`), e.g.
+    /// `127.0.0.1:9999` inside a pod, reached with `kubectl port-forward`.
+    pub admin_bind: Option<String>,
     /// Every replica of the map, with its addresses.
     pub backends: Vec<Backend>,
+    /// Resolve the backends' names at run time through the nameservers of
+    /// /etc/resolv.conf (an HAProxy `resolvers` section), following a pod's
+    /// address when it changes; a server has no address, and is down, until
+    /// its name resolves. For Kubernetes pod names (`deploy/k8s/`).
+    pub resolvers: bool,
 }
+
+/// The `resolvers` section of a router that follows DNS names.
+const RESOLVERS: &str = "\nresolvers dns\n\
+  \x20 # The nameservers of the router's own /etc/resolv.conf (cluster DNS in\n\
+  \x20 # Kubernetes); names must be fully qualified: HAProxy does not search.\n\
+  \x20 parse-resolv-conf\n\
+  \x20 resolve_retries 3\n\
+  \x20 timeout resolve 1s\n\
+  \x20 timeout retry 1s\n\
+  \x20 hold valid 10s\n\
+  \x20 hold nx 5s\n\
+  \x20 hold obsolete 30s\n\
+  \x20 accepted_payload_size 8192\n";
 
 /// The HAProxy map file: `<shard> <replica>` per shard (the same lines as
 /// the shard map, which HAProxy keys on), the epoch in a comment.
@@ -114,6 +135,55 @@ pub fn map_file(map: &ShardMap) -> String {
         out.push_str(&format!("{} {}\n", shard_key(s), map.owner(s)));
     }
     out
+}
+
+/// A Kubernetes ConfigMap (YAML) holding the router's files and the shard
+/// map: `haproxy.cfg`, HAProxy's `shards.map`, and `mcapi-shards.map`, the
+/// shard map the replicas read (`deploy/k8s/`). `name` and `namespace` must
+/// be DNS labels (the caller checks them with [`ReplicaName::parse`]).
+pub fn configmap(
+    map: &ShardMap,
+    spec: &RouterSpec,
+    name: &ReplicaName,
+    namespace: Option<&ReplicaName>,
+) -> Result<String, String> {
+    let cfg = config(map, spec)?;
+    let block = |text: &str| {
+        text.lines()
+            .map(|l| {
+                if l.is_empty() {
+                    "\n".to_string()
+                } else {
+                    format!("    {l}\n")
+                }
+            })
+            .collect::<String>()
+    };
+    let mut y = format!(
+        "# The router's configuration and the shard map of an mcapi cluster, epoch {}.\n\
+         # Written by `mcapi cluster haproxy-config --configmap`: regenerate, do not edit.\n\
+         apiVersion: v1\n\
+         kind: ConfigMap\n\
+         metadata:\n\
+         \x20 name: {name}\n",
+        map.epoch()
+    );
+    if let Some(ns) = namespace {
+        y.push_str(&format!("  namespace: {ns}\n"));
+    }
+    y.push_str(&format!(
+        "  labels:\n\
+         \x20   app.kubernetes.io/name: mcapi\n\
+         \x20   app.kubernetes.io/component: shard-map\n\
+         data:\n\
+         \x20 haproxy.cfg: |\n{}\
+         \x20 shards.map: |\n{}\
+         \x20 mcapi-shards.map: |\n{}",
+        block(&cfg),
+        block(&map_file(map)),
+        block(&map.to_text())
+    ));
+    Ok(y)
 }
 
 /// `haproxy.cfg` for a map. Every replica of the map needs a backend.
@@ -134,15 +204,29 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
     }
     let map_path = path_text(&spec.map_path)?;
     let socket = path_text(&spec.stats_socket)?;
+    let (admin_tcp, flip_tcp) = match &spec.admin_bind {
+        Some(a) => {
+            let a = host_port(a)?;
+            let (host, port) = a.rsplit_once(':').unwrap_or((a.as_str(), ""));
+            (
+                format!("  stats socket ipv4@{a} level admin\n"),
+                format!("#   (or | nc -q1 {host} {port}, the same Runtime API over TCP)\n"),
+            )
+        }
+        None => (String::new(), String::new()),
+    };
     let found = format!("{{ var(txn.shard),map({map_path}) -m found }}");
     let mut c = String::new();
     c.push_str(&format!(
         "# HAProxy 2.6 router of an mcapi cluster, shard map epoch {epoch}.\n\
          # Written by `mcapi cluster haproxy-config`; flip a shard live with\n\
          #   echo 'set map {map_path} s03a7 <replica>' | socat stdio unix:{socket}\n\
-         # and write the same line into {map_path} so a reload keeps it.\n\
+         {flip_tcp}\
+         # and write the same line into {map_path} (or into what it is made\n\
+         # from, such as a Kubernetes ConfigMap) so a reload keeps it.\n\
          global\n\
          \x20 stats socket {socket} mode 600 level admin\n\
+         {admin_tcp}\
          \x20 stats timeout 30s\n\
          \n\
          defaults\n\
@@ -154,6 +238,7 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
          \x20 timeout client 1h\n\
          \x20 timeout server 1h\n\
          \x20 timeout tunnel 1h\n\
+         {resolvers}\
          \n\
          frontend fe_rest\n\
          \x20 bind {rest}\n\
@@ -170,6 +255,7 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
         epoch = map.epoch(),
         rest = spec.rest_bind,
         grpc = spec.grpc_bind,
+        resolvers = if spec.resolvers { RESOLVERS } else { "" },
     ));
     let backends: Vec<&Backend> = map
         .replicas()
@@ -177,12 +263,26 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
         .filter_map(|r| spec.backends.iter().find(|b| &b.replica == r))
         .collect();
     let check = "option httpchk GET /readyz\n  default-server inter 2s fall 2 rise 1\n";
-    let rest_server = |b: &Backend| format!("  server {} {} check\n", b.replica, b.rest);
+    let dns = if spec.resolvers {
+        " resolvers dns init-addr none"
+    } else {
+        ""
+    };
+    let rest_server = |b: &Backend| format!("  server {} {} check{dns}\n", b.replica, b.rest);
+    // gRPC servers are checked on their replica's REST port, over HTTP/1.1.
     let grpc_server = |b: &Backend| {
         let (host, port) = b.rest.rsplit_once(':').unwrap_or((b.rest.as_str(), "0"));
-        let host = host.trim_start_matches('[').trim_end_matches(']');
+        let same_host = b.grpc.rsplit_once(':').map(|(h, _)| h) == Some(host);
+        let addr = if same_host {
+            String::new()
+        } else {
+            format!(
+                " addr {}",
+                host.trim_start_matches('[').trim_end_matches(']')
+            )
+        };
         format!(
-            "  server {} {} proto h2 check addr {host} port {port} check-proto h1\n",
+            "  server {} {} proto h2 check{addr} port {port} check-proto h1{dns}\n",
             b.replica, b.grpc
         )
     };
@@ -223,6 +323,16 @@ fn path_text(p: &Path) -> Result<String, String> {
         ));
     }
     Ok(s.to_string())
+}
+
+/// `haproxy` from PATH. Debian installs it in /usr/sbin, which a user's
+/// PATH may lack: that and /usr/local/sbin are looked at too.
+pub fn find_haproxy() -> Option<PathBuf> {
+    let path = std::env::var_os("PATH").unwrap_or_default();
+    std::env::split_paths(&path)
+        .chain(["/usr/sbin".into(), "/usr/local/sbin".into()])
+        .map(|d| d.join("haproxy"))
+        .find(|p| p.is_file())
 }
 
 /// Sends one command to HAProxy's Runtime API and returns its answer.
@@ -296,7 +406,9 @@ mod tests {
             grpc_bind: "127.0.0.1:18443".into(),
             map_path: "/tmp/x/shards.map".into(),
             stats_socket: "/tmp/x/admin.sock".into(),
-            backends: vec![Backend::parse("mcapi-0=127.0.0.1:1,127.0.0.1:2").expect("b")],
+            admin_bind: None,
+            backends: vec![Backend::parse("mcapi-0=127.0.0.1:1,127.0.0.2:2").expect("b")],
+            resolvers: false,
         };
         let e = config(&map, &spec).expect_err("mcapi-1 has no address");
         assert!(e.contains("mcapi-1"), "{e}");
@@ -306,7 +418,7 @@ mod tests {
         for want in [
             "backend be_rest_mcapi-0",
             "backend be_grpc_mcapi-1",
-            "server mcapi-1 127.0.0.1:4 proto h2 check addr 127.0.0.1 port 3 check-proto h1",
+            "server mcapi-1 127.0.0.1:4 proto h2 check port 3 check-proto h1\n",
             "bind 127.0.0.1:18443 proto h2",
             "req.hdr(x-mcapi-session),field(1,.)",
             "map(/tmp/x/shards.map)",
@@ -318,6 +430,68 @@ mod tests {
         let file = map_file(&map);
         assert_eq!(file.lines().count(), SHARDS + 1);
         assert!(file.contains(&format!("s03ff {}", map.owner(0x3ff))));
+        assert!(
+            cfg.contains(
+                "server mcapi-0 127.0.0.2:2 proto h2 check addr 127.0.0.1 port 1 check-proto h1\n"
+            ),
+            "a gRPC address on another host than REST: checked at the REST host"
+        );
+        assert!(!cfg.contains("resolvers"));
+
+        // Kubernetes: names followed through DNS, and the ConfigMap.
+        spec.resolvers = true;
+        spec.admin_bind = Some("127.0.0.1:9999".into());
+        spec.backends = map
+            .replicas()
+            .iter()
+            .map(|r| {
+                Backend::from_templates(r, "{replica}.h.ns.svc:8080", "{replica}.h.ns.svc:50051")
+            })
+            .collect::<Result<_, _>>()
+            .expect("templates");
+        let cfg = config(&map, &spec).expect("config");
+        assert!(cfg.contains("\nresolvers dns\n  # "), "{cfg}");
+        assert!(
+            cfg.contains("  stats socket ipv4@127.0.0.1:9999 level admin\n"),
+            "{cfg}"
+        );
+        assert!(cfg.contains("| nc -q1 127.0.0.1 9999,"), "{cfg}");
+        assert!(cfg.contains(
+            "server mcapi-1 mcapi-1.h.ns.svc:50051 proto h2 check port 8080 check-proto h1 resolvers dns init-addr none\n"
+        ));
+        assert!(
+            cfg.contains(
+                "server mcapi-0 mcapi-0.h.ns.svc:8080 check resolvers dns init-addr none\n"
+            )
+        );
+        let name = ReplicaName::parse("mcapi-router").expect("name");
+        let ns = ReplicaName::parse("mcapi").expect("ns");
+        let y = configmap(&map, &spec, &name, Some(&ns)).expect("configmap");
+        assert!(
+            y.contains("\nkind: ConfigMap\nmetadata:\n  name: mcapi-router\n  namespace: mcapi\n"),
+            "{y}"
+        );
+        assert!(
+            y.contains("\n  haproxy.cfg: |\n    # HAProxy 2.6 router"),
+            "{y}"
+        );
+        assert!(
+            y.contains("\n  mcapi-shards.map: |\n    # mcapi shard map"),
+            "{y}"
+        );
+        assert!(
+            y.contains(&format!("\n    epoch 1\n    s0000 {}\n", map.owner(0))),
+            "{y}"
+        );
+        // Every line of the data is indented under its key: nothing escapes the block.
+        let data = y.split_once("\ndata:\n").expect("data").1;
+        for line in data.lines().filter(|l| !l.is_empty()) {
+            assert!(
+                line.starts_with("    ") || line.ends_with(": |"),
+                "{line:?}"
+            );
+        }
+
         spec.map_path = "relative.map".into();
         assert!(config(&map, &spec).is_err());
     }
