@@ -366,7 +366,6 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
                              agent learns P from its observations (docs/algorithm.md §8)",
                         )),
                 )
-                .property("next", null)
                 .property(
                     "learning",
                     nullable_ref(
