@@ -86,3 +86,16 @@ def test_curiosity(server: Server, examples_path: Path, capsys: pytest.CaptureFi
     assert summary and int(summary.group(1)) >= int(froze[0]), out
     visits = re.search(r"visits: food (\d+), rest (\d+), book (\d+)", out)
     assert visits and all(int(v) > 0 for v in visits.groups()), out
+
+
+def test_learned_maze(server: Server, examples_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    out = _run(
+        "learned_maze",
+        ["--url", server.http_url, "--steps", "3000", "--known-after", "1", "--report-every", "1000"],
+        capsys,
+    )
+    known = [float(x) for x in re.findall(r"tick +\d+: ([0-9.]+) of the model known", out)]
+    assert len(known) == 3 and known == sorted(known) and known[-1] > 0.5, out
+    assert len(re.findall(r"first reached source [abc]", out)) == 3, out
+    visits = dict(re.findall(r"([abc]) (\d+)", out.splitlines()[-1]))
+    assert all(int(visits[s]) > 0 for s in "abc"), out
