@@ -98,6 +98,23 @@ impl ServiceError {
     pub fn field(field: &str, reason: impl std::fmt::Display) -> Self {
         Self::BadRequest(format!("`{field}`: {reason}"))
     }
+
+    /// An algorithm error about a part of the request, with its path: an
+    /// invalid parameter keeps its kind and names both (`invalid parameter
+    /// `agent.curiosity.params`: `gain` must be ...`); any other error is a
+    /// [`ServiceError::field`] of `field`.
+    pub fn algo_at(field: &'static str, e: mcapi_core::AlgoError) -> Self {
+        match e {
+            mcapi_core::AlgoError::InvalidParameter { name, reason } => {
+                mcapi_core::AlgoError::InvalidParameter {
+                    name: field,
+                    reason: format!("`{name}` {reason}"),
+                }
+                .into()
+            }
+            e => Self::field(field, e),
+        }
+    }
 }
 
 impl From<StoreError> for ServiceError {

@@ -105,21 +105,6 @@ fn splitmix(mut z: u64) -> u64 {
     z ^ (z >> 31)
 }
 
-/// An algorithm error about a field of `agent.curiosity`, with its path:
-/// `invalid parameter `agent.curiosity.params`: `gain` must be ...`.
-fn prefix(field: &'static str, e: mcapi_core::AlgoError) -> ServiceError {
-    match e {
-        mcapi_core::AlgoError::InvalidParameter { name, reason } => {
-            mcapi_core::AlgoError::InvalidParameter {
-                name: field,
-                reason: format!("`{name}` {reason}"),
-            }
-            .into()
-        }
-        e => ServiceError::field(field, e),
-    }
-}
-
 /// What every session build shares: the planning models by model, the
 /// bound on concurrent builds and the seed source.
 pub(super) struct Setup {
@@ -215,17 +200,17 @@ impl Setup {
             // docs/algorithm.md §8: the same agent, planning on P̂.
             (None, Some(learned)) => Learner::Plain(
                 Agent::new_learned(ctx, params, learned)
-                    .map_err(|e| prefix("model.learning", e))?,
+                    .map_err(|e| ServiceError::algo_at("model.learning", e))?,
             ),
             // A learned model with a channel was refused above.
             (Some(c), _) => {
                 let checked = c
                     .params
                     .check()
-                    .map_err(|e| prefix("agent.curiosity.params", e))?;
+                    .map_err(|e| ServiceError::algo_at("agent.curiosity.params", e))?;
                 Learner::Curious(Box::new(
                     CuriousAgent::new(ctx, params, checked, c.signal_dim)
-                        .map_err(|e| prefix("agent.curiosity", e))?,
+                        .map_err(|e| ServiceError::algo_at("agent.curiosity", e))?,
                 ))
             }
         };

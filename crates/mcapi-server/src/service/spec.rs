@@ -98,16 +98,10 @@ pub fn learned_params(
     field: &'static str,
     params: Option<LearnedParams>,
 ) -> Result<ValidLearnedParams, ServiceError> {
-    params.unwrap_or_default().check().map_err(|e| match e {
-        mcapi_core::AlgoError::InvalidParameter { name, reason } => {
-            mcapi_core::AlgoError::InvalidParameter {
-                name: field,
-                reason: format!("`{name}` {reason}"),
-            }
-            .into()
-        }
-        e => ServiceError::field(field, e),
-    })
+    params
+        .unwrap_or_default()
+        .check()
+        .map_err(|e| ServiceError::algo_at(field, e))
 }
 
 #[derive(Serialize, Deserialize)]
