@@ -324,15 +324,12 @@ impl Limits {
                 self.max_pairs,
             ));
         }
-        self.check_names("model.actions", &spec.actions)?;
-        self.check_names("model.stimuli", &spec.stimuli)?;
-        if let Some(names) = &spec.state_names {
-            self.check_names("model.state_names", names)?;
-        }
-        let pairs = spec.states.saturating_mul(spec.actions.len());
-        if pairs > self.max_pairs {
-            return Err(exceeded("`model` states x actions", pairs, self.max_pairs));
-        }
+        self.check_structure(
+            spec.states,
+            &spec.actions,
+            &spec.stimuli,
+            spec.state_names.as_deref(),
+        )?;
         if let Some(t) = &spec.transitions {
             let n: usize = t.iter().map(|t| t.next.len()).sum();
             if n > self.max_transitions {
@@ -349,6 +346,27 @@ impl Limits {
                 spec.stimuli.len(),
                 self.max_stimuli,
             ));
+        }
+        Ok(())
+    }
+
+    /// The names of a posted model's actions, stimuli and states, and its
+    /// states × actions: what a full model and a learned one share.
+    fn check_structure(
+        &self,
+        states: usize,
+        actions: &[String],
+        stimuli: &[String],
+        state_names: Option<&[String]>,
+    ) -> Result<(), ServiceError> {
+        self.check_names("model.actions", actions)?;
+        self.check_names("model.stimuli", stimuli)?;
+        if let Some(names) = state_names {
+            self.check_names("model.state_names", names)?;
+        }
+        let pairs = states.saturating_mul(actions.len());
+        if pairs > self.max_pairs {
+            return Err(exceeded("`model` states x actions", pairs, self.max_pairs));
         }
         Ok(())
     }
@@ -373,15 +391,12 @@ impl Limits {
         if spec.states > self.max_pairs {
             return Err(exceeded("`model.states`", spec.states, self.max_pairs));
         }
-        self.check_names("model.actions", &spec.actions)?;
-        self.check_names("model.stimuli", &spec.stimuli)?;
-        if let Some(names) = &spec.state_names {
-            self.check_names("model.state_names", names)?;
-        }
-        let pairs = spec.states.saturating_mul(spec.actions.len());
-        if pairs > self.max_pairs {
-            return Err(exceeded("`model` states x actions", pairs, self.max_pairs));
-        }
+        self.check_structure(
+            spec.states,
+            &spec.actions,
+            &spec.stimuli,
+            spec.state_names.as_deref(),
+        )?;
         if spec.stimuli.len() > self.max_stimuli {
             return Err(exceeded(
                 "`model.stimuli` length",
