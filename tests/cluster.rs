@@ -27,7 +27,7 @@ use std::time::{Duration, Instant};
 
 use common::{
     Launch, Obs, Reply, Server, available, check_session, free_ports, grpc_create, grpc_request,
-    http_client, params, rest_create, step_state, stimulus,
+    http_client, observe_one, params, rest_create, step_state, stimulus,
 };
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
@@ -901,31 +901,7 @@ impl Walk {
         grpc: &mut AgentsClient<Channel>,
     ) {
         let obs = self.next();
-        let reply = if self.grpc {
-            let reply = grpc
-                .observe(grpc_request(
-                    pb::ObserveRequest {
-                        session_id: self.id.clone(),
-                        observations: vec![obs.pb(&self.id)],
-                    },
-                    None,
-                    Some(&self.id),
-                ))
-                .await
-                .unwrap_or_else(|s| panic!("gRPC observe {}: {s:?}", self.id))
-                .into_inner();
-            Reply::from_pb(&reply.steps[0])
-        } else {
-            let (status, _, _, body) = call(
-                client,
-                reqwest::Method::POST,
-                &format!("{base}/v1/sessions/{}/observations", self.id),
-                Some(obs.json()),
-            )
-            .await;
-            assert_eq!(status, 200, "observe {}: {body}", self.id);
-            Reply::from_json(&body)
-        };
+        let reply = observe_one(client, base, grpc, self.grpc, &self.id, &obs).await;
         self.applied.push((obs, Some(reply)));
     }
 }

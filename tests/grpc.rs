@@ -107,6 +107,20 @@ fn hallway_stimulus(s: usize) -> Vec<f64> {
     }
 }
 
+/// The session, asked for by id (in the message and the metadata).
+async fn session_info(client: &mut AgentsClient<Channel>, id: &str) -> pb::SessionInfo {
+    client
+        .get_session(with_session(
+            id,
+            pb::GetSessionRequest {
+                session_id: id.to_string(),
+            },
+        ))
+        .await
+        .expect("get")
+        .into_inner()
+}
+
 fn with_session<T>(id: &str, message: T) -> Request<T> {
     let mut req = Request::new(message);
     req.metadata_mut()
@@ -265,16 +279,7 @@ async fn hallway_over_interact_alternates_and_matches_the_core() {
         "only {alternations} alternations (visits {visits:?})"
     );
 
-    let info = client
-        .get_session(with_session(
-            &id,
-            pb::GetSessionRequest {
-                session_id: id.clone(),
-            },
-        ))
-        .await
-        .expect("get")
-        .into_inner();
+    let info = session_info(&mut client, &id).await;
     assert_eq!(info.tick, TICKS as u64);
     assert_eq!(info.state, Some(last_state as u64));
     assert_eq!(info.drive, core.drive().vector().to_vec());
@@ -834,16 +839,7 @@ async fn interact_batch_steps_several_sessions_as_the_core_does() {
 
     // Nothing of the refused message was applied.
     for (i, id) in ids.iter().enumerate() {
-        let info = client
-            .get_session(with_session(
-                id,
-                pb::GetSessionRequest {
-                    session_id: id.clone(),
-                },
-            ))
-            .await
-            .expect("get")
-            .into_inner();
+        let info = session_info(&mut client, id).await;
         assert_eq!(
             info.drive,
             cores[i].drive().vector().to_vec(),
@@ -887,16 +883,7 @@ async fn an_interact_batch_message_is_bounded_by_its_estimated_cpu_time() {
     let status = replies.message().await.expect_err("the stream ends");
     assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
     assert!(status.message().contains("--max-batch-ms"), "{status:?}");
-    let info = client
-        .get_session(with_session(
-            &id,
-            pb::GetSessionRequest {
-                session_id: id.clone(),
-            },
-        ))
-        .await
-        .expect("get")
-        .into_inner();
+    let info = session_info(&mut client, &id).await;
     assert_eq!(info.tick, 0, "nothing of the refused message was applied");
     server.stop().await;
 }

@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use common::{
     ACTIONS, Launch, Obs, Reply, Server, assert_float_roundtrip, check_replayed, grpc_request,
-    http_client, replay_on, rest, stimulus,
+    http_client, observe_one, replay_on, rest, stimulus,
 };
 use mcapi_core::model::{THREE_ROOM_MAP, three_room};
 use mcapi_core::spec::ModelSpec;
@@ -607,36 +607,17 @@ impl Tracked {
     async fn drive(&mut self, server: &Server, n: usize) {
         let client = http_client();
         let mut grpc = server.grpc_client().await;
-        let url = format!("{}/v1/sessions/{}/observations", server.base(), self.id);
         for _ in 0..n {
             let obs = self.next_obs();
-            let reply = if self.grpc {
-                let steps = grpc
-                    .observe(grpc_request(
-                        pb::ObserveRequest {
-                            session_id: self.id.clone(),
-                            observations: vec![obs.pb(&self.id)],
-                        },
-                        None,
-                        Some(&self.id),
-                    ))
-                    .await
-                    .expect("observe over gRPC")
-                    .into_inner()
-                    .steps;
-                Reply::from_pb(&steps[0])
-            } else {
-                let (status, body) = rest(
-                    &client,
-                    reqwest::Method::POST,
-                    &url,
-                    None,
-                    Some(&obs.json()),
-                )
-                .await;
-                assert_eq!(status, 200, "{}: {body}", self.id);
-                Reply::from_json(&body)
-            };
+            let reply = observe_one(
+                &client,
+                &server.base(),
+                &mut grpc,
+                self.grpc,
+                &self.id,
+                &obs,
+            )
+            .await;
             self.state = Some(obs.state);
             self.advised = Some(reply.action);
             self.applied.push((obs, Some(reply)));

@@ -547,6 +547,40 @@ impl Reply {
 }
 
 /// A JSON array of numbers.
+/// One observation of session `id`, acknowledged: over gRPC (`Observe`,
+/// the session in the metadata too) or REST. Panics unless it is applied.
+pub async fn observe_one(
+    client: &reqwest::Client,
+    base: &str,
+    grpc: &mut AgentsClient<Channel>,
+    over_grpc: bool,
+    id: &str,
+    obs: &Obs,
+) -> Reply {
+    if over_grpc {
+        let steps = grpc
+            .observe(grpc_request(
+                pb::ObserveRequest {
+                    session_id: id.to_string(),
+                    observations: vec![obs.pb(id)],
+                },
+                None,
+                Some(id),
+            ))
+            .await
+            .unwrap_or_else(|s| panic!("gRPC observe {id}: {s:?}"))
+            .into_inner()
+            .steps;
+        Reply::from_pb(&steps[0])
+    } else {
+        let url = format!("{base}/v1/sessions/{id}/observations");
+        let (status, body) =
+            rest(client, reqwest::Method::POST, &url, None, Some(&obs.json())).await;
+        assert_eq!(status, 200, "observe {id}: {body}");
+        Reply::from_json(&body)
+    }
+}
+
 pub fn floats(v: &Value) -> Vec<f64> {
     v.as_array()
         .unwrap_or_else(|| panic!("not an array: {v}"))
