@@ -15,6 +15,10 @@ the examples drive their agents.
 - :func:`learned`: any of these posted *without* its transitions: the agent
   learns them from its observations (docs/algorithm.md section 8), while the
   client keeps simulating the world with the full model.
+- :func:`from_mo_gymnasium`: a discrete multi-objective (MO-Gymnasium)
+  environment, its vector reward as the stimulus dimensions, usually with a
+  learned transition model; the :class:`MoEnvironment` it returns also steps
+  the environment for the session (the ``mo`` extra installs MO-Gymnasium).
 
 Models are checked here by the server's rules (every state has an available
 action; probabilities in (0, 1] summing to 1 within 1e-9), so a mistake is a
@@ -28,6 +32,7 @@ once built. Next states must be integers (``operator.index``), not floats.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 import random
@@ -52,6 +57,10 @@ __all__ = [
     "from_gymnasium",
     "Learned",
     "learned",
+    "UnsupportedEnvironment",
+    "MoStep",
+    "MoEnvironment",
+    "from_mo_gymnasium",
 ]
 
 PROBABILITY_TOLERANCE = 1e-9
@@ -832,7 +841,539 @@ def learned(
     return Learned(model, known_after, optimism)
 
 
-ModelLike = Union[Model, Learned, Mapping[str, Any], str]
+class UnsupportedEnvironment(ValueError):
+    """An environment :func:`from_mo_gymnasium` cannot turn into a model: a
+    continuous observation or action space, too many states, or a reward
+    with no component that can be a stimulus. The message names the problem."""
+
+
+# What the discrete MO-Gymnasium environments do not say in their spaces, by
+# class name: the observation spaces are integer Boxes with loose bounds
+# (resource-gathering's is 0..5 for two 0/1 flags too), the objectives and
+# actions have no names.
+def _mo_preset(base: Any) -> dict[str, Any]:
+    name = type(base).__name__
+    moves = ("up", "down", "left", "right")
+    if name == "ResourceGathering":
+        # (row, col, has gold, has gem) on the 5 x 5 map: 100 states, not 6^4.
+        return {
+            "bounds": ((0, 4), (0, 4), (0, 1), (0, 1)),
+            "objectives": ("enemy", "gold", "gem"),
+            "actions": moves,
+        }
+    if name == "DeepSeaTreasure":
+        out: dict[str, Any] = {"objectives": ("treasure", "time"), "actions": moves}
+        sea = getattr(base, "sea_map", None)
+        if sea is not None and not getattr(base, "float_state", False):
+            rows, cols = sea.shape
+            out["bounds"] = ((0, rows - 1), (0, cols - 1))
+        return out
+    if name == "FourRoom":
+        return {"objectives": ("blue", "green", "red"), "actions": ("left", "up", "right", "down")}
+    return {}
+
+
+def _space_leaves(space: Any, where: str) -> list[tuple[int, int]]:
+    """The integer components of a discrete space, as inclusive (low, high)."""
+    kind = type(space).__name__
+    if kind == "Discrete":
+        start = as_int(getattr(space, "start", 0), "start")
+        return [(start, start + as_int(space.n, "n") - 1)]
+    if kind == "MultiDiscrete":
+        nvec = _flat_list(space.nvec)
+        start = _flat_list(getattr(space, "start", [0] * len(nvec)))
+        return [(as_int(b, "start"), as_int(b, "start") + as_int(n, "nvec") - 1) for n, b in zip(nvec, start)]
+    if kind == "MultiBinary":
+        return [(0, 1)] * math.prod(_flat_list([space.n]))
+    if kind == "Box":
+        dtype = getattr(space, "dtype", None)
+        if getattr(dtype, "kind", "f") not in "iub":
+            raise UnsupportedEnvironment(
+                f"{where} is continuous ({space}): only discrete observations become states "
+                "(Discrete, MultiDiscrete, MultiBinary, an integer Box, or a Tuple or Dict of them)"
+            )
+        lows, highs = _flat_list(space.low), _flat_list(space.high)
+        if not all(math.isfinite(x) for x in lows + highs):
+            raise UnsupportedEnvironment(f"{where} ({space}) is unbounded: pass `observation_bounds`")
+        return [(int(lo), int(hi)) for lo, hi in zip(lows, highs)]
+    if kind == "Tuple":
+        return [leaf for i, sub in enumerate(space.spaces) for leaf in _space_leaves(sub, f"{where}[{i}]")]
+    if kind == "Dict":
+        return [
+            leaf for key, sub in space.spaces.items() for leaf in _space_leaves(sub, f"{where}[{key!r}]")
+        ]
+    raise UnsupportedEnvironment(
+        f"{where} is a {kind} ({space}): only Discrete, MultiDiscrete, MultiBinary, integer Box, "
+        "Tuple and Dict spaces become states"
+    )
+
+
+def _flat_list(x: Any) -> list[Any]:
+    """The numbers of a scalar, a (nested) list or a numpy array, flattened."""
+    x = x.tolist() if hasattr(x, "tolist") else x
+    if isinstance(x, (list, tuple)):
+        return [y for item in x for y in _flat_list(item)]
+    return [x]
+
+
+def _flat_observation(obs: Any) -> list[Any]:
+    """An observation's components in the order of :func:`_space_leaves`."""
+    if isinstance(obs, Mapping):
+        return [y for value in obs.values() for y in _flat_observation(value)]
+    if isinstance(obs, tuple):
+        return [y for item in obs for y in _flat_observation(item)]
+    return _flat_list(obs)
+
+
+@dataclass(frozen=True)
+class MoStep:
+    """One step of a :class:`MoEnvironment`, as the session should see it.
+
+    Attributes:
+        state: The state to observe: the new observation's index, or the
+            start state of the next episode when this step ended one.
+        stimulus: The stimulus to observe with it (the kept reward components,
+            their negative parts cut to 0, times the scale).
+        reward: The environment's raw vector reward, every objective.
+        terminated: The environment ended the episode on this step.
+        truncated: A wrapper cut the episode short on this step.
+        observation: The environment's observation after the step (before
+            the reset, when the episode ended).
+    """
+
+    state: int
+    stimulus: list[float]
+    reward: tuple[float, ...]
+    terminated: bool
+    truncated: bool
+    observation: Any
+
+    @property
+    def episode_ended(self) -> bool:
+        """Whether the environment was reset after this step."""
+        return self.terminated or self.truncated
+
+
+class MoEnvironment:
+    """A discrete multi-objective environment as an mcapi model, with the
+    adapter that steps it for a session. Made by :func:`from_mo_gymnasium`.
+
+    Pass it to ``create_session`` (it posts ``transitions: "learn"``, or the
+    read table in :attr:`known`); then ``reset`` gives the first state to
+    observe, and each ``step(action)`` takes the session's action to the
+    environment and returns the state and stimulus to observe::
+
+        step = mc.observe(session.id, world.reset(seed=1))
+        for _ in range(1000):
+            s = world.step(step.action_index)
+            step = mc.observe(session.id, s.state, s.stimulus)
+        print(world.returns)    # per objective, penalties included
+
+    Attributes:
+        env: What is stepped (``env.unwrapped`` unless ``unwrap=False``).
+        objectives: Names of all reward components, in the reward's order.
+        stimuli: Names of the stimulus dimensions: the kept objectives.
+        kept: For each stimulus dimension, the index of its objective.
+        dropped: Indices of the objectives that are not stimuli (penalties).
+        actions: Action names; index i is the environment's action
+            ``action_start + i``.
+        bounds: Inclusive (low, high) of each observation component.
+        states: Number of states: the product of the components' ranges.
+        scale: Factor from a reward component to a stimulus amount.
+        known: The model read from the environment's transition table, or
+            ``None`` when the session learns the transitions.
+        returns: Sum of the raw reward per objective since :meth:`reset`.
+        stimulus_totals: Sum of the stimulus per dimension since :meth:`reset`.
+        ticks: Steps since :meth:`reset`; episodes: episodes ended since.
+    """
+
+    def __init__(
+        self,
+        env: Any,
+        *,
+        objectives: Sequence[str],
+        kept: Sequence[int],
+        actions: Sequence[str],
+        action_start: int,
+        bounds: Sequence[tuple[int, int]],
+        scale: float,
+        known: Model | None,
+        known_after: int | None,
+        optimism: Literal["absorbing", "stimulus"] | None,
+        basis: Mapping[str, Any] | None,
+    ) -> None:
+        self.env = env
+        self.objectives = tuple(objectives)
+        self.kept = tuple(kept)
+        self.stimuli = tuple(self.objectives[i] for i in self.kept)
+        self.dropped = tuple(i for i in range(len(self.objectives)) if i not in self.kept)
+        self.actions = tuple(actions)
+        self.action_start = action_start
+        self.bounds = tuple(bounds)
+        self.states = math.prod(hi - lo + 1 for lo, hi in self.bounds)
+        self.scale = scale
+        self.known = known
+        # Validates the learning options as the Learned form does.
+        self._learning = Learned(known or _placeholder(self.actions, self.stimuli), known_after, optimism)
+        self.basis = None if basis is None else plain(dict(basis))
+        self._ended = False
+        self._started = False
+        self.returns = [0.0] * len(self.objectives)
+        self.stimulus_totals = [0.0] * len(self.stimuli)
+        self.ticks = 0
+        self.episodes = 0
+
+    def __repr__(self) -> str:
+        how = "read transitions" if self.known is not None else "learned transitions"
+        return (
+            f"MoEnvironment({type(getattr(self.env, 'unwrapped', self.env)).__name__}: {self.states} states, "
+            f"actions {list(self.actions)}, stimuli {list(self.stimuli)}, "
+            f"dropped {[self.objectives[i] for i in self.dropped]}, {how})"
+        )
+
+    def state_of(self, observation: Any) -> int:
+        """The state index of an observation (row-major over :attr:`bounds`).
+
+        Raises:
+            ValueError: The observation has the wrong number of components,
+                a non-integer one, or one outside its bounds.
+        """
+        flat = _flat_observation(observation)
+        if len(flat) != len(self.bounds):
+            raise ValueError(f"observation {observation!r} has {len(flat)} components, expected {len(self.bounds)}")
+        index = 0
+        for i, (x, (lo, hi)) in enumerate(zip(flat, self.bounds)):
+            v = int(x)
+            if v != x or not lo <= v <= hi:
+                raise ValueError(
+                    f"observation {observation!r}: component {i} is {x!r}, not an integer in {lo}..{hi} "
+                    "(pass `observation_bounds` to from_mo_gymnasium if the bounds are too tight)"
+                )
+            index = index * (hi - lo + 1) + (v - lo)
+        return index
+
+    def observation_of(self, state: SupportsIndex) -> tuple[int, ...]:
+        """The observation components of a state index (inverse of :meth:`state_of`)."""
+        s = as_int(state, "state")
+        if not 0 <= s < self.states:
+            raise ValueError(f"state {s} is out of range (0..{self.states})")
+        out = []
+        for lo, hi in reversed(self.bounds):
+            s, r = divmod(s, hi - lo + 1)
+            out.append(lo + r)
+        return tuple(reversed(out))
+
+    def stimulus_of(self, reward: Any) -> list[float]:
+        """The stimulus of a vector reward: the kept components, negative
+        parts cut to 0, times :attr:`scale`."""
+        r = [float(x) for x in _flat_list(reward)]
+        if len(r) != len(self.objectives):
+            raise ValueError(f"reward {reward!r} has {len(r)} components, expected {len(self.objectives)}")
+        return [max(r[i], 0.0) * self.scale for i in self.kept]
+
+    def env_action(self, action: Any) -> int:
+        """The environment's action of a session's action: an index, a name,
+        or a ``Step`` (its ``action_index``)."""
+        if hasattr(action, "action_index"):
+            action = action.action_index
+        if isinstance(action, str):
+            if action not in self.actions:
+                raise ValueError(f"`{action}` is not one of the actions {list(self.actions)}")
+            a = self.actions.index(action)
+        else:
+            a = as_int(action, "action")
+            if not 0 <= a < len(self.actions):
+                raise ValueError(f"action {a} is out of range (0..{len(self.actions)})")
+        return self.action_start + a
+
+    def reset(self, seed: int | None = None) -> int:
+        """Resets the environment and the totals; returns the start state,
+        the session's first observation."""
+        obs, _info = self.env.reset(seed=seed)
+        self._ended = False
+        self._started = True
+        self.returns = [0.0] * len(self.objectives)
+        self.stimulus_totals = [0.0] * len(self.stimuli)
+        self.ticks = 0
+        self.episodes = 0
+        return self.state_of(obs)
+
+    def step(self, action: Any) -> MoStep:
+        """Takes the session's action in the environment.
+
+        When the step ends an episode (terminated, or truncated by a
+        wrapper), the environment is reset at once and the returned state is
+        the next episode's start, with this step's stimulus: the session's
+        stimulus estimate is per state-action pair, so the stimulus is
+        credited to the move that earned it, and the agent's life goes on
+        without a tick spent in a terminal state.
+        """
+        if not self._started:
+            raise RuntimeError("call reset() before step()")
+        obs, reward, terminated, truncated, _info = self.env.step(self.env_action(action))
+        raw = tuple(float(x) for x in _flat_list(reward))
+        stimulus = self.stimulus_of(raw)
+        self.ticks += 1
+        for i, x in enumerate(raw):
+            self.returns[i] += x
+        for j, x in enumerate(stimulus):
+            self.stimulus_totals[j] += x
+        state_obs = obs
+        if terminated or truncated:
+            self.episodes += 1
+            state_obs, _info = self.env.reset()
+        return MoStep(self.state_of(state_obs), stimulus, raw, bool(terminated), bool(truncated), obs)
+
+    def to_json(self) -> dict[str, Any]:
+        """The model as the server takes it: ``transitions: "learn"``, or the read table."""
+        if self.known is not None:
+            out = self.known.to_json()
+        else:
+            out = {
+                "states": self.states,
+                "actions": list(self.actions),
+                "stimuli": list(self.stimuli),
+                "transitions": "learn",
+            }
+            learning = self._learning.to_json().get("learning")
+            if learning:
+                out["learning"] = learning
+        if self.basis is not None:
+            out["basis"] = dict(self.basis)
+        return out
+
+
+def _placeholder(actions: Sequence[str], stimuli: Sequence[str]) -> Model:
+    """A one-state model, only to check the learning options with :class:`Learned`."""
+    return Model(1, tuple(actions), tuple(stimuli), ((((0, 1.0),),) * len(actions),))
+
+
+def from_mo_gymnasium(
+    env: Any,
+    *,
+    penalties: Literal["drop", "error"] = "drop",
+    scale: float = 1.0,
+    transitions: Literal["auto", "learn", "table"] = "auto",
+    observation_bounds: Sequence[tuple[int, int]] | None = None,
+    objectives: Sequence[str] | None = None,
+    actions: Sequence[str] | None = None,
+    max_states: int = 10_000,
+    unwrap: bool = True,
+    known_after: int | None = None,
+    optimism: Literal["absorbing", "stimulus"] | None = None,
+    basis: Mapping[str, Any] | None = None,
+) -> MoEnvironment:
+    """A discrete multi-objective environment (MO-Gymnasium's API: ``step``
+    returns a vector reward) as an mcapi model and a step adapter.
+
+    **States.** The observation space must be discrete: Discrete,
+    MultiDiscrete, MultiBinary, a Box of an integer dtype with finite
+    bounds, or a Tuple or Dict of these. Its components are flattened
+    row-major into one index (:meth:`MoEnvironment.state_of`). MO-Gymnasium's
+    grid worlds declare integer Boxes with loose bounds; the known ones get
+    tight bounds here (resource-gathering: row, column and two flags, 100
+    states; deep-sea-treasure: the map's cells, 121). More than
+    ``max_states`` states (four-room: 169 cells x 2^12 collected-shape flags)
+    is refused: abstract the observation with a ``gymnasium.ObservationWrapper``
+    and pass ``unwrap=False``, or give ``observation_bounds``.
+
+    **Actions.** The action space must be Discrete; action i of the session
+    is the environment's ``start + i``.
+
+    **Stimuli.** Each reward component (objective) is a stimulus dimension
+    unless the reward space says it is never positive (a time or damage
+    penalty, ``high <= 0``): those are dropped (``penalties="drop"``) or
+    refused (``"error"``). A stimulus is an amount received, and MCA-PI has no
+    aversion: the reward is ``|Xi(s, a) . Lambda D|``, so a penalty posted as
+    a negative stimulus would attract like a positive one, and a penalty
+    split off as its own positive dimension would be sought whenever the
+    drive turns to it (the drive turns to what was received least). The
+    penalties are still counted in :attr:`MoEnvironment.returns`, and a
+    death or a time cost still shapes behaviour through the dynamics (a
+    killed agent restarts and loses what it carried). A component that can
+    be both positive and negative keeps its positive part. Stimuli are the
+    kept components times ``scale``.
+
+    **Transitions.** With ``transitions="auto"`` the environment's own table
+    is read when it has one (``env.unwrapped.P`` in the toy-text form
+    ``P[s][a] = [(p, next, reward, terminated), ...]`` over a Discrete
+    observation space; a terminating outcome leads to the
+    ``initial_state_distrib``, as the adapter's reset does); otherwise, and
+    with ``"learn"``, the session learns them (``transitions: "learn"``,
+    docs/algorithm.md section 8). MO-Gymnasium's environments keep their
+    dynamics in ``step()`` (resource-gathering's enemies are random), so
+    they are learned. ``"table"`` requires the table.
+
+    Args:
+        env: The environment, e.g. ``mo_gymnasium.make("resource-gathering-v0")``.
+        penalties: ``"drop"`` or ``"error"`` for never-positive objectives.
+        scale: Stimulus per unit of reward (positive).
+        transitions: ``"auto"``, ``"learn"`` or ``"table"``, see above.
+        observation_bounds: Inclusive (low, high) per observation component,
+            instead of the space's (or the preset's) bounds.
+        objectives: Names of the reward components (default: the known
+            environments' own, else ``r0``, ``r1``, ...).
+        actions: Action names (default: the known environments' own, else
+            ``a0``, ``a1``, ...).
+        max_states: The most states accepted (the server has its own limits).
+        unwrap: Step ``env.unwrapped`` (the default: an agent's life has no
+            time limit, so the TimeLimit wrapper is skipped); ``False`` steps
+            ``env`` with its wrappers, and a truncation ends the episode too.
+        known_after: m of a learned model (see :class:`Learned`).
+        optimism: ``"absorbing"`` or ``"stimulus"`` (see :class:`Learned`).
+        basis: Optional basis for the server.
+
+    Raises:
+        UnsupportedEnvironment: A continuous or otherwise unsupported space,
+            more than ``max_states`` states, or no objective left as a stimulus.
+        ValueError: A bad option, or a transition table that does not sum to 1.
+    """
+    base = getattr(env, "unwrapped", env)
+    stepped = base if unwrap else env
+    name = type(base).__name__
+    preset = _mo_preset(base)
+
+    action_space = getattr(stepped, "action_space", None)
+    if type(action_space).__name__ != "Discrete":
+        raise UnsupportedEnvironment(
+            f"{name}'s action space is {action_space}: only a Discrete action space maps to mcapi actions"
+        )
+    n_actions = as_int(action_space.n, "action_space.n")
+    action_start = as_int(getattr(action_space, "start", 0), "action_space.start")
+    if actions is None:
+        actions = preset.get("actions") if len(preset.get("actions", ())) == n_actions else None
+        actions = actions or tuple(f"a{i}" for i in range(n_actions))
+    actions = tuple(actions)
+    if len(actions) != n_actions:
+        raise ValueError(f"{len(actions)} action names for {n_actions} actions")
+    _check_names("actions", actions)
+
+    obs_space = getattr(stepped, "observation_space", None)
+    if obs_space is None:
+        raise UnsupportedEnvironment(f"{name} has no observation_space")
+    leaves = _space_leaves(obs_space, f"{name}'s observation space")
+    if observation_bounds is not None:
+        bounds = [(as_int(lo, "low"), as_int(hi, "high")) for lo, hi in observation_bounds]
+        if len(bounds) != len(leaves):
+            raise ValueError(
+                f"`observation_bounds` has {len(bounds)} entries; the observation has {len(leaves)} components"
+            )
+    elif unwrap and "bounds" in preset and len(preset["bounds"]) == len(leaves):
+        bounds = list(preset["bounds"])
+    else:
+        bounds = leaves
+    for i, (lo, hi) in enumerate(bounds):
+        if hi < lo:
+            raise ValueError(f"observation component {i}: bounds {lo}..{hi} are empty")
+    states = math.prod(hi - lo + 1 for lo, hi in bounds)
+    if states > max_states:
+        raise UnsupportedEnvironment(
+            f"{name}'s observation space {obs_space} gives {states:,} states "
+            f"({' x '.join(str(hi - lo + 1) for lo, hi in bounds)}), more than max_states = {max_states:,}: "
+            "abstract the observation (a gymnasium.ObservationWrapper, with unwrap=False), "
+            "give tighter `observation_bounds`, or raise `max_states`"
+        )
+
+    reward_space = getattr(base, "reward_space", None)
+    if reward_space is None and hasattr(env, "get_wrapper_attr"):
+        with contextlib.suppress(AttributeError):
+            reward_space = env.get_wrapper_attr("reward_space")
+    if reward_space is not None:
+        highs = [float(x) for x in _flat_list(reward_space.high)]
+    else:
+        n_obj = getattr(base, "reward_dim", None)
+        if n_obj is None:
+            raise UnsupportedEnvironment(
+                f"{name} has neither `reward_space` nor `reward_dim`: is it a multi-objective environment?"
+            )
+        highs = [math.inf] * as_int(n_obj, "reward_dim")
+    if objectives is None:
+        objectives = preset.get("objectives") if len(preset.get("objectives", ())) == len(highs) else None
+        objectives = objectives or tuple(f"r{i}" for i in range(len(highs)))
+    objectives = tuple(objectives)
+    if len(objectives) != len(highs):
+        raise ValueError(f"{len(objectives)} objective names for {len(highs)} reward components")
+    _check_names("objectives", objectives)
+    penalty = [i for i, hi in enumerate(highs) if hi <= 0.0]
+    if penalty and penalties == "error":
+        raise UnsupportedEnvironment(
+            f"{name}'s objectives {[objectives[i] for i in penalty]} are never positive (penalties); "
+            "a stimulus is an amount received: pass penalties='drop' to leave them out"
+        )
+    if penalties not in ("drop", "error"):
+        raise ValueError(f"penalties must be 'drop' or 'error', not {penalties!r}")
+    kept = [i for i in range(len(highs)) if i not in penalty]
+    if not kept:
+        raise UnsupportedEnvironment(f"{name}'s objectives {list(objectives)} are all penalties: no stimulus left")
+    scale = as_float(scale, "scale")
+    if not (math.isfinite(scale) and scale > 0.0):
+        raise ValueError(f"`scale` {scale} is not a positive number")
+
+    if transitions not in ("auto", "learn", "table"):
+        raise ValueError(f"transitions must be 'auto', 'learn' or 'table', not {transitions!r}")
+    table = getattr(base, "P", None)
+    readable = table is not None and type(obs_space).__name__ == "Discrete" and observation_bounds is None
+    if transitions == "table" and not readable:
+        raise ValueError(
+            f"{name} has no transition table `P` over a Discrete observation space: use transitions='learn'"
+        )
+    known = None
+    if readable and transitions != "learn":
+        known = _mo_table(base, table, states, bounds[0][0], actions, tuple(objectives[i] for i in kept))
+    return MoEnvironment(
+        stepped,
+        objectives=objectives,
+        kept=kept,
+        actions=actions,
+        action_start=action_start,
+        bounds=bounds,
+        scale=scale,
+        known=known,
+        known_after=known_after,
+        optimism=optimism,
+        basis=basis,
+    )
+
+
+def _mo_table(
+    base: Any, P: Any, states: int, start: int, actions: Sequence[str], stimuli: Sequence[str]
+) -> Model:
+    """A toy-text table ``P[s][a] = [(p, next, reward, terminated), ...]`` with
+    each terminating outcome leading to the initial-state distribution."""
+    init: list[tuple[int, float]] | None = None
+    dist = getattr(base, "initial_state_distrib", None)
+    if dist is not None:
+        init = [(s, _probability(p, "initial_state_distrib")) for s, p in enumerate(_flat_list(dist)) if p > 0]
+    rows = []
+    for s in range(states):
+        row: dict[int, dict[int, float]] = {}
+        outcomes_of = P[s + start]
+        for a, outcomes in outcomes_of.items() if isinstance(outcomes_of, Mapping) else enumerate(outcomes_of):
+            where = f"P[{s + start}][{a}]"
+            succ: dict[int, float] = {}
+            for outcome in outcomes:
+                p, t, _reward, done = outcome[:4]
+                p = _probability(p, where)
+                targets = [(_next_state(t, where) - start, 1.0)]
+                if done:
+                    if init is None:
+                        raise ValueError(
+                            f"{type(base).__name__} has no `initial_state_distrib` to restart from: "
+                            "use transitions='learn'"
+                        )
+                    targets = init
+                for u, q in targets:
+                    if p * q > 0:
+                        succ[u] = succ.get(u, 0.0) + p * q
+            total = sum(succ.values())
+            if abs(total - 1.0) > 1e-6:
+                raise ValueError(f"{where}: probabilities sum to {total}, not 1")
+            row[as_int(a, "action")] = {u: q / total for u, q in succ.items()}
+        rows.append(row)
+    return from_transition_table(rows, actions, {}, stimuli=stimuli)
+
+
+ModelLike = Union[Model, Learned, MoEnvironment, Mapping[str, Any], str]
 """A model to create a session from: a :class:`Model`, the model's JSON as a
 mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
 "sources": {...}}``; numpy values allowed), or a preset name
@@ -841,7 +1382,7 @@ mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
 
 def model_json(model: ModelLike) -> dict[str, Any]:
     """The ``model`` JSON of a create request (REST's body; gRPC sends it as the typed ``Model``)."""
-    if isinstance(model, (Model, Learned)):
+    if isinstance(model, (Model, Learned, MoEnvironment)):
         return model.to_json()
     if isinstance(model, str):
         return {"preset": model}
