@@ -62,8 +62,10 @@ build:
 # The Python client (clients/python) against the debug binary (the one `unit`
 # already built, so `make test` compiles no release build): a venv in
 # clients/python/.venv, the package installed (not editable) with both
-# transports (the rest and grpc extras) and its test extras at the pinned
-# versions of constraints.txt, then pytest.
+# transports (the rest and grpc extras), its test extras and the extras the
+# examples use (gymnasium, plot, mo: MO-Gymnasium with scipy and pygame, about
+# 10 s more from the network) at the pinned versions of constraints.txt,
+# then pytest.
 # `MCAPI_BIN=target/release/mcapi` runs it against the release binary.
 PYTHON ?= python3
 PY_CLIENT := clients/python
@@ -72,7 +74,7 @@ python-venv:
 	test -x $(PY_CLIENT)/.venv/bin/python || $(PYTHON) -m venv $(PY_CLIENT)/.venv
 	rm -rf $(PY_CLIENT)/build  # setuptools would pack stale files left there
 	$(PY_CLIENT)/.venv/bin/python -m pip install --quiet --disable-pip-version-check \
-	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[rest,grpc,test,gymnasium,plot]'
+	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[rest,grpc,test,gymnasium,plot,mo]'
 
 python-test: build python-venv
 	cd $(PY_CLIENT) && MCAPI_BIN=$(MCAPI_BIN) .venv/bin/pytest

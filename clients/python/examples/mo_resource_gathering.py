@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
 from collections.abc import Sequence
 
 from mcapi_client import Client, models
@@ -47,8 +48,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         print("this example needs MO-Gymnasium: pip install 'mcapi-client[rest,mo]'")
         return 2
 
+    # MO-Gymnasium builds its reward spaces from float64 bounds: gymnasium warns.
+    warnings.filterwarnings("ignore", message=".*precision lowered", category=UserWarning)
     world = models.from_mo_gymnasium(
-        mo_gymnasium.make("resource-gathering-v0"), scale=args.scale, known_after=args.known_after
+        mo_gymnasium.make("resource-gathering-v0"),  # type: ignore[attr-defined]
+        scale=args.scale,
+        known_after=args.known_after,
     )
     dropped = ", ".join(world.objectives[i] for i in world.dropped) or "none"
     print(
@@ -63,12 +68,16 @@ def main(argv: Sequence[str] | None = None) -> int:
             step = mc.observe(session.id, s.state, s.stimulus)
             if tick % args.report_every == 0:
                 known = mc.values(session.id).known_fraction or 0.0
-                got = ", ".join(f"{n} {x / args.scale:.0f}" for n, x in zip(world.stimuli, world.stimulus_totals))
+                amounts = zip(world.stimuli, world.stimulus_totals)
+                got = ", ".join(f"{n} {x / args.scale:.0f}" for n, x in amounts)
                 print(f"tick {tick:5}: {known:.3f} of the model known; {world.episodes} episodes; {got}")
         totals = ", ".join(f"{n} {x:+.0f}" for n, x in zip(world.objectives, world.returns))
         kept = [world.returns[i] for i in world.kept]
         balance = min(kept) / max(1.0, max(kept))
-        print(f"{args.steps} ticks, {world.episodes} episodes: per objective {totals}; balance (fewer/more) {balance:.2f}")
+        print(
+            f"{args.steps} ticks, {world.episodes} episodes: per objective {totals}; "
+            f"balance (fewer/more) {balance:.2f}"
+        )
         if not args.keep:
             mc.delete_session(session.id)
     return 0

@@ -881,8 +881,9 @@ def _space_leaves(space: Any, where: str) -> list[tuple[int, int]]:
         return [(start, start + as_int(space.n, "n") - 1)]
     if kind == "MultiDiscrete":
         nvec = _flat_list(space.nvec)
-        start = _flat_list(getattr(space, "start", [0] * len(nvec)))
-        return [(as_int(b, "start"), as_int(b, "start") + as_int(n, "nvec") - 1) for n, b in zip(nvec, start)]
+        starts = _flat_list(getattr(space, "start", [0] * len(nvec)))
+        firsts = [as_int(b, "start") for b in starts]
+        return [(lo, lo + as_int(n, "nvec") - 1) for n, lo in zip(nvec, firsts)]
     if kind == "MultiBinary":
         return [(0, 1)] * math.prod(_flat_list([space.n]))
     if kind == "Box":
@@ -1040,7 +1041,9 @@ class MoEnvironment:
         """
         flat = _flat_observation(observation)
         if len(flat) != len(self.bounds):
-            raise ValueError(f"observation {observation!r} has {len(flat)} components, expected {len(self.bounds)}")
+            raise ValueError(
+                f"observation {observation!r} has {len(flat)} components, expected {len(self.bounds)}"
+            )
         index = 0
         for i, (x, (lo, hi)) in enumerate(zip(flat, self.bounds)):
             v = int(x)
@@ -1233,7 +1236,7 @@ def from_mo_gymnasium(
     name = type(base).__name__
     preset = _mo_preset(base)
 
-    action_space = getattr(stepped, "action_space", None)
+    action_space: Any = getattr(stepped, "action_space", None)
     if type(action_space).__name__ != "Discrete":
         raise UnsupportedEnvironment(
             f"{name}'s action space is {action_space}: only a Discrete action space maps to mcapi actions"
@@ -1256,9 +1259,10 @@ def from_mo_gymnasium(
         bounds = [(as_int(lo, "low"), as_int(hi, "high")) for lo, hi in observation_bounds]
         if len(bounds) != len(leaves):
             raise ValueError(
-                f"`observation_bounds` has {len(bounds)} entries; the observation has {len(leaves)} components"
+                f"`observation_bounds` has {len(bounds)} entries; "
+                f"the observation has {len(leaves)} components"
             )
-    elif unwrap and "bounds" in preset and len(preset["bounds"]) == len(leaves):
+    elif "bounds" in preset and obs_space == base.observation_space and len(preset["bounds"]) == len(leaves):
         bounds = list(preset["bounds"])
     else:
         bounds = leaves
@@ -1304,7 +1308,9 @@ def from_mo_gymnasium(
         raise ValueError(f"penalties must be 'drop' or 'error', not {penalties!r}")
     kept = [i for i in range(len(highs)) if i not in penalty]
     if not kept:
-        raise UnsupportedEnvironment(f"{name}'s objectives {list(objectives)} are all penalties: no stimulus left")
+        raise UnsupportedEnvironment(
+            f"{name}'s objectives {list(objectives)} are all penalties: no stimulus left"
+        )
     scale = as_float(scale, "scale")
     if not (math.isfinite(scale) and scale > 0.0):
         raise ValueError(f"`scale` {scale} is not a positive number")
@@ -1343,12 +1349,14 @@ def _mo_table(
     init: list[tuple[int, float]] | None = None
     dist = getattr(base, "initial_state_distrib", None)
     if dist is not None:
-        init = [(s, _probability(p, "initial_state_distrib")) for s, p in enumerate(_flat_list(dist)) if p > 0]
+        weights = enumerate(_flat_list(dist))
+        init = [(s, _probability(p, "initial_state_distrib")) for s, p in weights if p > 0]
     rows = []
     for s in range(states):
         row: dict[int, dict[int, float]] = {}
         outcomes_of = P[s + start]
-        for a, outcomes in outcomes_of.items() if isinstance(outcomes_of, Mapping) else enumerate(outcomes_of):
+        pairs = outcomes_of.items() if isinstance(outcomes_of, Mapping) else enumerate(outcomes_of)
+        for a, outcomes in pairs:
             where = f"P[{s + start}][{a}]"
             succ: dict[int, float] = {}
             for outcome in outcomes:

@@ -99,3 +99,28 @@ def test_learned_maze(server: Server, examples_path: Path, capsys: pytest.Captur
     assert len(re.findall(r"first reached source [abc]", out)) == 3, out
     visits = dict(re.findall(r"([abc]) (\d+)", out.splitlines()[-1]))
     assert all(int(visits[s]) > 0 for s in "abc"), out
+
+
+def test_mo_resource_gathering(
+    server: Server, examples_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pytest.importorskip("mo_gymnasium", reason="the mo extra is not installed")
+    out = _run(
+        "mo_resource_gathering",
+        ["--url", server.http_url, "--steps", "2000", "--report-every", "1000"],
+        capsys,
+    )
+    head = "100 states, actions up, down, left, right; stimuli gold, gem; penalties left out: enemy"
+    assert head in out, out
+    known = [float(x) for x in re.findall(r"tick +\d+: ([0-9.]+) of the model known", out)]
+    assert len(known) == 2 and known[-1] > 0.85, out
+    final = re.search(
+        r"2000 ticks, (\d+) episodes: per objective enemy ([-+]\d+), gold \+(\d+), gem \+(\d+); "
+        r"balance \(fewer/more\) ([0-9.]+)",
+        out,
+    )
+    assert final, out
+    episodes, enemy, gold, gem = map(int, final.groups()[:4])
+    assert episodes > 50 and enemy <= 0, out
+    assert gold >= 30 and gem >= 30, f"both resources brought home often: {out}"
+    assert float(final.group(5)) >= 0.8, out
