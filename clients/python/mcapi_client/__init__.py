@@ -12,7 +12,8 @@ action, the drive and the reward.
   the ``grpc`` extra), with ``interact`` (a bidirectional stream for
   high-rate loops) and ``watch``.
 - :mod:`mcapi_client.models`: model builders (hallway, grid maps, transition
-  tables, Gymnasium toy-text environments).
+  tables, Gymnasium toy-text environments, learned models, discrete
+  MO-Gymnasium environments with their step adapter).
 - :mod:`mcapi_client.errors`: :class:`McapiError` and its subclasses, one per
   family of the server's stable error codes.
 - Curiosity: ``create_session(..., curiosity=CuriosityConfig(signal_dim=2))``

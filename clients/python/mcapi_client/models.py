@@ -1015,7 +1015,7 @@ class MoEnvironment:
         self.scale = scale
         self.known = known
         # Validates the learning options as the Learned form does.
-        self._learning = Learned(known or _placeholder(self.actions, self.stimuli), known_after, optimism)
+        self._learning = Learned(_placeholder(self.actions, self.stimuli), known_after, optimism)
         self.basis = None if basis is None else plain(dict(basis))
         self._ended = False
         self._started = False
@@ -1382,7 +1382,8 @@ def _mo_table(
 
 
 ModelLike = Union[Model, Learned, MoEnvironment, Mapping[str, Any], str]
-"""A model to create a session from: a :class:`Model`, the model's JSON as a
+"""A model to create a session from: a :class:`Model`, a :class:`Learned` or a
+:class:`MoEnvironment` (posted by their ``to_json``), the model's JSON as a
 mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
 "sources": {...}}``; numpy values allowed), or a preset name
 (``"hallway"``, ``"three_room"``)."""

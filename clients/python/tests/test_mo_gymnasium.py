@@ -11,7 +11,7 @@ from typing import Any
 import pytest
 from conftest import Server, open_client
 
-from mcapi_client import models
+from mcapi_client import Client, models
 from mcapi_client.models import MoEnvironment, UnsupportedEnvironment
 
 gymnasium = pytest.importorskip("gymnasium", reason="the gymnasium extra is not installed")
@@ -190,6 +190,20 @@ def test_a_transition_table_is_read_with_terminal_outcomes_restarting() -> None:
     assert models.model_json(models.from_mo_gymnasium(Table(), transitions="learn"))["transitions"] == "learn"
     with pytest.raises(ValueError, match="no transition table"):
         models.from_mo_gymnasium(Chain(), transitions="table")
+
+
+def test_a_read_table_is_posted_as_a_known_model(client: Client) -> None:
+    world = models.from_mo_gymnasium(Table(), scale=6)
+    session = client.create_session(world, seed=1)
+    try:
+        assert session.model.learned is None and session.model.states == 3
+        step = client.observe(session.id, world.reset())
+        for _ in range(30):
+            s = world.step(step)
+            step = client.observe(session.id, s.state, s.stimulus)
+        assert world.episodes >= 2 and world.stimulus_totals[0] == 6 * world.episodes
+    finally:
+        client.delete_session(session.id)
 
 
 # End to end: resource-gathering through a real server.
