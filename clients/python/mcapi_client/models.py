@@ -893,10 +893,7 @@ def _space_leaves(space: Any, where: str) -> list[tuple[int, int]]:
                 f"{where} is continuous ({space}): only discrete observations become states "
                 "(Discrete, MultiDiscrete, MultiBinary, an integer Box, or a Tuple or Dict of them)"
             )
-        lows, highs = _flat_list(space.low), _flat_list(space.high)
-        if not all(math.isfinite(x) for x in lows + highs):
-            raise UnsupportedEnvironment(f"{where} ({space}) is unbounded: pass `observation_bounds`")
-        return [(int(lo), int(hi)) for lo, hi in zip(lows, highs)]
+        return [(int(lo), int(hi)) for lo, hi in zip(_flat_list(space.low), _flat_list(space.high))]
     if kind == "Tuple":
         return [leaf for i, sub in enumerate(space.spaces) for leaf in _space_leaves(sub, f"{where}[{i}]")]
     if kind == "Dict":
@@ -917,12 +914,17 @@ def _flat_list(x: Any) -> list[Any]:
     return [x]
 
 
-def _flat_observation(obs: Any) -> list[Any]:
-    """An observation's components in the order of :func:`_space_leaves`."""
-    if isinstance(obs, Mapping):
-        return [y for value in obs.values() for y in _flat_observation(value)]
-    if isinstance(obs, tuple):
-        return [y for item in obs for y in _flat_observation(item)]
+def _flat_observation(obs: Any, space: Any) -> list[Any]:
+    """An observation's components in the order of :func:`_space_leaves`
+    (a Dict space's keys in the space's order, whatever the observation's)."""
+    kind = type(space).__name__
+    if kind == "Dict" and isinstance(obs, Mapping):
+        missing = [key for key in space.spaces if key not in obs]
+        if missing:
+            raise ValueError(f"observation {obs!r} has no {missing[0]!r}")
+        return [y for key, sub in space.spaces.items() for y in _flat_observation(obs[key], sub)]
+    if kind == "Tuple" and isinstance(obs, (tuple, list)):
+        return [y for item, sub in zip(obs, space.spaces) for y in _flat_observation(item, sub)]
     return _flat_list(obs)
 
 
@@ -978,6 +980,7 @@ class MoEnvironment:
         dropped: Indices of the objectives that are not stimuli (penalties).
         actions: Action names; index i is the environment's action
             ``action_start + i``.
+        observation_space: The space the states come from.
         bounds: Inclusive (low, high) of each observation component.
         states: Number of states: the product of the components' ranges.
         scale: Factor from a reward component to a stimulus amount.
@@ -996,6 +999,7 @@ class MoEnvironment:
         kept: Sequence[int],
         actions: Sequence[str],
         action_start: int,
+        observation_space: Any,
         bounds: Sequence[tuple[int, int]],
         scale: float,
         known: Model | None,
@@ -1010,6 +1014,7 @@ class MoEnvironment:
         self.dropped = tuple(i for i in range(len(self.objectives)) if i not in self.kept)
         self.actions = tuple(actions)
         self.action_start = action_start
+        self.observation_space = observation_space
         self.bounds = tuple(bounds)
         self.states = math.prod(hi - lo + 1 for lo, hi in self.bounds)
         self.scale = scale
@@ -1039,15 +1044,18 @@ class MoEnvironment:
             ValueError: The observation has the wrong number of components,
                 a non-integer one, or one outside its bounds.
         """
-        flat = _flat_observation(observation)
+        flat = _flat_observation(observation, self.observation_space)
         if len(flat) != len(self.bounds):
             raise ValueError(
                 f"observation {observation!r} has {len(flat)} components, expected {len(self.bounds)}"
             )
         index = 0
         for i, (x, (lo, hi)) in enumerate(zip(flat, self.bounds)):
-            v = int(x)
-            if v != x or not lo <= v <= hi:
+            try:
+                v = int(x)
+            except (TypeError, ValueError):
+                v = lo - 1  # reported below
+            if isinstance(x, str) or v != x or not lo <= v <= hi:
                 raise ValueError(
                     f"observation {observation!r}: component {i} is {x!r}, not an integer in {lo}..{hi} "
                     "(pass `observation_bounds` to from_mo_gymnasium if the bounds are too tight)"
@@ -1194,8 +1202,9 @@ def from_mo_gymnasium(
     penalties are still counted in :attr:`MoEnvironment.returns`, and a
     death or a time cost still shapes behaviour through the dynamics (a
     killed agent restarts and loses what it carried). A component that can
-    be both positive and negative keeps its positive part. Stimuli are the
-    kept components times ``scale``.
+    be both positive and negative keeps its positive part, and so does every
+    component of an environment without a ``reward_space`` (then none is
+    dropped). Stimuli are the kept components times ``scale``.
 
     **Transitions.** With ``transitions="auto"`` the environment's own table
     is read when it has one (``env.unwrapped.P`` in the toy-text form
@@ -1332,6 +1341,7 @@ def from_mo_gymnasium(
         kept=kept,
         actions=actions,
         action_start=action_start,
+        observation_space=obs_space,
         bounds=bounds,
         scale=scale,
         known=known,

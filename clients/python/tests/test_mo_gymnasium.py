@@ -92,8 +92,14 @@ def test_composite_spaces_flatten_row_major_and_back() -> None:
         seen.add(s)
     assert len(seen) == world.states
     assert world.state_of({"cell": [2, 3], "flags": [1, 1], "level": (6,)}) == world.states - 1
+    # The space's key order, whatever the observation's.
+    assert world.state_of({"level": (5,), "flags": [0, 1], "cell": [0, 0]}) == 2
     with pytest.raises(ValueError, match=r"component 4 is 7, not an integer in 5\.\.6"):
         world.state_of({"cell": [0, 0], "flags": [0, 0], "level": (7,)})
+    with pytest.raises(ValueError, match="has no 'cell'"):
+        world.state_of({"level": (5,), "flags": [0, 1]})
+    with pytest.raises(ValueError, match="component 1 is 1.5, not an integer"):
+        world.state_of({"cell": [0, 1.5], "flags": [0, 0], "level": (5,)})
     with pytest.raises(ValueError, match="has 2 components, expected 5"):
         world.state_of([0, 0])
 
@@ -222,6 +228,24 @@ def test_known_mo_gymnasium_environments() -> None:
         models.from_mo_gymnasium(mo_gymnasium.make("four-room-v0"))
     with pytest.raises(UnsupportedEnvironment, match="continuous"):
         models.from_mo_gymnasium(mo_gymnasium.make("mo-mountaincar-v0"))
+
+
+class CellOnly(gymnasium.ObservationWrapper):  # type: ignore[misc]
+    """four-room's observation without its collected-shape flags: the cell."""
+
+    def __init__(self, env: Any) -> None:
+        super().__init__(env)
+        self.observation_space = spaces.MultiDiscrete([13, 13])
+
+    def observation(self, obs: Any) -> Any:
+        return obs[:2]
+
+
+def test_an_observation_wrapper_makes_four_room_small_enough() -> None:
+    world = models.from_mo_gymnasium(CellOnly(mo_gymnasium.make("four-room-v0").unwrapped), unwrap=False)
+    assert (world.states, world.stimuli, world.dropped) == (169, ("blue", "green", "red"), ())
+    assert world.observation_of(world.reset(seed=0)) == (12, 0)  # the start, lower left
+    assert world.step("up").state == world.state_of([11, 0])
 
 
 class Recorder(gymnasium.Wrapper):  # type: ignore[misc]
