@@ -2,10 +2,10 @@
 CARGO ?= cargo
 
 .PHONY: test lint-docker check-links fmt-check clippy unit build release bench bench-server figures peers clean \
-	python-venv python-test e2e contract fuzz checks container-base container-test container-bench \
+	python-venv python-lint python-test e2e contract fuzz checks container-base container-test container-bench \
 	k8s-validate k8s-configmap
 
-CHECKS := lint-docker k8s-validate check-links fmt-check clippy unit contract python-test e2e
+CHECKS := lint-docker k8s-validate check-links fmt-check clippy unit contract python-lint python-test e2e
 
 # The checks run one after the other, as listed; the container's base images
 # (network and disk bound, 2-3 minutes from scratch) are made meanwhile, in
@@ -74,7 +74,13 @@ python-venv:
 	test -x $(PY_CLIENT)/.venv/bin/python || $(PYTHON) -m venv $(PY_CLIENT)/.venv
 	rm -rf $(PY_CLIENT)/build  # setuptools would pack stale files left there
 	$(PY_CLIENT)/.venv/bin/python -m pip install --quiet --disable-pip-version-check \
-	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[rest,grpc,test,gymnasium,plot,mo]'
+	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[rest,grpc,test,lint,gymnasium,plot,mo]'
+
+# The client's lints, as clippy is the server's: ruff's rules and mypy
+# --strict on the package, its examples and tools (pyproject.toml). The
+# tests are not type-checked; `ruff format` is not enforced.
+python-lint: python-venv
+	cd $(PY_CLIENT) && .venv/bin/ruff check . && .venv/bin/mypy
 
 python-test: build python-venv
 	cd $(PY_CLIENT) && MCAPI_BIN=$(MCAPI_BIN) .venv/bin/pytest

@@ -56,8 +56,8 @@ from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
 from ._sansio import adrive, drive
 from .errors import McapiError, Unavailable
-from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .models import ModelLike
+from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .types import (
     ActionRef,
     AgentOptions,

@@ -36,8 +36,8 @@ from ._protocol import READY, Request, RestProtocol, read_reply
 from ._protocol import headers as request_headers
 from ._sansio import adrive, drive
 from .errors import McapiError, Timeout, TransportError, WrongReplica
-from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .models import ModelLike
+from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .types import (
     ActionRef,
     AgentOptions,
