@@ -101,15 +101,37 @@ def _stream_ended() -> Unavailable:
     return Unavailable("the server ended the stream before replying", code="stream_closed")
 
 
-class _Stream:
+class _Closing:
+    """How every request stream here ends, blocking or asyncio: the request
+    iterator is ended once (``None`` in the outbox), then the call is
+    cancelled once, dropping replies not yet received."""
+
+    _outbox: queue.SimpleQueue[Any] | asyncio.Queue[Any]
+    _call: Any
+
+    def __init__(self) -> None:
+        self._half_closed = False
+        self._closed = False
+
+    def close(self) -> None:
+        """Ends the stream: no more observations, unreceived steps are dropped."""
+        if self._closed:
+            return
+        self._closed = True
+        if not self._half_closed:
+            self._half_closed = True
+            self._outbox.put_nowait(None)
+        self._call.cancel()
+
+
+class _Stream(_Closing):
     """What both ``Interact`` streams count and check, with no I/O."""
 
     def __init__(self, session_id: str) -> None:
+        super().__init__()
         self.session_id = session_id
         self._sent = 0
         self._received = 0
-        self._half_closed = False
-        self._closed = False
 
     @property
     def pending(self) -> int:
@@ -226,16 +248,6 @@ class Interaction(_Stream):
             raise StopIteration
         return self.recv()
 
-    def close(self) -> None:
-        """Ends the stream: no more observations, unreceived steps are dropped."""
-        if self._closed:
-            return
-        self._closed = True
-        if not self._half_closed:
-            self._half_closed = True
-            self._outbox.put(None)
-        self._call.cancel()
-
     def __enter__(self) -> Interaction:
         return self
 
@@ -248,7 +260,7 @@ class Interaction(_Stream):
         self.close()
 
 
-class BatchInteraction:
+class BatchInteraction(_Closing):
     """One ``InteractBatch`` stream: several sessions stepped together, as a
     vectorised simulator steps its worlds.
 
@@ -271,9 +283,9 @@ class BatchInteraction:
     """
 
     def __init__(self, stub: pb_grpc.AgentsStub, metadata: Metadata) -> None:
+        super().__init__()
         self._outbox: queue.SimpleQueue[pb.ObservationBatch | None] = queue.SimpleQueue()
         self._call = stub.InteractBatch(self._requests(), metadata=metadata)
-        self._closed = False
 
     def _requests(self) -> Iterator[pb.ObservationBatch]:
         while True:
@@ -302,14 +314,6 @@ class BatchInteraction:
         except grpc.RpcError as e:
             raise rpc_error(e) from e
         return _pb.step_results(msg)
-
-    def close(self) -> None:
-        """Ends the stream."""
-        if self._closed:
-            return
-        self._closed = True
-        self._outbox.put(None)
-        self._call.cancel()
 
     def __enter__(self) -> BatchInteraction:
         return self
@@ -621,16 +625,6 @@ class AsyncInteraction(_Stream):
             raise StopAsyncIteration
         return await self.recv()
 
-    def close(self) -> None:
-        """Ends the stream: no more observations, unreceived steps are dropped."""
-        if self._closed:
-            return
-        self._closed = True
-        if not self._half_closed:
-            self._half_closed = True
-            self._outbox.put_nowait(None)
-        self._call.cancel()
-
     async def __aenter__(self) -> AsyncInteraction:
         return self
 
@@ -638,7 +632,7 @@ class AsyncInteraction(_Stream):
         self.close()
 
 
-class AsyncBatchInteraction:
+class AsyncBatchInteraction(_Closing):
     """One ``InteractBatch`` stream under asyncio; :class:`BatchInteraction`'s twin.
 
         async with client.interact_batch() as stream:
@@ -646,9 +640,9 @@ class AsyncBatchInteraction:
     """
 
     def __init__(self, stub: pb_grpc.AgentsStub, metadata: Metadata) -> None:
+        super().__init__()
         self._outbox: asyncio.Queue[pb.ObservationBatch | None] = asyncio.Queue()
         self._call = stub.InteractBatch(self._requests(), metadata=metadata)
-        self._closed = False
 
     async def _requests(self) -> AsyncIterator[pb.ObservationBatch]:
         while True:
@@ -671,14 +665,6 @@ class AsyncBatchInteraction:
         if msg is grpc.aio.EOF:
             raise _stream_ended()
         return _pb.step_results(msg)
-
-    def close(self) -> None:
-        """Ends the stream."""
-        if self._closed:
-            return
-        self._closed = True
-        self._outbox.put_nowait(None)
-        self._call.cancel()
 
     async def __aenter__(self) -> AsyncBatchInteraction:
         return self
