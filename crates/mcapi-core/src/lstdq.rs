@@ -236,10 +236,6 @@ pub struct PlannerStats {
 #[derive(Debug, Clone)]
 pub struct Planner {
     q: Vec<f64>,
-    q_next: Vec<f64>,
-    /// Scratch of [`Planner::update`]: the states whose action is no longer
-    /// greedy under the new Q, in state order.
-    outdated: Vec<u32>,
     /// Chosen pair per state (absolute pair index).
     policy: Vec<u32>,
     engine: Engine,
@@ -255,9 +251,50 @@ enum Engine {
 
 #[derive(Debug, Clone)]
 struct FunctionalGraph {
+    /// V^π of the last evaluation (warm start of Gauss–Seidel when a
+    /// learned P̂ stops being deterministic, [`Planner::model_changed`]).
     v: Vec<f64>,
+}
+
+/// Work space of [`Planner::update`] that no agent keeps between updates:
+/// one per thread, so an idle session holds only Q, π and what its engine
+/// must remember (about 1.3 KiB less per hallway session; BENCHMARKS.md §8).
+/// Every update writes what it reads of it first, so which thread plans a
+/// session does not change a bit of its results.
+#[derive(Debug, Default)]
+struct Scratch {
+    /// Q_{t+1} while it is computed; after the swap, the agent's old Q.
+    q_next: Vec<f64>,
+    /// The states whose action is no longer greedy under Q_{t+1}, in
+    /// state order ([`Planner::compare`]).
+    outdated: Vec<u32>,
+    /// The functional-graph walk's marks and path.
     mark: Vec<u8>,
     stack: Vec<u32>,
+}
+
+thread_local! {
+    static SCRATCH: std::cell::RefCell<Scratch> = std::cell::RefCell::new(Scratch::default());
+}
+
+impl Scratch {
+    /// Takes the thread's scratch, with `q_next` of exactly `pairs` entries
+    /// (its capacity too: after the swap it is the agent's Q, and an agent
+    /// keeps no spare room).
+    fn take(pairs: usize) -> Self {
+        let mut s = SCRATCH.with_borrow_mut(std::mem::take);
+        if s.q_next.capacity() != pairs {
+            s.q_next = vec![0.0; pairs];
+        } else if s.q_next.len() != pairs {
+            s.q_next.resize(pairs, 0.0);
+        }
+        s
+    }
+
+    /// Gives the scratch back to the thread.
+    fn put_back(self) {
+        SCRATCH.with_borrow_mut(|s| *s = self);
+    }
 }
 
 #[derive(Debug, Clone)]
@@ -294,8 +331,6 @@ impl Planner {
         let engine = match (&ctx.features, model.is_deterministic()) {
             (None, true) => Engine::FunctionalGraph(FunctionalGraph {
                 v: vec![0.0; model.states()],
-                mark: vec![0; model.states()],
-                stack: Vec::new(),
             }),
             (None, false) => Engine::GaussSeidel {
                 v: vec![0.0; model.states()],
@@ -323,8 +358,6 @@ impl Planner {
         };
         Self {
             q: vec![0.0; model.n_pairs()],
-            q_next: vec![0.0; model.n_pairs()],
-            outdated: Vec::new(),
             policy,
             engine,
             stats: PlannerStats::default(),
@@ -428,15 +461,31 @@ impl Planner {
         ridge: f64,
         rng: &mut impl Rng,
     ) -> Result<PlanOutcome> {
+        let mut scratch = Scratch::take(ctx.model.n_pairs());
+        let outcome = self.update_in(ctx, r, gamma, ridge, rng, &mut scratch);
+        scratch.put_back();
+        outcome
+    }
+
+    /// [`Planner::update`] with the thread's work space.
+    fn update_in(
+        &mut self,
+        ctx: &PlanningModel,
+        r: &[f64],
+        gamma: f64,
+        ridge: f64,
+        rng: &mut impl Rng,
+        scratch: &mut Scratch,
+    ) -> Result<PlanOutcome> {
         let model = &ctx.model;
         debug_assert_eq!(r.len(), model.n_pairs());
         let mut reused = true;
         match &mut self.engine {
             Engine::FunctionalGraph(fg) => {
-                fg.evaluate(model, &self.policy, r, gamma, &mut self.q_next);
+                fg.evaluate(model, &self.policy, r, gamma, scratch);
             }
             Engine::GaussSeidel { v } => {
-                gauss_seidel(model, &self.policy, r, gamma, v, &mut self.q_next)?;
+                gauss_seidel(model, &self.policy, r, gamma, v, &mut scratch.q_next)?;
             }
             Engine::Features(fe) => {
                 let cache = ctx.features.as_ref().ok_or_else(|| {
@@ -461,11 +510,11 @@ impl Planner {
                     });
                 }
                 fe.evaluated = false;
-                fe.evaluate(model, cache, r, &mut self.q_next);
+                fe.evaluate(model, cache, r, &mut scratch.q_next);
             }
         }
         // ‖Q_t − Q_{t+1}‖₂; a non-finite Q makes it non-finite too.
-        let err_sq = self.compare(model);
+        let err_sq = self.compare(model, scratch);
         if !err_sq.is_finite() {
             if let Engine::Features(fe) = &mut self.engine {
                 fe.stale = true;
@@ -477,10 +526,10 @@ impl Planner {
             fe.r_last.extend_from_slice(r);
             fe.evaluated = true;
         }
-        std::mem::swap(&mut self.q, &mut self.q_next);
+        std::mem::swap(&mut self.q, &mut scratch.q_next);
         self.stats.updates += 1;
         self.stats.reuses += u64::from(reused);
-        let changes = self.improve(model, rng);
+        let changes = self.improve(model, rng, &scratch.outdated);
         Ok(PlanOutcome {
             lstdq_error: err_sq.sqrt(),
             policy_changes: changes,
@@ -492,21 +541,24 @@ impl Planner {
     /// same pass, the states whose current action is no longer within the
     /// tie tolerance of max_a Q_{t+1}(s, a) (§2.6) into `outdated`: the only
     /// states [`Planner::improve`] has to look at again.
-    fn compare(&mut self, model: &EnvModel) -> f64 {
-        self.outdated.clear();
+    fn compare(&self, model: &EnvModel, scratch: &mut Scratch) -> f64 {
+        let Scratch {
+            q_next, outdated, ..
+        } = scratch;
+        outdated.clear();
         let mut err_sq = 0.0;
         for s in 0..model.states() {
             let range = model.pairs_of(s);
             let mut max = f64::NEG_INFINITY;
-            for (old, &new) in self.q[range.clone()].iter().zip(&self.q_next[range]) {
+            for (old, &new) in self.q[range.clone()].iter().zip(&q_next[range]) {
                 err_sq += (old - new) * (old - new);
                 max = f64::max(max, new);
             }
             let floor = max - TIE_TOLERANCE * (1.0 + max.abs());
-            if self.q_next[self.policy[s] as usize] >= floor {
+            if q_next[self.policy[s] as usize] >= floor {
                 continue;
             }
-            self.outdated.push(s as u32);
+            outdated.push(s as u32);
         }
         err_sq
     }
@@ -514,8 +566,8 @@ impl Planner {
     /// Greedy improvement with the tie rule of §2.6 (Algorithm 1, line 9)
     /// over the states [`Planner::compare`] found outdated, in state order;
     /// returns the number of states whose action changed.
-    fn improve(&mut self, model: &EnvModel, rng: &mut impl Rng) -> usize {
-        for &s in &self.outdated {
+    fn improve(&mut self, model: &EnvModel, rng: &mut impl Rng, outdated: &[u32]) -> usize {
+        for &s in outdated {
             let s = s as usize;
             let range = model.pairs_of(s);
             let qs = &self.q[range.clone()];
@@ -540,21 +592,35 @@ impl Planner {
             }
             self.policy[s] = new;
         }
-        self.outdated.len()
+        outdated.len()
     }
 }
 
 impl FunctionalGraph {
     /// Exact Q^π for a deterministic model and Φ = I (see module docs).
-    fn evaluate(&mut self, model: &EnvModel, policy: &[u32], r: &[f64], gamma: f64, q: &mut [f64]) {
+    fn evaluate(
+        &mut self,
+        model: &EnvModel,
+        policy: &[u32],
+        r: &[f64],
+        gamma: f64,
+        scratch: &mut Scratch,
+    ) {
         const UNSEEN: u8 = 0;
         const ON_PATH: u8 = 1;
         const DONE: u8 = 2;
         let n = model.states();
         let next = |s: usize| model.next_state(policy[s] as usize);
         let reward = |s: usize| r[policy[s] as usize];
-        self.mark.fill(UNSEEN);
-        let (v, mark, stack) = (&mut self.v, &mut self.mark, &mut self.stack);
+        let Scratch {
+            q_next: q,
+            mark,
+            stack,
+            ..
+        } = scratch;
+        mark.clear();
+        mark.resize(n, UNSEEN);
+        let v = &mut self.v;
         for start in 0..n {
             if mark[start] == DONE {
                 continue;
