@@ -8,6 +8,13 @@
 //! A frame is thus applied exactly once: by a checkpoint, or by the replay
 //! at the next open if the process dies first.
 //!
+//! The frames wait in their own channel, which the thread drains only when
+//! a checkpoint is due: the writer wakes it ([`ToCheckpoint::Wake`]) for the
+//! first frame after a drain and when [`CHECKPOINT_BYTES`] are waiting, not
+//! for every group commit. (Woken per frame, this thread took about 7% of a
+//! durable server's CPU samples at 32 connections, most of it in context
+//! switches; BENCHMARKS.md §8.)
+//!
 //! It also owns the database's recovery after a storage fault. redb
 //! latches the first real I/O error of a `Database` (ENOSPC included):
 //! every later call on it, reads too, fails with `StorageError::PreviousIo`
@@ -40,12 +47,34 @@ const CHECKPOINT_BYTES: usize = 32 << 20;
 /// (redb holds the file lock until the last one is dropped).
 const RELEASE_WAIT: Duration = Duration::from_secs(2);
 
-/// What the writer and the readers send the checkpointer.
+/// A frame the log made durable, with its writes (the frames channel).
+pub(super) struct Frame {
+    pub(super) lsn: u64,
+    pub(super) writes: Vec<Write>,
+}
+
+impl Frame {
+    /// What it adds to [`super::Shared::frame_bytes`] while it waits in
+    /// the channel.
+    pub(super) fn size(writes: &[Write]) -> usize {
+        writes.iter().map(Write::size).sum()
+    }
+}
+
+/// What the writer and the readers send the checkpointer (the control
+/// channel, which it sleeps on).
 pub(super) enum ToCheckpoint {
-    /// A frame the log made durable, with its writes.
-    Frame { lsn: u64, writes: Vec<Write> },
-    /// Apply everything received so far now, then answer.
+    /// Frames are waiting: the first since the last drain, or
+    /// [`CHECKPOINT_BYTES`] of them.
+    Wake,
+    /// Apply every frame sent so far now, then answer.
     Flush(crossbeam_channel::Sender<Result<(), StoreError>>),
+}
+
+/// Whether adding `added` bytes to the `before` already waiting calls for a
+/// [`ToCheckpoint::Wake`] (the writer's side of the protocol above).
+pub(super) fn wake_for(before: usize, added: usize) -> bool {
+    before == 0 || (before < CHECKPOINT_BYTES && before + added >= CHECKPOINT_BYTES)
 }
 
 /// The checkpointer's state.
@@ -81,35 +110,39 @@ impl Checkpointer {
         }
     }
 
-    pub(super) fn run(mut self, rx: &Receiver<ToCheckpoint>) {
+    pub(super) fn run(mut self, rx: &Receiver<ToCheckpoint>, frames: &Receiver<Frame>) {
         loop {
-            let due = [
-                self.oldest.map(|t| t + CHECKPOINT_INTERVAL),
-                self.retry.at(),
-            ]
-            .into_iter()
-            .flatten()
-            .min();
+            // While the database is down, only the reopen is due: a
+            // checkpoint cannot succeed before it (and would spin).
+            let due = if self.retry.is_scheduled() {
+                self.retry.at()
+            } else {
+                self.oldest.map(|t| t + CHECKPOINT_INTERVAL)
+            };
             let msg = match due {
                 None => rx.recv().map_err(|_| RecvTimeoutError::Disconnected),
                 Some(at) => rx.recv_timeout(at.saturating_duration_since(Instant::now())),
             };
             match msg {
-                Ok(ToCheckpoint::Frame { lsn, writes }) => {
-                    self.receive(lsn, writes);
-                    if self.waiting_bytes >= CHECKPOINT_BYTES {
+                Ok(ToCheckpoint::Wake) => {
+                    // Frames wait from now; drained when the interval ends,
+                    // or now if they are many.
+                    self.oldest.get_or_insert_with(Instant::now);
+                    if self.shared.frame_bytes.load(Ordering::SeqCst) >= CHECKPOINT_BYTES {
+                        self.drain(frames);
                         let _ = self.checkpoint();
                     }
                 }
                 Ok(ToCheckpoint::Flush(reply)) => {
-                    // Everything queued before the request is included.
+                    // Every frame sent before the request is included: the
+                    // writer sends a frame before anyone hears of its commit.
                     let mut replies = vec![reply];
                     while let Ok(msg) = rx.try_recv() {
-                        match msg {
-                            ToCheckpoint::Frame { lsn, writes } => self.receive(lsn, writes),
-                            ToCheckpoint::Flush(r) => replies.push(r),
+                        if let ToCheckpoint::Flush(r) = msg {
+                            replies.push(r);
                         }
                     }
+                    self.drain(frames);
                     let result = self.checkpoint();
                     for r in replies {
                         let _ = r.send(result.clone());
@@ -123,6 +156,7 @@ impl Checkpointer {
                         .oldest
                         .is_some_and(|t| t.elapsed() >= CHECKPOINT_INTERVAL)
                     {
+                        self.drain(frames);
                         let _ = self.checkpoint();
                     }
                 }
@@ -130,23 +164,35 @@ impl Checkpointer {
             }
         }
         // The writer is gone: apply the rest, and with it every segment.
+        self.drain(frames);
         if !self.shared.crashed.load(Ordering::SeqCst) && self.checkpoint().is_ok() {
             self.remove_segments(u64::MAX);
         }
         self.shared.db.write().take();
     }
 
-    fn receive(&mut self, lsn: u64, writes: Vec<Write>) {
-        self.waiting_bytes += writes.iter().map(Write::size).sum::<usize>();
-        self.waiting.extend(writes);
-        self.newest = lsn;
-        self.oldest.get_or_insert_with(Instant::now);
+    /// Takes every frame waiting in the channel. Frames the writer adds
+    /// meanwhile stay counted in `frame_bytes`, and the next checkpoint
+    /// keeps `oldest` set for them (the writer does not wake us for them).
+    fn drain(&mut self, frames: &Receiver<Frame>) {
+        let mut bytes = 0;
+        for Frame { lsn, writes } in frames.try_iter() {
+            bytes += Frame::size(&writes);
+            self.waiting_bytes += Frame::size(&writes);
+            self.waiting.extend(writes);
+            self.newest = lsn;
+            self.oldest.get_or_insert_with(Instant::now);
+        }
+        self.shared.frame_bytes.fetch_sub(bytes, Ordering::SeqCst);
     }
 
     /// Applies everything waiting in one transaction; on success the
     /// segments wholly applied are deleted.
     fn checkpoint(&mut self) -> Result<(), StoreError> {
         if self.waiting.is_empty() {
+            if self.shared.frame_bytes.load(Ordering::SeqCst) == 0 {
+                self.oldest = None;
+            }
             return Ok(());
         }
         if self.retry.is_due(Instant::now()) {
@@ -170,7 +216,10 @@ impl Checkpointer {
             Ok(()) => {
                 self.waiting.clear();
                 self.waiting_bytes = 0;
-                self.oldest = None;
+                // Frames sent since the drain are not applied yet, and the
+                // writer will not wake us for them: they wait from now.
+                self.oldest =
+                    (self.shared.frame_bytes.load(Ordering::SeqCst) > 0).then(Instant::now);
                 self.retry.worked();
                 self.shared.applied.store(self.newest, Ordering::Release);
                 metrics::histogram!("mcapi_store_checkpoint_writes").record(writes as f64);

@@ -54,7 +54,7 @@ use redb::{Database, ReadableDatabase, ReadableTable};
 use thiserror::Error;
 use tokio::sync::oneshot;
 
-use checkpoint::{Checkpointer, ToCheckpoint};
+use checkpoint::{Checkpointer, Frame, ToCheckpoint};
 pub use db::{CHUNK, FORMAT_VERSION, RECORD_V2};
 use db::{LOG, SESSIONS, SNAPSHOTS, log_key, split_entry};
 pub use wal::Durability;
@@ -269,6 +269,9 @@ struct Shared {
     db_fault: Mutex<Option<String>>,
     /// The newest frame handed to the checkpointer.
     forwarded: AtomicU64,
+    /// Bytes of frames in the checkpointer's frames channel, not yet
+    /// drained (added by the writer before it sends a frame).
+    frame_bytes: std::sync::atomic::AtomicUsize,
     /// The newest frame applied to the database.
     applied: AtomicU64,
     /// Closed log segments not yet deleted: first and last frame, path.
@@ -410,6 +413,7 @@ impl Store {
         shared.forwarded.store(applied, Ordering::Release);
 
         let (checkpoint_tx, checkpoint_rx) = unbounded::<ToCheckpoint>();
+        let (frames_tx, frames_rx) = unbounded::<Frame>();
         let checkpointer = Checkpointer::new(path.clone(), wal_dir, Arc::clone(&shared), applied);
         let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
             std::thread::Builder::new()
@@ -419,7 +423,7 @@ impl Store {
         };
         let mut threads = vec![spawn(
             "mcapi-checkpoint",
-            Box::new(move || checkpointer.run(&checkpoint_rx)),
+            Box::new(move || checkpointer.run(&checkpoint_rx, &frames_rx)),
         )?];
         let (tx, rx) = unbounded::<Pending>();
         let writer = Writer {
@@ -428,6 +432,7 @@ impl Store {
             durability,
             shared: Arc::clone(&shared),
             checkpoint: checkpoint_tx.clone(),
+            frames: frames_tx,
             retry: Retry::new(),
             dirty: false,
             sync_due: None,
@@ -645,7 +650,10 @@ struct Writer {
     data_dir: PathBuf,
     durability: Durability,
     shared: Arc<Shared>,
+    /// Wakes the checkpointer (see `checkpoint`'s module docs).
     checkpoint: Sender<ToCheckpoint>,
+    /// Frames for the checkpointer, drained when a checkpoint is due.
+    frames: Sender<Frame>,
     /// While the log is down: when to try repairing it next.
     retry: Retry,
     /// A failed write may have left part of a frame in the segment.
@@ -831,15 +839,24 @@ impl Writer {
                 }
             }
         }
+        // Counted before it is sent, so a drain never subtracts bytes not
+        // yet added.
+        let bytes = Frame::size(&logged);
+        let before = self.shared.frame_bytes.fetch_add(bytes, Ordering::SeqCst);
         if self
-            .checkpoint
-            .send(ToCheckpoint::Frame {
+            .frames
+            .send(Frame {
                 lsn,
                 writes: logged,
             })
             .is_ok()
         {
             self.shared.forwarded.store(lsn, Ordering::Release);
+            if checkpoint::wake_for(before, bytes) {
+                let _ = self.checkpoint.send(ToCheckpoint::Wake);
+            }
+        } else {
+            self.shared.frame_bytes.fetch_sub(bytes, Ordering::SeqCst);
         }
         if self.wal.full() {
             self.roll();
