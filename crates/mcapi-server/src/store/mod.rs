@@ -1345,6 +1345,37 @@ mod tests {
     }
 
     #[test]
+    fn the_checkpointer_applies_frames_by_itself_round_after_round() {
+        // Nobody asks for a checkpoint here: each round's first frame must
+        // wake the checkpointer (it drains its frames only when woken or
+        // due), or `applied` would stay behind until the close.
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Store::open(dir.path()).expect("open");
+        let applied_all = |store: &Store| {
+            let deadline = Instant::now() + 10 * checkpoint::CHECKPOINT_INTERVAL;
+            while Instant::now() < deadline {
+                let forwarded = store.shared.forwarded.load(Ordering::Acquire);
+                if store.shared.applied.load(Ordering::Acquire) == forwarded {
+                    return true;
+                }
+                std::thread::sleep(Duration::from_millis(20));
+            }
+            false
+        };
+        for round in 0..3u64 {
+            for seq in round * 5..round * 5 + 5 {
+                store
+                    .submit(appends("a", seq..seq + 1, 16))
+                    .wait_blocking()
+                    .expect("commit");
+            }
+            assert!(applied_all(&store), "round {round} was applied");
+            assert_eq!(store.shared.frame_bytes.load(Ordering::SeqCst), 0);
+        }
+        assert_eq!(entries(&store, "a", None).len(), 15);
+    }
+
+    #[test]
     fn full_segments_are_closed_and_deleted_once_applied() {
         let dir = tempfile::tempdir().expect("tempdir");
         let store = Store::open(dir.path()).expect("open");
