@@ -9,6 +9,7 @@ pub mod cli;
 pub mod haproxy;
 pub mod local;
 pub mod map;
+pub mod mover;
 pub mod placement;
 pub mod plan;
 pub mod probe;
