@@ -428,7 +428,9 @@ fn prepare(args: &LocalArgs) -> Result<Setup> {
             rest: format!("127.0.0.1:{http}"),
             grpc: format!("127.0.0.1:{grpc}"),
         });
-        processes.push(template.process(name, http, grpc, false));
+        // `--joining` for every replica: one that gave all its shards
+        // away is no longer named by the map, and must still start again.
+        processes.push(template.process(name, http, grpc, true));
     }
     let router_dir = dir.join("router");
     let spec = RouterSpec {

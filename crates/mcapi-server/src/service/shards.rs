@@ -333,9 +333,8 @@ impl SessionManager {
         let (p, _) = self.move_parts()?;
         let found = p.swap_state(shard, &[ShardState::Frozen], ShardState::Owned);
         self.expect_state(p, shard, &[ShardState::Owned], "thaw")
-            .map_err(|e| {
+            .inspect_err(|_| {
                 tracing::warn!(shard = %shard_key(shard), found = state_name(found), "thaw refused");
-                e
             })?;
         tracing::info!(shard = %shard_key(shard), "shard thawed: served here again");
         self.shard_status(shard)
