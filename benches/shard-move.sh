@@ -3,7 +3,7 @@
 #   1. the time to move one shard of 1,000 sessions (each with 10
 #      observations), `mcapi cluster move`, idle;
 #   2. the pause clients see while `mcapi cluster rebalance` moves 3 -> 4
-#      replicas under load: a Python client observes 3,000 sessions through
+#      replicas under load: a Python client observes 6,000 sessions through
 #      HAProxy in a loop, retrying 503/421 every 5 ms; a request's pause is
 #      the time from its first refusal to its acknowledgement.
 # Usage: benches/shard-move.sh [path/to/mcapi]   (default: target/release/mcapi)
@@ -65,27 +65,28 @@ def call(c, method, path, body=None):
     c.request(method, path, json.dumps(body) if body is not None else None, {"content-type": "application/json"})
     r = c.getresponse(); return r.status, r.read()
 ids = []
-for i in range(3000):
+for i in range(6000):
     s, b = call(c, "POST", "/v1/sessions", {"model": {"preset": "hallway"}, "agent": {"seed": i}})
     sid = json.loads(b)["id"]; ids.append(sid)
     call(c, "POST", f"/v1/sessions/{sid}/observations", {"state": 25})
-pauses, done, stop = [], [0], [False]
+pauses, cuts, done, stop = [], [], [0], [False]
 def drive(part):
     c = conn()
     while not stop[0]:
         for sid in part:
             if stop[0]: break
-            first = None
+            first, cut = None, False
             while True:
                 try:
                     s, _ = call(c, "POST", f"/v1/sessions/{sid}/observations",
                                 {"state": 25, "stimulus": [0.1, 0.2], "action_taken": "stay"})
                 except Exception:
-                    c = conn(); s = 0
+                    # The router's restart (new replicas) cuts connections.
+                    c = conn(); s = 0; cut = True
                 if s == 200: break
                 first = first or time.perf_counter()
                 time.sleep(0.005)
-            if first: pauses.append(time.perf_counter() - first)
+            if first: (cuts if cut else pauses).append(time.perf_counter() - first)
             done[0] += 1
 threads = [threading.Thread(target=drive, args=(ids[k::4],)) for k in range(4)]
 for t in threads: t.start()
@@ -100,6 +101,8 @@ print(out.strip())
 p = sorted(x * 1e3 for x in pauses)
 q = lambda f: p[min(len(p) - 1, int(round((len(p) - 1) * f)))] if p else 0.0
 print(f"rebalance took {took:.1f} s; {done[0]} observations acknowledged by the clients; "
-      f"{len(p)} of them paused by a move: p50 {q(0.5):.1f} ms, p99 {q(0.99):.1f} ms, max {p[-1] if p else 0:.1f} ms")
+      f"{len(p)} of them paused by a move (503/421, retried every 5 ms): p50 {q(0.5):.1f} ms, "
+      f"p99 {q(0.99):.1f} ms, max {p[-1] if p else 0:.1f} ms; {len(cuts)} cut by the router's restart "
+      f"(longest {max(cuts, default=0) * 1e3:.0f} ms)")
 PY
 stop "$C2"

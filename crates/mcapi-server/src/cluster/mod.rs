@@ -18,4 +18,6 @@ pub use map::{MapError, ReplicaName, ShardMap, shard_key, shard_of_id};
 pub use placement::{Placement, ShardState};
 
 #[cfg(test)]
+mod move_tests;
+#[cfg(test)]
 mod service_tests;

@@ -164,7 +164,7 @@ fn state_name(s: ShardState) -> &'static str {
 /// Parses a shard key from a path (`s03a7`).
 pub fn parse_shard(key: &str) -> Result<u16, ServiceError> {
     crate::cluster::map::shard_of_id(&format!("{key}."))
-        .filter(|_| key.len() == 5)
+        .filter(|&s| key.len() == 5 && usize::from(s) < crate::cluster::map::SHARDS)
         .ok_or_else(|| {
             ServiceError::field(
                 "shard",
