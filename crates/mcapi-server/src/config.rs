@@ -187,6 +187,17 @@ pub struct ServeConfig {
     /// This replica's name in the shard map (e.g. `mcapi-0`). Needs --shard-map.
     #[arg(long, env = "MCAPI_REPLICA", requires = "shard_map")]
     pub replica: Option<String>,
+    /// Start as a replica the shard map does not name yet, owning nothing
+    /// until shards move to it (`mcapi cluster rebalance` does so).
+    #[arg(long, env = "MCAPI_JOINING", requires = "replica")]
+    #[serde(skip)]
+    pub joining: bool,
+    /// The key of the admin calls that move shards (`/admin/shards/...`,
+    /// docs/cluster.md), sent as `Authorization: Bearer <key>`; at least 16
+    /// characters. Without it the admin calls answer 403.
+    #[arg(long, env = "MCAPI_ADMIN_KEY", hide_env_values = true)]
+    #[serde(skip)]
+    pub admin_key: Option<String>,
 }
 
 impl ServeConfig {
@@ -248,7 +259,7 @@ impl ServeConfig {
                 let map = ShardMap::read(path).map_err(|e| {
                     format!("--shard-map / MCAPI_SHARD_MAP {}: {e}", path.display())
                 })?;
-                Placement::new(map, replica)
+                Placement::with_joining(map, replica, self.joining)
                     .map(Some)
                     .map_err(|e| format!("--replica / MCAPI_REPLICA: {e}"))
             }
@@ -263,6 +274,7 @@ impl ServeConfig {
             inline_plan: Duration::from_micros(self.inline_plan_us),
             snapshot_every: self.snapshot_every,
             keys: ApiKeys::new(&self.api_keys),
+            admin: ApiKeys::new(self.admin_key.as_deref()),
             ..ManagerOptions::new(self.limits(), self.worker_count())
         }
     }
@@ -282,6 +294,14 @@ impl ServeConfig {
         if let Some(k) = self.api_keys.iter().find(|k| k.trim().len() < 16) {
             return Err(format!(
                 "--api-key / MCAPI_API_KEYS: keys must have at least 16 characters (one has {})",
+                k.trim().len()
+            ));
+        }
+        if let Some(k) = &self.admin_key
+            && k.trim().len() < 16
+        {
+            return Err(format!(
+                "--admin-key / MCAPI_ADMIN_KEY must have at least 16 characters (it has {})",
                 k.trim().len()
             ));
         }

@@ -93,6 +93,8 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
         ServiceError::ShardFrozen { .. } => {
             (H::SERVICE_UNAVAILABLE, G::Unavailable, "shard_moving")
         }
+        ServiceError::Forbidden(_) => (H::FORBIDDEN, G::PermissionDenied, "forbidden"),
+        ServiceError::MoveConflict(_) => (H::CONFLICT, G::FailedPrecondition, "move_conflict"),
     }
 }
 

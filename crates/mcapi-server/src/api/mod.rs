@@ -1,6 +1,7 @@
 //! Thin transport adapters over [`crate::service`]: REST (axum) and gRPC
 //! (tonic), with one error mapping.
 
+pub mod admin;
 pub mod conn;
 pub mod dashboard;
 pub mod error;

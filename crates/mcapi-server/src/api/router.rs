@@ -28,7 +28,7 @@ use crate::api::rest::{
     create_session, delete_session, get_session, healthz, history, list_sessions, metrics_text,
     observe, readyz, values,
 };
-use crate::api::{conn, dashboard};
+use crate::api::{admin, conn, dashboard};
 use crate::service::{ServiceError, SessionManager};
 
 /// The REST router with every route, limits and metrics middleware.
@@ -61,6 +61,7 @@ pub fn router(state: AppState) -> Router {
         // Serves the document at /v1/openapi.json and the UI under /docs.
         .merge(SwaggerUi::new("/docs").url("/v1/openapi.json", document(state.manager.limits())))
         .merge(dashboard::routes()) // the page at `/` and the events stream
+        .merge(admin::routes()) // shard moves (docs/cluster.md)
         .fallback(not_found)
         .layer(per_route)
         .with_state(state)

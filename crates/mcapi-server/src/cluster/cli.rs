@@ -21,6 +21,38 @@ pub enum ClusterCommand {
     /// loopback, supervised (a replica that dies is started again) until
     /// SIGTERM or Ctrl-C.
     Local(super::local::LocalArgs),
+    /// Move one shard of a running `mcapi cluster local` to another
+    /// replica, live: snapshot, freeze, delta, flip the map, drop at the
+    /// source (docs/cluster.md).
+    Move(MoveArgs),
+    /// Add replicas to a running `mcapi cluster local` and move to them,
+    /// live, the shards the rendezvous plan gives them.
+    Rebalance(RebalanceArgs),
+}
+
+/// `mcapi cluster move`.
+#[derive(Debug, Args)]
+pub struct MoveArgs {
+    /// The running `mcapi cluster local`'s directory.
+    #[arg(long, default_value = "./cluster")]
+    pub data_dir: PathBuf,
+    /// The shard to move (`s03a7`).
+    #[arg(long)]
+    pub shard: String,
+    /// The replica to move it to (one the cluster runs).
+    #[arg(long)]
+    pub to: String,
+}
+
+/// `mcapi cluster rebalance`.
+#[derive(Debug, Args)]
+pub struct RebalanceArgs {
+    /// The running `mcapi cluster local`'s directory.
+    #[arg(long, default_value = "./cluster")]
+    pub data_dir: PathBuf,
+    /// Replicas after it (at least those running; at most 64).
+    #[arg(long, value_parser = clap::value_parser!(u16).range(1..=super::local::MAX_LOCAL_REPLICAS as i64))]
+    pub replicas: u16,
 }
 
 /// `mcapi cluster plan`.
@@ -98,7 +130,57 @@ pub fn run(cmd: ClusterCommand) -> Result<()> {
         ClusterCommand::Plan(args) => run_plan(&args),
         ClusterCommand::HaproxyConfig(args) => run_haproxy(&args),
         ClusterCommand::Local(args) => super::local::run(&args),
+        ClusterCommand::Move(args) => run_move(&args),
+        ClusterCommand::Rebalance(args) => run_rebalance(&args),
     }
+}
+
+fn run_move(args: &MoveArgs) -> Result<()> {
+    crate::telemetry::init_logging(crate::config::LogFormat::Text, "info");
+    let shard = crate::service::shards::parse_shard(&args.shard)
+        .map_err(|e| anyhow::anyhow!("--shard: {e}"))?;
+    let to = ReplicaName::parse(&args.to).map_err(|e| anyhow::anyhow!("--to: {e}"))?;
+    let dir = std::fs::canonicalize(&args.data_dir)
+        .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
+    let mover = super::mover::Mover::open(&dir)?;
+    match mover.move_shard(shard, &to)? {
+        Some(r) => println!("{}", super::mover::report_line(&r)),
+        None => println!(
+            "{} is on {to} already (any unfinished step is done)",
+            args.shard
+        ),
+    }
+    Ok(())
+}
+
+fn run_rebalance(args: &RebalanceArgs) -> Result<()> {
+    crate::telemetry::init_logging(crate::config::LogFormat::Text, "info");
+    let dir = std::fs::canonicalize(&args.data_dir)
+        .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
+    let started = std::time::Instant::now();
+    let reports = super::mover::rebalance(&dir, usize::from(args.replicas))?;
+    let mut pauses: Vec<f64> = reports
+        .iter()
+        .map(|r| r.pause.as_secs_f64() * 1e3)
+        .collect();
+    pauses.sort_by(f64::total_cmp);
+    let pct = |q: f64| {
+        pauses
+            .get(((pauses.len() as f64 - 1.0) * q).round() as usize)
+            .copied()
+            .unwrap_or(0.0)
+    };
+    println!(
+        "rebalanced to {} replicas: {} shards moved, {} sessions, in {:.1} s; pause per shard p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms",
+        args.replicas,
+        reports.len(),
+        reports.iter().map(|r| r.sessions).sum::<usize>(),
+        started.elapsed().as_secs_f64(),
+        pct(0.5),
+        pct(0.99),
+        pauses.last().copied().unwrap_or(0.0)
+    );
+    Ok(())
 }
 
 fn read_map(path: &Path) -> Result<ShardMap> {

@@ -257,11 +257,20 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
         grpc = spec.grpc_bind,
         resolvers = if spec.resolvers { RESOLVERS } else { "" },
     ));
-    let backends: Vec<&Backend> = map
+    // The map's replicas, then any other backend (a replica joining the
+    // cluster, owning no shard yet), by name.
+    let mut backends: Vec<&Backend> = map
         .replicas()
         .iter()
         .filter_map(|r| spec.backends.iter().find(|b| &b.replica == r))
         .collect();
+    let mut joining: Vec<&Backend> = spec
+        .backends
+        .iter()
+        .filter(|b| !map.has_replica(&b.replica))
+        .collect();
+    joining.sort_by(|a, b| a.replica.cmp(&b.replica));
+    backends.extend(joining);
     let check = "option httpchk GET /readyz\n  default-server inter 2s fall 2 rise 1\n";
     let dns = if spec.resolvers {
         " resolvers dns init-addr none"

@@ -16,7 +16,17 @@
 //! router/shards.map     HAProxy's map file; router/admin.sock the Runtime API
 //! logs/<name>.log       each process's stderr, appended across restarts
 //! cluster.json          while running: pids, ports, restarts (State)
+//! admin.key             the replicas' admin key (shard moves), mode 0600
+//! rebalance.json        a request of `mcapi cluster rebalance` (then SIGHUP)
+//! move.lock             held by a running `mcapi cluster move` / `rebalance`
 //! ```
+//!
+//! `mcapi cluster rebalance --replicas N` writes `rebalance.json` and sends
+//! the supervisor SIGHUP: it starts the missing replicas (`--joining`: they
+//! own nothing yet), writes the router's configuration with them and starts
+//! HAProxy again (clients reconnect), and records `replicas` in
+//! `cluster.json`; the rebalance then moves shards to them live
+//! (`super::mover`).
 //!
 //! Children run in their own process group, so a terminal's Ctrl-C reaches
 //! only the supervisor, which stops them in order; on Linux each child also
@@ -46,6 +56,10 @@ pub const DEFAULT_REPLICAS: usize = 3;
 pub const MAP_FILE: &str = "shards.map";
 /// The state file in the data directory, present while the cluster runs.
 pub const STATE_FILE: &str = "cluster.json";
+/// The replicas' admin key in the data directory.
+pub const ADMIN_KEY_FILE: &str = "admin.key";
+/// A rebalance's request to the supervisor in the data directory.
+pub const REQUEST_FILE: &str = "rebalance.json";
 /// The router's name among the supervised processes (and its log's).
 const ROUTER: &str = "haproxy";
 /// `serve` flags that `cluster local` sets itself for each replica.
@@ -129,6 +143,9 @@ pub struct State {
     pub admin_socket: PathBuf,
     /// The shard map's epoch.
     pub epoch: u64,
+    /// Replicas running behind the router.
+    #[serde(default)]
+    pub replicas: usize,
     /// The replicas, then the router.
     pub processes: Vec<ProcessState>,
 }
@@ -178,6 +195,8 @@ struct Process {
     name: String,
     program: PathBuf,
     args: Vec<OsString>,
+    /// Environment variables set for it (a replica's admin key).
+    env: Vec<(String, String)>,
     log: PathBuf,
     /// A replica's (REST, gRPC) ports.
     ports: Option<(u16, u16)>,
@@ -204,6 +223,7 @@ impl Process {
             .with_context(|| format!("opening {}", self.log.display()))?;
         let mut cmd = Command::new(&self.program);
         cmd.args(&self.args)
+            .envs(self.env.iter().map(|(k, v)| (k.as_str(), v.as_str())))
             .stdin(Stdio::null())
             .stdout(Stdio::null())
             .stderr(Stdio::from(log));
@@ -323,6 +343,8 @@ pub fn run(args: &LocalArgs) -> Result<()> {
 struct Setup {
     dir: PathBuf,
     map: ShardMap,
+    template: ReplicaTemplate,
+    spec: RouterSpec,
     haproxy_cfg: PathBuf,
     admin_socket: PathBuf,
     http: SocketAddr,
@@ -389,9 +411,16 @@ fn prepare(args: &LocalArgs) -> Result<Setup> {
         );
     }
 
+    let admin_key = admin_key(&dir)?;
     let ports = free_ports(map.replicas().len() * 2)?;
     let mut processes = Vec::new();
     let mut backends = Vec::new();
+    let template = ReplicaTemplate {
+        exe: exe.clone(),
+        dir: dir.clone(),
+        serve_args: args.serve_args.clone(),
+        admin_key,
+    };
     for (k, name) in map.replicas().iter().enumerate() {
         let (http, grpc) = (ports[2 * k], ports[2 * k + 1]);
         backends.push(Backend {
@@ -399,32 +428,9 @@ fn prepare(args: &LocalArgs) -> Result<Setup> {
             rest: format!("127.0.0.1:{http}"),
             grpc: format!("127.0.0.1:{grpc}"),
         });
-        let store = dir.join("replicas").join(name.as_str());
-        let mut argv: Vec<OsString> = vec![
-            "serve".into(),
-            "--http".into(),
-            format!("127.0.0.1:{http}").into(),
-            "--grpc".into(),
-            format!("127.0.0.1:{grpc}").into(),
-            "--data-dir".into(),
-            store.into(),
-            "--shard-map".into(),
-            dir.join(MAP_FILE).into(),
-            "--replica".into(),
-            name.as_str().into(),
-        ];
-        argv.extend(args.serve_args.iter().map(OsString::from));
-        processes.push(Process {
-            name: name.to_string(),
-            program: exe.clone(),
-            args: argv,
-            log: dir.join("logs").join(format!("{name}.log")),
-            ports: Some((http, grpc)),
-            ready_url: format!("http://127.0.0.1:{http}/readyz"),
-            run: Run::Stopped,
-            streak: 0,
-            restarts: 0,
-        });
+        // `--joining` for every replica: one that gave all its shards
+        // away is no longer named by the map, and must still start again.
+        processes.push(template.process(name, http, grpc, true));
     }
     let router_dir = dir.join("router");
     let spec = RouterSpec {
@@ -437,26 +443,13 @@ fn prepare(args: &LocalArgs) -> Result<Setup> {
         resolvers: false,
     };
     write_router(&router_dir, &map, &spec)?;
+    check_router(&haproxy, &router_dir.join("haproxy.cfg"))?;
     let haproxy_cfg = router_dir.join("haproxy.cfg");
-    let check = Command::new(&haproxy)
-        .arg("-c")
-        .arg("-f")
-        .arg(&haproxy_cfg)
-        .output()
-        .with_context(|| format!("running {} -c", haproxy.display()))?;
-    if !check.status.success() {
-        bail!(
-            "{} refuses {}:\n{}{}",
-            haproxy.display(),
-            haproxy_cfg.display(),
-            String::from_utf8_lossy(&check.stdout),
-            String::from_utf8_lossy(&check.stderr)
-        );
-    }
     processes.push(Process {
         name: ROUTER.into(),
         program: haproxy,
         args: vec!["-db".into(), "-f".into(), haproxy_cfg.clone().into()],
+        env: Vec::new(),
         log: dir.join("logs").join(format!("{ROUTER}.log")),
         ports: None,
         ready_url: format!("http://{}/readyz", args.http),
@@ -467,6 +460,8 @@ fn prepare(args: &LocalArgs) -> Result<Setup> {
     Ok(Setup {
         dir,
         map,
+        template,
+        spec,
         haproxy_cfg,
         admin_socket,
         http: args.http,
@@ -475,6 +470,95 @@ fn prepare(args: &LocalArgs) -> Result<Setup> {
         ready_timeout: Duration::from_secs(args.ready_timeout_secs),
         drain_timeout: Duration::from_secs(args.drain_timeout_secs),
     })
+}
+
+/// Checks a written router configuration with `haproxy -c`.
+fn check_router(haproxy: &Path, cfg: &Path) -> Result<()> {
+    let check = Command::new(haproxy)
+        .arg("-c")
+        .arg("-f")
+        .arg(cfg)
+        .output()
+        .with_context(|| format!("running {} -c", haproxy.display()))?;
+    if !check.status.success() {
+        bail!(
+            "{} refuses {}:\n{}{}",
+            haproxy.display(),
+            cfg.display(),
+            String::from_utf8_lossy(&check.stdout),
+            String::from_utf8_lossy(&check.stderr)
+        );
+    }
+    Ok(())
+}
+
+/// The data directory's admin key, made (32 random hex digits, mode 0600)
+/// if missing.
+fn admin_key(dir: &Path) -> Result<String> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let path = dir.join(ADMIN_KEY_FILE);
+    if let Ok(text) = std::fs::read_to_string(&path)
+        && text.trim().len() >= 16
+    {
+        return Ok(text.trim().to_string());
+    }
+    let mut bytes = [0u8; 16];
+    std::fs::File::open("/dev/urandom")
+        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut bytes))
+        .context("reading /dev/urandom for the admin key")?;
+    let key: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .write(true)
+        .truncate(true)
+        .mode(0o600)
+        .open(&path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    std::io::Write::write_all(&mut f, format!("{key}\n").as_bytes())?;
+    Ok(key)
+}
+
+/// How a replica process is made.
+struct ReplicaTemplate {
+    exe: PathBuf,
+    dir: PathBuf,
+    serve_args: Vec<String>,
+    admin_key: String,
+}
+
+impl ReplicaTemplate {
+    fn process(&self, name: &ReplicaName, http: u16, grpc: u16, joining: bool) -> Process {
+        let store = self.dir.join("replicas").join(name.as_str());
+        let mut argv: Vec<OsString> = vec![
+            "serve".into(),
+            "--http".into(),
+            format!("127.0.0.1:{http}").into(),
+            "--grpc".into(),
+            format!("127.0.0.1:{grpc}").into(),
+            "--data-dir".into(),
+            store.into(),
+            "--shard-map".into(),
+            self.dir.join(MAP_FILE).into(),
+            "--replica".into(),
+            name.as_str().into(),
+        ];
+        if joining {
+            argv.push("--joining".into());
+        }
+        argv.extend(self.serve_args.iter().map(OsString::from));
+        Process {
+            name: name.to_string(),
+            program: self.exe.clone(),
+            args: argv,
+            env: vec![("MCAPI_ADMIN_KEY".into(), self.admin_key.clone())],
+            log: self.dir.join("logs").join(format!("{name}.log")),
+            ports: Some((http, grpc)),
+            ready_url: format!("http://127.0.0.1:{http}/readyz"),
+            run: Run::Stopped,
+            streak: 0,
+            restarts: 0,
+        }
+    }
 }
 
 /// The data directory's map if it has one (its replicas must match
@@ -501,8 +585,8 @@ fn local_map(dir: &Path, replicas: Option<usize>) -> Result<ShardMap> {
             && n != names.len()
         {
             bail!(
-                "{} has {} replicas ({}), not {n}: changing a cluster's replicas needs shard moves, \
-                 which are not built yet; leave out --replicas, or use a new --data-dir",
+                "{} has {} replicas ({}), not {n}: leave out --replicas, and add replicas to the \
+                 running cluster with `mcapi cluster rebalance --replicas {n}` (or use a new --data-dir)",
                 path.display(),
                 names.len(),
                 names.join(", ")
@@ -534,6 +618,9 @@ fn free_ports(n: usize) -> Result<Vec<u16>> {
 /// error on the way out leaves no child behind.
 struct Cluster {
     processes: Vec<Process>,
+    template: ReplicaTemplate,
+    spec: RouterSpec,
+    dir: PathBuf,
     state_file: PathBuf,
     state: State,
 }
@@ -553,6 +640,9 @@ impl Drop for Cluster {
 
 impl Cluster {
     fn write_state(&mut self) {
+        if let Ok(map) = ShardMap::read(&self.dir.join(MAP_FILE)) {
+            self.state.epoch = map.epoch();
+        }
         self.state.processes = self.processes.iter().map(Process::state).collect();
         match serde_json::to_string_pretty(&self.state) {
             Ok(text) => {
@@ -698,6 +788,72 @@ impl Cluster {
         }
     }
 
+    /// A rebalance's request (`rebalance.json`, then SIGHUP): starts the
+    /// replicas up to the number asked for (`--joining`: owning nothing
+    /// until shards move to them), writes the router's configuration with
+    /// them and starts HAProxy again, then records `replicas`.
+    async fn grow(&mut self, ready_timeout: Duration) -> Result<()> {
+        #[derive(Deserialize)]
+        struct Request {
+            replicas: usize,
+        }
+        let path = self.dir.join(REQUEST_FILE);
+        let text = std::fs::read_to_string(&path)
+            .with_context(|| format!("reading {}", path.display()))?;
+        let want = serde_json::from_str::<Request>(&text)
+            .with_context(|| format!("{} is not a rebalance request", path.display()))?
+            .replicas;
+        let have = self.processes.len().saturating_sub(1);
+        if want > MAX_LOCAL_REPLICAS {
+            bail!("{want} replicas asked for; `cluster local` runs at most {MAX_LOCAL_REPLICAS}");
+        }
+        if want <= have {
+            tracing::info!(
+                replicas = have,
+                asked = want,
+                "rebalance request: enough replicas run"
+            );
+            self.state.replicas = have;
+            self.write_state();
+            return Ok(());
+        }
+        let names = ordinal_names("mcapi", want).map_err(anyhow::Error::msg)?;
+        let ports = free_ports((want - have) * 2)?;
+        let router = self.processes.len() - 1;
+        for (k, name) in names[have..].iter().enumerate() {
+            let (http, grpc) = (ports[2 * k], ports[2 * k + 1]);
+            self.spec.backends.push(Backend {
+                replica: name.clone(),
+                rest: format!("127.0.0.1:{http}"),
+                grpc: format!("127.0.0.1:{grpc}"),
+            });
+            let p = self.template.process(name, http, grpc, true);
+            self.processes.insert(router + k, p);
+        }
+        self.start(have..want, ready_timeout).await?;
+        let map = ShardMap::read(&self.dir.join(MAP_FILE))
+            .with_context(|| format!("shard map {}", self.dir.join(MAP_FILE).display()))?;
+        write_router(&self.dir.join("router"), &map, &self.spec)?;
+        let router = self.processes.len() - 1;
+        check_router(
+            &self.processes[router].program,
+            &self.dir.join("router").join("haproxy.cfg"),
+        )?;
+        tracing::info!(
+            replicas = want,
+            "replicas started; starting the router again with them"
+        );
+        self.stop(router..router + 1, Duration::from_secs(10)).await;
+        self.start(router..router + 1, ready_timeout).await?;
+        self.state.replicas = want;
+        self.write_state();
+        tracing::info!(
+            replicas = want,
+            "rebalance request done: the router knows every replica"
+        );
+        Ok(())
+    }
+
     /// Replicas first (they drain on SIGTERM), then the router.
     async fn shutdown(&mut self, drain: Duration) {
         let replicas = self.processes.len().saturating_sub(1);
@@ -712,6 +868,8 @@ async fn supervise(setup: Setup) -> Result<()> {
     let Setup {
         dir,
         map,
+        template,
+        spec,
         haproxy_cfg,
         admin_socket,
         http,
@@ -723,6 +881,9 @@ async fn supervise(setup: Setup) -> Result<()> {
     let replicas = processes.len().saturating_sub(1);
     let mut cluster = Cluster {
         processes,
+        template,
+        spec,
+        dir: dir.clone(),
         state_file: dir.join(STATE_FILE),
         state: State {
             supervisor: std::process::id(),
@@ -730,6 +891,7 @@ async fn supervise(setup: Setup) -> Result<()> {
             grpc: grpc.to_string(),
             admin_socket: admin_socket.clone(),
             epoch: map.epoch(),
+            replicas,
             processes: Vec::new(),
         },
     };
@@ -748,9 +910,18 @@ async fn supervise(setup: Setup) -> Result<()> {
     }
     cluster.write_state();
     print_banner(&dir, &map, &cluster, &haproxy_cfg, &admin_socket);
-    tokio::select! {
-        () = cluster.watch(Backoff::DEFAULT) => {},
-        () = &mut signal => {},
+    let mut hangup = tokio::signal::unix::signal(tokio::signal::unix::SignalKind::hangup())
+        .context("installing the SIGHUP handler (rebalance requests)")?;
+    loop {
+        tokio::select! {
+            () = cluster.watch(Backoff::DEFAULT) => break,
+            () = &mut signal => break,
+            _ = hangup.recv() => {
+                if let Err(e) = cluster.grow(ready_timeout).await {
+                    tracing::error!(error = %format!("{e:#}"), "rebalance request refused");
+                }
+            }
+        }
     }
     tracing::info!("shutdown requested: draining the replicas, then the router");
     cluster.shutdown(drain_timeout).await;
@@ -829,6 +1000,7 @@ mod tests {
             name: "p".into(),
             program: program.into(),
             args: args.iter().map(OsString::from).collect(),
+            env: Vec::new(),
             log: dir.join("p.log"),
             ports: None,
             ready_url: String::new(),

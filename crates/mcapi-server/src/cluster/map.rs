@@ -367,6 +367,18 @@ impl ShardMap {
         out
     }
 
+    /// This map with `shard` given to `owner`, at `epoch`.
+    pub fn with_owner(
+        &self,
+        shard: u16,
+        owner: &ReplicaName,
+        epoch: u64,
+    ) -> Result<Self, MapError> {
+        let mut owners = self.owners();
+        owners[usize::from(shard) % SHARDS] = owner.clone();
+        Self::from_owners(epoch, &owners)
+    }
+
     /// The epoch.
     pub fn epoch(&self) -> u64 {
         self.epoch

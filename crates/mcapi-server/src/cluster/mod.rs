@@ -9,6 +9,7 @@ pub mod cli;
 pub mod haproxy;
 pub mod local;
 pub mod map;
+pub mod mover;
 pub mod placement;
 pub mod plan;
 pub mod probe;
@@ -16,5 +17,7 @@ pub mod probe;
 pub use map::{MapError, ReplicaName, ShardMap, shard_key, shard_of_id};
 pub use placement::{Placement, ShardState};
 
+#[cfg(test)]
+mod move_tests;
 #[cfg(test)]
 mod service_tests;

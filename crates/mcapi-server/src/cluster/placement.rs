@@ -11,8 +11,15 @@
 //!   naming the owner of the map).
 //! - `Foreign`: another replica's: 421 naming it (gRPC UNAVAILABLE).
 //!
-//! This round reads the states from the map at start (owned or foreign);
-//! [`Placement::set_state`] is the hook the shard moves will drive.
+//! The states come from the map at start (owned or foreign); a shard move
+//! (`service::shards`, docs/cluster.md "How a shard moves") drives them
+//! with [`Placement::set_state`] and [`Placement::set_owner`]. Every
+//! request that changes a shard (create, observe, delete) holds a
+//! [`ShardGuard`] while it runs, so a move that freezes the shard can wait
+//! until none is in flight before it reads the shard's last changes.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU32, Ordering};
 
 use parking_lot::RwLock;
 
@@ -40,6 +47,29 @@ pub enum ShardState {
 pub struct Placement {
     replica: ReplicaName,
     inner: RwLock<Inner>,
+    /// Requests changing each shard now ([`ShardGuard`]).
+    in_flight: Vec<AtomicU32>,
+}
+
+/// A request changing a shard, counted while it lives (see
+/// [`Placement::enter`]).
+#[derive(Debug)]
+pub struct ShardGuard {
+    placement: Arc<Placement>,
+    shard: u16,
+}
+
+impl ShardGuard {
+    /// The shard.
+    pub fn shard(&self) -> u16 {
+        self.shard
+    }
+}
+
+impl Drop for ShardGuard {
+    fn drop(&mut self) {
+        self.placement.in_flight[usize::from(self.shard) % SHARDS].fetch_sub(1, Ordering::AcqRel);
+    }
 }
 
 #[derive(Debug)]
@@ -53,7 +83,18 @@ impl Placement {
     /// replica: a replica with no shard could serve nothing, and the cause
     /// is almost always a misspelt `--replica`.
     pub fn new(map: ShardMap, replica: ReplicaName) -> Result<Self, String> {
-        if !map.has_replica(&replica) {
+        Self::with_joining(map, replica, false)
+    }
+
+    /// [`Placement::new`]; with `joining`, a replica the map does not name
+    /// yet is accepted, owning nothing until shards move to it (`mcapi
+    /// cluster rebalance` starts new replicas so).
+    pub fn with_joining(
+        map: ShardMap,
+        replica: ReplicaName,
+        joining: bool,
+    ) -> Result<Self, String> {
+        if !joining && !map.has_replica(&replica) {
             let known: Vec<&str> = map.replicas().iter().map(ReplicaName::as_str).collect();
             return Err(format!(
                 "replica `{replica}` owns no shard in the shard map (epoch {}); its replicas are: {}",
@@ -73,6 +114,7 @@ impl Placement {
         Ok(Self {
             replica,
             inner: RwLock::new(Inner { map, states }),
+            in_flight: (0..SHARDS).map(|_| AtomicU32::new(0)).collect(),
         })
     }
 
@@ -101,9 +143,81 @@ impl Placement {
         self.inner.read().states[usize::from(shard) % SHARDS]
     }
 
-    /// Sets a shard's state (the shard moves of a later round drive this).
+    /// Sets a shard's state (a shard move drives this).
     pub fn set_state(&self, shard: u16, state: ShardState) {
         self.inner.write().states[usize::from(shard) % SHARDS] = state;
+    }
+
+    /// Sets a shard's state if it is `from` now; returns the state found.
+    pub fn swap_state(&self, shard: u16, from: &[ShardState], to: ShardState) -> ShardState {
+        let mut inner = self.inner.write();
+        let now = inner.states[usize::from(shard) % SHARDS];
+        if from.contains(&now) {
+            inner.states[usize::from(shard) % SHARDS] = to;
+        }
+        now
+    }
+
+    /// Records a move's end: `shard` is `owner`'s from `epoch` on, which
+    /// must be above the epoch in force (the highest epoch wins: a stale
+    /// mover is refused), and gets `state` here.
+    pub fn set_owner(
+        &self,
+        shard: u16,
+        owner: &ReplicaName,
+        epoch: u64,
+        state: ShardState,
+    ) -> Result<(), ServiceError> {
+        let mut inner = self.inner.write();
+        if epoch <= inner.map.epoch() {
+            return Err(ServiceError::MoveConflict(format!(
+                "epoch {epoch} is not above this replica's shard map epoch {}; another move came first (re-read the map and plan again)",
+                inner.map.epoch()
+            )));
+        }
+        let map = inner
+            .map
+            .with_owner(shard, owner, epoch)
+            .map_err(|e| ServiceError::MoveConflict(e.to_string()))?;
+        inner.map = map;
+        inner.states[usize::from(shard) % SHARDS] = state;
+        Ok(())
+    }
+
+    /// Requests changing `shard` now.
+    pub fn in_flight(&self, shard: u16) -> u32 {
+        self.in_flight[usize::from(shard) % SHARDS].load(Ordering::Acquire)
+    }
+
+    /// [`Placement::check`], and if served here, a guard counting the
+    /// request as changing the shard until it is dropped. Taken under the
+    /// same lock a freeze takes, so a request either is counted before the
+    /// freeze or refused after it.
+    pub fn enter(self: &Arc<Self>, id: &str) -> Result<ShardGuard, ServiceError> {
+        let inner = self.inner.read();
+        self.check_in(&inner, id)?;
+        let shard = shard_of_id(id).unwrap_or(0);
+        self.in_flight[usize::from(shard)].fetch_add(1, Ordering::AcqRel);
+        Ok(ShardGuard {
+            placement: Arc::clone(self),
+            shard,
+        })
+    }
+
+    /// [`Placement::mint_shard`] with the guard of [`Placement::enter`].
+    pub fn mint(self: &Arc<Self>, pick: u64) -> Option<ShardGuard> {
+        let inner = self.inner.read();
+        let shard = Self::mint_in(&inner, pick)?;
+        self.in_flight[usize::from(shard)].fetch_add(1, Ordering::AcqRel);
+        Some(ShardGuard {
+            placement: Arc::clone(self),
+            shard,
+        })
+    }
+
+    /// The map in force.
+    pub fn map(&self) -> ShardMap {
+        self.inner.read().map.clone()
     }
 
     /// Whether a stored session of this id is served here (at start, the
@@ -118,10 +232,13 @@ impl Placement {
     /// [`ServiceError::ShardFrozen`]. An id without a shard cannot exist on
     /// any replica: [`ServiceError::NotFound`].
     pub fn check(&self, id: &str) -> Result<(), ServiceError> {
+        self.check_in(&self.inner.read(), id)
+    }
+
+    fn check_in(&self, inner: &Inner, id: &str) -> Result<(), ServiceError> {
         let Some(shard) = shard_of_id(id) else {
             return Err(ServiceError::NotFound(id.to_string()));
         };
-        let inner = self.inner.read();
         match inner.states[usize::from(shard)] {
             ShardState::Owned => Ok(()),
             ShardState::Frozen => Err(ServiceError::ShardFrozen {
@@ -147,7 +264,10 @@ impl Placement {
     /// number), so a uniform `pick` spreads sessions evenly over them.
     /// `None` when no shard is owned (all frozen or handed over).
     pub fn mint_shard(&self, pick: u64) -> Option<u16> {
-        let inner = self.inner.read();
+        Self::mint_in(&self.inner.read(), pick)
+    }
+
+    fn mint_in(inner: &Inner, pick: u64) -> Option<u16> {
         let owned: Vec<u16> = (0..SHARDS as u16)
             .filter(|&s| inner.states[usize::from(s)] == ShardState::Owned)
             .collect();

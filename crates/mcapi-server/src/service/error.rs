@@ -91,6 +91,14 @@ pub enum ServiceError {
         /// Seconds to wait (`Retry-After`).
         retry_after_secs: u64,
     },
+    /// An admin call (shard moves, docs/cluster.md) without the admin key,
+    /// or to a server with no admin key configured.
+    #[error("{0}")]
+    Forbidden(String),
+    /// A shard move step that does not fit the shard's state or epoch here
+    /// (a stale or concurrent mover): nothing was done.
+    #[error("{0}")]
+    MoveConflict(String),
 }
 
 impl ServiceError {

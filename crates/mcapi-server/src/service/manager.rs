@@ -33,6 +33,7 @@ use super::wire::{
     SessionInfo, SessionPage, SessionStats, SessionSummary, StepOut, Values,
 };
 use crate::cluster::Placement;
+use crate::cluster::placement::ShardGuard;
 
 /// Number of virtual shards in session ids (fixed forever, docs/sessions.md).
 pub const SHARDS: u64 = 1024;
@@ -66,6 +67,8 @@ pub struct ManagerOptions {
     /// With a shard map (`--shard-map`, `--replica`): the shards this
     /// replica serves. `None`: a single node owning every shard.
     pub placement: Option<Arc<Placement>>,
+    /// The admin key of the shard-move calls; none: they are refused.
+    pub admin: ApiKeys,
 }
 
 /// Default of [`ManagerOptions::snapshot_every`].
@@ -82,6 +85,7 @@ impl ManagerOptions {
             snapshot_every: DEFAULT_SNAPSHOT_EVERY,
             keys: ApiKeys::default(),
             placement: None,
+            admin: ApiKeys::default(),
         }
     }
 }
@@ -102,6 +106,10 @@ pub struct SessionManager {
     reloading: Mutex<()>,
     /// The shards served here, when clustered.
     placement: Option<Arc<Placement>>,
+    /// The admin key of the shard-move calls.
+    admin: ApiKeys,
+    /// One shard move step at a time on this replica.
+    pub(crate) moving: tokio::sync::Mutex<()>,
 }
 
 impl SessionManager {
@@ -120,6 +128,7 @@ impl SessionManager {
             snapshot_every,
             keys,
             placement,
+            admin,
         } = opts;
         let ready = AtomicBool::new(store.is_none());
         let durability = store.map(|store| Durability {
@@ -139,6 +148,8 @@ impl SessionManager {
             ready,
             reloading: Mutex::new(()),
             placement,
+            admin,
+            moving: tokio::sync::Mutex::new(()),
         })
     }
 
@@ -176,6 +187,20 @@ impl SessionManager {
             ));
         }
         self.keys.authenticate(authorization)
+    }
+
+    /// Checks the admin key of a shard-move call (docs/cluster.md): 403
+    /// when no admin key is configured or another key is presented.
+    pub fn authenticate_admin(&self, authorization: Option<&str>) -> Result<(), ServiceError> {
+        if !self.admin.enabled() {
+            return Err(ServiceError::Forbidden(
+                "admin calls are disabled: this server has no --admin-key (MCAPI_ADMIN_KEY)".into(),
+            ));
+        }
+        match self.admin.authenticate(authorization) {
+            Ok(_) => Ok(()),
+            Err(e) => Err(ServiceError::Forbidden(format!("admin call refused: {e}"))),
+        }
     }
 
     /// True once stored sessions are recovered (at once without a store).
@@ -269,15 +294,20 @@ impl SessionManager {
         let cost = cost::estimate(&summary, &config);
         self.limits
             .check_cost(&cost, self.sessions.read().usage(&owner))?;
-        let shard = match &self.placement {
+        // Held until the session is in the table: a move freezing the
+        // shard waits for it (docs/cluster.md, "How a shard moves").
+        let (shard, _guard) = match &self.placement {
             // Only in a shard owned here, so a create is never misdirected.
-            Some(p) => p.mint_shard(self.setup.fresh_u64()).ok_or_else(|| {
-                ServiceError::Unavailable(format!(
-                    "replica `{}` owns no shard open for new sessions right now; retry (the router sends creates to every replica in turn)",
-                    p.replica()
-                ))
-            })?,
-            None => (self.setup.fresh_u64() % SHARDS) as u16,
+            Some(p) => {
+                let guard = p.mint(self.setup.fresh_u64()).ok_or_else(|| {
+                    ServiceError::Unavailable(format!(
+                        "replica `{}` owns no shard open for new sessions right now; retry (the router sends creates to every replica in turn)",
+                        p.replica()
+                    ))
+                })?;
+                (guard.shard(), Some(guard))
+            }
+            None => ((self.setup.fresh_u64() % SHARDS) as u16, None),
         };
         let id = format!("s{shard:04x}.{}", ulid::Ulid::new());
         if let (Some(d), Some(model)) = (&self.durability, model_text) {
@@ -378,6 +408,54 @@ impl SessionManager {
         self.session(id)
     }
 
+    /// The store and its settings, if any.
+    pub(super) fn durability(&self) -> Option<&Durability> {
+        self.durability.as_ref()
+    }
+
+    /// What builds sessions.
+    pub(super) fn setup(&self) -> &Setup {
+        &self.setup
+    }
+
+    /// Ids of the sessions in memory beginning with `prefix`.
+    pub(super) fn ids_with_prefix(&self, prefix: &str) -> Vec<String> {
+        self.sessions
+            .read()
+            .after(Some(prefix))
+            .map(|(id, _)| id)
+            .take_while(|id| id.starts_with(prefix))
+            .cloned()
+            .collect()
+    }
+
+    /// Serves these sessions (a shard moved here).
+    pub(super) fn insert_sessions(&self, rebuilt: Vec<SessionRef>) {
+        let mut sessions = self.sessions.write();
+        for session in rebuilt {
+            sessions.insert(session.id.clone(), session);
+        }
+        metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+    }
+
+    /// Stops serving the sessions whose id begins with `prefix` (a shard
+    /// moved away); their data is the caller's to delete. Returns how many.
+    pub(super) fn remove_sessions(&self, prefix: &str) -> usize {
+        let ids = self.ids_with_prefix(prefix);
+        let mut sessions = self.sessions.write();
+        for id in &ids {
+            sessions.remove(id);
+        }
+        metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        ids.len()
+    }
+
+    /// Clustered: refuses a session whose shard is not served here, else
+    /// counts the request as changing its shard until the guard drops.
+    fn enter_shard(&self, id: &str) -> Result<Option<ShardGuard>, ServiceError> {
+        self.placement.as_ref().map(|p| p.enter(id)).transpose()
+    }
+
     /// Runs a synchronous service call on the blocking pool, so no reader
     /// (value tables, history, listing) holds a session lock or copies a
     /// large table on an async runtime thread.
@@ -444,6 +522,7 @@ impl SessionManager {
     /// session is gone, restarts included.
     #[tracing::instrument(level = "debug", skip(self))]
     pub async fn delete(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
+        let _guard = self.enter_shard(id)?;
         let session = self.visible_session(caller, id)?;
         self.store_writable()?;
         let result = match session.begin_delete()? {
@@ -493,6 +572,7 @@ impl SessionManager {
                 self.limits.max_batch
             )));
         }
+        let _guard = self.enter_shard(id)?;
         // Rolled back first if an earlier commit failed.
         let session = self.session_for(caller, id)?;
         self.limits.check_batch_cost(

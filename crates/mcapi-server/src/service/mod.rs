@@ -26,6 +26,7 @@ pub mod manager;
 pub mod recovery;
 pub mod session;
 pub mod setup;
+pub mod shards;
 pub mod spec;
 pub mod table;
 pub mod tick;

@@ -350,6 +350,19 @@ pub struct StoredSession {
     pub snapshot: Option<(u64, Vec<u8>)>,
 }
 
+/// A stored session whole, as a shard move sends it.
+#[derive(Debug, Clone)]
+pub struct ExportedSession {
+    /// Session id.
+    pub id: String,
+    /// The creation record.
+    pub record: Vec<u8>,
+    /// The newest snapshot and the sequence number it covers.
+    pub snapshot: Option<(u64, Vec<u8>)>,
+    /// The log after the snapshot: sequence number and entry, in order.
+    pub entries: Vec<(u64, Vec<u8>)>,
+}
+
 /// The store: the log's writer thread, the checkpointer thread and the
 /// redb database they share with readers.
 pub struct Store {
@@ -570,6 +583,61 @@ impl Store {
                 id,
                 record: record.value().to_vec(),
                 snapshot,
+            });
+        }
+        Ok(out)
+    }
+
+    /// Every stored session whose id begins with `prefix` (a shard's
+    /// `s03a7.`), read in one transaction so each session's record,
+    /// snapshot and log agree: the log entries returned are those after the
+    /// snapshot, in order. What a shard move streams (docs/cluster.md).
+    pub fn sessions_with_prefix(&self, prefix: &str) -> Result<Vec<ExportedSession>, StoreError> {
+        let failed = |e: redb::Error| self.read_failed(e);
+        let read = self.db()?.begin_read().map_err(|e| failed(e.into()))?;
+        let sessions = read.open_table(SESSIONS).map_err(|e| failed(e.into()))?;
+        let snapshots = read.open_table(SNAPSHOTS).map_err(|e| failed(e.into()))?;
+        let log = read.open_table(LOG).map_err(|e| failed(e.into()))?;
+        let mut out = Vec::new();
+        for row in sessions.range(prefix..).map_err(|e| failed(e.into()))? {
+            let (id, record) = row.map_err(|e| failed(e.into()))?;
+            let id = id.value().to_string();
+            if !id.starts_with(prefix) {
+                break;
+            }
+            let snapshot = snapshots
+                .get(id.as_str())
+                .map_err(|e| failed(e.into()))?
+                .map(|v| {
+                    let (seq, bytes) = v.value();
+                    (seq, bytes.to_vec())
+                });
+            let start = snapshot.as_ref().map_or(0, |(s, _)| s.saturating_add(1));
+            let key = log_key(&id);
+            let mut entries = Vec::new();
+            for chunk in log
+                .range((key, start / CHUNK)..=(key, u64::MAX))
+                .map_err(|e| failed(e.into()))?
+            {
+                let (_, chunk) = chunk.map_err(|e| failed(e.into()))?;
+                let mut rest = chunk.value();
+                while !rest.is_empty() {
+                    let (seq, entry, tail) =
+                        split_entry(rest).ok_or_else(|| StoreError::Corrupt {
+                            path: self.path.clone(),
+                            reason: format!("a log chunk of session `{id}` is malformed"),
+                        })?;
+                    rest = tail;
+                    if seq >= start {
+                        entries.push((seq, entry.to_vec()));
+                    }
+                }
+            }
+            out.push(ExportedSession {
+                id,
+                record: record.value().to_vec(),
+                snapshot,
+                entries,
             });
         }
         Ok(out)

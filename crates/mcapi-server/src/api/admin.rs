@@ -1,0 +1,169 @@
+//! The admin routes of a replica that a shard move drives
+//! (`service::shards`, docs/cluster.md "How a shard moves"). Each needs
+//! the admin key (`--admin-key`) as `Authorization: Bearer <key>`, and is
+//! refused with 403 `forbidden` without it. Shard data travels as postcard
+//! bytes (`application/octet-stream`), everything else as JSON.
+//!
+//! ```text
+//! GET  /admin/shards/{shard}                         status
+//! POST /admin/shards/{shard}/export                  body: a manifest (empty: the whole shard)
+//! POST /admin/shards/{shard}/freeze                  503 to clients from now on
+//! POST /admin/shards/{shard}/thaw                    served here again
+//! POST /admin/shards/{shard}/import?begin=true|false body: shard data
+//! POST /admin/shards/{shard}/abort                   the import's copy deleted
+//! POST /admin/shards/{shard}/activate?epoch=E        served here from epoch E
+//! POST /admin/shards/{shard}/release?epoch=E&owner=R the new owner R; data deleted here
+//! ```
+
+use axum::Json;
+use axum::Router;
+use axum::body::Bytes;
+use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::http::{HeaderMap, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use serde::Deserialize;
+
+use crate::api::error::ApiError;
+use crate::api::extract::AppState;
+use crate::cluster::ReplicaName;
+use crate::service::ServiceError;
+use crate::service::shards::{Manifest, ShardData, parse_shard};
+
+/// Largest request body of an admin route: one shard's data.
+pub const MAX_ADMIN_BODY: usize = 1 << 30;
+
+/// The admin routes, with their own body limit.
+pub fn routes() -> Router<AppState> {
+    Router::new()
+        .route("/admin/shards/{shard}", get(status))
+        .route("/admin/shards/{shard}/{step}", post(step))
+        .layer(DefaultBodyLimit::max(MAX_ADMIN_BODY))
+}
+
+fn admit(state: &AppState, headers: &HeaderMap) -> Result<(), ServiceError> {
+    let auth = headers
+        .get(header::AUTHORIZATION)
+        .map(|v| v.to_str().unwrap_or(""));
+    state.manager.authenticate_admin(auth)
+}
+
+async fn status(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    Path(shard): Path<String>,
+) -> Result<Response, ApiError> {
+    admit(&state, &headers)?;
+    let shard = parse_shard(&shard)?;
+    Ok(Json(state.manager.shard_status(shard)?).into_response())
+}
+
+/// The query of a step.
+#[derive(Debug, Deserialize)]
+struct StepQuery {
+    begin: Option<bool>,
+    epoch: Option<u64>,
+    owner: Option<String>,
+}
+
+fn decode<T: serde::de::DeserializeOwned + Default>(
+    body: &[u8],
+    what: &str,
+) -> Result<T, ServiceError> {
+    if body.is_empty() {
+        return Ok(T::default());
+    }
+    postcard::from_bytes(body)
+        .map_err(|e| ServiceError::BadRequest(format!("the {what} does not decode: {e}")))
+}
+
+fn epoch_of(q: &StepQuery) -> Result<u64, ServiceError> {
+    match q.epoch {
+        Some(e) if e >= 1 && e <= i64::MAX as u64 => Ok(e),
+        Some(e) => Err(ServiceError::field(
+            "epoch",
+            format!("must be between 1 and {}, not {e}", i64::MAX),
+        )),
+        None => Err(ServiceError::field("epoch", "is required")),
+    }
+}
+
+fn octets(bytes: Vec<u8>) -> Response {
+    ([(header::CONTENT_TYPE, "application/octet-stream")], bytes).into_response()
+}
+
+async fn step(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+    Path((shard, step)): Path<(String, String)>,
+    Query(q): Query<StepQuery>,
+    body: Bytes,
+) -> Result<Response, ApiError> {
+    admit(&state, &headers)?;
+    let shard = parse_shard(&shard)?;
+    let manager = &state.manager;
+    let _one = manager.moving.lock().await;
+    let answer = match step.as_str() {
+        "export" => {
+            let manifest: Option<Manifest> = if body.is_empty() {
+                None
+            } else {
+                Some(decode(&body, "manifest")?)
+            };
+            if let Some(m) = &manifest
+                && m.sessions.len() > manager.limits().max_sessions
+            {
+                return Err(ServiceError::LimitExceeded(format!(
+                    "the manifest lists {} sessions; this replica holds at most {}",
+                    m.sessions.len(),
+                    manager.limits().max_sessions
+                ))
+                .into());
+            }
+            let data = manager
+                .off_runtime(move |m| m.export_shard(shard, manifest.as_ref()))
+                .await?;
+            let bytes = postcard::to_allocvec(&data)
+                .map_err(|e| ServiceError::Internal(format!("encoding shard data: {e}")))?;
+            octets(bytes)
+        }
+        "freeze" => Json(manager.freeze_shard(shard).await?).into_response(),
+        "thaw" => Json(manager.thaw_shard(shard)?).into_response(),
+        "import" => {
+            let data: ShardData = decode(&body, "shard data")?;
+            let n = manager
+                .import_shard(shard, data, q.begin.unwrap_or(false))
+                .await?;
+            Json(serde_json::json!({ "sessions": n })).into_response()
+        }
+        "abort" => {
+            let n = manager.abort_import(shard).await?;
+            Json(serde_json::json!({ "deleted": n })).into_response()
+        }
+        "activate" => {
+            let epoch = epoch_of(&q)?;
+            let n = manager
+                .off_runtime(move |m| m.activate_shard(shard, epoch))
+                .await?;
+            Json(serde_json::json!({ "sessions": n })).into_response()
+        }
+        "release" => {
+            let epoch = epoch_of(&q)?;
+            let owner = q
+                .owner
+                .as_deref()
+                .ok_or_else(|| ServiceError::field("owner", "is required"))
+                .and_then(|o| ReplicaName::parse(o).map_err(|e| ServiceError::field("owner", e)))?;
+            let n = manager.release_shard(shard, &owner, epoch).await?;
+            Json(serde_json::json!({ "deleted": n })).into_response()
+        }
+        other => {
+            return Err(ServiceError::UnknownRoute(format!(
+                "POST /admin/shards/{{shard}}/{}: the steps are export, freeze, thaw, import, abort, activate, release",
+                other.escape_debug()
+            ))
+            .into());
+        }
+    };
+    Ok(answer)
+}

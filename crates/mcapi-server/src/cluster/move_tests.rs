@@ -1,0 +1,361 @@
+//! A shard move between two replicas in process (no socket, real stores):
+//! the admin routes' refusals (403 without the admin key, 400 for a bad
+//! shard, 404 for an unknown step, 409 for a step that does not fit), and
+//! a whole move with observations acknowledged between the snapshot and
+//! the freeze, which only the delta carries.
+
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode};
+use http_body_util::BodyExt;
+use serde_json::Value;
+use tower::ServiceExt;
+
+use super::map::{ReplicaName, ShardMap, shard_key, shard_of_id};
+use super::placement::Placement;
+use super::plan::{ordinal_names, plan};
+use crate::api::{AppState, router};
+use crate::service::shards::Manifest;
+use crate::service::{ApiKeys, Limits, ManagerOptions, SessionManager};
+use crate::store::Store;
+
+const KEY: &str = "admin-key-of-the-test";
+
+struct Replica {
+    app: axum::Router,
+    manager: Arc<SessionManager>,
+    store: Arc<Store>,
+}
+
+fn replica(map: &ShardMap, name: &str, dir: &std::path::Path, admin: Option<&str>) -> Replica {
+    let placement = Arc::new(
+        Placement::new(map.clone(), ReplicaName::parse(name).expect("name")).expect("placement"),
+    );
+    let store = Arc::new(Store::open(dir).expect("store"));
+    let manager = Arc::new(
+        SessionManager::with_options(ManagerOptions {
+            placement: Some(placement),
+            store: Some(Arc::clone(&store)),
+            admin: ApiKeys::new(admin),
+            ..ManagerOptions::new(Limits::default(), 1)
+        })
+        .expect("manager"),
+    );
+    manager.recover().expect("recover");
+    let app = router(AppState {
+        manager: Arc::clone(&manager),
+        metrics: None,
+        serving: None,
+    });
+    Replica {
+        app,
+        manager,
+        store,
+    }
+}
+
+async fn send(
+    app: &axum::Router,
+    method: &str,
+    uri: &str,
+    auth: Option<&str>,
+    body: Option<&str>,
+) -> (StatusCode, Value) {
+    let mut req = Request::builder()
+        .method(method)
+        .uri(uri)
+        .header("content-type", "application/json");
+    if let Some(a) = auth {
+        req = req.header("authorization", format!("Bearer {a}"));
+    }
+    let req = req
+        .body(body.map_or_else(Body::empty, |b| Body::from(b.to_string())))
+        .expect("request");
+    let resp = app.clone().oneshot(req).await.expect("response");
+    let (parts, body) = resp.into_parts();
+    let bytes = body.collect().await.expect("body").to_bytes();
+    (
+        parts.status,
+        serde_json::from_slice(&bytes).unwrap_or(Value::Null),
+    )
+}
+
+const LATER: &str = r#"{"state": 26, "stimulus": [0.5, 0.25], "action_taken": 1}"#;
+
+#[tokio::test]
+async fn admin_routes_refuse_what_does_not_fit() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let names = ordinal_names("mcapi", 2).expect("names");
+    let map = plan(&names, None).expect("plan").map;
+    let a = replica(&map, "mcapi-0", &tmp.path().join("a"), Some(KEY));
+    let closed = replica(&map, "mcapi-1", &tmp.path().join("b"), None);
+    let mine = shard_key(map.shards_of(&names[0])[0]);
+    let theirs = shard_key(map.shards_of(&names[1])[0]);
+    let status = format!("/admin/shards/{mine}");
+    for (app, auth) in [
+        (&a.app, None),
+        (&a.app, Some("not-the-key-at-all")),
+        (&closed.app, Some(KEY)),
+    ] {
+        let (code, body) = send(app, "GET", &status, auth, None).await;
+        assert_eq!(code, StatusCode::FORBIDDEN, "{body}");
+        assert_eq!(body["code"], "forbidden");
+        assert!(!body.to_string().contains(KEY), "the key is not echoed");
+    }
+    let (code, body) = send(&a.app, "GET", &status, Some(KEY), None).await;
+    assert_eq!(code, StatusCode::OK, "{body}");
+    assert_eq!(body["state"], "owned");
+    assert_eq!(body["epoch"], 1);
+    for bad in ["s0400", "s00a", "S0001", "x"] {
+        let (code, body) = send(
+            &a.app,
+            "GET",
+            &format!("/admin/shards/{bad}"),
+            Some(KEY),
+            None,
+        )
+        .await;
+        assert_eq!(code, StatusCode::BAD_REQUEST, "{bad}: {body}");
+    }
+    let (code, body) = send(
+        &a.app,
+        "POST",
+        &format!("{status}/explode"),
+        Some(KEY),
+        None,
+    )
+    .await;
+    assert_eq!(code, StatusCode::NOT_FOUND, "{body}");
+    // Steps out of order: 409, nothing done.
+    for (uri, why) in [
+        (
+            format!("/admin/shards/{theirs}/freeze"),
+            "freeze a foreign shard",
+        ),
+        (
+            format!("/admin/shards/{theirs}/export"),
+            "export a foreign shard",
+        ),
+        (
+            format!("{status}/activate?epoch=2"),
+            "activate an owned shard",
+        ),
+        (
+            format!("{status}/import?begin=true"),
+            "import an owned shard",
+        ),
+        (
+            format!("/admin/shards/{theirs}/thaw"),
+            "thaw a foreign shard",
+        ),
+    ] {
+        let (code, body) = send(&a.app, "POST", &uri, Some(KEY), None).await;
+        assert_eq!(code, StatusCode::CONFLICT, "{why}: {body}");
+        assert_eq!(body["code"], "move_conflict", "{why}");
+    }
+    let (code, body) = send(
+        &a.app,
+        "POST",
+        &format!("{status}/import"),
+        Some(KEY),
+        Some("\u{1}\u{2}"),
+    )
+    .await;
+    assert_eq!(
+        code,
+        StatusCode::BAD_REQUEST,
+        "shard data that does not decode: {body}"
+    );
+    let (code, _) = send(
+        &a.app,
+        "POST",
+        &format!("{status}/release?epoch=0&owner=mcapi-1"),
+        Some(KEY),
+        None,
+    )
+    .await;
+    assert_eq!(code, StatusCode::BAD_REQUEST, "epoch 0");
+    let (_, body) = send(&a.app, "GET", &status, Some(KEY), None).await;
+    assert_eq!(body["state"], "owned", "nothing changed");
+}
+
+#[tokio::test]
+async fn a_shard_moves_whole_with_what_was_acknowledged_before_the_freeze() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let names = ordinal_names("mcapi", 2).expect("names");
+    let base = plan(&names, None).expect("plan").map;
+    // mcapi-0 owns one shard only, so every session it creates is there.
+    let shard = base.shards_of(&names[0])[0];
+    let owners: Vec<ReplicaName> = (0..1024u16)
+        .map(|s| {
+            if s == shard {
+                names[0].clone()
+            } else {
+                names[1].clone()
+            }
+        })
+        .collect();
+    let map = ShardMap::from_owners(1, &owners).expect("map");
+    let a = replica(&map, "mcapi-0", &tmp.path().join("a"), Some(KEY));
+    let b = replica(&map, "mcapi-1", &tmp.path().join("b"), Some(KEY));
+    let mut ids = Vec::new();
+    for _ in 0..6 {
+        let (code, body) = send(
+            &a.app,
+            "POST",
+            "/v1/sessions",
+            None,
+            Some(r#"{"model": {"preset": "hallway"}}"#),
+        )
+        .await;
+        assert_eq!(code, StatusCode::CREATED, "{body}");
+        let id = body["id"].as_str().expect("id").to_string();
+        assert_eq!(shard_of_id(&id), Some(shard));
+        let (code, body) = send(
+            &a.app,
+            "POST",
+            &format!("/v1/sessions/{id}/observations"),
+            None,
+            Some(r#"{"state": 25}"#),
+        )
+        .await;
+        assert_eq!(code, StatusCode::OK, "{body}");
+        ids.push(id);
+    }
+    // 1-2: the snapshot, imported.
+    let snapshot = a.manager.export_shard(shard, None).expect("snapshot");
+    assert_eq!(snapshot.sessions.len(), 6);
+    let manifest = snapshot.manifest(&Manifest::default());
+    b.manager
+        .import_shard(shard, snapshot, true)
+        .await
+        .expect("import");
+    // Acknowledged after the snapshot: one more observation on two
+    // sessions, one session deleted, one created.
+    for id in &ids[..2] {
+        let (code, body) = send(
+            &a.app,
+            "POST",
+            &format!("/v1/sessions/{id}/observations"),
+            None,
+            Some(LATER),
+        )
+        .await;
+        assert_eq!(code, StatusCode::OK, "{body}");
+    }
+    let (code, _) = send(
+        &a.app,
+        "DELETE",
+        &format!("/v1/sessions/{}", ids[5]),
+        None,
+        None,
+    )
+    .await;
+    assert_eq!(code, StatusCode::NO_CONTENT);
+    let gone = ids.pop().expect("an id");
+    let (_, body) = send(
+        &a.app,
+        "POST",
+        "/v1/sessions",
+        None,
+        Some(r#"{"model": {"preset": "hallway"}}"#),
+    )
+    .await;
+    ids.push(body["id"].as_str().expect("id").to_string());
+    // 3: frozen: refused with 503, nothing done.
+    a.manager.freeze_shard(shard).await.expect("freeze");
+    let (code, body) = send(
+        &a.app,
+        "POST",
+        &format!("/v1/sessions/{}/observations", ids[0]),
+        None,
+        Some(LATER),
+    )
+    .await;
+    assert_eq!(code, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert_eq!(body["code"], "shard_moving");
+    let (code, _) = send(
+        &a.app,
+        "POST",
+        "/v1/sessions",
+        None,
+        Some(r#"{"model": {"preset": "hallway"}}"#),
+    )
+    .await;
+    assert_eq!(
+        code,
+        StatusCode::SERVICE_UNAVAILABLE,
+        "no shard open for creates"
+    );
+    // 4: the delta carries exactly what changed.
+    let delta = a
+        .manager
+        .export_shard(shard, Some(&manifest))
+        .expect("delta");
+    assert_eq!(delta.deleted, vec![gone.clone()]);
+    assert_eq!(delta.sessions.len(), 3, "two tails and one new session");
+    b.manager
+        .import_shard(shard, delta, false)
+        .await
+        .expect("delta import");
+    // 6-7: served by the target at epoch 2, refused by the source.
+    assert_eq!(b.manager.activate_shard(shard, 2).expect("activate"), 6);
+    a.manager
+        .release_shard(shard, &names[1], 2)
+        .await
+        .expect("release");
+    for (k, id) in ids.iter().enumerate() {
+        let (code, body) = send(&b.app, "GET", &format!("/v1/sessions/{id}"), None, None).await;
+        assert_eq!(code, StatusCode::OK, "{id}: {body}");
+        let want = if k < 2 { 1 } else { 0 };
+        assert_eq!(
+            body["tick"], want,
+            "{id}: the delta's observation is there, once"
+        );
+        let (code, body) = send(&a.app, "GET", &format!("/v1/sessions/{id}"), None, None).await;
+        assert_eq!(code, StatusCode::MISDIRECTED_REQUEST, "{body}");
+        assert_eq!(body["code"], "wrong_replica");
+    }
+    let (code, _) = send(&b.app, "GET", &format!("/v1/sessions/{gone}"), None, None).await;
+    assert_eq!(
+        code,
+        StatusCode::NOT_FOUND,
+        "the deleted session stays deleted"
+    );
+    // The source's store no longer holds the shard; an older epoch is refused.
+    let prefix = format!("{}.", shard_key(shard));
+    assert!(
+        a.store
+            .sessions_with_prefix(&prefix)
+            .expect("read")
+            .is_empty()
+    );
+    assert_eq!(
+        b.store.sessions_with_prefix(&prefix).expect("read").len(),
+        6
+    );
+    let (code, body) = send(
+        &b.app,
+        "POST",
+        &format!(
+            "/admin/shards/{}/release?epoch=2&owner=mcapi-0",
+            shard_key(shard)
+        ),
+        Some(KEY),
+        None,
+    )
+    .await;
+    assert_eq!(code, StatusCode::CONFLICT, "{body}");
+    // The moved sessions take observations on the target.
+    let (code, body) = send(
+        &b.app,
+        "POST",
+        &format!("/v1/sessions/{}/observations", ids[0]),
+        None,
+        Some(LATER),
+    )
+    .await;
+    assert_eq!(code, StatusCode::OK, "{body}");
+    assert_eq!(body["tick"], 2);
+}

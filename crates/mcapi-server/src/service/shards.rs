@@ -1,0 +1,654 @@
+//! A replica's side of a live shard move (docs/cluster.md, "How a shard
+//! moves"). The mover (`mcapi cluster move`, [`crate::cluster::mover`])
+//! calls these through the admin routes (`api::admin`), in order:
+//!
+//! 1. source [`SessionManager::export_shard`] with no manifest: the
+//!    snapshot, every stored session of the shard, read from the store in
+//!    one transaction while the shard is still served;
+//! 2. target [`SessionManager::import_shard`] (`begin`): the shard becomes
+//!    `Importing` there, stale leftovers of it are deleted, and what was
+//!    received is committed to the target's store before the call returns;
+//! 3. source [`SessionManager::freeze_shard`]: requests for the shard get
+//!    503 `shard_moving` from now on, and the call returns once no request
+//!    that changes the shard is still running;
+//! 4. source [`SessionManager::export_shard`] with the manifest of step 1:
+//!    the delta (new sessions, log tails, sessions replaced by a newer
+//!    snapshot, deleted ids); target [`SessionManager::import_shard`];
+//! 5. the mover writes the new map (epoch + 1): the commit point;
+//! 6. target [`SessionManager::activate_shard`]: the shard's sessions are
+//!    rebuilt from the target's store and served (`Owned`) at the new epoch;
+//! 7. the router's map is flipped; source [`SessionManager::release_shard`]:
+//!    `Foreign` at the new epoch (421 naming the target), the sessions
+//!    leave its memory and its store.
+//!
+//! Before step 5 a failure is undone with [`SessionManager::thaw_shard`]
+//! on the source (served again) and [`SessionManager::abort_import`] on the
+//! target (its copy deleted). Every step checks the shard's state first and
+//! answers 409 `move_conflict` when it does not fit.
+
+use std::collections::HashMap;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use serde::{Deserialize, Serialize};
+
+use super::error::{RecoveryError, ServiceError};
+use super::manager::SessionManager;
+use super::recovery;
+use crate::cluster::map::{ReplicaName, shard_key};
+use crate::cluster::{Placement, ShardState};
+use crate::store::{StoredSession, Write};
+
+/// Longest wait for the requests changing a shard to end once it is frozen.
+pub const FREEZE_DRAIN: Duration = Duration::from_secs(10);
+
+/// Most log entries one session may bring in a move (a session's log
+/// between snapshots is `--snapshot-every` long, at most a few thousand).
+pub const MAX_MOVE_ENTRIES: usize = 1 << 20;
+
+/// One session in a move.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub enum MovedSession {
+    /// The whole session: replaces whatever the target has of it.
+    Full {
+        /// Session id.
+        id: String,
+        /// The creation record.
+        record: Vec<u8>,
+        /// The newest snapshot and the sequence number it covers.
+        snapshot: Option<(u64, Vec<u8>)>,
+        /// The log after the snapshot.
+        entries: Vec<(u64, Vec<u8>)>,
+    },
+    /// Log entries after those the target has.
+    Tail {
+        /// Session id.
+        id: String,
+        /// The new entries, in order.
+        entries: Vec<(u64, Vec<u8>)>,
+    },
+}
+
+impl MovedSession {
+    /// Its id.
+    pub fn id(&self) -> &str {
+        match self {
+            Self::Full { id, .. } | Self::Tail { id, .. } => id,
+        }
+    }
+
+    /// The last sequence number the target holds once this is applied
+    /// (`None`: a session without observations), given what it held.
+    pub fn last_seq(&self, before: Option<u64>) -> Option<u64> {
+        match self {
+            Self::Full {
+                snapshot, entries, ..
+            } => entries
+                .last()
+                .map(|(s, _)| *s)
+                .or(snapshot.as_ref().map(|(s, _)| *s)),
+            Self::Tail { entries, .. } => entries.last().map(|(s, _)| *s).or(before),
+        }
+    }
+}
+
+/// A shard's data as one move step sends it (postcard on the wire).
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct ShardData {
+    /// Sessions, whole or their tails.
+    pub sessions: Vec<MovedSession>,
+    /// Sessions deleted since the manifest (a delta only).
+    pub deleted: Vec<String>,
+}
+
+/// What the mover already holds of a shard: each session id and the last
+/// sequence number received (postcard on the wire).
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+pub struct Manifest {
+    /// `(id, last sequence number)`, at most one entry per id.
+    pub sessions: Vec<(String, Option<u64>)>,
+}
+
+impl ShardData {
+    /// The manifest after applying this to `before`.
+    pub fn manifest(&self, before: &Manifest) -> Manifest {
+        let mut held: HashMap<&str, Option<u64>> = before
+            .sessions
+            .iter()
+            .map(|(id, s)| (id.as_str(), *s))
+            .collect();
+        for s in &self.sessions {
+            let prev = held.get(s.id()).copied().flatten();
+            held.insert(s.id(), s.last_seq(prev));
+        }
+        for id in &self.deleted {
+            held.remove(id.as_str());
+        }
+        let mut sessions: Vec<(String, Option<u64>)> = held
+            .into_iter()
+            .map(|(id, s)| (id.to_string(), s))
+            .collect();
+        sessions.sort();
+        Manifest { sessions }
+    }
+}
+
+/// A shard's state as the admin status call reports it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ShardStatus {
+    /// The shard's key.
+    pub shard: String,
+    /// `owned`, `frozen`, `importing` or `foreign`.
+    pub state: String,
+    /// Its owner in this replica's map.
+    pub owner: String,
+    /// This replica.
+    pub replica: String,
+    /// The epoch of this replica's map.
+    pub epoch: u64,
+    /// Sessions of the shard served here.
+    pub sessions: usize,
+    /// A number drawn when this process started: a mover sees a restart.
+    pub boot: u64,
+}
+
+fn state_name(s: ShardState) -> &'static str {
+    match s {
+        ShardState::Owned => "owned",
+        ShardState::Frozen => "frozen",
+        ShardState::Importing => "importing",
+        ShardState::Foreign => "foreign",
+    }
+}
+
+/// Parses a shard key from a path (`s03a7`).
+pub fn parse_shard(key: &str) -> Result<u16, ServiceError> {
+    crate::cluster::map::shard_of_id(&format!("{key}."))
+        .filter(|&s| key.len() == 5 && usize::from(s) < crate::cluster::map::SHARDS)
+        .ok_or_else(|| {
+            ServiceError::field(
+                "shard",
+                format!("`{}` is not a shard key s0000..s03ff", key.escape_debug()),
+            )
+        })
+}
+
+impl SessionManager {
+    fn move_parts(&self) -> Result<(&Arc<Placement>, &super::session::Durability), ServiceError> {
+        let p = self.placement().ok_or_else(|| {
+            ServiceError::MoveConflict(
+                "this server is not a replica of a cluster (no --shard-map); it has no shards to move"
+                    .into(),
+            )
+        })?;
+        let d = self.durability().ok_or_else(|| {
+            ServiceError::MoveConflict(
+                "this replica keeps no store (no --data-dir); its shards cannot move".into(),
+            )
+        })?;
+        Ok((p, d))
+    }
+
+    fn expect_state(
+        &self,
+        p: &Placement,
+        shard: u16,
+        want: &[ShardState],
+        step: &str,
+    ) -> Result<ShardState, ServiceError> {
+        let now = p.state(shard);
+        if want.contains(&now) {
+            return Ok(now);
+        }
+        let names: Vec<&str> = want.iter().map(|s| state_name(*s)).collect();
+        Err(ServiceError::MoveConflict(format!(
+            "{step}: shard {} is {} on replica `{}`, not {}",
+            shard_key(shard),
+            state_name(now),
+            p.replica(),
+            names.join(" or ")
+        )))
+    }
+
+    /// The status of a shard here.
+    pub fn shard_status(&self, shard: u16) -> Result<ShardStatus, ServiceError> {
+        let (p, _) = self.move_parts()?;
+        let map = p.map();
+        let prefix = format!("{}.", shard_key(shard));
+        Ok(ShardStatus {
+            shard: shard_key(shard),
+            state: state_name(p.state(shard)).into(),
+            owner: map.owner(shard).to_string(),
+            replica: p.replica().to_string(),
+            epoch: map.epoch(),
+            sessions: self.ids_with_prefix(&prefix).len(),
+            boot: boot_id(),
+        })
+    }
+
+    /// Steps 1 and 4: the shard's stored sessions, whole when `manifest`
+    /// is `None`; else only what changed since it.
+    pub fn export_shard(
+        &self,
+        shard: u16,
+        manifest: Option<&Manifest>,
+    ) -> Result<ShardData, ServiceError> {
+        let (p, d) = self.move_parts()?;
+        self.expect_state(p, shard, &[ShardState::Owned, ShardState::Frozen], "export")?;
+        let started = Instant::now();
+        let stored = d
+            .store
+            .sessions_with_prefix(&format!("{}.", shard_key(shard)))?;
+        let known: HashMap<&str, Option<u64>> = manifest
+            .map(|m| m.sessions.iter().map(|(id, s)| (id.as_str(), *s)).collect())
+            .unwrap_or_default();
+        let mut data = ShardData::default();
+        let mut present = std::collections::HashSet::new();
+        for s in stored {
+            present.insert(s.id.clone());
+            let full = |s: crate::store::ExportedSession| MovedSession::Full {
+                id: s.id,
+                record: s.record,
+                snapshot: s.snapshot,
+                entries: s.entries,
+            };
+            match (manifest, known.get(s.id.as_str())) {
+                (Some(_), Some(&held)) => {
+                    let last = s
+                        .entries
+                        .last()
+                        .map(|(q, _)| *q)
+                        .or(s.snapshot.as_ref().map(|(q, _)| *q));
+                    if last == held {
+                        continue;
+                    }
+                    let snap = s.snapshot.as_ref().map(|(q, _)| *q);
+                    // A tail is enough while the log still holds every
+                    // entry after what the target has.
+                    let tail_ok = match (held, snap) {
+                        (_, None) => true,
+                        (Some(h), Some(q)) => q <= h,
+                        (None, Some(_)) => false,
+                    };
+                    if tail_ok {
+                        let entries = s
+                            .entries
+                            .into_iter()
+                            .filter(|(q, _)| held.is_none_or(|h| *q > h))
+                            .collect();
+                        data.sessions.push(MovedSession::Tail { id: s.id, entries });
+                    } else {
+                        data.sessions.push(full(s));
+                    }
+                }
+                _ => data.sessions.push(full(s)),
+            }
+        }
+        if let Some(m) = manifest {
+            data.deleted = m
+                .sessions
+                .iter()
+                .filter(|(id, _)| !present.contains(id))
+                .map(|(id, _)| id.clone())
+                .collect();
+        }
+        tracing::info!(
+            shard = %shard_key(shard),
+            sessions = data.sessions.len(),
+            deleted = data.deleted.len(),
+            delta = manifest.is_some(),
+            ms = started.elapsed().as_millis() as u64,
+            "shard exported"
+        );
+        Ok(data)
+    }
+
+    /// Step 3: freezes an owned shard and waits until no request changing
+    /// it runs ([`FREEZE_DRAIN`] at most; then it is served again and the
+    /// step fails with 503). Frozen already: a no-op.
+    pub async fn freeze_shard(&self, shard: u16) -> Result<ShardStatus, ServiceError> {
+        let (p, _) = self.move_parts()?;
+        let found = p.swap_state(shard, &[ShardState::Owned], ShardState::Frozen);
+        if !matches!(found, ShardState::Owned | ShardState::Frozen) {
+            self.expect_state(p, shard, &[ShardState::Owned], "freeze")?;
+        }
+        let started = Instant::now();
+        while p.in_flight(shard) > 0 {
+            if started.elapsed() >= FREEZE_DRAIN {
+                p.swap_state(shard, &[ShardState::Frozen], ShardState::Owned);
+                return Err(ServiceError::Unavailable(format!(
+                    "shard {}: requests still running {} s after the freeze; the shard is served again, retry the move",
+                    shard_key(shard),
+                    FREEZE_DRAIN.as_secs()
+                )));
+            }
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+        tracing::info!(shard = %shard_key(shard), drained_us = started.elapsed().as_micros() as u64, "shard frozen");
+        self.shard_status(shard)
+    }
+
+    /// Undoes a freeze: the shard is served here again.
+    pub fn thaw_shard(&self, shard: u16) -> Result<ShardStatus, ServiceError> {
+        let (p, _) = self.move_parts()?;
+        let found = p.swap_state(shard, &[ShardState::Frozen], ShardState::Owned);
+        self.expect_state(p, shard, &[ShardState::Owned], "thaw")
+            .inspect_err(|_| {
+                tracing::warn!(shard = %shard_key(shard), found = state_name(found), "thaw refused");
+            })?;
+        tracing::info!(shard = %shard_key(shard), "shard thawed: served here again");
+        self.shard_status(shard)
+    }
+
+    /// Steps 2 and 4 on the target: applies `data` to the store and waits
+    /// for its commit. `begin` starts an import: the shard must be foreign
+    /// here, and what the store holds of it (a failed earlier move's
+    /// leftovers) is deleted first.
+    pub async fn import_shard(
+        &self,
+        shard: u16,
+        data: ShardData,
+        begin: bool,
+    ) -> Result<usize, ServiceError> {
+        let (p, d) = self.move_parts()?;
+        let prefix = format!("{}.", shard_key(shard));
+        self.check_import(shard, &prefix, &data)?;
+        let mut writes = Vec::new();
+        if begin {
+            self.expect_state(
+                p,
+                shard,
+                &[ShardState::Foreign, ShardState::Importing],
+                "import",
+            )?;
+            p.set_state(shard, ShardState::Importing);
+            let store = Arc::clone(&d.store);
+            let stale = tokio::task::spawn_blocking(move || store.sessions_with_prefix(&prefix))
+                .await
+                .map_err(|e| ServiceError::Internal(format!("an import task failed: {e}")))??;
+            writes.extend(stale.into_iter().map(|s| Write::Delete {
+                id: Arc::from(s.id.as_str()),
+            }));
+        } else {
+            self.expect_state(p, shard, &[ShardState::Importing], "import")?;
+        }
+        let n = data.sessions.len();
+        for id in data.deleted {
+            writes.push(Write::Delete {
+                id: Arc::from(id.as_str()),
+            });
+        }
+        for s in data.sessions {
+            match s {
+                MovedSession::Full {
+                    id,
+                    record,
+                    snapshot,
+                    entries,
+                } => {
+                    let id: Arc<str> = Arc::from(id.as_str());
+                    writes.push(Write::Delete {
+                        id: Arc::clone(&id),
+                    });
+                    writes.push(Write::Session {
+                        id: Arc::clone(&id),
+                        record,
+                    });
+                    if let Some((seq, snapshot)) = snapshot {
+                        writes.push(Write::Snapshot {
+                            id: Arc::clone(&id),
+                            seq,
+                            snapshot,
+                        });
+                    }
+                    for (seq, entry) in entries {
+                        writes.push(Write::Append {
+                            id: Arc::clone(&id),
+                            seq,
+                            entry,
+                        });
+                    }
+                }
+                MovedSession::Tail { id, entries } => {
+                    let id: Arc<str> = Arc::from(id.as_str());
+                    for (seq, entry) in entries {
+                        writes.push(Write::Append {
+                            id: Arc::clone(&id),
+                            seq,
+                            entry,
+                        });
+                    }
+                }
+            }
+        }
+        if !writes.is_empty() {
+            d.store.submit(writes).wait().await?;
+        }
+        tracing::info!(shard = %shard_key(shard), sessions = n, begin, "shard data imported and durable");
+        Ok(n)
+    }
+
+    /// Bounds and shape of received data: ids of this shard, at most the
+    /// session limit, entries in increasing order and bounded.
+    fn check_import(&self, shard: u16, prefix: &str, data: &ShardData) -> Result<(), ServiceError> {
+        let max = self.limits().max_sessions;
+        if data.sessions.len() > max || data.deleted.len() > max {
+            return Err(ServiceError::LimitExceeded(format!(
+                "shard {} brings {} sessions and {} deletions; this replica holds at most {max} sessions",
+                shard_key(shard),
+                data.sessions.len(),
+                data.deleted.len()
+            )));
+        }
+        let ids = data
+            .sessions
+            .iter()
+            .map(MovedSession::id)
+            .chain(data.deleted.iter().map(String::as_str));
+        for id in ids {
+            if !id.starts_with(prefix) || id.len() > 64 {
+                return Err(ServiceError::field(
+                    "sessions",
+                    format!(
+                        "session id `{}` is not of shard {}",
+                        id.escape_debug(),
+                        shard_key(shard)
+                    ),
+                ));
+            }
+        }
+        for s in &data.sessions {
+            let (entries, after) = match s {
+                MovedSession::Full {
+                    snapshot, entries, ..
+                } => (entries, snapshot.as_ref().map(|(q, _)| *q)),
+                MovedSession::Tail { entries, .. } => (entries, None),
+            };
+            if entries.len() > MAX_MOVE_ENTRIES {
+                return Err(ServiceError::LimitExceeded(format!(
+                    "session `{}` brings {} log entries; at most {MAX_MOVE_ENTRIES} are accepted",
+                    s.id(),
+                    entries.len()
+                )));
+            }
+            let mut prev = after;
+            for (q, _) in entries {
+                if prev.is_some_and(|p| *q <= p) {
+                    return Err(ServiceError::field(
+                        "sessions",
+                        format!("session `{}`: log entry {q} is out of order", s.id()),
+                    ));
+                }
+                prev = Some(*q);
+            }
+        }
+        Ok(())
+    }
+
+    /// Undoes an import: the target's copy is deleted, the shard foreign.
+    pub async fn abort_import(&self, shard: u16) -> Result<usize, ServiceError> {
+        let (p, d) = self.move_parts()?;
+        self.expect_state(
+            p,
+            shard,
+            &[ShardState::Importing, ShardState::Foreign],
+            "abort",
+        )?;
+        p.set_state(shard, ShardState::Foreign);
+        let prefix = format!("{}.", shard_key(shard));
+        let store = Arc::clone(&d.store);
+        let stale = tokio::task::spawn_blocking(move || store.sessions_with_prefix(&prefix))
+            .await
+            .map_err(|e| ServiceError::Internal(format!("an abort task failed: {e}")))??;
+        let n = stale.len();
+        let writes: Vec<Write> = stale
+            .into_iter()
+            .map(|s| Write::Delete {
+                id: Arc::from(s.id.as_str()),
+            })
+            .collect();
+        if !writes.is_empty() {
+            d.store.submit(writes).wait().await?;
+        }
+        tracing::warn!(shard = %shard_key(shard), sessions = n, "shard import aborted; its copy deleted");
+        Ok(n)
+    }
+
+    /// Step 6 on the target: rebuilds the shard's sessions from the store
+    /// and serves them, owned at `epoch`. Blocking (replays the logs).
+    pub fn activate_shard(&self, shard: u16, epoch: u64) -> Result<usize, ServiceError> {
+        let (p, d) = self.move_parts()?;
+        self.expect_state(p, shard, &[ShardState::Importing], "activate")?;
+        if epoch <= p.epoch() {
+            return Err(ServiceError::MoveConflict(format!(
+                "activate: epoch {epoch} is not above this replica's shard map epoch {}",
+                p.epoch()
+            )));
+        }
+        let started = Instant::now();
+        let stored = d
+            .store
+            .sessions_with_prefix(&format!("{}.", shard_key(shard)))?;
+        if self.len().saturating_add(stored.len()) > self.limits().max_sessions {
+            return Err(ServiceError::TooManySessions(self.limits().max_sessions));
+        }
+        let mut rebuilt = Vec::with_capacity(stored.len());
+        for s in stored {
+            let id = s.id.clone();
+            let one = StoredSession {
+                id: s.id,
+                record: s.record,
+                snapshot: s.snapshot,
+            };
+            match recovery::rebuild(self.setup(), self.limits(), d, one) {
+                Ok((session, _)) => rebuilt.push(session),
+                Err(RecoveryError::Store(e)) => return Err(e.into()),
+                Err(e) => {
+                    return Err(ServiceError::Internal(format!(
+                        "activating shard {}: session `{id}` does not rebuild: {e}",
+                        shard_key(shard)
+                    )));
+                }
+            }
+        }
+        let n = rebuilt.len();
+        self.insert_sessions(rebuilt);
+        p.set_owner(shard, p.replica(), epoch, ShardState::Owned)?;
+        tracing::info!(shard = %shard_key(shard), sessions = n, epoch, ms = started.elapsed().as_millis() as u64, "shard activated: served here");
+        Ok(n)
+    }
+
+    /// Step 7 on the source: the shard is `owner`'s from `epoch` on; its
+    /// sessions leave this replica's memory and store.
+    pub async fn release_shard(
+        &self,
+        shard: u16,
+        owner: &ReplicaName,
+        epoch: u64,
+    ) -> Result<usize, ServiceError> {
+        let (p, d) = self.move_parts()?;
+        self.expect_state(
+            p,
+            shard,
+            &[ShardState::Frozen, ShardState::Foreign],
+            "release",
+        )?;
+        if owner == p.replica() {
+            return Err(ServiceError::field(
+                "owner",
+                "a shard cannot be released to its own replica",
+            ));
+        }
+        if p.state(shard) == ShardState::Frozen {
+            p.set_owner(shard, owner, epoch, ShardState::Foreign)?;
+        }
+        let prefix = format!("{}.", shard_key(shard));
+        let removed = self.remove_sessions(&prefix);
+        let store = Arc::clone(&d.store);
+        let stored = tokio::task::spawn_blocking(move || store.sessions_with_prefix(&prefix))
+            .await
+            .map_err(|e| ServiceError::Internal(format!("a release task failed: {e}")))??;
+        let n = stored.len();
+        let writes: Vec<Write> = stored
+            .into_iter()
+            .map(|s| Write::Delete {
+                id: Arc::from(s.id.as_str()),
+            })
+            .collect();
+        if !writes.is_empty() {
+            d.store.submit(writes).wait().await?;
+        }
+        tracing::info!(shard = %shard_key(shard), %owner, epoch, in_memory = removed, deleted = n, "shard released to its new owner; its data deleted here");
+        Ok(n)
+    }
+}
+
+/// A number drawn once per process (what [`ShardStatus::boot`] reports).
+pub fn boot_id() -> u64 {
+    use std::sync::OnceLock;
+    static BOOT: OnceLock<u64> = OnceLock::new();
+    *BOOT.get_or_init(|| {
+        let t = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.as_nanos() as u64);
+        t ^ (u64::from(std::process::id()) << 32)
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_manifest_follows_full_sessions_tails_and_deletions() {
+        let before = Manifest {
+            sessions: vec![("s0001.a".into(), Some(4)), ("s0001.b".into(), None)],
+        };
+        let data = ShardData {
+            sessions: vec![
+                MovedSession::Tail {
+                    id: "s0001.a".into(),
+                    entries: vec![(5, vec![1]), (6, vec![2])],
+                },
+                MovedSession::Full {
+                    id: "s0001.c".into(),
+                    record: vec![],
+                    snapshot: Some((9, vec![])),
+                    entries: vec![],
+                },
+            ],
+            deleted: vec!["s0001.b".into()],
+        };
+        assert_eq!(
+            data.manifest(&before).sessions,
+            vec![
+                ("s0001.a".to_string(), Some(6)),
+                ("s0001.c".to_string(), Some(9))
+            ]
+        );
+        assert_eq!(parse_shard("s03ff").ok(), Some(1023));
+        assert!(parse_shard("s0400").is_err());
+        assert!(parse_shard("s00012").is_err());
+        assert!(parse_shard("S0001").is_err());
+    }
+}
