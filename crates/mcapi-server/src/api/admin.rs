@@ -17,8 +17,8 @@
 
 use axum::Json;
 use axum::Router;
-use axum::body::Bytes;
-use axum::extract::{DefaultBodyLimit, Path, Query, State};
+use axum::body::Body;
+use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, header};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
@@ -33,12 +33,24 @@ use crate::service::shards::{Manifest, ShardData, parse_shard};
 /// Largest request body of an admin route: one shard's data.
 pub const MAX_ADMIN_BODY: usize = 1 << 30;
 
-/// The admin routes, with their own body limit.
+/// The admin routes. Their body limit is [`MAX_ADMIN_BODY`], read only
+/// after the admin key checked: an unauthenticated caller cannot make the
+/// server buffer a shard-sized body.
 pub fn routes() -> Router<AppState> {
     Router::new()
         .route("/admin/shards/{shard}", get(status))
         .route("/admin/shards/{shard}/{step}", post(step))
-        .layer(DefaultBodyLimit::max(MAX_ADMIN_BODY))
+}
+
+/// The body of an admitted call, at most [`MAX_ADMIN_BODY`] bytes.
+async fn read_body(body: Body) -> Result<axum::body::Bytes, ServiceError> {
+    axum::body::to_bytes(body, MAX_ADMIN_BODY)
+        .await
+        .map_err(|e| {
+            ServiceError::PayloadTooLarge(format!(
+                "an admin call's body is at most {MAX_ADMIN_BODY} bytes (one shard's data): {e}"
+            ))
+        })
 }
 
 fn admit(state: &AppState, headers: &HeaderMap) -> Result<(), ServiceError> {
@@ -97,10 +109,11 @@ async fn step(
     headers: HeaderMap,
     Path((shard, step)): Path<(String, String)>,
     Query(q): Query<StepQuery>,
-    body: Bytes,
+    body: Body,
 ) -> Result<Response, ApiError> {
     admit(&state, &headers)?;
     let shard = parse_shard(&shard)?;
+    let body = read_body(body).await?;
     let manager = &state.manager;
     let _one = manager.moving.lock().await;
     let answer = match step.as_str() {

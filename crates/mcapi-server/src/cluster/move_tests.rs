@@ -8,6 +8,7 @@ use std::sync::Arc;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
+use futures_util::StreamExt;
 use http_body_util::BodyExt;
 use serde_json::Value;
 use tower::ServiceExt;
@@ -79,6 +80,39 @@ async fn send(
         parts.status,
         serde_json::from_slice(&bytes).unwrap_or(Value::Null),
     )
+}
+
+#[tokio::test]
+async fn an_unadmitted_call_is_refused_before_its_body_is_read() {
+    // A body the size of the admin limit, generated lazily: refusing the
+    // caller must not cost the server a gigabyte of buffering.
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let names = ordinal_names("mcapi", 1).expect("names");
+    let map = plan(&names, None).expect("plan").map;
+    let a = replica(&map, "mcapi-0", &tmp.path().join("a"), Some(KEY));
+    let shard = shard_key(map.shards_of(&names[0])[0]);
+    let polled = Arc::new(AtomicUsize::new(0));
+    let counter = Arc::clone(&polled);
+    let chunk = axum::body::Bytes::from(vec![0u8; 1 << 20]);
+    let chunks =
+        futures_util::stream::iter(0..crate::api::admin::MAX_ADMIN_BODY >> 20).map(move |_| {
+            counter.fetch_add(1, Ordering::SeqCst);
+            Ok::<_, std::io::Error>(chunk.clone())
+        });
+    let req = Request::builder()
+        .method("POST")
+        .uri(format!("/admin/shards/{shard}/import?begin=true"))
+        .header("authorization", "Bearer not-the-key-at-all")
+        .body(Body::from_stream(chunks))
+        .expect("request");
+    let resp = a.app.clone().oneshot(req).await.expect("response");
+    assert_eq!(resp.status(), StatusCode::FORBIDDEN);
+    assert_eq!(
+        polled.load(Ordering::SeqCst),
+        0,
+        "no chunk of the body was read"
+    );
 }
 
 const LATER: &str = r#"{"state": 26, "stimulus": [0.5, 0.25], "action_taken": 1}"#;
