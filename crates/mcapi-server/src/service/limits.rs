@@ -26,7 +26,10 @@ pub struct Limits {
     pub max_transitions: usize,
     /// Features of a basis (k·|A|).
     pub max_features: usize,
-    /// States of a model using proto-value functions (eigendecomposition is O(|S|³)).
+    /// States of a model using proto-value functions: a dense
+    /// eigendecomposition (O(|S|³)) up to
+    /// [`mcapi_core::basis::DENSE_PVF_MAX_STATES`] states, the sparse
+    /// partial eigensolver above (docs/algorithm.md §5).
     pub max_pvf_states: usize,
     /// Stimulus dimensions.
     pub max_stimuli: usize,
@@ -72,7 +75,7 @@ impl Default for Limits {
             max_pairs: 1_000_000,
             max_transitions: 2_000_000,
             max_features: 1024,
-            max_pvf_states: 800,
+            max_pvf_states: 10_000,
             max_stimuli: 64,
             max_body_bytes: 16 << 20,
             max_batch: 10_000,
@@ -119,6 +122,20 @@ impl Limits {
             max_key_bytes: u64::MAX,
             max_response_bytes: usize::MAX,
         }
+    }
+}
+
+/// Bytes the PVF eigensolver allocates while it builds a basis of `k`
+/// functions on `states` states: the dense Laplacian and its eigenvectors
+/// up to [`mcapi_core::basis::DENSE_PVF_MAX_STATES`], else four blocks of
+/// b × |S| (the sparse solver, docs/algorithm.md §5).
+pub fn pvf_solver_bytes(states: usize, k: usize) -> u64 {
+    let n = states as u64;
+    if states <= mcapi_core::basis::DENSE_PVF_MAX_STATES {
+        3u64.saturating_mul(n).saturating_mul(n).saturating_mul(8)
+    } else {
+        let b = mcapi_core::basis::sparse_pvf_block(k, states) as u64;
+        4u64.saturating_mul(b).saturating_mul(n).saturating_mul(8)
     }
 }
 
@@ -212,6 +229,31 @@ impl Limits {
                 ));
             }
             self.check_names("model.stimuli", names)?;
+        }
+        Ok(())
+    }
+
+    /// Checks a grid map's free cells (its states: every cell but `#`)
+    /// against [`Limits::max_pvf_states`] when it asks for proto-value
+    /// functions, before the map is parsed or its model built.
+    pub fn check_grid_basis(
+        &self,
+        lines: &[String],
+        basis: Option<&BasisSpec>,
+    ) -> Result<(), ServiceError> {
+        if !matches!(basis, Some(BasisSpec::ProtoValue { .. })) {
+            return Ok(());
+        }
+        let free: usize = lines
+            .iter()
+            .map(|l| l.chars().filter(|&c| c != '#').count())
+            .sum();
+        if free > self.max_pvf_states {
+            return Err(exceeded(
+                "`model.grid` free cells (states) for a proto_value basis",
+                free,
+                self.max_pvf_states,
+            ));
         }
         Ok(())
     }
@@ -468,6 +510,18 @@ impl Limits {
                 features,
                 self.max_features,
             ));
+        }
+        if let BasisSpec::ProtoValue { k } = basis {
+            // Before the eigensolver allocates: its working memory counts
+            // against the per-session budget.
+            let bytes = pvf_solver_bytes(model.states(), *k);
+            if bytes > self.max_session_bytes {
+                return Err(ServiceError::LimitExceeded(format!(
+                    "the proto_value basis's eigensolver needs an estimated {bytes} bytes for {} states and k = {k}; the limit per session is {} (--max-session-bytes); use a smaller `k` or model",
+                    model.states(),
+                    self.max_session_bytes
+                )));
+            }
         }
         Ok(())
     }
