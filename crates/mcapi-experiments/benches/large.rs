@@ -14,6 +14,8 @@
 //!   dense eigensolver at 1,024 states, for comparison. The 100k build takes
 //!   tens of seconds per sample: `-- 'large/(build|tick)_pvf30/(1k|10k)'`
 //!   skips it.
+//! - `large/tick_pvf30_eps0.3/*`: the PVF tick of an ε-greedy agent
+//!   (ε = 0.3), whose policy keeps changing.
 //! - `large/tick_slip/*`: one tick on the slippery grid (slip 0.2, so P is
 //!   stochastic: Gauss–Seidel on the indicator basis), after a short
 //!   warm-up.
@@ -50,6 +52,11 @@ fn open_grid(side: usize) -> String {
 /// A fresh agent on the map, as the server builds one; `slip` > 0 makes
 /// the world slippery (stochastic P).
 fn agent(text: &str, basis: &BasisSpec, slip: f64) -> (Agent, [usize; 2]) {
+    agent_eps(text, basis, slip, 0.0)
+}
+
+/// [`agent`] with ε-greedy exploration.
+fn agent_eps(text: &str, basis: &BasisSpec, slip: f64, epsilon: f64) -> (Agent, [usize; 2]) {
     let grid = GridMap::from_text(text).expect("grid");
     let sources = [
         grid.mark_state('F').expect("F"),
@@ -61,14 +68,15 @@ fn agent(text: &str, basis: &BasisSpec, slip: f64) -> (Agent, [usize; 2]) {
     if slip > 0.0 {
         model = slippery(&model, slip).expect("slippery");
     }
-    (agent_on(model, basis), sources)
+    (agent_on(model, basis, epsilon), sources)
 }
 
-fn agent_on(model: EnvModel, basis: &BasisSpec) -> Agent {
+fn agent_on(model: EnvModel, basis: &BasisSpec, epsilon: f64) -> Agent {
     let basis = Basis::build(basis, &model).expect("basis");
     let ctx = Arc::new(PlanningModel::new(model, basis));
     let params = AgentParams {
         seed: Some(7),
+        epsilon: Some(epsilon),
         ..Default::default()
     }
     .check(2, 0)
@@ -154,6 +162,13 @@ fn bench_large(c: &mut Criterion) {
         });
         let mut walk = Walk::new(agent(&text, &PVF30, 0.0)).warm_up(WARM_UP_TICKS);
         group.bench_function(BenchmarkId::new("tick_pvf30", name), |b| {
+            b.iter(|| walk.tick())
+        });
+        // The greedy PVF agent soon stops moving (docs/algorithm.md §6), so
+        // its ticks reuse A's factorisation; with ε = 0.3 it keeps moving
+        // and its policy keeps changing (rank-one updates and rebuilds).
+        let mut walk = Walk::new(agent_eps(&text, &PVF30, 0.0, 0.3)).warm_up(WARM_UP_TICKS);
+        group.bench_function(BenchmarkId::new("tick_pvf30_eps0.3", name), |b| {
             b.iter(|| walk.tick())
         });
         let mut walk = Walk::new(agent(&text, &BasisSpec::Indicator, 0.2)).warm_up(20);
