@@ -397,7 +397,7 @@ pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatu
     let mut lx = DMatrix::zeros(b, n);
     graph.apply(&x, 0.0, 1.0, None, &mut lx);
     let (mut theta, q) = rayleigh_ritz(&x, &lx);
-    x = q.transpose() * &x;
+    x = rotate(&q, &x);
     let mut y = DMatrix::zeros(b, n);
     let mut next = DMatrix::zeros(b, n);
     for _ in 0..SPARSE_PVF_MAX_ITERATIONS {
@@ -430,9 +430,8 @@ pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatu
         graph.apply(&x, 0.0, 1.0, None, &mut lx);
         let (ritz, q) = rayleigh_ritz(&x, &lx);
         theta = ritz;
-        let qt = q.transpose();
-        x = &qt * &x;
-        lx = &qt * &lx;
+        x = rotate(&q, &x);
+        lx = rotate(&q, &lx);
         let converged = (0..k).all(|j| (lx.row(j) - x.row(j) * theta[j]).norm() <= SPARSE_PVF_TOL);
         if converged {
             let mut values = vec![0.0; n * k];
@@ -454,15 +453,59 @@ pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatu
     Err(not_converged())
 }
 
+/// X Yᵀ (b × b) of two b × |S| blocks, summed state by state in a fixed
+/// order. The solver's products are plain loops rather than nalgebra's
+/// matrix product, whose kernels are chosen at run time by CPU features (FMA
+/// or not): the PVFs must have the same bits on every machine, so that a
+/// session replays identically wherever it is recovered.
+fn cross(x: &DMatrix<f64>, y: &DMatrix<f64>) -> DMatrix<f64> {
+    let b = x.nrows();
+    let mut out = vec![0.0; b * b];
+    for (xs, ys) in x
+        .as_slice()
+        .chunks_exact(b)
+        .zip(y.as_slice().chunks_exact(b))
+    {
+        for (i, &xi) in xs.iter().enumerate() {
+            for (o, &yj) in out[i * b..(i + 1) * b].iter_mut().zip(ys) {
+                *o += xi * yj;
+            }
+        }
+    }
+    // Row i of `out` holds (X Yᵀ)[i, ·]; nalgebra is column-major.
+    DMatrix::from_row_slice(b, b, &out)
+}
+
+/// Qᵀ X for a b × b `q` and a b × |S| block: each state's b values rotated,
+/// in a fixed order (see [`cross`]).
+fn rotate(q: &DMatrix<f64>, x: &DMatrix<f64>) -> DMatrix<f64> {
+    let b = x.nrows();
+    // Row i of Q, contiguous: (Qᵀ x)_j = Σ_i x_i Q[i, j].
+    let rows: Vec<f64> = (0..b * b).map(|e| q[(e / b, e % b)]).collect();
+    let mut out = DMatrix::zeros(b, x.ncols());
+    for (o, xs) in out
+        .as_mut_slice()
+        .chunks_exact_mut(b)
+        .zip(x.as_slice().chunks_exact(b))
+    {
+        for (&xi, row) in xs.iter().zip(rows.chunks_exact(b)) {
+            for (oj, &qij) in o.iter_mut().zip(row) {
+                *oj += xi * qij;
+            }
+        }
+    }
+    out
+}
+
 /// Makes the rows of `z` (b × |S|) orthonormal: Cholesky QR, twice
 /// (Stathopoulos & Wu's CholQR2). `None` when the block is rank deficient.
 fn orthonormalise(z: &mut DMatrix<f64>) -> Option<()> {
     let b = z.nrows();
     for _ in 0..2 {
-        let gram = &*z * z.transpose();
+        let gram = cross(z, z);
         let l = gram.cholesky()?.l();
         let l_inv = l.solve_lower_triangular(&DMatrix::identity(b, b))?;
-        *z = l_inv * &*z;
+        *z = rotate(&l_inv.transpose(), z);
     }
     Some(())
 }
@@ -470,7 +513,7 @@ fn orthonormalise(z: &mut DMatrix<f64>) -> Option<()> {
 /// Ritz values (ascending, ties by index) and vectors (columns of Q) of L on
 /// the row space of `x`, given `lx` = (L xᵀ)ᵀ.
 fn rayleigh_ritz(x: &DMatrix<f64>, lx: &DMatrix<f64>) -> (Vec<f64>, DMatrix<f64>) {
-    let h = x * lx.transpose();
+    let h = cross(x, lx);
     let h = (&h + h.transpose()) * 0.5;
     let eig = SymmetricEigen::new(h);
     let b = eig.eigenvalues.len();
