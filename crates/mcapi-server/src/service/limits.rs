@@ -526,3 +526,54 @@ impl Limits {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pvf_basis_is_refused_when_its_eigensolver_would_not_fit_the_session_budget() {
+        let chain = EnvModel::chain(5000, vec!["x".into()]).expect("chain");
+        let basis = BasisSpec::ProtoValue { k: 1000 };
+        // Four blocks of 1,500 × 5,000 numbers: 240 MB.
+        assert_eq!(pvf_solver_bytes(5000, 1000), 4 * 1500 * 5000 * 8);
+        let limits = Limits {
+            max_session_bytes: 64 << 20,
+            max_features: usize::MAX,
+            ..Limits::default()
+        };
+        let e = limits.check_basis(&chain, &basis).expect_err("too big");
+        assert!(
+            e.to_string().contains(
+                "eigensolver needs an estimated 240000000 bytes for 5000 states and k = 1000"
+            ),
+            "{e}"
+        );
+        limits
+            .check_basis(&chain, &BasisSpec::ProtoValue { k: 30 })
+            .expect("30 PVFs fit");
+        // Up to the dense threshold the dense solver's n × n matrices count.
+        assert_eq!(pvf_solver_bytes(800, 30), 3 * 800 * 800 * 8);
+    }
+
+    #[test]
+    fn a_pvf_grid_is_refused_by_its_free_cells_before_it_is_parsed() {
+        let limits = Limits {
+            max_pvf_states: 5,
+            ..Limits::default()
+        };
+        let pvf = BasisSpec::ProtoValue { k: 2 };
+        let lines = vec!["#..#".to_string(), "#..#".to_string()];
+        limits
+            .check_grid_basis(&lines, Some(&pvf))
+            .expect("4 cells");
+        let lines = vec!["a..#".to_string(), "#..b".to_string()];
+        let e = limits
+            .check_grid_basis(&lines, Some(&pvf))
+            .expect_err("6 cells");
+        assert!(e.to_string().contains("is 6; the limit is 5"), "{e}");
+        limits
+            .check_grid_basis(&lines, Some(&BasisSpec::Indicator))
+            .expect("only proto_value is checked");
+    }
+}
