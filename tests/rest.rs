@@ -674,3 +674,99 @@ async fn grids_of_ten_and_a_hundred_thousand_states_are_served() {
         "{err}"
     );
 }
+
+/// Issue 17, item 3: a 100 × 100 grid with 30 proto-value functions (the
+/// sparse eigensolver, docs/algorithm.md §5) is created and driven; absurd
+/// proto-value requests are refused with a precise 4xx before the
+/// eigensolver (or, for a map, the model) allocates anything.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_hundred_by_hundred_grid_with_thirty_pvfs_is_served_and_absurd_ones_are_refused() {
+    let server = start(Limits::default()).await;
+    let client = reqwest::Client::new();
+    let url = format!("{}/v1/sessions", server.base);
+    let pvf = |side: usize, k: usize| {
+        json!({
+            "model": {"grid": open_grid(side), "sources": {"a": 0, "b": 1}, "basis": {"kind": "proto_value", "k": k}},
+            "agent": {"seed": 3, "update_mode": "lockstep", "history": 16}
+        })
+    };
+    let (status, info) = post(&client, &url, &pvf(100, 30)).await;
+    assert_eq!(status, 201, "{info}");
+    assert_eq!(info["model"]["states"], json!(10_000));
+    assert_eq!(
+        info["model"]["basis"],
+        json!({"kind": "proto_value", "k": 30})
+    );
+    assert_eq!(info["model"]["features"], json!(150));
+    let id = info["id"].as_str().expect("id");
+    let observe = format!("{url}/{id}/observations");
+    let (mut r, mut c) = (50usize, 50usize);
+    for t in 0..20u64 {
+        let mut obs = json!({"state": r * 100 + c});
+        if t > 0 {
+            obs["stimulus"] = json!([0.0, 0.0]);
+        }
+        let (status, step) = post(&client, &observe, &obs).await;
+        assert_eq!(status, 200, "t={t}: {step}");
+        assert_eq!(step["tick"], json!(t));
+        match step["action"].as_str().expect("action") {
+            "left" => c -= 1,
+            "right" => c += 1,
+            "north" => r -= 1,
+            "south" => r += 1,
+            "stay" => {}
+            other => panic!("unknown action {other}"),
+        }
+    }
+    let refused = |status: u16, err: &Value, code: &str, fragment: &str| {
+        assert_eq!((status, err["code"].as_str()), (413, Some(code)), "{err}");
+        let message = err["message"].as_str().expect("message");
+        assert!(message.contains(fragment), "{message}");
+    };
+    // 10^6 states: refused from the map's text, before it is parsed.
+    let (status, err) = post(&client, &url, &pvf(1000, 30)).await;
+    refused(
+        status,
+        &err,
+        "limit_exceeded",
+        "`model.grid` free cells (states) for a proto_value basis is 1000000; the limit is 10000",
+    );
+    // Just above the state limit.
+    let (status, err) = post(&client, &url, &pvf(101, 30)).await;
+    refused(
+        status,
+        &err,
+        "limit_exceeded",
+        "is 10201; the limit is 10000",
+    );
+    // More PVFs than features allow (k x 5 actions).
+    let (status, err) = post(&client, &url, &pvf(100, 1_000_000)).await;
+    refused(
+        status,
+        &err,
+        "limit_exceeded",
+        "`model.basis` features (k x actions) is 5000000; the limit is 1024",
+    );
+    // k = 0 and k > states are the client's mistakes, named as such.
+    let (status, err) = post(&client, &url, &pvf(100, 0)).await;
+    assert_eq!(status, 400, "{err}");
+    let (status, err) = post(
+        &client,
+        &url,
+        &json!({"model": {"grid": ["a.b"], "sources": {"a": 0, "b": 1}, "basis": {"kind": "proto_value", "k": 4}}}),
+    )
+    .await;
+    assert_eq!(
+        (status, err["code"].as_str()),
+        (400, Some("invalid_basis")),
+        "{err}"
+    );
+    assert!(
+        err["message"]
+            .as_str()
+            .expect("message")
+            .contains("between 1 and the number of states (3)"),
+        "{err}"
+    );
+    assert_eq!(server.manager.len(), 1, "only the 100 × 100 session exists");
+}

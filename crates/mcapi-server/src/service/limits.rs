@@ -26,7 +26,10 @@ pub struct Limits {
     pub max_transitions: usize,
     /// Features of a basis (k·|A|).
     pub max_features: usize,
-    /// States of a model using proto-value functions (eigendecomposition is O(|S|³)).
+    /// States of a model using proto-value functions: a dense
+    /// eigendecomposition (O(|S|³)) up to
+    /// [`mcapi_core::basis::DENSE_PVF_MAX_STATES`] states, the sparse
+    /// partial eigensolver above (docs/algorithm.md §5).
     pub max_pvf_states: usize,
     /// Stimulus dimensions.
     pub max_stimuli: usize,
@@ -72,7 +75,7 @@ impl Default for Limits {
             max_pairs: 1_000_000,
             max_transitions: 2_000_000,
             max_features: 1024,
-            max_pvf_states: 800,
+            max_pvf_states: 10_000,
             max_stimuli: 64,
             max_body_bytes: 16 << 20,
             max_batch: 10_000,
@@ -119,6 +122,20 @@ impl Limits {
             max_key_bytes: u64::MAX,
             max_response_bytes: usize::MAX,
         }
+    }
+}
+
+/// Bytes the PVF eigensolver allocates while it builds a basis of `k`
+/// functions on `states` states: the dense Laplacian and its eigenvectors
+/// up to [`mcapi_core::basis::DENSE_PVF_MAX_STATES`], else four blocks of
+/// b × |S| (the sparse solver, docs/algorithm.md §5).
+pub fn pvf_solver_bytes(states: usize, k: usize) -> u64 {
+    let n = states as u64;
+    if states <= mcapi_core::basis::DENSE_PVF_MAX_STATES {
+        3u64.saturating_mul(n).saturating_mul(n).saturating_mul(8)
+    } else {
+        let b = mcapi_core::basis::sparse_pvf_block(k, states) as u64;
+        4u64.saturating_mul(b).saturating_mul(n).saturating_mul(8)
     }
 }
 
@@ -212,6 +229,31 @@ impl Limits {
                 ));
             }
             self.check_names("model.stimuli", names)?;
+        }
+        Ok(())
+    }
+
+    /// Checks a grid map's free cells (its states: every cell but `#`)
+    /// against [`Limits::max_pvf_states`] when it asks for proto-value
+    /// functions, before the map is parsed or its model built.
+    pub fn check_grid_basis(
+        &self,
+        lines: &[String],
+        basis: Option<&BasisSpec>,
+    ) -> Result<(), ServiceError> {
+        if !matches!(basis, Some(BasisSpec::ProtoValue { .. })) {
+            return Ok(());
+        }
+        let free: usize = lines
+            .iter()
+            .map(|l| l.chars().filter(|&c| c != '#').count())
+            .sum();
+        if free > self.max_pvf_states {
+            return Err(exceeded(
+                "`model.grid` free cells (states) for a proto_value basis",
+                free,
+                self.max_pvf_states,
+            ));
         }
         Ok(())
     }
@@ -469,6 +511,69 @@ impl Limits {
                 self.max_features,
             ));
         }
+        if let BasisSpec::ProtoValue { k } = basis {
+            // Before the eigensolver allocates: its working memory counts
+            // against the per-session budget.
+            let bytes = pvf_solver_bytes(model.states(), *k);
+            if bytes > self.max_session_bytes {
+                return Err(ServiceError::LimitExceeded(format!(
+                    "the proto_value basis's eigensolver needs an estimated {bytes} bytes for {} states and k = {k}; the limit per session is {} (--max-session-bytes); use a smaller `k` or model",
+                    model.states(),
+                    self.max_session_bytes
+                )));
+            }
+        }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_pvf_basis_is_refused_when_its_eigensolver_would_not_fit_the_session_budget() {
+        let chain = EnvModel::chain(5000, vec!["x".into()]).expect("chain");
+        let basis = BasisSpec::ProtoValue { k: 1000 };
+        // Four blocks of 1,500 × 5,000 numbers: 240 MB.
+        assert_eq!(pvf_solver_bytes(5000, 1000), 4 * 1500 * 5000 * 8);
+        let limits = Limits {
+            max_session_bytes: 64 << 20,
+            max_features: usize::MAX,
+            ..Limits::default()
+        };
+        let e = limits.check_basis(&chain, &basis).expect_err("too big");
+        assert!(
+            e.to_string().contains(
+                "eigensolver needs an estimated 240000000 bytes for 5000 states and k = 1000"
+            ),
+            "{e}"
+        );
+        limits
+            .check_basis(&chain, &BasisSpec::ProtoValue { k: 30 })
+            .expect("30 PVFs fit");
+        // Up to the dense threshold the dense solver's n × n matrices count.
+        assert_eq!(pvf_solver_bytes(800, 30), 3 * 800 * 800 * 8);
+    }
+
+    #[test]
+    fn a_pvf_grid_is_refused_by_its_free_cells_before_it_is_parsed() {
+        let limits = Limits {
+            max_pvf_states: 5,
+            ..Limits::default()
+        };
+        let pvf = BasisSpec::ProtoValue { k: 2 };
+        let lines = vec!["#..#".to_string(), "#..#".to_string()];
+        limits
+            .check_grid_basis(&lines, Some(&pvf))
+            .expect("4 cells");
+        let lines = vec!["a..#".to_string(), "#..b".to_string()];
+        let e = limits
+            .check_grid_basis(&lines, Some(&pvf))
+            .expect_err("6 cells");
+        assert!(e.to_string().contains("is 6; the limit is 5"), "{e}");
+        limits
+            .check_grid_basis(&lines, Some(&BasisSpec::Indicator))
+            .expect("only proto_value is checked");
     }
 }

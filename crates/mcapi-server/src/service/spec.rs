@@ -262,6 +262,7 @@ impl ModelInput {
                 learn: _,
             } => {
                 limits.check_grid(lines, sources, stimuli.as_deref())?;
+                limits.check_grid_basis(lines, basis.as_ref())?;
                 (
                     grid_model(lines, sources, stimuli.as_deref(), limits)?,
                     basis.clone(),
