@@ -10,7 +10,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use parking_lot::Mutex;
 
-use mcapi_core::{Agent, Basis, CuriousAgent, PlanningModel};
+use mcapi_core::{Agent, AlgoError, Basis, CuriousAgent, PlanningModel};
 
 use super::agent_config::{EffectiveConfig, SessionConfig};
 use super::cost;
@@ -151,7 +151,19 @@ impl Setup {
         // a time.
         let _slot = self.builds.acquire()?;
         let (model, basis_spec) = input.build(limits, curious)?;
-        let basis = Basis::build(&basis_spec, &model)?;
+        let basis = Basis::build(&basis_spec, &model).map_err(|e| match e {
+            // A basis the solver could not compute (the sparse PVF solver
+            // gives up on some graphs) is no fault of the server's: say
+            // which basis, and what to ask for instead.
+            AlgoError::Numerical(detail) => ServiceError::field(
+                "model.basis",
+                format!(
+                    "the {} basis of this model could not be computed ({detail}); ask for                      `{{\"kind\": \"indicator\"}}` or fewer proto-value functions (`k`)",
+                    BasisSummary::of(&basis_spec).kind
+                ),
+            ),
+            other => other.into(),
+        })?;
         let ctx = Arc::new(PlanningModel::new(model, basis));
         let learned = input.learning().map(|l| LearnedSummary {
             known_after: l.known_after,
