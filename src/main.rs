@@ -238,8 +238,10 @@ fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
         .enable_all()
         .build()?;
     runtime.block_on(async {
+        // Listening before the server answers, so that no early signal is lost.
+        let stop = server::shutdown_signal();
         let running = server::start(&cfg).await?;
-        server::shutdown_signal().await;
+        stop.await;
         tracing::info!("shutdown requested: finishing in-flight requests");
         running.shutdown();
         running.wait().await
