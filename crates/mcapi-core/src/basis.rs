@@ -286,6 +286,52 @@ impl StateGraph {
         self.ptr.len() - 1
     }
 
+    fn degree(&self, s: usize) -> usize {
+        self.ptr[s + 1] - self.ptr[s]
+    }
+
+    /// The null space of L, component by component (depth-first, states of
+    /// a component summed in ascending order).
+    fn null_space(&self) -> NullSpace {
+        let n = self.states();
+        let mut comp = vec![usize::MAX; n];
+        let mut weight = vec![0.0; n];
+        let mut count = 0;
+        let (mut stack, mut members) = (Vec::new(), Vec::new());
+        for start in 0..n {
+            if comp[start] != usize::MAX || self.degree(start) == 0 {
+                continue;
+            }
+            members.clear();
+            comp[start] = count;
+            stack.push(start);
+            while let Some(s) = stack.pop() {
+                members.push(s);
+                for &t in &self.idx[self.ptr[s]..self.ptr[s + 1]] {
+                    if comp[t as usize] == usize::MAX {
+                        comp[t as usize] = count;
+                        stack.push(t as usize);
+                    }
+                }
+            }
+            members.sort_unstable();
+            let norm = members
+                .iter()
+                .map(|&s| self.degree(s) as f64)
+                .sum::<f64>()
+                .sqrt();
+            for &s in &members {
+                weight[s] = (self.degree(s) as f64).sqrt() / norm;
+            }
+            count += 1;
+        }
+        NullSpace {
+            comp,
+            weight,
+            count,
+        }
+    }
+
     /// The dense Laplacian I − N (for tests and small graphs).
     pub fn dense_laplacian(&self) -> DMatrix<f64> {
         let n = self.states();
@@ -385,7 +431,82 @@ pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatu
             "`k` = {k} must be between 1 and the number of states ({n})"
         )));
     }
-    let b = sparse_pvf_block(k, n);
+    match filtered_block(graph, k, None) {
+        Err(AlgoError::Numerical(_)) => deflated_pvfs(graph, k),
+        done => done,
+    }
+}
+
+/// The second attempt of [`sparse_pvfs`], for graphs where the k-th
+/// eigenvalue repeats across the whole block (docs/algorithm.md §5): many
+/// components, whose null vectors D^{1/2}1_C are known exactly and are
+/// taken first, and a cut kept above a Ritz cluster that fills the block.
+fn deflated_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatures)> {
+    let n = graph.states();
+    let null = graph.null_space();
+    let c = null.count.min(k);
+    let mut values = vec![0.0; n * k];
+    for s in 0..n {
+        if null.comp[s] < c {
+            values[s * k + null.comp[s]] = null.weight[s];
+        }
+    }
+    let mut theta = vec![0.0; c];
+    if c < k {
+        let (rest, features) = filtered_block(graph, k - c, Some(&null))?;
+        for s in 0..n {
+            values[s * k + c..(s + 1) * k].copy_from_slice(features.row(s));
+        }
+        theta.extend(rest);
+    }
+    Ok((theta, finite(values, k)?))
+}
+
+/// The null space of L: one unit vector D^{1/2}1_C/‖D^{1/2}1_C‖ per connected
+/// component C with an edge, numbered in the order of their first states.
+struct NullSpace {
+    /// The component of each state; `usize::MAX` for a state without edges
+    /// (its row of L is that of I).
+    comp: Vec<usize>,
+    /// Each state's entry in its component's vector.
+    weight: Vec<f64>,
+    count: usize,
+}
+
+impl NullSpace {
+    /// Removes the null space from every row of `x` (b × |S|), in a fixed
+    /// order.
+    fn project_out(&self, x: &mut DMatrix<f64>) {
+        let b = x.nrows();
+        let mut coef = vec![0.0; b * self.count];
+        for (s, xs) in x.as_slice().chunks_exact(b).enumerate() {
+            if let Some(c) = self.comp.get(s).copied().filter(|&c| c < self.count) {
+                for (a, &v) in coef[c * b..(c + 1) * b].iter_mut().zip(xs) {
+                    *a += v * self.weight[s];
+                }
+            }
+        }
+        for (s, xs) in x.as_mut_slice().chunks_exact_mut(b).enumerate() {
+            if let Some(c) = self.comp.get(s).copied().filter(|&c| c < self.count) {
+                for (v, &a) in xs.iter_mut().zip(&coef[c * b..(c + 1) * b]) {
+                    *v -= a * self.weight[s];
+                }
+            }
+        }
+    }
+}
+
+/// The filtered block iteration of [`sparse_pvfs`] for the k smallest
+/// eigenpairs; with `deflate`, in the complement of that null space and
+/// with the cut kept above a Ritz cluster that fills the block.
+fn filtered_block(
+    graph: &StateGraph,
+    k: usize,
+    deflate: Option<&NullSpace>,
+) -> Result<(Vec<f64>, StateFeatures)> {
+    let n = graph.states();
+    let room = n - deflate.map_or(0, |d| d.count);
+    let b = sparse_pvf_block(k, room);
     let not_converged = || {
         AlgoError::Numerical(format!(
             "the sparse eigensolver did not find {k} proto-value functions of {n} states within {SPARSE_PVF_MAX_ITERATIONS} iterations"
@@ -393,6 +514,9 @@ pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatu
     };
     let mut rng = ChaCha8Rng::seed_from_u64(SPARSE_PVF_SEED);
     let mut x = DMatrix::from_fn(b, n, |_, _| rng.random::<f64>() - 0.5);
+    if let Some(d) = deflate {
+        d.project_out(&mut x);
+    }
     orthonormalise(&mut x).ok_or_else(not_converged)?;
     let mut lx = DMatrix::zeros(b, n);
     graph.apply(&x, 0.0, 1.0, None, &mut lx);
@@ -402,7 +526,13 @@ pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatu
     let mut next = DMatrix::zeros(b, n);
     for _ in 0..SPARSE_PVF_MAX_ITERATIONS {
         // Damp [cut, 2], keep p(0) = 1 (Zhou & Saad's scaled recurrence).
-        let cut = theta[b - 1].clamp(1e-9, 1.9);
+        let mut cut = theta[b - 1];
+        if deflate.is_some() && cut - theta[k - 1] <= 1e-8 {
+            // The block lies in one eigenspace: the Ritz values say nothing
+            // of the next eigenvalue, so damp from a little above it.
+            cut = theta[k - 1] + 0.1 * (2.0 - theta[k - 1]);
+        }
+        let cut = cut.clamp(1e-9, 1.9);
         let (e, c) = ((2.0 - cut) / 2.0, (2.0 + cut) / 2.0);
         // The smallest eigenvalue is amplified about cosh(degree·acosh(c/e))
         // over the damped interval: at most e^10, so Cholesky QR keeps
@@ -426,6 +556,9 @@ pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatu
             sigma = sigma_next;
         }
         std::mem::swap(&mut x, &mut y);
+        if let Some(d) = deflate {
+            d.project_out(&mut x);
+        }
         orthonormalise(&mut x).ok_or_else(not_converged)?;
         graph.apply(&x, 0.0, 1.0, None, &mut lx);
         let (ritz, q) = rayleigh_ritz(&x, &lx);

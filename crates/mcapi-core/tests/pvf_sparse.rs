@@ -157,3 +157,65 @@ fn pvfs_above_the_dense_threshold_come_from_the_sparse_solver_and_are_reproducib
         assert!(pivot > 0.0, "vector {j}");
     }
 }
+
+/// `theta` and `features` are k orthonormal eigenpairs of the graph's
+/// Laplacian with the k smallest eigenvalues (checked against the dense
+/// solver's eigenvalues; the vectors need not match when λ_k repeats).
+fn are_the_smallest_eigenpairs(graph: &StateGraph, k: usize, theta: &[f64], features: &[f64]) {
+    let n = graph.states();
+    let (lambda, _) = dense(graph);
+    let v = as_matrix(features, n, k);
+    let gram = v.tr_mul(&v);
+    assert!(
+        (gram - DMatrix::identity(k, k)).abs().max() < 1e-9,
+        "orthonormal"
+    );
+    let lap = graph.dense_laplacian();
+    for j in 0..k {
+        assert!(
+            (theta[j] - lambda[j]).abs() < 1e-9,
+            "θ_{j} = {} vs {}",
+            theta[j],
+            lambda[j]
+        );
+        let col = v.column(j);
+        let residual = (&lap * col - col * theta[j]).norm();
+        assert!(residual < 1e-8, "residual of pair {j}: {residual}");
+    }
+}
+
+fn doorless_rooms(rooms: usize, room: &str) -> String {
+    let mut text = String::new();
+    for _ in 0..rooms {
+        text.push_str(room);
+        text.push('\n');
+        text.push_str(&"#".repeat(room.len()));
+        text.push('\n');
+    }
+    text
+}
+
+#[test]
+fn more_doorless_rooms_than_the_block_is_wide_are_solved_from_their_null_space() {
+    // 267 rooms of three cells (801 states, the sparse path): eigenvalue 0
+    // repeats 267 times, far beyond the block of 45 the plain iteration
+    // carries, which stalls there (found by tests/fuzz.rs through the API).
+    let model = grid_model(&doorless_rooms(267, "a.b"));
+    let graph = StateGraph::of(&model);
+    assert_eq!(graph.states(), 801);
+    let features = proto_value_functions(&model, 30).expect("pvfs");
+    let (theta, direct) = sparse_pvfs(&graph, 30).expect("sparse");
+    assert_eq!(features.as_slice(), direct.as_slice());
+    are_the_smallest_eigenpairs(&graph, 30, &theta, direct.as_slice());
+}
+
+#[test]
+fn identical_rooms_repeating_the_kth_eigenvalue_across_the_block_are_solved() {
+    // 20 identical rooms: eigenvalues 0, 1 and 2, each 20 times. The 30
+    // wanted are the 20 null vectors and 10 of the twenty at 1, which fill
+    // the block of the second stage exactly.
+    let model = grid_model(&doorless_rooms(20, "a.b"));
+    let graph = StateGraph::of(&model);
+    let (theta, features) = sparse_pvfs(&graph, 30).expect("sparse");
+    are_the_smallest_eigenpairs(&graph, 30, &theta, features.as_slice());
+}
