@@ -25,6 +25,7 @@ __all__ = [
     "InvalidParameter",
     "InvalidObservation",
     "Unauthenticated",
+    "Forbidden",
     "NotFound",
     "UnknownRoute",
     "LimitExceeded",
@@ -33,6 +34,7 @@ __all__ = [
     "TooManyStreams",
     "QuotaExceeded",
     "SessionFailed",
+    "MoveConflict",
     "Unavailable",
     "TransportError",
     "WrongReplica",
@@ -104,6 +106,18 @@ class InvalidObservation(BadRequest):
 
 class Unauthenticated(McapiError):
     """The API key is missing or wrong (HTTP 401, gRPC UNAUTHENTICATED)."""
+
+
+class Forbidden(McapiError):
+    """An admin call of a cluster's shard moves without the admin key, or to a
+    server with no ``--admin-key`` (HTTP 403, gRPC PERMISSION_DENIED,
+    ``forbidden``)."""
+
+
+class MoveConflict(McapiError):
+    """A shard-move step that does not fit the shard's state on the replica,
+    or whose epoch is not above the replica's (HTTP 409, gRPC
+    FAILED_PRECONDITION, ``move_conflict``); nothing was done."""
 
 
 class NotFound(McapiError):
@@ -192,6 +206,8 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "first_observation": (InvalidObservation, 400),
     "missing_stimulus": (InvalidObservation, 400),
     "unauthenticated": (Unauthenticated, 401),
+    "forbidden": (Forbidden, 403),
+    "move_conflict": (MoveConflict, 409),
     "not_found": (NotFound, 404),
     "unknown_route": (UnknownRoute, 404),
     "limit_exceeded": (LimitExceeded, 413),
@@ -215,7 +231,9 @@ and the HTTP status it comes with."""
 _BY_STATUS: Final[dict[int, type[McapiError]]] = {
     400: BadRequest,
     401: Unauthenticated,
+    403: Forbidden,
     404: NotFound,
+    409: MoveConflict,
     413: LimitExceeded,
     429: TooManySessions,
     503: Unavailable,
@@ -224,6 +242,8 @@ _BY_STATUS: Final[dict[int, type[McapiError]]] = {
 _BY_GRPC: Final[dict[str, tuple[type[McapiError], int | None]]] = {
     "INVALID_ARGUMENT": (BadRequest, 400),
     "UNAUTHENTICATED": (Unauthenticated, 401),
+    "PERMISSION_DENIED": (Forbidden, 403),
+    "FAILED_PRECONDITION": (MoveConflict, 409),
     "NOT_FOUND": (NotFound, 404),
     "RESOURCE_EXHAUSTED": (LimitExceeded, 413),
     # gRPC's own message-size limit (tonic refuses an oversized message so).
