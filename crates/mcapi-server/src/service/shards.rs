@@ -362,13 +362,7 @@ impl SessionManager {
                 "import",
             )?;
             p.set_state(shard, ShardState::Importing);
-            let store = Arc::clone(&d.store);
-            let stale = tokio::task::spawn_blocking(move || store.sessions_with_prefix(&prefix))
-                .await
-                .map_err(|e| ServiceError::Internal(format!("an import task failed: {e}")))??;
-            writes.extend(stale.into_iter().map(|s| Write::Delete {
-                id: Arc::from(s.id.as_str()),
-            }));
+            writes.extend(stored_deletes(&d.store, shard, "import").await?);
         } else {
             self.expect_state(p, shard, &[ShardState::Importing], "import")?;
         }
@@ -495,18 +489,8 @@ impl SessionManager {
             "abort",
         )?;
         p.set_state(shard, ShardState::Foreign);
-        let prefix = format!("{}.", shard_key(shard));
-        let store = Arc::clone(&d.store);
-        let stale = tokio::task::spawn_blocking(move || store.sessions_with_prefix(&prefix))
-            .await
-            .map_err(|e| ServiceError::Internal(format!("an abort task failed: {e}")))??;
-        let n = stale.len();
-        let writes: Vec<Write> = stale
-            .into_iter()
-            .map(|s| Write::Delete {
-                id: Arc::from(s.id.as_str()),
-            })
-            .collect();
+        let writes = stored_deletes(&d.store, shard, "abort").await?;
+        let n = writes.len();
         if !writes.is_empty() {
             d.store.submit(writes).wait().await?;
         }
@@ -584,17 +568,8 @@ impl SessionManager {
         }
         let prefix = format!("{}.", shard_key(shard));
         let removed = self.remove_sessions(&prefix);
-        let store = Arc::clone(&d.store);
-        let stored = tokio::task::spawn_blocking(move || store.sessions_with_prefix(&prefix))
-            .await
-            .map_err(|e| ServiceError::Internal(format!("a release task failed: {e}")))??;
-        let n = stored.len();
-        let writes: Vec<Write> = stored
-            .into_iter()
-            .map(|s| Write::Delete {
-                id: Arc::from(s.id.as_str()),
-            })
-            .collect();
+        let writes = stored_deletes(&d.store, shard, "release").await?;
+        let n = writes.len();
         if !writes.is_empty() {
             d.store.submit(writes).wait().await?;
         }
@@ -613,6 +588,26 @@ pub fn boot_id() -> u64 {
             .map_or(0, |d| d.as_nanos() as u64);
         t ^ (u64::from(std::process::id()) << 32)
     })
+}
+
+/// A delete of every session of `shard` in `store`, read off the runtime
+/// (what an import's first part, an abort and a release remove).
+async fn stored_deletes(
+    store: &Arc<crate::store::Store>,
+    shard: u16,
+    step: &str,
+) -> Result<Vec<Write>, ServiceError> {
+    let prefix = format!("{}.", shard_key(shard));
+    let store = Arc::clone(store);
+    let stored = tokio::task::spawn_blocking(move || store.sessions_with_prefix(&prefix))
+        .await
+        .map_err(|e| ServiceError::Internal(format!("the {step} task failed: {e}")))??;
+    Ok(stored
+        .into_iter()
+        .map(|s| Write::Delete {
+            id: Arc::from(s.id.as_str()),
+        })
+        .collect())
 }
 
 #[cfg(test)]
