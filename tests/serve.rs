@@ -116,6 +116,25 @@ fn bad_configuration_is_refused_before_binding() {
         err.contains("--workers must be between 1 and 1024"),
         "{err}"
     );
+    for (args, want) in [
+        (
+            &["--evict-idle-secs", "99999999999999"][..],
+            "--evict-idle-secs must be at most 2592000 (30 days), not 99999999999999",
+        ),
+        (
+            &["--evict-idle-secs", "60", "--store", "memory"][..],
+            "--evict-idle-secs needs the durable store",
+        ),
+    ] {
+        let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
+            .args(["serve", "--http", "127.0.0.1:1", "--grpc", "127.0.0.1:2"])
+            .args(args)
+            .output()
+            .expect("mcapi runs");
+        assert!(!out.status.success(), "{args:?} accepted");
+        let err = String::from_utf8_lossy(&out.stderr);
+        assert!(err.contains(want), "{args:?}: {err}");
+    }
     let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
         .args(["serve", "--http", "127.0.0.1:9", "--grpc", "127.0.0.1:9"])
         .output()

@@ -428,6 +428,14 @@ impl Agent {
         &self.rewards[..self.ctx.model().n_pairs()]
     }
 
+    /// True when [`Agent::restore`] of this agent's snapshot continues bit
+    /// for bit as the agent itself would: a posted, deterministic model
+    /// planned by the functional-graph engine ([`Planner::restores_exactly`]).
+    /// A learned model may turn stochastic and then needs the engine's V.
+    pub fn restores_exactly(&self) -> bool {
+        self.learned.is_none() && self.planner.restores_exactly()
+    }
+
     /// The learned transition model, for an agent created by
     /// [`Agent::new_learned`].
     pub fn learned(&self) -> Option<&LearnedModel> {
@@ -717,6 +725,10 @@ mod tests {
         let bytes = serde_json::to_vec(&snap).expect("encode");
         let back: AgentSnapshot = serde_json::from_slice(&bytes).expect("decode");
         assert_eq!(back, snap);
+        assert!(
+            a.restores_exactly(),
+            "the hallway plans on a functional graph"
+        );
         let mut b = Agent::restore(Arc::clone(a.planning_model()), a.params().clone(), back)
             .expect("restore");
         let mut state_b = state;
@@ -727,6 +739,27 @@ mod tests {
             a.snapshot() == b.snapshot(),
             "identical state after 500 ticks"
         );
+    }
+
+    #[test]
+    fn only_the_functional_graph_engine_claims_an_exact_restore() {
+        assert!(hallway_agent(3).restores_exactly());
+        let learned = learned_hallway_agent(3, crate::learned::Optimism::Absorbing);
+        assert!(
+            !learned.restores_exactly(),
+            "a learned P̂ may turn stochastic"
+        );
+        let preset = hallway();
+        let spec = crate::spec::BasisSpec::ProtoValue { k: 4 };
+        let basis = Basis::build(&spec, &preset.model).expect("PVFs");
+        let params = AgentParams {
+            seed: Some(3),
+            ..Default::default()
+        }
+        .check(2, 0)
+        .expect("params");
+        let pvf = Agent::new(Arc::new(PlanningModel::new(preset.model, basis)), params);
+        assert!(!pvf.restores_exactly(), "A⁻¹ is refactorised on restore");
     }
 
     fn learned_hallway_agent(seed: u64, optimism: crate::learned::Optimism) -> Agent {

@@ -450,6 +450,16 @@ impl Planner {
         self.stats
     }
 
+    /// True when the next update depends only on π and Q, which a snapshot
+    /// stores: the functional-graph engine solves each evaluation in closed
+    /// form and keeps V only as a warm start for a model that stops being
+    /// deterministic. A Gauss–Seidel solve warm-starts from its last V and
+    /// a feature basis continues its rank-one updates of A⁻¹, so a restored
+    /// planner of those engines agrees with the live one only to rounding.
+    pub fn restores_exactly(&self) -> bool {
+        matches!(self.engine, Engine::FunctionalGraph(_))
+    }
+
     /// One LSTDQ evaluation of π on `r` and one greedy improvement.
     ///
     /// On a numerical failure Q and π are left as they were.

@@ -52,6 +52,14 @@ pub struct ServeConfig {
     /// the background every 5 ms).
     #[arg(long, env = "MCAPI_DURABILITY", value_enum, default_value = "sync")]
     pub durability: crate::store::Durability,
+    /// With the durable store: a session inactive (no observation) for
+    /// this many seconds leaves memory, after a snapshot, and is loaded
+    /// back from the store by its next request, bit for bit as it was;
+    /// sessions whose planner cannot be restored exactly (a PVF or learned
+    /// model once it has observed) stay in memory. 0 keeps every session
+    /// in memory. At most 2592000 (30 days). Refused with `--store memory`.
+    #[arg(long, env = "MCAPI_EVICT_IDLE_SECS")]
+    pub evict_idle_secs: Option<u64>,
     /// Logged observations between two snapshots of a session (the log
     /// before a snapshot is trimmed).
     #[arg(long, env = "MCAPI_SNAPSHOT_EVERY", default_value_t = crate::service::DEFAULT_SNAPSHOT_EVERY)]
@@ -200,6 +208,11 @@ pub struct ServeConfig {
     pub admin_key: Option<String>,
 }
 
+/// Default of `--evict-idle-secs` with the durable store.
+pub const DEFAULT_EVICT_IDLE_SECS: u64 = 300;
+/// Largest `--evict-idle-secs`.
+pub const MAX_EVICT_IDLE_SECS: u64 = 30 * 24 * 3600;
+
 impl ServeConfig {
     /// The worker count in force.
     pub fn worker_count(&self) -> usize {
@@ -275,12 +288,37 @@ impl ServeConfig {
             snapshot_every: self.snapshot_every,
             keys: ApiKeys::new(&self.api_keys),
             admin: ApiKeys::new(self.admin_key.as_deref()),
+            evict_after: self.evict_after(),
             ..ManagerOptions::new(self.limits(), self.worker_count())
+        }
+    }
+
+    /// How long a session stays in memory without activity: `None` with
+    /// the memory store or `--evict-idle-secs 0`.
+    pub fn evict_after(&self) -> Option<Duration> {
+        match (self.store, self.evict_idle_secs) {
+            (StoreKind::Memory, _) | (_, Some(0)) => None,
+            (StoreKind::Redb, secs) => {
+                Some(Duration::from_secs(secs.unwrap_or(DEFAULT_EVICT_IDLE_SECS)))
+            }
         }
     }
 
     /// Checks the configuration before anything binds.
     pub fn validate(&self) -> Result<(), String> {
+        match self.evict_idle_secs {
+            Some(secs) if secs > MAX_EVICT_IDLE_SECS => {
+                return Err(format!(
+                    "--evict-idle-secs must be at most {MAX_EVICT_IDLE_SECS} (30 days), not {secs}; 0 keeps every session in memory"
+                ));
+            }
+            Some(secs) if secs > 0 && self.store == StoreKind::Memory => {
+                return Err(
+                    "--evict-idle-secs needs the durable store: with --store memory an evicted session would be lost (use 0, or leave it out)".into(),
+                );
+            }
+            _ => {}
+        }
         if self.http == self.grpc && self.http.port() != 0 {
             return Err(format!("--http and --grpc both use {}", self.http));
         }

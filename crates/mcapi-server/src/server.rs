@@ -58,6 +58,9 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
         options.store = Some(Arc::new(store));
     }
     let manager = Arc::new(SessionManager::with_options(options)?);
+    manager
+        .start_evictor()
+        .context("starting the evictor thread")?;
     let http = TcpListener::bind(cfg.http)
         .await
         .with_context(|| format!("binding the REST port {}", cfg.http))?;

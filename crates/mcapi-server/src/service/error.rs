@@ -164,6 +164,14 @@ pub enum StorageError {
         /// Why its durable state could not be rebuilt.
         source: Box<RecoveryError>,
     },
+    /// An evicted session could not be loaded back from the store.
+    #[error("session `{id}` was evicted to the store and cannot be loaded back ({source})")]
+    Load {
+        /// The session.
+        id: String,
+        /// Why its stored state could not be rebuilt.
+        source: Box<RecoveryError>,
+    },
     /// The store could not be read to recover the stored sessions at start.
     #[error("reading the store {path} to recover session `{id}`: {source}")]
     Recovery {

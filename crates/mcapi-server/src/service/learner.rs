@@ -125,6 +125,13 @@ impl Learner {
         Ok(())
     }
 
+    /// True when a snapshot of this learner restores to one that continues
+    /// bit for bit as it would ([`Agent::restores_exactly`]; a curiosity
+    /// channel's snapshot holds all of its state).
+    pub fn restores_exactly(&self) -> bool {
+        self.agent().restores_exactly()
+    }
+
     /// True when R changed since the last policy update.
     pub fn needs_plan(&self) -> bool {
         self.agent().needs_plan()

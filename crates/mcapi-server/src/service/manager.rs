@@ -25,7 +25,7 @@ use super::recovery::{self, RecoveryReport};
 use super::session::{self, Durability, Session, SessionRef};
 use super::setup::Setup;
 use super::spec::ModelInput;
-use super::table::SessionTable;
+use super::table::{Entry, SessionTable};
 use super::tick::{self, Job, TickPool};
 use super::values::{self, ValueSelection};
 use super::wire::{
@@ -69,6 +69,10 @@ pub struct ManagerOptions {
     pub placement: Option<Arc<Placement>>,
     /// The admin key of the shard-move calls; none: they are refused.
     pub admin: ApiKeys,
+    /// With a store: sessions inactive this long leave memory and are
+    /// loaded back on their next request (docs/sessions.md, "Idle
+    /// sessions"); `None` keeps every session in memory.
+    pub evict_after: Option<Duration>,
 }
 
 /// Default of [`ManagerOptions::snapshot_every`].
@@ -86,15 +90,19 @@ impl ManagerOptions {
             keys: ApiKeys::default(),
             placement: None,
             admin: ApiKeys::default(),
+            evict_after: None,
         }
     }
 }
+
+/// Sessions examined per hold of the table's lock in an eviction pass.
+const EVICT_CHUNK: usize = 1024;
 
 /// The session manager: owns sessions, shared models and the tick pool.
 pub struct SessionManager {
     sessions: RwLock<SessionTable>,
     /// Builds sessions: shared planning models, seeds, bounded builds.
-    setup: Setup,
+    setup: Arc<Setup>,
     limits: Limits,
     pool: TickPool,
     inline_plan_ns: u64,
@@ -110,6 +118,10 @@ pub struct SessionManager {
     admin: ApiKeys,
     /// One shard move step at a time on this replica.
     pub(crate) moving: tokio::sync::Mutex<()>,
+    /// How long a session stays in memory without activity (with a store).
+    evict_after: Option<Duration>,
+    /// Set by [`SessionManager::shutdown`]: the evictor stops.
+    stopping: AtomicBool,
 }
 
 impl SessionManager {
@@ -129,8 +141,11 @@ impl SessionManager {
             keys,
             placement,
             admin,
+            evict_after,
         } = opts;
         let ready = AtomicBool::new(store.is_none());
+        // Without a store an evicted session would be lost.
+        let evict_after = evict_after.filter(|_| store.is_some());
         let durability = store.map(|store| Durability {
             store,
             snapshot_every: snapshot_every.max(1),
@@ -139,7 +154,8 @@ impl SessionManager {
             .map_err(|e| ServiceError::Internal(format!("starting tick workers: {e}")))?;
         Ok(Self {
             sessions: RwLock::new(SessionTable::default()),
-            setup: Setup::new(workers),
+            evict_after,
+            setup: Arc::new(Setup::new(workers)),
             limits,
             pool,
             inline_plan_ns: u64::try_from(inline_plan.as_nanos()).unwrap_or(u64::MAX),
@@ -150,6 +166,7 @@ impl SessionManager {
             placement,
             admin,
             moving: tokio::sync::Mutex::new(()),
+            stopping: AtomicBool::new(false),
         })
     }
 
@@ -334,6 +351,8 @@ impl SessionManager {
             self.durability.clone(),
             session::Resumed {
                 owner: caller.owner(),
+                // What a rebuild from its record gives, until it observes.
+                pristine: true,
                 ..session::Resumed::default()
             },
         ));
@@ -360,13 +379,95 @@ impl SessionManager {
         Ok(info_of(&session))
     }
 
-    /// The session with this id, whoever owns it (for tests and tools).
+    /// The session with this id, whoever owns it, loaded back if it was
+    /// evicted (blocking then: call off the async runtime).
     pub fn session(&self, id: &str) -> Result<SessionRef, ServiceError> {
+        let entry = self.entry(id)?;
+        self.loaded(id, entry)
+    }
+
+    /// The table's entry for `id`.
+    fn entry(&self, id: &str) -> Result<Entry, ServiceError> {
         self.sessions
             .read()
             .get(id)
             .cloned()
             .ok_or_else(|| ServiceError::NotFound(id.to_string()))
+    }
+
+    /// The session with this id if it is in memory (never loads).
+    fn resident(&self, id: &str) -> Option<SessionRef> {
+        self.sessions
+            .read()
+            .get(id)
+            .and_then(Entry::resident)
+            .cloned()
+    }
+
+    /// The session of `entry`, loaded back if it is evicted (blocking).
+    fn loaded(&self, id: &str, entry: Entry) -> Result<SessionRef, ServiceError> {
+        match entry {
+            Entry::Resident(s) => Ok(s),
+            was @ Entry::Evicted(_) => {
+                let d = self.evicted_store(id)?;
+                let fresh = recovery::load(&self.setup, &self.limits, d, id)?;
+                self.install(id, &was, fresh)
+            }
+        }
+    }
+
+    /// [`Self::loaded`] for the async paths: an evicted session is loaded
+    /// back on the blocking pool.
+    async fn loaded_async(&self, id: &str, entry: Entry) -> Result<SessionRef, ServiceError> {
+        match entry {
+            Entry::Resident(s) => Ok(s),
+            was @ Entry::Evicted(_) => {
+                let d = self.evicted_store(id)?.clone();
+                let (setup, limits, owned) =
+                    (Arc::clone(&self.setup), self.limits.clone(), id.to_string());
+                let fresh = tokio::task::spawn_blocking(move || {
+                    recovery::load(&setup, &limits, &d, &owned)
+                })
+                .await
+                .map_err(|e| {
+                    ServiceError::Internal(format!("loading a session back failed: {e}"))
+                })??;
+                self.install(id, &was, fresh)
+            }
+        }
+    }
+
+    fn evicted_store(&self, id: &str) -> Result<&Durability, ServiceError> {
+        self.durability.as_ref().ok_or_else(|| {
+            ServiceError::Internal(format!("session `{id}` is evicted but there is no store"))
+        })
+    }
+
+    /// Puts a session loaded back in place of its eviction `was`. Two
+    /// requests may load the same session at once: both rebuilt it from
+    /// the same stored state, the first to get here is served and the
+    /// other's copy dropped. Gone meanwhile (deleted, its shard moved):
+    /// `NotFound`.
+    fn install(
+        &self,
+        id: &str,
+        was: &Entry,
+        fresh: SessionRef,
+    ) -> Result<SessionRef, ServiceError> {
+        if let Entry::Evicted(stub) = was {
+            fresh.set_last_observed_ns(stub.last_observed_ns);
+        }
+        let mut sessions = self.sessions.write();
+        if sessions.swap(id, was, Entry::Resident(Arc::clone(&fresh))) {
+            metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
+            drop(sessions);
+            metrics::counter!("mcapi_session_loads_total").increment(1);
+            return Ok(fresh);
+        }
+        match sessions.get(id) {
+            Some(Entry::Resident(s)) => Ok(Arc::clone(s)),
+            _ => Err(ServiceError::NotFound(id.to_string())),
+        }
     }
 
     /// The session with this id if `caller` may see it; another key's
@@ -375,29 +476,51 @@ impl SessionManager {
     /// A session whose commit failed is first rolled back to its durable
     /// state (reloaded, see [`SessionManager::visible_session`]).
     pub fn session_for(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
-        let session = self.visible_session(caller, id)?;
-        if session.is_failed() {
-            return Err(ServiceError::SessionFailed(id.to_string()));
-        }
-        Ok(session)
+        not_failed(self.visible_session(caller, id)?)
     }
 
     /// [`SessionManager::session_for`], quarantined sessions included (for
     /// `delete`). A session whose commit failed is first rolled back to its
     /// durable state (reloaded), so nothing that was not made durable is
-    /// ever served; while that cannot be done, `Storage`.
+    /// ever served; while that cannot be done, `Storage`. An evicted
+    /// session is loaded back (blocking: call off the async runtime).
     ///
     /// Clustered, a session whose shard is not served here is refused
     /// before it is looked up ([`Placement::check`]): 421 naming the owner,
     /// or 503 while the shard moves; both transports come through here.
     pub fn visible_session(&self, caller: Caller, id: &str) -> Result<SessionRef, ServiceError> {
+        let entry = self.visible_entry(caller, id)?;
+        let session = self.loaded(id, entry)?;
+        self.rolled_back(id, session)
+    }
+
+    /// [`Self::visible_session`] for the async paths (an evicted session
+    /// is loaded back on the blocking pool).
+    async fn visible_session_async(
+        &self,
+        caller: Caller,
+        id: &str,
+    ) -> Result<SessionRef, ServiceError> {
+        let entry = self.visible_entry(caller, id)?;
+        let session = self.loaded_async(id, entry).await?;
+        self.rolled_back(id, session)
+    }
+
+    /// The entry of a session served here that `caller` may see.
+    fn visible_entry(&self, caller: Caller, id: &str) -> Result<Entry, ServiceError> {
         if let Some(p) = &self.placement {
             p.check(id)?;
         }
-        let session = self.session(id)?;
-        if !caller.may_see(session.owner.as_ref()) {
+        let entry = self.entry(id)?;
+        if !caller.may_see(entry.owner().as_ref()) {
             return Err(ServiceError::NotFound(id.to_string()));
         }
+        Ok(entry)
+    }
+
+    /// `session`, first rolled back to its durable state if a commit of it
+    /// failed.
+    fn rolled_back(&self, id: &str, session: SessionRef) -> Result<SessionRef, ServiceError> {
         if !session.is_stale() {
             return Ok(session);
         }
@@ -491,25 +614,34 @@ impl SessionManager {
             ));
         }
         let sessions = self.sessions.read();
-        let page: Vec<SessionRef> = sessions
+        let page: Vec<(String, Entry)> = sessions
             .after(after)
-            .filter(|(_, s)| caller.may_see(s.owner.as_ref()))
+            .filter(|(_, e)| caller.may_see(e.owner().as_ref()))
             .take(limit + 1)
-            .map(|(_, s)| Arc::clone(s))
+            .map(|(id, e)| (id.clone(), e.clone()))
             .collect();
         drop(sessions);
-        let next = (page.len() > limit).then(|| page[limit - 1].id.clone());
+        let next = (page.len() > limit).then(|| page[limit - 1].0.clone());
+        let ms = |d: std::time::Duration| u64::try_from(d.as_millis()).unwrap_or(u64::MAX);
         let sessions = page
-            .iter()
+            .into_iter()
             .take(limit)
-            .map(|s| SessionSummary {
-                id: s.id.clone(),
-                tick: s.state.lock().learner.agent().tick(),
-                states: s.model.states,
-                update_mode: s.mode,
-                idle_ms: s
-                    .idle()
-                    .map(|d| u64::try_from(d.as_millis()).unwrap_or(u64::MAX)),
+            .map(|(id, entry)| match entry {
+                Entry::Resident(s) => SessionSummary {
+                    id,
+                    tick: s.state.lock().learner.agent().tick(),
+                    states: s.model.states,
+                    update_mode: s.mode,
+                    idle_ms: s.idle().map(ms),
+                },
+                // Listed from the table, not loaded.
+                Entry::Evicted(e) => SessionSummary {
+                    id,
+                    tick: e.tick,
+                    states: e.states,
+                    update_mode: e.mode,
+                    idle_ms: session::idle_since(e.last_observed_ns).map(ms),
+                },
             })
             .collect();
         Ok(SessionPage { sessions, next })
@@ -523,7 +655,7 @@ impl SessionManager {
     #[tracing::instrument(level = "debug", skip(self))]
     pub async fn delete(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
         let _guard = self.enter_shard(id)?;
-        let session = self.visible_session(caller, id)?;
+        let session = self.visible_session_async(caller, id).await?;
         self.store_writable()?;
         let result = match session.begin_delete()? {
             Some(commit) => commit.wait().await.map_err(ServiceError::from),
@@ -531,7 +663,7 @@ impl SessionManager {
         };
         // A reload during the commit may have replaced the session in the
         // map; the delete ends on both.
-        let current = self.session(id).ok().filter(|s| !Arc::ptr_eq(s, &session));
+        let current = self.resident(id).filter(|s| !Arc::ptr_eq(s, &session));
         if let Err(e) = result {
             session.end_delete(false);
             if let Some(s) = current {
@@ -573,8 +705,9 @@ impl SessionManager {
             )));
         }
         let _guard = self.enter_shard(id)?;
-        // Rolled back first if an earlier commit failed.
-        let session = self.session_for(caller, id)?;
+        // Loaded back if evicted; rolled back first if an earlier commit
+        // failed.
+        let session = not_failed(self.visible_session_async(caller, id).await?)?;
         self.limits.check_batch_cost(
             batch.len(),
             &cost::estimate(&session.model, &session.config),
@@ -607,9 +740,9 @@ impl SessionManager {
     ) -> Result<(), ServiceError> {
         let mut us = 0u64;
         for (id, n) in sessions {
-            if let Ok(session) = self.visible_session(caller, id) {
-                let tick_us = cost::estimate(&session.model, &session.config).tick_us;
-                us = us.saturating_add(tick_us.saturating_mul(n as u64));
+            // Priced from the table: an evicted session is not loaded here.
+            if let Ok(entry) = self.visible_entry(caller, id) {
+                us = us.saturating_add(entry.cost().tick_us.saturating_mul(n as u64));
             }
         }
         if us / 1000 > self.limits.max_batch_ms {
@@ -739,11 +872,19 @@ impl SessionManager {
     /// a snapshot of every session changed since its last one and closes
     /// the store.
     pub fn shutdown(&self) {
+        self.stopping.store(true, Ordering::Release);
         self.pool.shutdown();
         let Some(d) = &self.durability else {
             return;
         };
-        let sessions: Vec<SessionRef> = self.sessions.read().values().cloned().collect();
+        // Evicted sessions are in the store already.
+        let sessions: Vec<SessionRef> = self
+            .sessions
+            .read()
+            .values()
+            .filter_map(Entry::resident)
+            .cloned()
+            .collect();
         let commits: Vec<_> = sessions.iter().filter_map(|s| s.snapshot()).collect();
         let n = commits.len();
         let failed = commits
@@ -754,6 +895,14 @@ impl SessionManager {
         tracing::info!(snapshots = n, failed, "snapshots written at shutdown");
         d.store.close();
     }
+}
+
+/// `session` unless it is quarantined ([`Session::is_failed`]).
+fn not_failed(session: SessionRef) -> Result<SessionRef, ServiceError> {
+    if session.is_failed() {
+        return Err(ServiceError::SessionFailed(session.id.clone()));
+    }
+    Ok(session)
 }
 
 fn info_of(session: &Session) -> SessionInfo {
@@ -792,7 +941,22 @@ impl SessionManager {
             return Ok(RecoveryReport::default());
         };
         let placement = self.placement.as_deref();
-        let (rebuilt, report) = recovery::recover_all(&self.setup, &self.limits, d, placement)?;
+        // With eviction, recovered sessions stay in the store until their
+        // first request: a store of a million sessions starts without
+        // needing them all in memory at once.
+        let keep = |session: SessionRef| match self.evict_after {
+            Some(_) => match session.prepare_eviction() {
+                Some(None) => session
+                    .still_evictable(cost::estimate(&session.model, &session.config))
+                    .map_or(Entry::Resident(session), |stub| {
+                        Entry::Evicted(Arc::new(stub))
+                    }),
+                _ => Entry::Resident(session),
+            },
+            None => Entry::Resident(session),
+        };
+        let (rebuilt, report) =
+            recovery::recover_all(&self.setup, &self.limits, d, placement, keep)?;
         if report.not_owned > 0 {
             tracing::warn!(
                 sessions = report.not_owned,
@@ -801,10 +965,11 @@ impl SessionManager {
             );
         }
         let mut sessions = self.sessions.write();
-        for session in rebuilt {
-            sessions.insert(session.id.clone(), session);
+        for (id, entry) in rebuilt {
+            sessions.insert_entry(id, entry);
         }
         metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
         drop(sessions);
         if report.skipped > 0 {
             tracing::warn!(
@@ -833,6 +998,7 @@ impl SessionManager {
         let current = |sessions: &SessionTable| {
             sessions
                 .get(&session.id)
+                .and_then(Entry::resident)
                 .is_some_and(|s| Arc::ptr_eq(s, session))
         };
         if !current(&self.sessions.read()) {
@@ -860,5 +1026,118 @@ impl SessionManager {
         drop(sessions);
         tracing::info!(session = %session.id, replayed, "session reloaded from its durable state");
         Ok(())
+    }
+
+    /// Number of sessions evicted to the store (docs/sessions.md, "Idle
+    /// sessions").
+    pub fn evicted_len(&self) -> usize {
+        self.sessions.read().evicted()
+    }
+
+    /// Starts the evictor: a thread that, a few times per `evict_after`
+    /// (at most once a second), evicts the sessions inactive that long
+    /// ([`Self::evict_idle`]). Nothing without a store or `evict_after`.
+    /// It stops with [`Self::shutdown`] or when the manager is dropped.
+    pub fn start_evictor(self: &Arc<Self>) -> std::io::Result<()> {
+        let Some(after) = self.evict_after else {
+            return Ok(());
+        };
+        let period = (after / 4).clamp(Duration::from_millis(10), Duration::from_secs(1));
+        let manager = Arc::downgrade(self);
+        std::thread::Builder::new()
+            .name("mcapi-evict".into())
+            .spawn(move || {
+                loop {
+                    std::thread::sleep(period);
+                    let Some(m) = manager.upgrade() else { break };
+                    if m.stopping.load(Ordering::Acquire) {
+                        break;
+                    }
+                    if m.is_ready() {
+                        m.evict_idle(after);
+                    }
+                }
+            })
+            .map(drop)
+    }
+
+    /// One eviction pass: every resident session inactive for at least
+    /// `idle` whose state the store rebuilds bit for bit leaves memory,
+    /// after a snapshot if it changed since it was built
+    /// ([`Session::prepare_eviction`]); the table keeps a stub of it
+    /// ([`super::table::Evicted`]) and its next request loads it back.
+    /// A session in use (a request or a tick job holds it), with a policy
+    /// update pending, being deleted or rolled back stays. The table is
+    /// read a chunk at a time and written once per chunk, so requests are
+    /// not held up by a pass over a million sessions. Returns how many
+    /// left. Blocking.
+    pub fn evict_idle(&self, idle: Duration) -> usize {
+        if self.durability.is_none() {
+            return 0;
+        }
+        let mut after: Option<String> = None;
+        let mut evicted = 0;
+        loop {
+            let (candidates, last) = {
+                let sessions = self.sessions.read();
+                let mut candidates = Vec::new();
+                let mut last = None;
+                for (id, entry) in sessions.after(after.as_deref()).take(EVICT_CHUNK) {
+                    last = Some(id);
+                    if let Entry::Resident(s) = entry
+                        && Arc::strong_count(s) == 1
+                        && s.inactive() >= idle
+                    {
+                        candidates.push(Arc::clone(s));
+                    }
+                }
+                (candidates, last.cloned())
+            };
+            let prepared: Vec<_> = candidates
+                .into_iter()
+                .filter_map(|s| s.prepare_eviction().map(|commit| (s, commit)))
+                .collect();
+            let mut ready = Vec::with_capacity(prepared.len());
+            for (s, commit) in prepared {
+                match commit.map(crate::store::Commit::wait_blocking).transpose() {
+                    Ok(_) => ready.push(s),
+                    Err(e) => {
+                        s.not_pristine();
+                        tracing::warn!(session = %s.id, error = %e, "session kept in memory: its eviction snapshot was not committed");
+                    }
+                }
+            }
+            if !ready.is_empty() {
+                let mut sessions = self.sessions.write();
+                for s in &ready {
+                    // Held by the table and `ready` only: no request or
+                    // job has it, and none can take it while the lock is
+                    // held.
+                    if Arc::strong_count(s) != 2 {
+                        continue;
+                    }
+                    let Some(stub) = s.still_evictable(cost::estimate(&s.model, &s.config)) else {
+                        continue;
+                    };
+                    let was = Entry::Resident(Arc::clone(s));
+                    if sessions.swap(&s.id, &was, Entry::Evicted(Arc::new(stub))) {
+                        evicted += 1;
+                    }
+                }
+                metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
+                drop(sessions);
+                // The sessions are freed here, outside the lock.
+                drop(ready);
+            }
+            match last {
+                Some(id) => after = Some(id),
+                None => break,
+            }
+        }
+        if evicted > 0 {
+            metrics::counter!("mcapi_session_evictions_total").increment(evicted as u64);
+            tracing::debug!(sessions = evicted, "idle sessions evicted to the store");
+        }
+        evicted
     }
 }

@@ -28,6 +28,7 @@ use super::limits::Limits;
 use super::session::{self, Durability, Session, SessionRef};
 use super::setup::Setup;
 use super::spec::ModelInput;
+use super::table::Entry;
 
 /// What `recover` did.
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -73,12 +74,17 @@ pub(super) type Rebuilt = Result<(SessionRef, u64), RecoveryError>;
 /// do not decode or replay is skipped (logged, counted, listed in the
 /// report, its data left in the store); a store that cannot be read fails
 /// the recovery.
+///
+/// `keep` decides how each rebuilt session enters the table, as it is
+/// rebuilt (resident, or evicted at once so a large store never needs all
+/// its sessions in memory together).
 pub(super) fn recover_all(
     setup: &Setup,
     limits: &Limits,
     d: &Durability,
     placement: Option<&Placement>,
-) -> Result<(Vec<SessionRef>, RecoveryReport), ServiceError> {
+    keep: impl Fn(SessionRef) -> Entry + Sync + Send,
+) -> Result<(Vec<(String, Entry)>, RecoveryReport), ServiceError> {
     use rayon::prelude::*;
     let started = std::time::Instant::now();
     let mut stored = d.store.sessions()?;
@@ -87,9 +93,13 @@ pub(super) fn recover_all(
         stored.retain(|s| p.holds(&s.id));
     }
     let not_owned = (before - stored.len()) as u64;
-    let recovered: Vec<(String, Rebuilt)> = stored
+    let recovered: Vec<(String, Result<(Entry, u64), RecoveryError>)> = stored
         .into_par_iter()
-        .map(|s| (s.id.clone(), rebuild(setup, limits, d, s)))
+        .map(|s| {
+            let id = s.id.clone();
+            let rebuilt = rebuild(setup, limits, d, s);
+            (id, rebuilt.map(|(session, n)| (keep(session), n)))
+        })
         .collect();
     let mut report = RecoveryReport {
         not_owned,
@@ -98,10 +108,10 @@ pub(super) fn recover_all(
     let mut rebuilt = Vec::with_capacity(recovered.len());
     for (id, r) in recovered {
         match r {
-            Ok((session, replayed)) => {
+            Ok((entry, replayed)) => {
                 report.sessions += 1;
                 report.replayed += replayed;
-                rebuilt.push(session);
+                rebuilt.push((id, entry));
             }
             Err(RecoveryError::Store(source)) => {
                 return Err(StorageError::Recovery {
@@ -218,9 +228,35 @@ pub(super) fn rebuild(
             history,
             seq: next_seq,
             since_snapshot,
+            pristine: true,
+            last_observed_ns: 0,
         },
     );
     Ok((Arc::new(session), replayed))
+}
+
+/// Loads an evicted session back (docs/sessions.md, "Idle sessions"): the
+/// same rebuild as at start, so a session whose state was pristine when it
+/// left comes back bit for bit. Blocking: a store read and a model build.
+pub(super) fn load(
+    setup: &Setup,
+    limits: &Limits,
+    d: &Durability,
+    id: &str,
+) -> Result<SessionRef, ServiceError> {
+    let started = std::time::Instant::now();
+    let failed = |source: RecoveryError| StorageError::Load {
+        id: id.to_string(),
+        source: Box::new(source),
+    };
+    let stored = d
+        .store
+        .session(id)
+        .map_err(|e| failed(e.into()))?
+        .ok_or_else(|| failed(RecoveryError::Missing(id.to_string())))?;
+    let (session, _) = rebuild(setup, limits, d, stored).map_err(failed)?;
+    metrics::histogram!("mcapi_session_load_seconds").record(started.elapsed().as_secs_f64());
+    Ok(session)
 }
 
 /// Applies one logged observation to a recovering learner and its history

@@ -17,7 +17,8 @@ use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, enco
 use super::error::{ServiceError, StorageError};
 use super::history::{RingTick, push_tick};
 use super::learner::Learner;
-use super::wire::{HistoryEntry, ModelSummary, ObservationIn, StepOut};
+use super::table::Evicted;
+use super::wire::{HistoryEntry, ModelSummary, ObservationIn, SessionCost, StepOut};
 
 /// Mutable state of a session, behind its lock.
 #[derive(Debug)]
@@ -100,6 +101,15 @@ pub struct Session {
     /// [`clock_ns`] at the last applied observation; 0 if none since the
     /// server started.
     last_observed_ns: AtomicU64,
+    /// [`clock_ns`] when this session came into memory (created, loaded
+    /// back or recovered).
+    resident_since_ns: AtomicU64,
+    /// True while the state is exactly what rebuilding the session from
+    /// the store gives (created or rebuilt, and unchanged since; or just
+    /// snapshotted by an eviction): it can then leave memory and come back
+    /// without a bit changing. Cleared, under the state lock, by every
+    /// observation and policy update.
+    pristine: AtomicBool,
     history_cap: usize,
     /// Set when an update panicked (a bug, not a client's mistake): the
     /// state may be half-updated, so the session is quarantined and answers
@@ -117,6 +127,16 @@ fn clock_ns() -> u64 {
     u64::try_from(epoch.elapsed().as_nanos())
         .unwrap_or(u64::MAX - 1)
         .saturating_add(1)
+}
+
+/// Time since [`clock_ns`] read `at`; `None` for 0 (never).
+pub(super) fn idle_since(at: u64) -> Option<std::time::Duration> {
+    match at {
+        0 => None,
+        at => Some(std::time::Duration::from_nanos(
+            clock_ns().saturating_sub(at),
+        )),
+    }
 }
 
 impl Session {
@@ -140,6 +160,11 @@ impl Session {
         resumed: Resumed,
     ) -> Self {
         let learned_cap = model.learned.as_ref().map(|l| l.max_transitions);
+        // A session without a store has nowhere to be rebuilt from.
+        let resumed = Resumed {
+            pristine: resumed.pristine && durability.is_some(),
+            ..resumed
+        };
         Self {
             id,
             mode: config.update_mode,
@@ -161,11 +186,19 @@ impl Session {
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
-            last_observed_ns: AtomicU64::new(0),
+            last_observed_ns: AtomicU64::new(resumed.last_observed_ns),
+            resident_since_ns: AtomicU64::new(clock_ns()),
+            pristine: AtomicBool::new(resumed.pristine),
             failed: AtomicBool::new(false),
             #[cfg(test)]
             panic_next: std::sync::atomic::AtomicU8::new(0),
         }
+    }
+
+    /// Carries the idle time of the session this one replaces (an
+    /// evicted session loaded back keeps its `idle_ms`).
+    pub(super) fn set_last_observed_ns(&self, ns: u64) {
+        self.last_observed_ns.store(ns, Ordering::Relaxed);
     }
 
     /// Whether an update of this session panicked (it is quarantined).
@@ -213,12 +246,7 @@ impl Session {
     /// Time since the last applied observation; `None` if none since the
     /// server started.
     pub fn idle(&self) -> Option<std::time::Duration> {
-        match self.last_observed_ns.load(Ordering::Relaxed) {
-            0 => None,
-            at => Some(std::time::Duration::from_nanos(
-                clock_ns().saturating_sub(at),
-            )),
-        }
+        idle_since(self.last_observed_ns.load(Ordering::Relaxed))
     }
 
     /// The measured cost of one policy update (a moving average over recent
@@ -284,6 +312,7 @@ impl Session {
                 commit: None,
             };
         }
+        self.pristine.store(false, Ordering::Release);
         let started = Instant::now();
         let mut out = Vec::with_capacity(batch.len());
         let mut log = Vec::new();
@@ -419,11 +448,91 @@ impl Session {
         if self.is_failed() || !st.learner.needs_plan() {
             return Ok(false);
         }
+        self.pristine.store(false, Ordering::Release);
         let started = Instant::now();
         self.guarded(&mut st, Update::Plan, |st| Ok(st.learner.plan()?))?;
         drop(st);
         self.record_plan_cost(started, 1);
         Ok(true)
+    }
+
+    /// Time since this session was last active: its last applied
+    /// observation, or its coming into memory if that was later.
+    pub fn inactive(&self) -> std::time::Duration {
+        let last = self
+            .last_observed_ns
+            .load(Ordering::Relaxed)
+            .max(self.resident_since_ns.load(Ordering::Relaxed));
+        std::time::Duration::from_nanos(clock_ns().saturating_sub(last))
+    }
+
+    /// Readies the session to leave memory (docs/sessions.md, "Idle
+    /// sessions"): `Some(None)` if it can go as it is (its state is what
+    /// the store rebuilds), `Some(Some(commit))` once a snapshot of it is
+    /// committed (its planner restores exactly, [`Learner::restores_exactly`]),
+    /// `None` if it must stay: a delete, a rollback or a policy update is
+    /// pending, it is quarantined, or a snapshot would not restore it bit
+    /// for bit. [`Session::still_evictable`] is checked again at the swap.
+    pub fn prepare_eviction(&self) -> Option<Option<Commit>> {
+        let d = self.durability.as_ref()?;
+        let mut st = self.state.lock();
+        if st.deleted
+            || st.deleting
+            || self.is_stale()
+            || self.is_failed()
+            || self.queued.load(Ordering::Acquire)
+            || st.learner.needs_plan()
+        {
+            return None;
+        }
+        if self.pristine.load(Ordering::Acquire) {
+            return Some(None);
+        }
+        if !st.learner.restores_exactly() || st.seq == 0 {
+            return None;
+        }
+        match st.snapshot_write(&self.id) {
+            Ok(w) => {
+                self.pristine.store(true, Ordering::Release);
+                Some(Some(d.store.submit(vec![w])))
+            }
+            Err(e) => {
+                tracing::error!(session = %self.id, error = %e, "snapshot for eviction not written");
+                None
+            }
+        }
+    }
+
+    /// After a failed eviction snapshot: the store does not hold this
+    /// state, so it may not leave memory as it is.
+    pub fn not_pristine(&self) {
+        self.pristine.store(false, Ordering::Release);
+    }
+
+    /// What the table keeps of this session once evicted, if it may still
+    /// go: nothing changed it since [`Session::prepare_eviction`] and
+    /// nothing is pending. Call with no other holder of the session (the
+    /// table's write lock held and only the table and the caller holding
+    /// it), so nothing can change it until it is replaced.
+    pub fn still_evictable(&self, cost: SessionCost) -> Option<Evicted> {
+        let st = self.state.try_lock()?;
+        let pending = st.deleted
+            || st.deleting
+            || self.is_stale()
+            || self.is_failed()
+            || self.queued.load(Ordering::Acquire)
+            || st.learner.needs_plan();
+        if pending || !self.pristine.load(Ordering::Acquire) {
+            return None;
+        }
+        Some(Evicted {
+            owner: self.owner,
+            cost,
+            tick: st.learner.agent().tick(),
+            states: self.model.states,
+            mode: self.mode,
+            last_observed_ns: self.last_observed_ns.load(Ordering::Relaxed),
+        })
     }
 
     /// Marks the session queued; true if it was not already.
@@ -447,6 +556,11 @@ impl Session {
 /// What a recovered session resumes from.
 #[derive(Debug, Default)]
 pub struct Resumed {
+    /// Its state is exactly what rebuilding it from the store gives (a
+    /// session just created or rebuilt; ignored without a store).
+    pub pristine: bool,
+    /// [`Evicted::last_observed_ns`] of a session loaded back; 0 otherwise.
+    pub last_observed_ns: u64,
     /// Owner digest.
     pub owner: Option<[u8; 32]>,
     /// History ring, oldest first.

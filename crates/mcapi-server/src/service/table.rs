@@ -1,31 +1,87 @@
-//! The session table: sessions by id, and what each API key holds (its
-//! session count and their estimated memory), kept in step on every insert
-//! and removal so a quota check costs one lookup.
+//! The session table: sessions by id, each resident (in memory) or evicted
+//! to the store (docs/sessions.md, "Idle sessions"), and what each API key
+//! holds (its session count and their estimated memory), kept in step on
+//! every insert and removal so a quota check costs one lookup.
 
 use std::collections::HashMap;
 use std::collections::btree_map::{self, BTreeMap};
 use std::ops::Bound;
+use std::sync::Arc;
 
+use super::agent_config::UpdateMode;
 use super::cost;
 use super::limits::Usage;
-use super::session::{Session, SessionRef};
+use super::session::SessionRef;
+use super::wire::SessionCost;
 
 /// Who holds a session: the SHA-256 of its API key, or `None` without keys.
 pub type Owner = Option<[u8; 32]>;
 
+/// A session in the table.
+#[derive(Debug, Clone)]
+pub enum Entry {
+    /// In memory.
+    Resident(SessionRef),
+    /// Evicted to the store: loaded back on its next request.
+    Evicted(Arc<Evicted>),
+}
+
+/// What the table keeps of an evicted session: enough to list it, charge
+/// its owner and price a message without loading it (about 100 bytes,
+/// against kilobytes for the session).
+#[derive(Debug)]
+pub struct Evicted {
+    /// Its owner.
+    pub owner: Owner,
+    /// Its estimated cost, as charged while it was resident.
+    pub cost: SessionCost,
+    /// Ticks so far.
+    pub tick: u64,
+    /// States of its model.
+    pub states: usize,
+    /// Lockstep or async.
+    pub mode: UpdateMode,
+    /// The session clock at its last applied observation (0: none since
+    /// the server started), carried into the session loaded back.
+    pub last_observed_ns: u64,
+}
+
+impl Entry {
+    /// Its owner.
+    pub fn owner(&self) -> &Owner {
+        match self {
+            Self::Resident(s) => &s.owner,
+            Self::Evicted(e) => &e.owner,
+        }
+    }
+
+    /// Its estimated cost.
+    pub fn cost(&self) -> SessionCost {
+        match self {
+            Self::Resident(s) => cost::estimate(&s.model, &s.config),
+            Self::Evicted(e) => e.cost,
+        }
+    }
+
+    /// The session, if it is in memory.
+    pub fn resident(&self) -> Option<&SessionRef> {
+        match self {
+            Self::Resident(s) => Some(s),
+            Self::Evicted(_) => None,
+        }
+    }
+}
+
 /// Sessions in id order with their owners' usage.
 #[derive(Default)]
 pub struct SessionTable {
-    map: BTreeMap<String, SessionRef>,
+    map: BTreeMap<String, Entry>,
     usage: HashMap<Owner, Usage>,
-}
-
-fn bytes_of(session: &Session) -> u64 {
-    cost::estimate(&session.model, &session.config).bytes
+    evicted: usize,
 }
 
 impl SessionTable {
-    /// Number of sessions.
+    /// Number of sessions, evicted ones included.
     pub fn len(&self) -> usize {
         self.map.len()
     }
@@ -35,18 +91,23 @@ impl SessionTable {
         self.map.is_empty()
     }
 
+    /// Number of evicted sessions.
+    pub fn evicted(&self) -> usize {
+        self.evicted
+    }
+
     /// The session with this id.
-    pub fn get(&self, id: &str) -> Option<&SessionRef> {
+    pub fn get(&self, id: &str) -> Option<&Entry> {
         self.map.get(id)
     }
 
     /// Every session, in id order.
-    pub fn values(&self) -> btree_map::Values<'_, String, SessionRef> {
+    pub fn values(&self) -> btree_map::Values<'_, String, Entry> {
         self.map.values()
     }
 
     /// Sessions with ids after `after` (all without), in id order.
-    pub fn after(&self, after: Option<&str>) -> btree_map::Range<'_, String, SessionRef> {
+    pub fn after(&self, after: Option<&str>) -> btree_map::Range<'_, String, Entry> {
         match after {
             Some(a) => self
                 .map
@@ -55,12 +116,19 @@ impl SessionTable {
         }
     }
 
-    /// Inserts (or replaces) a session, charging its owner.
-    pub fn insert(&mut self, id: String, session: SessionRef) -> Option<SessionRef> {
-        let usage = self.usage.entry(session.owner).or_default();
+    /// Inserts (or replaces) a resident session, charging its owner.
+    pub fn insert(&mut self, id: String, session: SessionRef) -> Option<Entry> {
+        self.insert_entry(id, Entry::Resident(session))
+    }
+
+    /// Inserts (or replaces) a session, resident or evicted, charging its
+    /// owner.
+    pub fn insert_entry(&mut self, id: String, entry: Entry) -> Option<Entry> {
+        let usage = self.usage.entry(*entry.owner()).or_default();
         usage.sessions += 1;
-        usage.bytes = usage.bytes.saturating_add(bytes_of(&session));
-        let old = self.map.insert(id, session);
+        usage.bytes = usage.bytes.saturating_add(entry.cost().bytes);
+        self.evicted += usize::from(matches!(entry, Entry::Evicted(_)));
+        let old = self.map.insert(id, entry);
         if let Some(old) = &old {
             self.refund(old);
         }
@@ -68,18 +136,42 @@ impl SessionTable {
     }
 
     /// Removes a session, refunding its owner.
-    pub fn remove(&mut self, id: &str) -> Option<SessionRef> {
+    pub fn remove(&mut self, id: &str) -> Option<Entry> {
         let old = self.map.remove(id)?;
         self.refund(&old);
         Some(old)
     }
 
-    fn refund(&mut self, session: &Session) {
-        if let Some(usage) = self.usage.get_mut(&session.owner) {
+    /// Replaces the entry of `id` by `with` if it is still `expected` (the
+    /// same resident session or the same eviction); the owner's charge is
+    /// unchanged, as the cost is. False if the entry changed meanwhile.
+    pub fn swap(&mut self, id: &str, expected: &Entry, with: Entry) -> bool {
+        let Some(entry) = self.map.get_mut(id) else {
+            return false;
+        };
+        let same = match (&*entry, expected) {
+            (Entry::Resident(a), Entry::Resident(b)) => Arc::ptr_eq(a, b),
+            (Entry::Evicted(a), Entry::Evicted(b)) => Arc::ptr_eq(a, b),
+            _ => false,
+        };
+        if !same {
+            return false;
+        }
+        let was = usize::from(matches!(entry, Entry::Evicted(_)));
+        let now = usize::from(matches!(with, Entry::Evicted(_)));
+        *entry = with;
+        self.evicted = self.evicted + now - was;
+        true
+    }
+
+    fn refund(&mut self, entry: &Entry) {
+        self.evicted -= usize::from(matches!(entry, Entry::Evicted(_)));
+        let owner = entry.owner();
+        if let Some(usage) = self.usage.get_mut(owner) {
             usage.sessions = usage.sessions.saturating_sub(1);
-            usage.bytes = usage.bytes.saturating_sub(bytes_of(session));
+            usage.bytes = usage.bytes.saturating_sub(entry.cost().bytes);
             if usage.sessions == 0 {
-                self.usage.remove(&session.owner);
+                self.usage.remove(owner);
             }
         }
     }

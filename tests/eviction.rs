@@ -1,0 +1,258 @@
+//! Idle sessions leave memory and come back bit for bit (issue 15, item 5;
+//! docs/sessions.md, "Idle sessions"):
+//! - sessions driven while another thread evicts every session not in use,
+//!   as often as it can, answer exactly as the same sessions on a server
+//!   that never evicts: every reply, then Q, π, V, R, Ξ and the history;
+//! - only sessions whose planner restores exactly leave memory once they
+//!   have observed (the functional-graph engine); PVF and learned-model
+//!   sessions leave only while they are as built;
+//! - after a restart every recovered session starts evicted: listing them
+//!   loads none, each loads on its first request with its state as it was,
+//!   an evicted session can be deleted;
+//! - the memory store never evicts.
+
+mod common;
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::Duration;
+
+use common::{assert_bits_eq, stimulus};
+use mcapi_server::service::{
+    Caller, CreateSession, Limits, ManagerOptions, ObservationIn, SessionConfig, SessionManager,
+    StepOut, ValueSelection,
+};
+use mcapi_server::store::Store;
+use serde_json::{Value, json};
+
+/// The four kinds of session driven: (model, agent).
+fn kinds() -> Vec<(Value, Value)> {
+    vec![
+        // Functional-graph engine: evicted between any two requests.
+        (json!({"preset": "hallway"}), json!({"seed": 1})),
+        (
+            json!({"preset": "hallway"}),
+            json!({"seed": 2, "epsilon": 0.2}),
+        ),
+        // A⁻¹ and a learned P̂: stay once they have observed.
+        (
+            json!({"preset": "hallway", "basis": {"kind": "proto_value", "k": 5}}),
+            json!({"seed": 3}),
+        ),
+        (
+            json!({"states": 50, "actions": ["left", "right", "stay"],
+                   "stimuli": ["food", "rest"], "transitions": "learn"}),
+            json!({"seed": 4}),
+        ),
+    ]
+}
+
+fn durable(store: Arc<Store>) -> SessionManager {
+    let manager = SessionManager::with_options(ManagerOptions {
+        store: Some(store),
+        snapshot_every: 7,
+        evict_after: Some(Duration::from_secs(3600)),
+        ..ManagerOptions::new(Limits::default(), 1)
+    })
+    .expect("manager");
+    let report = manager.recover().expect("recovery");
+    assert_eq!(report.skipped, 0, "{report:?}");
+    manager
+}
+
+fn in_memory() -> SessionManager {
+    let manager = SessionManager::new(Limits::default(), 1).expect("manager");
+    manager.recover().expect("recovery");
+    manager
+}
+
+fn create(manager: &SessionManager, model: &Value, agent: &Value) -> String {
+    let agent: SessionConfig = serde_json::from_value(agent.clone()).expect("agent config");
+    manager
+        .create(
+            Caller::Anyone,
+            CreateSession {
+                model: model.clone(),
+                agent,
+            },
+        )
+        .expect("create")
+        .id
+}
+
+/// The hallway's next state; the learned session may also walk into a
+/// wall (and stays).
+fn step_state(s: usize, a: usize) -> usize {
+    match a {
+        0 => s.saturating_sub(1),
+        1 => (s + 1).min(49),
+        _ => s,
+    }
+}
+
+fn observation(state: usize, first: bool) -> ObservationIn {
+    ObservationIn {
+        state,
+        stimulus: (!first).then(|| stimulus(state).to_vec()),
+        action_taken: None,
+        signal: None,
+        signal_source: None,
+    }
+}
+
+fn assert_same_step(got: &StepOut, want: &StepOut, ctx: &str) {
+    assert_eq!(got.tick, want.tick, "{ctx}: tick");
+    assert_eq!(got.action_index, want.action_index, "{ctx}: action");
+    assert_eq!(
+        got.policy_version, want.policy_version,
+        "{ctx}: policy version"
+    );
+    assert_eq!(got.reward.to_bits(), want.reward.to_bits(), "{ctx}: reward");
+    assert_bits_eq(&got.drive, &want.drive, &format!("{ctx}: drive"));
+}
+
+/// Everything a client can read of a session, as JSON (f64s print exactly).
+fn everything(manager: &SessionManager, id: &str) -> Value {
+    let all = ValueSelection::parse(Some("v,q,policy,r,xi")).expect("selection");
+    let values = manager.values(Caller::Anyone, id, all).expect("values");
+    let history = manager.history(Caller::Anyone, id, None).expect("history");
+    let info = manager.get(Caller::Anyone, id).expect("get");
+    json!({
+        "values": values,
+        "history": history,
+        "drive": info.drive,
+        "tick": info.tick,
+        "policy_version": info.policy_version,
+        "state": info.state,
+    })
+}
+
+#[test]
+fn sessions_evicted_between_requests_answer_exactly_as_resident_ones() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let evicting = Arc::new(durable(Arc::clone(&store)));
+    let resident = in_memory();
+    let pairs: Vec<(String, String)> = kinds()
+        .iter()
+        .map(|(m, a)| (create(&evicting, m, a), create(&resident, m, a)))
+        .collect();
+    // Created and never observed, every session is as its record builds it.
+    assert_eq!(evicting.evict_idle(Duration::ZERO), 4);
+    assert_eq!(evicting.evicted_len(), 4);
+    assert_eq!(
+        resident.evict_idle(Duration::ZERO),
+        0,
+        "no store, no eviction"
+    );
+
+    // Another thread evicts every session no request holds, over and over.
+    let stop = Arc::new(AtomicBool::new(false));
+    let evictions = Arc::new(AtomicUsize::new(0));
+    let evictor = std::thread::spawn({
+        let (manager, stop, evictions) = (
+            Arc::clone(&evicting),
+            Arc::clone(&stop),
+            Arc::clone(&evictions),
+        );
+        move || {
+            while !stop.load(Ordering::Relaxed) {
+                evictions.fetch_add(manager.evict_idle(Duration::ZERO), Ordering::Relaxed);
+                std::thread::yield_now();
+            }
+        }
+    });
+    let mut states = vec![25usize; pairs.len()];
+    for tick in 0..150 {
+        for (k, (a, b)) in pairs.iter().enumerate() {
+            let obs = || vec![observation(states[k], tick == 0)];
+            let got = rt
+                .block_on(evicting.observe(Caller::Anyone, a, obs()))
+                .expect("observe (evicting)");
+            let want = rt
+                .block_on(resident.observe(Caller::Anyone, b, obs()))
+                .expect("observe (resident)");
+            assert_same_step(&got[0], &want[0], &format!("session kind {k}, tick {tick}"));
+            states[k] = step_state(states[k], got[0].action_index);
+        }
+    }
+    stop.store(true, Ordering::Relaxed);
+    evictor.join().expect("evictor");
+    let evictions = evictions.load(Ordering::Relaxed);
+    assert!(
+        evictions >= 100,
+        "the two hallway sessions should have left memory between most requests: {evictions} evictions"
+    );
+    // Once observed, only the functional-graph sessions may leave.
+    evicting.evict_idle(Duration::ZERO);
+    assert_eq!(evicting.evicted_len(), 2, "PVF and learned sessions stay");
+    for (k, (a, b)) in pairs.iter().enumerate() {
+        assert_eq!(
+            everything(&evicting, a),
+            everything(&resident, b),
+            "session kind {k}: values, history and info"
+        );
+    }
+    assert_eq!(evicting.evicted_len(), 0, "every read loaded its session");
+}
+
+#[test]
+fn after_a_restart_sessions_start_evicted_and_load_on_their_first_request() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = durable(Arc::clone(&store));
+    let ids: Vec<String> = kinds()
+        .iter()
+        .map(|(m, a)| create(&manager, m, a))
+        .collect();
+    let mut states = vec![25usize; ids.len()];
+    for tick in 0..40 {
+        for (k, id) in ids.iter().enumerate() {
+            let step = rt
+                .block_on(manager.observe(
+                    Caller::Anyone,
+                    id,
+                    vec![observation(states[k], tick == 0)],
+                ))
+                .expect("observe");
+            states[k] = step_state(states[k], step[0].action_index);
+        }
+    }
+    let before: Vec<Value> = ids.iter().map(|id| everything(&manager, id)).collect();
+    manager.shutdown();
+    drop(manager);
+    drop(store);
+
+    let store = Arc::new(Store::open(data.path()).expect("reopen"));
+    let manager = durable(store);
+    assert_eq!(manager.evicted_len(), 4, "recovered sessions start evicted");
+    let page = manager.list(Caller::Anyone, None, None).expect("list");
+    assert_eq!(page.sessions.len(), 4);
+    assert!(page.sessions.iter().all(|s| s.tick == 39), "{page:?}");
+    assert_eq!(manager.evicted_len(), 4, "listing loads nothing");
+    for (k, id) in ids.iter().enumerate() {
+        let after = everything(&manager, id);
+        assert_eq!(after["tick"], before[k]["tick"], "kind {k}");
+        assert_eq!(after["drive"], before[k]["drive"], "kind {k}: D");
+        assert_eq!(after["history"], before[k]["history"], "kind {k}: history");
+        assert_eq!(
+            after["values"]["xi"], before[k]["values"]["xi"],
+            "kind {k}: Ξ"
+        );
+    }
+    assert_eq!(manager.evicted_len(), 0);
+    // An evicted session can be deleted; the others stay.
+    assert_eq!(
+        manager.evict_idle(Duration::ZERO),
+        4,
+        "untouched since loaded"
+    );
+    rt.block_on(manager.delete(Caller::Anyone, &ids[0]))
+        .expect("delete an evicted session");
+    assert!(manager.get(Caller::Anyone, &ids[0]).is_err(), "deleted");
+    assert_eq!(manager.len(), 3);
+    assert_eq!(manager.evicted_len(), 3);
+    manager.shutdown();
+}
