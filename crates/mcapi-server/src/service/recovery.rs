@@ -93,7 +93,7 @@ pub(super) fn recover_all(
         stored.retain(|s| p.holds(&s.id));
     }
     let not_owned = (before - stored.len()) as u64;
-    let recovered: Vec<(String, Result<(Entry, u64), RecoveryError>)> = stored
+    let recovered: Vec<(String, Result<_, RecoveryError>)> = stored
         .into_par_iter()
         .map(|s| {
             let id = s.id.clone();
