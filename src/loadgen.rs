@@ -136,6 +136,12 @@ pub struct LoadgenArgs {
     /// (an allocator may give memory back to the system with a delay).
     #[arg(long, default_value_t = 2, value_parser = clap::value_parser!(u64).range(0..=600))]
     pub settle_secs: u64,
+    /// The memory scenario waits up to this long, after creating the
+    /// sessions and again after observing them, for a server started with
+    /// a short `--evict-idle-secs` to evict them all (its
+    /// `mcapi_sessions_evicted`) before it reads RSS; 0: no wait.
+    #[arg(long, default_value_t = 0, value_parser = clap::value_parser!(u64).range(0..=3600))]
+    pub evicted_wait_secs: u64,
 }
 
 /// Which measurements to run.
@@ -1467,12 +1473,17 @@ async fn memory_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: u32) -> Res
     let mut rows = vec![("before".to_string(), 0usize, baseline, None)];
     let mut ids: Vec<String> = Vec::new();
     let started = Instant::now();
+    let wait = Duration::from_secs(args.evicted_wait_secs);
     for &level in &levels {
         let more = level.saturating_sub(ids.len());
         eprintln!("memory: creating {more} sessions (total {level})");
         ids.extend(create_sessions(http, more, ids.len(), None, args.create_connections).await?);
+        let state = match wait_evicted(http, ids.len(), wait).await? {
+            Some(n) => format!("idle, {} evicted", thousands(n as f64)),
+            None => "idle".into(),
+        };
         let (rss, _) = memory_of(pid)?;
-        rows.push(("idle".into(), ids.len(), rss, None));
+        rows.push((state, ids.len(), rss, None));
     }
     let create_rate = ids.len() as f64 / started.elapsed().as_secs_f64();
     let idle_rss = rows.last().map_or(baseline, |r| r.2);
@@ -1487,6 +1498,17 @@ async fn memory_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: u32) -> Res
         observed_rss,
         Some(hwm),
     ));
+    let mut evicted_again = None;
+    if let Some(n) = wait_evicted(http, ids.len(), wait).await? {
+        let (rss, hwm) = memory_of(pid)?;
+        rows.push((
+            format!("observed, then {} evicted", thousands(n as f64)),
+            ids.len(),
+            rss,
+            Some(hwm),
+        ));
+        evicted_again = Some(rss);
+    }
     eprintln!("memory: deleting {} sessions", ids.len());
     for_each_session(http, &ids, Method::DELETE, args.create_connections).await?;
     let (deleted_rss, hwm) = memory_of(pid)?;
@@ -1559,6 +1581,7 @@ async fn memory_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: u32) -> Res
         "peak_rss_bytes": hwm,
         "kib_per_idle_session": kib(idle_rss),
         "kib_per_observed_session": kib(observed_rss),
+        "kib_per_observed_evicted_session": evicted_again.map(kib),
         "returned_at_once": returned(deleted_rss),
         "returned_after_settle": returned(settled_rss),
         "create_rate": create_rate,
@@ -1567,6 +1590,33 @@ async fn memory_scenario(args: &LoadgenArgs, http: &HttpTarget, pid: u32) -> Res
             "state": state, "sessions": n, "rss_bytes": rss, "hwm_bytes": hwm,
         })).collect::<Vec<_>>(),
     }))
+}
+
+/// With `wait` > 0: waits until the server's `mcapi_sessions_evicted`
+/// reaches `n` or `wait` has passed, and returns the count last read.
+async fn wait_evicted(http: &HttpTarget, n: usize, wait: Duration) -> Result<Option<usize>> {
+    if wait.is_zero() {
+        return Ok(None);
+    }
+    let until = Instant::now() + wait;
+    eprintln!(
+        "memory: waiting up to {} s for the server to evict {n} sessions",
+        wait.as_secs()
+    );
+    loop {
+        let mut conn = HttpConn::connect(http).await?;
+        let (status, body) = conn.send(Method::GET, "/metrics", None).await?;
+        ensure!(status == StatusCode::OK, "/metrics: {status}");
+        let evicted = String::from_utf8_lossy(&body)
+            .lines()
+            .find_map(|l| l.strip_prefix("mcapi_sessions_evicted "))
+            .and_then(|v| v.trim().parse::<f64>().ok())
+            .unwrap_or(0.0) as usize;
+        if evicted >= n || Instant::now() >= until {
+            return Ok(Some(evicted));
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
 }
 
 /// The pid of the one `mcapi serve` process on this machine, if there is one.
