@@ -125,6 +125,14 @@ fn bad_configuration_is_refused_before_binding() {
             &["--evict-idle-secs", "60", "--store", "memory"][..],
             "--evict-idle-secs needs the durable store",
         ),
+        (
+            &["--store-cache-mib", "18446744073709551615"][..],
+            "--store-cache-mib must be between 1 and 65536, not 18446744073709551615",
+        ),
+        (
+            &["--store-cache-mib", "0"][..],
+            "--store-cache-mib must be between 1 and 65536, not 0",
+        ),
     ] {
         let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
             .args(["serve", "--http", "127.0.0.1:1", "--grpc", "127.0.0.1:2"])

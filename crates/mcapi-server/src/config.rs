@@ -52,6 +52,9 @@ pub struct ServeConfig {
     /// the background every 5 ms).
     #[arg(long, env = "MCAPI_DURABILITY", value_enum, default_value = "sync")]
     pub durability: crate::store::Durability,
+    /// Ceiling of the durable store's page cache, in MiB (1 to 65536).
+    #[arg(long, env = "MCAPI_STORE_CACHE_MIB", default_value_t = (crate::store::DEFAULT_CACHE_BYTES >> 20) as u64)]
+    pub store_cache_mib: u64,
     /// With the durable store: a session inactive (no observation) for
     /// this many seconds leaves memory, after a snapshot, and is loaded
     /// back from the store by its next request, bit for bit as it was;
@@ -293,6 +296,11 @@ impl ServeConfig {
         }
     }
 
+    /// The store's page cache ceiling in bytes.
+    pub fn store_cache_bytes(&self) -> usize {
+        usize::try_from(self.store_cache_mib.clamp(1, 65536) << 20).unwrap_or(usize::MAX)
+    }
+
     /// How long a session stays in memory without activity: `None` with
     /// the memory store or `--evict-idle-secs 0`.
     pub fn evict_after(&self) -> Option<Duration> {
@@ -306,6 +314,12 @@ impl ServeConfig {
 
     /// Checks the configuration before anything binds.
     pub fn validate(&self) -> Result<(), String> {
+        if !(1..=65536).contains(&self.store_cache_mib) {
+            return Err(format!(
+                "--store-cache-mib must be between 1 and 65536, not {}",
+                self.store_cache_mib
+            ));
+        }
         match self.evict_idle_secs {
             Some(secs) if secs > MAX_EVICT_IDLE_SECS => {
                 return Err(format!(

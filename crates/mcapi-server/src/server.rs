@@ -52,8 +52,8 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     }
     options.placement = placement;
     if cfg.store == StoreKind::Redb {
-        let store =
-            Store::open_with(&cfg.data_dir, cfg.durability).context("opening the session store")?;
+        let store = Store::open_configured(&cfg.data_dir, cfg.durability, cfg.store_cache_bytes())
+            .context("opening the session store")?;
         tracing::info!(path = %store.path().display(), durability = %store.durability(), "session store open");
         options.store = Some(Arc::new(store));
     }

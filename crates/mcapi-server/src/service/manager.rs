@@ -408,9 +408,10 @@ impl SessionManager {
     fn loaded(&self, id: &str, entry: Entry) -> Result<SessionRef, ServiceError> {
         match entry {
             Entry::Resident(s) => Ok(s),
-            was @ Entry::Evicted(_) => {
+            Entry::Evicted(stub) => {
                 let d = self.evicted_store(id)?;
-                let fresh = recovery::load(&self.setup, &self.limits, d, id)?;
+                let fresh = recovery::load(&self.setup, &self.limits, d, id, stub.lsn)?;
+                let was = Entry::Evicted(stub);
                 self.install(id, &was, fresh)
             }
         }
@@ -421,12 +422,17 @@ impl SessionManager {
     async fn loaded_async(&self, id: &str, entry: Entry) -> Result<SessionRef, ServiceError> {
         match entry {
             Entry::Resident(s) => Ok(s),
-            was @ Entry::Evicted(_) => {
+            Entry::Evicted(stub) => {
                 let d = self.evicted_store(id)?.clone();
-                let (setup, limits, owned) =
-                    (Arc::clone(&self.setup), self.limits.clone(), id.to_string());
+                let (setup, limits, owned, lsn) = (
+                    Arc::clone(&self.setup),
+                    self.limits.clone(),
+                    id.to_string(),
+                    stub.lsn,
+                );
+                let was = Entry::Evicted(stub);
                 let fresh = tokio::task::spawn_blocking(move || {
-                    recovery::load(&setup, &limits, &d, &owned)
+                    recovery::load(&setup, &limits, &d, &owned, lsn)
                 })
                 .await
                 .map_err(|e| {

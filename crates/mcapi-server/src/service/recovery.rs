@@ -243,6 +243,7 @@ pub(super) fn load(
     limits: &Limits,
     d: &Durability,
     id: &str,
+    lsn: u64,
 ) -> Result<SessionRef, ServiceError> {
     let started = std::time::Instant::now();
     let failed = |source: RecoveryError| StorageError::Load {
@@ -251,7 +252,7 @@ pub(super) fn load(
     };
     let stored = d
         .store
-        .session(id)
+        .session_since(id, lsn)
         .map_err(|e| failed(e.into()))?
         .ok_or_else(|| failed(RecoveryError::Missing(id.to_string())))?;
     let (session, _) = rebuild(setup, limits, d, stored).map_err(failed)?;

@@ -515,6 +515,7 @@ impl Session {
     /// table's write lock held and only the table and the caller holding
     /// it), so nothing can change it until it is replaced.
     pub fn still_evictable(&self, cost: SessionCost) -> Option<Evicted> {
+        let lsn = self.durability.as_ref()?.store.committed();
         let st = self.state.try_lock()?;
         let pending = st.deleted
             || st.deleting
@@ -532,6 +533,7 @@ impl Session {
             states: self.model.states,
             mode: self.mode,
             last_observed_ns: self.last_observed_ns.load(Ordering::Relaxed),
+            lsn,
         })
     }
 

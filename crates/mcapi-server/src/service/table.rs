@@ -44,6 +44,9 @@ pub struct Evicted {
     /// The session clock at its last applied observation (0: none since
     /// the server started), carried into the session loaded back.
     pub last_observed_ns: u64,
+    /// Every write of the session is in the store's frames up to this one
+    /// ([`crate::store::Store::committed`] when it left memory).
+    pub lsn: u64,
 }
 
 impl Entry {

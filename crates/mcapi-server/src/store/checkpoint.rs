@@ -81,6 +81,8 @@ pub(super) fn wake_for(before: usize, added: usize) -> bool {
 pub(super) struct Checkpointer {
     /// The redb file.
     path: PathBuf,
+    /// Its page cache's ceiling, in bytes (kept for reopening).
+    cache_bytes: usize,
     /// The log's directory.
     wal_dir: PathBuf,
     shared: Arc<Shared>,
@@ -97,9 +99,16 @@ pub(super) struct Checkpointer {
 }
 
 impl Checkpointer {
-    pub(super) fn new(path: PathBuf, wal_dir: PathBuf, shared: Arc<Shared>, applied: u64) -> Self {
+    pub(super) fn new(
+        path: PathBuf,
+        cache_bytes: usize,
+        wal_dir: PathBuf,
+        shared: Arc<Shared>,
+        applied: u64,
+    ) -> Self {
         Self {
             path,
+            cache_bytes,
             wal_dir,
             shared,
             waiting: Vec::new(),
@@ -317,7 +326,7 @@ impl Checkpointer {
             Some(db) => db::probe(&db)
                 .map(|()| None)
                 .map_err(|f| StoreError::Failed(format!("the probe commit failed: {}", f.message))),
-            None => db::open_database(&self.path).and_then(|(db, _)| {
+            None => db::open_database(&self.path, self.cache_bytes).and_then(|(db, _)| {
                 db::probe(&db).map_err(|f| {
                     StoreError::Failed(format!("the probe commit failed: {}", f.message))
                 })?;

@@ -104,7 +104,13 @@ impl DbFailure {
 /// Opens (or creates) the database file, checking its integrity and format
 /// version (upgrading formats 2 and 3); at start and at every reopen.
 /// Returns the database and the number of the last log frame applied.
-pub(super) fn open_database(path: &Path) -> Result<(Database, u64), StoreError> {
+///
+/// `cache_bytes` bounds redb's page cache (its own default is 1 GiB, which
+/// a server writing a snapshot per evicted session would fill and keep).
+pub(super) fn open_database(
+    path: &Path,
+    cache_bytes: usize,
+) -> Result<(Database, u64), StoreError> {
     let corrupt = |reason: String| StoreError::Corrupt {
         path: path.to_path_buf(),
         reason,
@@ -131,6 +137,7 @@ pub(super) fn open_database(path: &Path) -> Result<(Database, u64), StoreError> 
     };
     let existed = path.metadata().map(|m| m.len() > 0).unwrap_or(false);
     let db = Database::builder()
+        .set_cache_size(cache_bytes)
         .set_check_integrity_on_open(true)
         .create(path)
         .map_err(|e| match e {

@@ -63,6 +63,11 @@ use wal::{AppendError, Wal};
 /// Name of the redb file inside the data directory.
 pub const FILE_NAME: &str = "mcapi.redb";
 
+/// Default ceiling of the database's page cache (`--store-cache-mib`):
+/// enough for the B-tree's interior pages of millions of sessions; the
+/// snapshots and logs themselves are read once per recovery or load.
+pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
+
 /// Under [`Durability::Os`], how long a frame may stay unsynced.
 pub const OS_SYNC_INTERVAL: Duration = Duration::from_millis(5);
 
@@ -394,6 +399,16 @@ impl Store {
     /// log beyond its last checkpoint, and starts the writer and the
     /// checkpointer.
     pub fn open_with(dir: &Path, durability: Durability) -> Result<Self, StoreError> {
+        Self::open_configured(dir, durability, DEFAULT_CACHE_BYTES)
+    }
+
+    /// [`Store::open_with`], with the database's page cache bounded to
+    /// `cache_bytes` (`--store-cache-mib`).
+    pub fn open_configured(
+        dir: &Path,
+        durability: Durability,
+        cache_bytes: usize,
+    ) -> Result<Self, StoreError> {
         let io = |path: &Path, what: &str, e: std::io::Error| StoreError::Io {
             path: path.to_path_buf(),
             reason: format!("{what}: {e}"),
@@ -401,7 +416,7 @@ impl Store {
         std::fs::create_dir_all(dir).map_err(|e| io(dir, "cannot create the data directory", e))?;
         let path = dir.join(FILE_NAME);
         let wal_dir = dir.join(wal::WAL_DIR);
-        let (db, applied) = db::open_database(&path)?;
+        let (db, applied) = db::open_database(&path, cache_bytes)?;
         if !wal_dir.exists() {
             std::fs::create_dir_all(&wal_dir)
                 .map_err(|e| io(&wal_dir, "cannot create the log directory", e))?;
@@ -427,7 +442,13 @@ impl Store {
 
         let (checkpoint_tx, checkpoint_rx) = unbounded::<ToCheckpoint>();
         let (frames_tx, frames_rx) = unbounded::<Frame>();
-        let checkpointer = Checkpointer::new(path.clone(), wal_dir, Arc::clone(&shared), applied);
+        let checkpointer = Checkpointer::new(
+            path.clone(),
+            cache_bytes,
+            wal_dir,
+            Arc::clone(&shared),
+            applied,
+        );
         let spawn = |name: &str, f: Box<dyn FnOnce() + Send>| {
             std::thread::Builder::new()
                 .name(name.into())
@@ -544,8 +565,30 @@ impl Store {
 
     /// One stored session: its record and newest snapshot, if it exists.
     pub fn session(&self, id: &str) -> Result<Option<StoredSession>, StoreError> {
+        self.read_session(&*self.db()?, id)
+    }
+
+    /// The number of the newest frame committed. Every write whose commit
+    /// has returned is in a frame up to it.
+    pub fn committed(&self) -> u64 {
+        self.shared.forwarded.load(Ordering::Acquire)
+    }
+
+    /// [`Store::session`] for a session none of whose writes is newer than
+    /// frame `lsn` (read from [`Store::committed`] after they returned):
+    /// the database is brought up to date only if it has not applied that
+    /// frame yet, so reading an idle session does not wait for a
+    /// checkpoint of everybody else's writes.
+    pub fn session_since(&self, id: &str, lsn: u64) -> Result<Option<StoredSession>, StoreError> {
+        if self.shared.applied.load(Ordering::Acquire) < lsn {
+            self.checkpoint()?;
+        }
+        self.read_session(&*self.shared.db()?, id)
+    }
+
+    fn read_session(&self, db: &Database, id: &str) -> Result<Option<StoredSession>, StoreError> {
         let failed = |e: redb::Error| self.read_failed(e);
-        let read = self.db()?.begin_read().map_err(|e| failed(e.into()))?;
+        let read = db.begin_read().map_err(|e| failed(e.into()))?;
         let sessions = read.open_table(SESSIONS).map_err(|e| failed(e.into()))?;
         let Some(record) = sessions.get(id).map_err(|e| failed(e.into()))? else {
             return Ok(None);
