@@ -114,17 +114,7 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     // Health answers during recovery; readiness and the API wait for it.
     let recovering = Arc::clone(&running.manager);
     match tokio::task::spawn_blocking(move || recovering.recover()).await {
-        Ok(Ok(report)) => {
-            if report.sessions > 0 {
-                tracing::info!(
-                    sessions = report.sessions,
-                    replayed = report.replayed,
-                    seconds = report.seconds,
-                    "sessions recovered"
-                );
-            }
-            Ok(running)
-        }
+        Ok(Ok(_)) => Ok(running),
         Ok(Err(e)) => {
             running.shutdown();
             Err(anyhow::anyhow!("recovering stored sessions: {e}"))

@@ -985,6 +985,17 @@ impl SessionManager {
                 "stored sessions skipped at recovery"
             );
         }
+        // Logged before the server reports ready, so whoever sees it ready
+        // finds the line in the log.
+        if report.sessions > 0 {
+            tracing::info!(
+                sessions = report.sessions,
+                replayed = report.replayed,
+                seconds = report.seconds,
+                evicted = self.evicted_len(),
+                "sessions recovered"
+            );
+        }
         self.ready.store(true, Ordering::Release);
         Ok(report)
     }
