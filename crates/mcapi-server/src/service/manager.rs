@@ -950,15 +950,13 @@ impl SessionManager {
         // With eviction, recovered sessions stay in the store until their
         // first request: a store of a million sessions starts without
         // needing them all in memory at once.
+        // A rebuilt session is pristine: it goes unless an update is due.
         let keep = |session: SessionRef| match self.evict_after {
-            Some(_) => match session.prepare_eviction() {
-                Some(None) => session
-                    .still_evictable(cost::estimate(&session.model, &session.config))
-                    .map_or(Entry::Resident(session), |stub| {
-                        Entry::Evicted(Arc::new(stub))
-                    }),
-                _ => Entry::Resident(session),
-            },
+            Some(_) => session
+                .still_evictable(cost::estimate(&session.model, &session.config))
+                .map_or(Entry::Resident(session), |stub| {
+                    Entry::Evicted(Arc::new(stub))
+                }),
             None => Entry::Resident(session),
         };
         let (rebuilt, report) =

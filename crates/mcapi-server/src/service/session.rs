@@ -424,12 +424,7 @@ impl Session {
     pub fn snapshot(&self) -> Option<Commit> {
         let d = self.durability.as_ref()?;
         let mut st = self.state.lock();
-        if st.deleted
-            || st.deleting
-            || self.is_stale()
-            || self.is_failed()
-            || st.since_snapshot == 0
-        {
+        if self.in_flux(&st) || st.since_snapshot == 0 {
             return None;
         }
         match st.snapshot_write(&self.id) {
@@ -456,6 +451,18 @@ impl Session {
         Ok(true)
     }
 
+    /// Deleted, being deleted, rolled back or quarantined: its state is
+    /// not one to write down.
+    fn in_flux(&self, st: &SessionState) -> bool {
+        st.deleted || st.deleting || self.is_stale() || self.is_failed()
+    }
+
+    /// [`Self::in_flux`], or a policy update is queued or due: it stays in
+    /// memory.
+    fn kept_in_memory(&self, st: &SessionState) -> bool {
+        self.in_flux(st) || self.queued.load(Ordering::Acquire) || st.learner.needs_plan()
+    }
+
     /// Time since this session was last active: its last applied
     /// observation, or its coming into memory if that was later.
     pub fn inactive(&self) -> std::time::Duration {
@@ -476,13 +483,7 @@ impl Session {
     pub fn prepare_eviction(&self) -> Option<Option<Commit>> {
         let d = self.durability.as_ref()?;
         let mut st = self.state.lock();
-        if st.deleted
-            || st.deleting
-            || self.is_stale()
-            || self.is_failed()
-            || self.queued.load(Ordering::Acquire)
-            || st.learner.needs_plan()
-        {
+        if self.kept_in_memory(&st) {
             return None;
         }
         if self.pristine.load(Ordering::Acquire) {
@@ -517,13 +518,7 @@ impl Session {
     pub fn still_evictable(&self, cost: SessionCost) -> Option<Evicted> {
         let lsn = self.durability.as_ref()?.store.committed();
         let st = self.state.try_lock()?;
-        let pending = st.deleted
-            || st.deleting
-            || self.is_stale()
-            || self.is_failed()
-            || self.queued.load(Ordering::Acquire)
-            || st.learner.needs_plan();
-        if pending || !self.pristine.load(Ordering::Acquire) {
+        if self.kept_in_memory(&st) || !self.pristine.load(Ordering::Acquire) {
             return None;
         }
         Some(Evicted {
