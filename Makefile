@@ -28,7 +28,7 @@ k8s-validate:
 	bash tools/k8s-validate.sh
 
 # Rewrites deploy/k8s/10-mcapi-cluster.yaml (shard map and HAProxy
-# configuration) with the debug binary; tests/cluster.rs fails while the
+# configuration) with the debug binary; tests/integration/cluster.rs fails while the
 # committed file differs from what this writes.
 k8s-configmap: build
 	bash tools/k8s-configmap.sh

@@ -13,6 +13,40 @@ mod loadgen;
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
+/// Gives freed memory back to the system while the server is idle.
+///
+/// mimalloc returns the pages it has freed ("purges" them) at least its
+/// purge delay (1 s) after they became free, and only when some thread
+/// calls into the allocator after that. A server whose sessions were just
+/// deleted and which then has nothing to do kept their memory until its
+/// next request: 74-80% of it came back, not all (BENCHMARKS.md §8). This
+/// thread asks for the overdue purges every [`PURGE_PERIOD`]
+/// (`mi_collect(false)`: it collects this thread's own heap, which is
+/// empty, then purges what is due process-wide; when nothing is due it is
+/// one clock read).
+#[cfg(feature = "mimalloc")]
+mod purge {
+    use std::time::Duration;
+
+    /// How often the purger looks for overdue purges.
+    pub const PURGE_PERIOD: Duration = Duration::from_millis(500);
+
+    /// Starts the purger thread (it runs until the process exits).
+    pub fn start() -> std::io::Result<()> {
+        std::thread::Builder::new()
+            .name("mcapi-purge".into())
+            .spawn(|| {
+                loop {
+                    std::thread::sleep(PURGE_PERIOD);
+                    // SAFETY: mi_collect may be called from any thread at
+                    // any time; `false` asks for no forced collection.
+                    unsafe { libmimalloc_sys::mi_collect(false) };
+                }
+            })
+            .map(drop)
+    }
+}
+
 use clap::{Args, Parser, Subcommand};
 use mcapi_experiments::curiosity;
 use mcapi_experiments::paper::{LearnedModelParams, ModelChoice, Optimism, Variant};
@@ -228,14 +262,24 @@ fn curiosity_experiment(args: ExperimentArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// How long an idle blocking-pool thread of the server lives.
+const BLOCKING_KEEP_ALIVE: std::time::Duration = std::time::Duration::from_secs(1);
+
 fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
     telemetry::init_logging(cfg.log_format, "info");
     cfg.validate().map_err(anyhow::Error::msg)?;
     // The JSON form leaves the API keys out; they are never logged.
     let shown = serde_json::to_string(&cfg).unwrap_or_default();
     tracing::info!(config = %shown, api_keys = cfg.api_keys.len(), "starting");
+    #[cfg(feature = "mimalloc")]
+    purge::start()?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
+        // Blocking-pool threads (session creation, loads) end after 1 s
+        // idle instead of tokio's 10 s: the memory of the sessions a thread
+        // created is given back only once the thread has ended or runs
+        // again (BENCHMARKS.md §8).
+        .thread_keep_alive(BLOCKING_KEEP_ALIVE)
         .build()?;
     runtime.block_on(async {
         // Listening before the server answers, so that no early signal is lost.

@@ -1,6 +1,6 @@
 //! Shared helpers of the tests that run the real `mcapi` binary
-//! (`tests/crash.rs`, `tests/durability.rs`) or the full server in-process
-//! (`tests/parity.rs`, `tests/grpc_model.rs`): starting, killing and stopping
+//! (`tests/integration/crash.rs`, `tests/integration/durability.rs`) or the full server in-process
+//! (`tests/integration/parity.rs`, `tests/grpc_model.rs`): starting, killing and stopping
 //! a server, REST and gRPC calls with an API key, the client-side hallway
 //! and the exact in-memory replay a recovered session is compared with.
 

@@ -109,7 +109,12 @@ type Histograms = HashMap<Box<str>, HashMap<(&'static str, u16), metrics::Histog
 
 fn histograms() -> &'static RwLock<Histograms> {
     static HISTOGRAMS: OnceLock<RwLock<Histograms>> = OnceLock::new();
-    HISTOGRAMS.get_or_init(RwLock::default)
+    HISTOGRAMS.get_or_init(|| {
+        // Handles resolved before the recorder is installed would record
+        // nothing, and they are kept.
+        crate::telemetry::prometheus();
+        RwLock::default()
+    })
 }
 
 /// The latency histogram of one label set.

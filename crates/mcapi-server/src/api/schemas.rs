@@ -13,7 +13,7 @@
 //!   `BadRequest`, `Unauthorized`, ... with the `{"code","message"}` body);
 //! - the API-key security scheme and the operation tags.
 //!
-//! Checked three ways: `tests/openapi.rs` (each bound equals the limit it
+//! Checked three ways: `tests/integration/openapi.rs` (each bound equals the limit it
 //! describes; documented examples are accepted and near misses refused),
 //! schemathesis against the live server (`make contract`) and the fuzzer
 //! (`tests/fuzz.rs`).

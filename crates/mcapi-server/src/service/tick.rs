@@ -158,8 +158,9 @@ fn worker(shared: &Shared) {
 
 /// Runs one job on the calling thread.
 /// The meters of the tick path, each resolved from the metrics recorder
-/// once, at first use (by then `mcapi serve` has installed it): recording
-/// then costs no registry lookup.
+/// once, at first use: recording then costs no registry lookup. The
+/// recorder is installed first if nothing has installed it yet (a handle
+/// resolved without one would record nothing for the rest of the process).
 pub(super) struct Meters {
     /// `mcapi_tick_seconds`: one LSTDQ update or observation, as run.
     pub tick_seconds: metrics::Histogram,
@@ -171,10 +172,13 @@ pub(super) struct Meters {
 
 pub(super) fn meters() -> &'static Meters {
     static METERS: OnceLock<Meters> = OnceLock::new();
-    METERS.get_or_init(|| Meters {
-        tick_seconds: metrics::histogram!("mcapi_tick_seconds"),
-        queue_length: metrics::gauge!("mcapi_tick_queue_length"),
-        observations: metrics::counter!("mcapi_observations_total"),
+    METERS.get_or_init(|| {
+        crate::telemetry::prometheus();
+        Meters {
+            tick_seconds: metrics::histogram!("mcapi_tick_seconds"),
+            queue_length: metrics::gauge!("mcapi_tick_queue_length"),
+            observations: metrics::counter!("mcapi_observations_total"),
+        }
     })
 }
 

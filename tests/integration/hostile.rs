@@ -10,7 +10,7 @@
 // more release, docs/grpc.md).
 #![allow(deprecated)]
 
-mod common;
+use crate::common;
 
 use std::time::Duration;
 

@@ -16,7 +16,7 @@
 //! Needs permission to mount (root, as here and in CI); without it the test
 //! prints why and passes without running.
 
-mod common;
+use crate::common;
 
 use std::io::Write as _;
 use std::path::{Path, PathBuf};

@@ -30,7 +30,7 @@
 // more release, docs/grpc.md).
 #![allow(deprecated)]
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::net::TcpListener;

@@ -16,7 +16,7 @@
 // more release, docs/grpc.md).
 #![allow(deprecated)]
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 

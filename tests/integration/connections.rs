@@ -8,7 +8,7 @@
 //! bounded; and (in process) a panicking handler answers 500 / INTERNAL
 //! for its own request alone.
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeSet;
 use std::convert::Infallible;

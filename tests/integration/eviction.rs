@@ -11,7 +11,7 @@
 //!   an evicted session can be deleted;
 //! - the memory store never evicts.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};

@@ -9,7 +9,7 @@ use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use serde_json::{Value, json};
 
-mod common;
+use crate::common;
 
 const SEED: u64 = 2024;
 

@@ -5,7 +5,7 @@
 //! intervals, and a server shutdown with streams open. The page itself is
 //! tested in a browser by `tests/e2e`.
 
-mod common;
+use crate::common;
 
 use std::net::SocketAddr;
 use std::sync::Arc;

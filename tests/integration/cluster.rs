@@ -19,7 +19,7 @@
 //! PATH these tests fail, unless `MCAPI_SKIP_HAPROXY` is set, when they say
 //! so and return.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};

@@ -14,7 +14,7 @@
 //! under `--durability os`, and one that kills within milliseconds, while
 //! first observations are in flight.
 
-mod common;
+use crate::common;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
