@@ -13,40 +13,6 @@ mod loadgen;
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
-/// Gives freed memory back to the system while the server is idle.
-///
-/// mimalloc returns the pages it has freed ("purges" them) at least its
-/// purge delay (1 s) after they became free, and only when some thread
-/// calls into the allocator after that. A server whose sessions were just
-/// deleted and which then has nothing to do kept their memory until its
-/// next request: 74-80% of it came back, not all (BENCHMARKS.md §8). This
-/// thread asks for the overdue purges every [`PURGE_PERIOD`]
-/// (`mi_collect(false)`: it collects this thread's own heap, which is
-/// empty, then purges what is due process-wide; when nothing is due it is
-/// one clock read).
-#[cfg(feature = "mimalloc")]
-mod purge {
-    use std::time::Duration;
-
-    /// How often the purger looks for overdue purges.
-    pub const PURGE_PERIOD: Duration = Duration::from_millis(500);
-
-    /// Starts the purger thread (it runs until the process exits).
-    pub fn start() -> std::io::Result<()> {
-        std::thread::Builder::new()
-            .name("mcapi-purge".into())
-            .spawn(|| {
-                loop {
-                    std::thread::sleep(PURGE_PERIOD);
-                    // SAFETY: mi_collect may be called from any thread at
-                    // any time; `false` asks for no forced collection.
-                    unsafe { libmimalloc_sys::mi_collect(false) };
-                }
-            })
-            .map(drop)
-    }
-}
-
 use clap::{Args, Parser, Subcommand};
 use mcapi_experiments::curiosity;
 use mcapi_experiments::paper::{LearnedModelParams, ModelChoice, Optimism, Variant};
@@ -260,6 +226,40 @@ fn curiosity_experiment(args: ExperimentArgs) -> anyhow::Result<()> {
         opts.out.display()
     );
     Ok(())
+}
+
+/// Gives freed memory back to the system while the server is idle.
+///
+/// mimalloc returns the pages it has freed ("purges" them) at least its
+/// purge delay (1 s) after they became free, and only when some thread
+/// calls into the allocator after that. A server whose sessions were just
+/// deleted and which then has nothing to do kept their memory until its
+/// next request: 60-80% of it came back, not all (BENCHMARKS.md §8). This
+/// thread asks for the overdue purges every [`PURGE_PERIOD`]
+/// (`mi_collect(false)`: it collects this thread's own heap, which is
+/// empty, then purges what is due process-wide; when nothing is due it is
+/// one clock read).
+#[cfg(feature = "mimalloc")]
+mod purge {
+    use std::time::Duration;
+
+    /// How often the purger looks for overdue purges.
+    pub const PURGE_PERIOD: Duration = Duration::from_millis(500);
+
+    /// Starts the purger thread (it runs until the process exits).
+    pub fn start() -> std::io::Result<()> {
+        std::thread::Builder::new()
+            .name("mcapi-purge".into())
+            .spawn(|| {
+                loop {
+                    std::thread::sleep(PURGE_PERIOD);
+                    // SAFETY: mi_collect may be called from any thread at
+                    // any time; `false` asks for no forced collection.
+                    unsafe { libmimalloc_sys::mi_collect(false) };
+                }
+            })
+            .map(drop)
+    }
 }
 
 /// How long an idle blocking-pool thread of the server lives.

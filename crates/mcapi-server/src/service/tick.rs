@@ -156,7 +156,6 @@ fn worker(shared: &Shared) {
     }
 }
 
-/// Runs one job on the calling thread.
 /// The meters of the tick path, each resolved from the metrics recorder
 /// once, at first use: recording then costs no registry lookup. The
 /// recorder is installed first if nothing has installed it yet (a handle
@@ -182,6 +181,7 @@ pub(super) fn meters() -> &'static Meters {
     })
 }
 
+/// Runs one job on the calling thread.
 fn run(job: Job) {
     let started = Instant::now();
     match job {
