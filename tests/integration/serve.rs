@@ -2,17 +2,10 @@
 //! bad configuration before binding, and shuts down cleanly on SIGTERM.
 
 use std::io::Read;
-use std::net::TcpListener;
 use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-/// Two distinct free ports: both listeners are held until both are known.
-fn free_ports() -> (u16, u16) {
-    let a = TcpListener::bind("127.0.0.1:0").expect("bind");
-    let b = TcpListener::bind("127.0.0.1:0").expect("bind");
-    let port = |l: &TcpListener| l.local_addr().expect("addr").port();
-    (port(&a), port(&b))
-}
+use crate::common::{Launch, Server, free_ports};
 
 fn healthcheck(url: &str) -> bool {
     Command::new(env!("CARGO_BIN_EXE_mcapi"))
@@ -191,40 +184,35 @@ fn dockerfile_uses_only_flags_the_binary_knows() {
 /// the server's RSS. Before the allocator's purger thread and the 1 s
 /// keep-alive of blocking threads (src/main.rs), an idle server kept all of
 /// it at this size (0% returned) and 60-75% at 50,000 sessions.
-#[test]
-fn deleted_sessions_give_their_memory_back() {
-    let (http, grpc) = free_ports();
-    let (http, grpc) = (format!("127.0.0.1:{http}"), format!("127.0.0.1:{grpc}"));
-    let mut server = Command::new(env!("CARGO_BIN_EXE_mcapi"))
-        .args([
-            "serve", "--store", "memory", "--http", &http, "--grpc", &grpc,
-        ])
-        .args(["--max-sessions", "20000", "--max-key-sessions", "20000"])
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("mcapi serve starts");
-    let started = Instant::now();
-    while !healthcheck(&format!("http://{http}/healthz")) {
-        assert!(
-            started.elapsed() < Duration::from_secs(20),
-            "server never became healthy"
-        );
-        std::thread::sleep(Duration::from_millis(50));
-    }
+#[tokio::test]
+async fn deleted_sessions_give_their_memory_back() {
     let out_dir = tempfile::tempdir().expect("dir");
+    let launch = Launch {
+        args: [
+            "--store",
+            "memory",
+            "--max-sessions",
+            "20000",
+            "--max-key-sessions",
+            "20000",
+        ]
+        .map(String::from)
+        .to_vec(),
+        ..Launch::default()
+    };
+    let server = Server::start(&launch, out_dir.path().join("serve.log")).await;
     let json = out_dir.path().join("memory.json");
     let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
         .args(["loadgen", "--scenario", "memory", "--threads", "1"])
-        .args(["--http", &format!("http://{http}")])
-        .args(["--grpc", &format!("http://{grpc}")])
+        .args(["--http", &server.base()])
+        .args(["--grpc", &server.grpc_url()])
         .args(["--memory-sessions", "5000", "--settle-secs", "4"])
-        .args(["--server-pid", &server.id().to_string()])
+        .args(["--server-pid", &server.pid().to_string()])
         .arg("--json")
         .arg(&json)
         .output()
         .expect("mcapi loadgen runs");
-    let _ = server.kill();
-    let _ = server.wait();
+    drop(server);
     assert!(
         out.status.success(),
         "loadgen failed: {}",
