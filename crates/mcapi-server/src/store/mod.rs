@@ -898,13 +898,19 @@ impl Writer {
             return Err(StoreError::Failed("injected commit failure".into()));
         }
         let started = Instant::now();
-        let (len, next) = (self.wal.bytes(), self.wal.next_lsn());
-        let lsn = match self.wal.append(
+        let appended = self.wal.append(
             group
                 .iter()
                 .flat_map(|p| &p.writes)
                 .filter(|w| w.is_logged()),
-        ) {
+        );
+        // A frame that did not fit closed the active segment (synced): it is
+        // deleted once the checkpointer has applied it.
+        let closed = self.wal.take_closed();
+        if !closed.is_empty() {
+            self.shared.closed.lock().extend(closed);
+        }
+        let lsn = match appended {
             Ok(lsn) => lsn,
             Err(e) => {
                 tracing::error!(error = %e, writes, "appending to the log failed");
@@ -919,7 +925,7 @@ impl Writer {
                     tracing::error!(error = %e, writes, "syncing the log failed");
                     // The frame may or may not be on disk: cut it off, so
                     // that it is never read back.
-                    if let Err(cut) = self.wal.truncate(len, next) {
+                    if let Err(cut) = self.wal.cut_unsynced() {
                         tracing::error!(error = %cut, "cutting the failed frame off the log");
                         self.dirty = true;
                     }
@@ -969,23 +975,7 @@ impl Writer {
         } else {
             self.shared.frame_bytes.fetch_sub(bytes, Ordering::SeqCst);
         }
-        if self.wal.full() {
-            self.roll();
-        }
         Ok(())
-    }
-
-    /// Begins the next segment; the closed one is deleted once applied.
-    fn roll(&mut self) {
-        match self.wal.roll() {
-            Ok(closed) => self.shared.closed.lock().push(closed),
-            Err(e) => {
-                // The full segment stays active: frames go on into it, and
-                // the roll is tried again after the next frame.
-                tracing::error!(error = %e, "beginning a new log segment");
-                self.down(&format!("beginning a new log segment: {e}"));
-            }
-        }
     }
 
     /// The log failed: every write fails at once until a repair succeeds.
@@ -1016,12 +1006,6 @@ impl Writer {
             });
             let _ = std::fs::remove_file(&probe);
             written.map_err(|e| format!("the probe write failed: {e}"))?;
-            if self.wal.full() {
-                self.wal
-                    .roll()
-                    .map(|closed| self.shared.closed.lock().push(closed))
-                    .map_err(|e| format!("beginning a new log segment: {e}"))?;
-            }
             Ok(())
         })();
         match attempt {
@@ -1416,9 +1400,11 @@ mod tests {
     fn a_torn_tail_is_cut_and_a_damaged_frame_refuses_the_open() {
         let dir = tempfile::tempdir().expect("tempdir");
         let store = Store::open(dir.path()).expect("open");
+        // Frames of four 512-byte sectors each.
+        let bytes = 2000;
         for seq in 0..3 {
             store
-                .submit(appends("a", seq..seq + 1, 40))
+                .submit(appends("a", seq..seq + 1, bytes))
                 .wait_blocking()
                 .expect("commit");
         }
@@ -1426,33 +1412,81 @@ mod tests {
         drop(store);
         let (_, path) = segments(dir.path()).pop().expect("segment");
         let whole = std::fs::read(&path).expect("bytes");
+        // The last sector written: the end of the last frame.
+        let last = whole
+            .chunks_exact(512)
+            .rposition(|s| s.iter().any(|&b| b != 0))
+            .expect("frames")
+            * 512;
         // Damage inside the last frame: refused, naming the segment.
         let mut damaged = whole.clone();
-        let at = damaged.len() - 10;
-        damaged[at] ^= 1;
+        damaged[last + 10] ^= 1;
         std::fs::write(&path, &damaged).expect("write");
         let err = Store::open(dir.path()).expect_err("damage");
         assert!(
             matches!(&err, StoreError::Corrupt { path: p, .. } if *p == path),
             "{err}"
         );
-        // The last frame cut short (a power cut mid-write): cut, and the
-        // frames before it are kept.
-        std::fs::write(&path, &whole[..whole.len() - 10]).expect("write");
+        // A sector of the last frame never written (a power cut mid-write):
+        // cut, and the frames before it are kept.
+        let mut torn = whole.clone();
+        torn[last..last + 512].fill(0);
+        std::fs::write(&path, &torn).expect("write");
         let store = Store::open(dir.path()).expect("a torn tail is not damage");
         assert_eq!(
             entries(&store, "a", None),
-            vec![(0, vec![0; 40]), (1, vec![1; 40])]
+            vec![(0, vec![0; bytes]), (1, vec![1; bytes])]
         );
         // The next frame follows on and survives another crash.
         store
-            .submit(appends("a", 2..3, 40))
+            .submit(appends("a", 2..3, bytes))
             .wait_blocking()
             .expect("commit");
         store.crash();
         drop(store);
         let store = Store::open(dir.path()).expect("reopen");
         assert_eq!(entries(&store, "a", None).len(), 3);
+    }
+
+    #[test]
+    fn a_version_1_log_left_by_a_crash_is_replayed_and_the_log_goes_on_in_version_2() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Store::open(dir.path()).expect("open");
+        store
+            .submit(appends("a", 0..2, 8))
+            .wait_blocking()
+            .expect("commit");
+        store.close();
+        drop(store);
+        // What an older mcapi left when a power cut hit after two more
+        // acknowledged commits: frames 2 to 4 in a version 1 segment, the
+        // third torn (never acknowledged).
+        let wal_dir = dir.path().join(wal::WAL_DIR);
+        let path = wal::segment_path(&wal_dir, 2);
+        let ends = wal::v1_segment(
+            &path,
+            2,
+            &[appends("a", 2..3, 8), appends("a", 3..4, 8), appends("a", 4..5, 8)],
+        );
+        let bytes = std::fs::read(&path).expect("bytes");
+        std::fs::write(&path, &bytes[..ends[2] - 3]).expect("torn");
+        let store = Store::open(dir.path()).expect("upgrade");
+        assert_eq!(
+            entries(&store, "a", None),
+            (0..4).map(|s| (s, vec![s as u8; 8])).collect::<Vec<_>>()
+        );
+        store
+            .submit(appends("a", 4..5, 8))
+            .wait_blocking()
+            .expect("commit");
+        store.crash();
+        drop(store);
+        let (first, path) = segments(dir.path()).pop().expect("segment");
+        assert_eq!(first, 4, "the log goes on after the replayed frames");
+        let header = std::fs::read(&path).expect("bytes");
+        assert_eq!(header[8..12], 2u32.to_le_bytes(), "a version 2 segment");
+        let store = Store::open(dir.path()).expect("reopen");
+        assert_eq!(entries(&store, "a", None).len(), 5);
     }
 
     #[test]
