@@ -1466,7 +1466,11 @@ mod tests {
         let ends = wal::v1_segment(
             &path,
             2,
-            &[appends("a", 2..3, 8), appends("a", 3..4, 8), appends("a", 4..5, 8)],
+            &[
+                appends("a", 2..3, 8),
+                appends("a", 3..4, 8),
+                appends("a", 4..5, 8),
+            ],
         );
         let bytes = std::fs::read(&path).expect("bytes");
         std::fs::write(&path, &bytes[..ends[2] - 3]).expect("torn");

@@ -245,7 +245,8 @@ struct FrameHeader {
 
 impl FrameHeader {
     fn parse(head: &[u8; FRAME_HEADER]) -> Self {
-        let u32_at = |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
+        let u32_at =
+            |i: usize| u32::from_le_bytes([head[i], head[i + 1], head[i + 2], head[i + 3]]);
         let mut lsn = [0u8; 8];
         lsn.copy_from_slice(&head[4..12]);
         Self {
@@ -494,10 +495,42 @@ pub fn sync_dir(dir: &Path) -> std::io::Result<()> {
     File::open(dir)?.sync_all()
 }
 
+/// Segment sizes tried in turn when a new segment is needed now: the full
+/// size, then smaller ones, so that a nearly full disk (one that has just
+/// had some room freed) still takes frames. Each is raised to the room the
+/// frame needs.
+const FALLBACK_SIZES: [u64; 4] = [SEGMENT_BYTES, FIRST_SEGMENT_BYTES, 64 << 10, 0];
+
 /// Writes a zero-filled version 2 segment of `size` bytes to `path`
 /// (replaced if present) and syncs it: one `write` per MiB, then
-/// `fdatasync`.
+/// `fdatasync`. On failure the file is removed, so that a full disk is
+/// not kept full by half a segment.
 fn prepare(path: &Path, size: u64) -> std::io::Result<()> {
+    let written = write_zeroed(path, size);
+    if written.is_err() {
+        let _ = std::fs::remove_file(path);
+    }
+    written
+}
+
+/// Prepares a segment at `path` of the first of `sizes` (each at least
+/// `need`) that the disk takes; returns its size.
+fn prepare_fitting(path: &Path, need: u64, sizes: &[u64]) -> std::io::Result<u64> {
+    let mut failed = None;
+    for &size in sizes {
+        let size = size.max(need);
+        match prepare(path, size) {
+            Ok(()) => return Ok(size),
+            Err(e) => failed = Some(e),
+        }
+        if size == need {
+            break;
+        }
+    }
+    Err(failed.unwrap_or_else(|| std::io::Error::other("no segment size to try")))
+}
+
+fn write_zeroed(path: &Path, size: u64) -> std::io::Result<()> {
     let mut file = OpenOptions::new()
         .write(true)
         .create(true)
@@ -573,12 +606,13 @@ impl Wal {
                 format!("{} exists", path.display()),
             ));
         }
-        let file = install(dir, &dir.join(NEW), FIRST_SEGMENT_BYTES, &path)?;
+        let size = prepare_fitting(&dir.join(NEW), 2 * SECTOR as u64, &FALLBACK_SIZES[1..])?;
+        let file = install_prepared(dir, &dir.join(NEW), &path)?;
         Ok(Self {
             dir: dir.to_path_buf(),
             file,
             first: next,
-            size: FIRST_SEGMENT_BYTES,
+            size,
             len: SECTOR as u64,
             next,
             synced: (SECTOR as u64, next),
@@ -660,7 +694,8 @@ impl Wal {
     /// Closes the active segment (synced) and begins the next, of room for
     /// a frame of `span` bytes: the spare if it is ready (or being
     /// prepared: this waits for it) and large enough, else one zero-filled
-    /// now. An active segment without frames is replaced, not closed.
+    /// now ([`FALLBACK_SIZES`]). An active segment without frames is
+    /// replaced, not closed.
     fn roll(&mut self, span: u64) -> std::io::Result<()> {
         let empty = self.next == self.first;
         if !empty {
@@ -680,8 +715,7 @@ impl Wal {
         let (from, size) = match self.spare {
             Spare::Ready(size) if size >= need => (self.dir.join(SPARE), size),
             _ => {
-                let size = need.max(SEGMENT_BYTES);
-                prepare(&self.dir.join(NEW), size)?;
+                let size = prepare_fitting(&self.dir.join(NEW), need, &FALLBACK_SIZES)?;
                 (self.dir.join(NEW), size)
             }
         };
@@ -691,8 +725,11 @@ impl Wal {
             self.spare = Spare::None;
         }
         if !empty {
-            self.closed
-                .push((self.first, self.next - 1, segment_path(&self.dir, self.first)));
+            self.closed.push((
+                self.first,
+                self.next - 1,
+                segment_path(&self.dir, self.first),
+            ));
         }
         self.file = file;
         self.first = self.next;
@@ -753,13 +790,6 @@ impl Drop for Wal {
         }
         let _ = std::fs::remove_file(self.dir.join(SPARE));
     }
-}
-
-/// Prepares a zero-filled segment of `size` bytes at `tmp` and installs it
-/// as `path` ([`install_prepared`]).
-fn install(dir: &Path, tmp: &Path, size: u64, path: &Path) -> std::io::Result<File> {
-    prepare(tmp, size)?;
-    install_prepared(dir, tmp, path)
 }
 
 /// Renames a prepared segment into place (replacing an empty active one of
@@ -845,7 +875,9 @@ mod tests {
         vec![Write::Append {
             id: Arc::from("s0002.y"),
             seq: 1,
-            entry: (0..sectors * SECTOR - 64).map(|i| (i % 251 + 1) as u8).collect(),
+            entry: (0..sectors * SECTOR - 64)
+                .map(|i| (i % 251 + 1) as u8)
+                .collect(),
         }]
     }
 
@@ -918,9 +950,11 @@ mod tests {
             if mask & 1 == 0 {
                 bytes[start + k * SECTOR + 7] = 1;
                 std::fs::write(&path, &bytes).expect("write");
-                let err =
-                    read_segment(&path, first, true).expect_err("written after a torn frame");
-                assert!(err.to_string().contains("written after"), "mask {mask:b}: {err}");
+                let err = read_segment(&path, first, true).expect_err("written after a torn frame");
+                assert!(
+                    err.to_string().contains("written after"),
+                    "mask {mask:b}: {err}"
+                );
             }
         }
         // The whole frame unwritten: it was never there.
