@@ -899,6 +899,10 @@ struct Created {
     id: String,
 }
 
+/// The longest wait between two attempts to create a session the server
+/// refused with 503 (it limits concurrent creations).
+const CREATE_RETRY_MAX: Duration = Duration::from_millis(2560);
+
 /// Creates `n` hallway sessions (seed i for the i-th) over `conns`
 /// connections; returns their ids in order.
 async fn create_sessions(
@@ -922,7 +926,19 @@ async fn create_sessions(
                     None => format!(r#"{{"seed":{seed}}}"#),
                 };
                 let body = format!(r#"{{"model":{{"preset":"hallway"}},"agent":{agent}}}"#);
-                let (status, bytes) = conn.send(Method::POST, "/v1/sessions", Some(body)).await?;
+                // A server busy creating (503 "retry shortly") is waited for,
+                // with backoff, up to about 5 s.
+                let mut wait = Duration::from_millis(5);
+                let (status, bytes) = loop {
+                    let (status, bytes) = conn
+                        .send(Method::POST, "/v1/sessions", Some(body.clone()))
+                        .await?;
+                    if status != StatusCode::SERVICE_UNAVAILABLE || wait > CREATE_RETRY_MAX {
+                        break (status, bytes);
+                    }
+                    tokio::time::sleep(wait).await;
+                    wait *= 2;
+                };
                 ensure!(
                     status == StatusCode::CREATED,
                     "creating a session: {}",
