@@ -47,9 +47,13 @@ impl BuildSlots {
         let mut st = self.state.lock();
         if st.0 >= self.slots {
             if st.1 >= self.queue {
+                let building = match st.0 {
+                    1 => "1 session is".to_owned(),
+                    n => format!("{n} sessions are"),
+                };
                 return Err(ServiceError::Unavailable(format!(
-                    "{} sessions are being created and {} more wait; retry shortly",
-                    st.0, st.1
+                    "{building} being created and {} more wait; retry shortly",
+                    st.1
                 )));
             }
             st.1 += 1;
