@@ -19,6 +19,8 @@ use mcapi_core::{Agent, AgentParams, Basis, Observation, PlanningModel};
 use mcapi_server::api::grpc::SESSION_METADATA;
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
+use rand::RngExt as _;
+use rand_chacha::ChaCha8Rng;
 use serde_json::{Value, json};
 use tonic::transport::Channel;
 
@@ -453,6 +455,46 @@ pub fn step_state(s: usize, a: usize) -> usize {
         0 => s - 1,
         1 => s + 1,
         _ => s,
+    }
+}
+
+/// A simulated hallway client's next observation from `state` when the
+/// server advised `advised`: usually takes the advice, sometimes (and
+/// always when the advice is unknown) reports another available action.
+/// The first observation (no state yet) lands in a random state. With
+/// `names`, the action is reported by name half the time (one more draw).
+pub fn next_hallway_obs(
+    rng: &mut ChaCha8Rng,
+    state: Option<usize>,
+    advised: Option<usize>,
+    names: bool,
+) -> Obs {
+    let Some(s) = state else {
+        return Obs {
+            state: rng.random_range(0..STATES),
+            stimulus: None,
+            taken: None,
+            report: None,
+            by_name: false,
+        };
+    };
+    let report = advised.is_none() || rng.random_bool(0.1);
+    let a = match advised {
+        Some(a) if !report => a,
+        _ => loop {
+            let a = rng.random_range(0..ACTIONS.len());
+            if available(s, a) {
+                break a;
+            }
+        },
+    };
+    let next = step_state(s, a);
+    Obs {
+        state: next,
+        stimulus: Some(stimulus(next)),
+        taken: Some(a),
+        report: report.then_some(a),
+        by_name: names && rng.random_bool(0.5),
     }
 }
 

@@ -21,9 +21,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use common::{
-    ACTIONS, Launch, Obs, Reply, STATES, Server, assert_float_roundtrip, available, check_session,
-    free_ports, grpc_create, grpc_request, http_client, log_events, params, rest, rest_create,
-    rest_get, rest_list_all, step_state, stimulus,
+    Launch, Obs, Reply, Server, assert_float_roundtrip, check_session, free_ports, grpc_create,
+    grpc_request, http_client, log_events, params, rest, rest_create, rest_get, rest_list_all,
 };
 use mcapi_core::AgentParams;
 use mcapi_server::api::grpc::pb;
@@ -158,33 +157,7 @@ impl Tracked {
     /// `advised`: usually takes the advice, sometimes (and always when the
     /// advice is unknown) reports another available action.
     fn next_obs(&mut self, state: Option<usize>, advised: Option<usize>) -> Obs {
-        let Some(s) = state else {
-            return Obs {
-                state: self.rng.random_range(0..STATES),
-                stimulus: None,
-                taken: None,
-                report: None,
-                by_name: false,
-            };
-        };
-        let report = advised.is_none() || self.rng.random_bool(0.1);
-        let a = match advised {
-            Some(a) if !report => a,
-            _ => loop {
-                let a = self.rng.random_range(0..ACTIONS.len());
-                if available(s, a) {
-                    break a;
-                }
-            },
-        };
-        let next = step_state(s, a);
-        Obs {
-            state: next,
-            stimulus: Some(stimulus(next)),
-            taken: Some(a),
-            report: report.then_some(a),
-            by_name: self.rng.random_bool(0.5),
-        }
+        common::next_hallway_obs(&mut self.rng, state, advised, true)
     }
 
     fn acknowledged(&mut self, batch: Vec<Obs>, replies: Vec<Reply>) {

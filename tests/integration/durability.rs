@@ -39,9 +39,9 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::{
-    ACTIONS, Launch, Obs, Reply, STATES, Server, assert_bits_eq, assert_float_roundtrip, available,
-    check_session, core_agent, free_ports, grpc_create, grpc_request, http_client, log_events,
-    params, rest, rest_create, rest_get, rest_list_all, step_state, stimulus,
+    Launch, Obs, Reply, Server, assert_bits_eq, assert_float_roundtrip, check_session, core_agent,
+    free_ports, grpc_create, grpc_request, http_client, log_events, params, rest, rest_create,
+    rest_get, rest_list_all, step_state, stimulus,
 };
 use mcapi_core::{Agent, AgentParams, Observation};
 use mcapi_server::api::grpc::pb;
@@ -96,33 +96,7 @@ impl Sim {
     }
 
     fn next_obs(&mut self) -> Obs {
-        let Some(s) = self.state else {
-            return Obs {
-                state: self.rng.random_range(0..STATES),
-                stimulus: None,
-                taken: None,
-                report: None,
-                by_name: false,
-            };
-        };
-        let report = self.advised.is_none() || self.rng.random_bool(0.1);
-        let a = match self.advised {
-            Some(a) if !report => a,
-            _ => loop {
-                let a = self.rng.random_range(0..ACTIONS.len());
-                if available(s, a) {
-                    break a;
-                }
-            },
-        };
-        let next = step_state(s, a);
-        Obs {
-            state: next,
-            stimulus: Some(stimulus(next)),
-            taken: Some(a),
-            report: report.then_some(a),
-            by_name: self.rng.random_bool(0.5),
-        }
+        common::next_hallway_obs(&mut self.rng, self.state, self.advised, true)
     }
 
     fn record(&mut self, obs: Obs, reply: Reply) {

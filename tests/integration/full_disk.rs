@@ -24,14 +24,13 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::{
-    ACTIONS, Launch, Obs, Reply, STATES, Server, available, check_session, grpc_create,
-    grpc_request, http_client, log_events, params, rest, rest_create, rest_get, rest_list_all,
-    step_state, stimulus,
+    Launch, Obs, Reply, Server, check_session, grpc_create, grpc_request, http_client, log_events,
+    params, rest, rest_create, rest_get, rest_list_all,
 };
 use mcapi_core::AgentParams;
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use rand::{RngExt, SeedableRng};
+use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use reqwest::Method;
 use serde_json::{Value, json};
@@ -162,33 +161,7 @@ impl Driven {
         if let Some(obs) = &self.retry {
             return obs.clone();
         }
-        let Some(s) = self.state else {
-            return Obs {
-                state: self.rng.random_range(0..STATES),
-                stimulus: None,
-                taken: None,
-                report: None,
-                by_name: false,
-            };
-        };
-        let report = self.advised.is_none() || self.rng.random_bool(0.1);
-        let a = match self.advised {
-            Some(a) if !report => a,
-            _ => loop {
-                let a = self.rng.random_range(0..ACTIONS.len());
-                if available(s, a) {
-                    break a;
-                }
-            },
-        };
-        let next = step_state(s, a);
-        Obs {
-            state: next,
-            stimulus: Some(stimulus(next)),
-            taken: Some(a),
-            report: report.then_some(a),
-            by_name: false,
-        }
+        common::next_hallway_obs(&mut self.rng, self.state, self.advised, false)
     }
 
     fn acknowledged(&mut self, obs: Obs, reply: Reply) {
