@@ -20,6 +20,9 @@ action, the drive and the reward.
   adds a ``curiosity`` stimulus the server computes from raw ``signal=``
   samples sent with observations; see :class:`CuriosityConfig`,
   :class:`TickCuriosity` and :class:`CuriosityInfo`.
+- Agent options: the keywords of ``create_session`` (``seed``, ``eta``,
+  ``curiosity``, ...) are those of :class:`AgentKwargs`, one per parameter
+  of the server, named in order by :data:`AGENT_OPTIONS`.
 
 The core (types, models, errors) needs no third-party package; each
 transport is imported when first used, and without its extra installed that
@@ -68,7 +71,9 @@ from .errors import (
 )
 from .retry import DEFAULT_RETRY, RetryPolicy
 from .types import (
+    AGENT_OPTIONS,
     AgentConfig,
+    AgentKwargs,
     AgentOptions,
     BasisSummary,
     CuriosityConfig,
@@ -169,6 +174,8 @@ __all__ = [
     "RetryPolicy",
     "DEFAULT_RETRY",
     "AgentConfig",
+    "AgentKwargs",
+    "AGENT_OPTIONS",
     "AgentOptions",
     "BasisSummary",
     "CuriosityConfig",

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from ._normalise import as_float, as_opt_int
+from ._params import AGENT_OPTIONS
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._sansio import Op, SessionCache
 from .errors import McapiError, Timeout, TransportError, WrongReplica, error_for
@@ -58,6 +59,10 @@ OWNER_TRAILER = "x-mcapi-owner"
 """Trailer naming the replica that owns a misdirected session's shard."""
 
 Metadata = tuple[tuple[str, str], ...]
+
+_ENCODED_APART = frozenset({"priorities", "stimulus_rate", "update_mode", "curiosity"})
+"""The agent options :func:`create_request` encodes one by one (a repeated
+field, a oneof, an enum, a message)."""
 
 _UPDATE_MODES: dict[str, int] = {"lockstep": pb.UPDATE_MODE_LOCKSTEP, "async": pb.UPDATE_MODE_ASYNC}
 _UPDATE_MODE_NAMES: dict[int, UpdateMode] = {
@@ -242,10 +247,11 @@ def create_request(model: dict[str, Any], agent: AgentOptions) -> pb.CreateSessi
     """``CreateSession``: the model as the typed ``Model`` (see
     :func:`model_message`), else as the JSON the REST API takes."""
     cfg = pb.SessionConfig()
-    # AgentOptions holds plain ints and floats (numpy values were converted).
-    for name in ("eta", "gamma", "optimistic_sd", "ridge", "epsilon", "seed", "history"):
+    # Every other option is a number in the field of its name; AgentOptions
+    # holds plain ints and floats (numpy values were converted).
+    for name in AGENT_OPTIONS:
         value = getattr(agent, name)
-        if value is not None:
+        if value is not None and name not in _ENCODED_APART:
             setattr(cfg, name, value)
     if agent.priorities is not None:
         cfg.priorities.extend(agent.priorities)

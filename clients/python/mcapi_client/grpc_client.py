@@ -36,7 +36,7 @@ import queue
 import time
 from collections.abc import AsyncIterator, Iterable, Iterator, Sequence
 from types import TracebackType
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 try:
     import google.protobuf  # noqa: F401  (the stubs' messages)
@@ -60,8 +60,8 @@ from .models import ModelLike
 from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .types import (
     ActionRef,
+    AgentKwargs,
     AgentOptions,
-    CuriosityLike,
     HistoryEntry,
     Observation,
     ObservationLike,
@@ -69,10 +69,11 @@ from .types import (
     SessionPage,
     SessionSummary,
     Step,
-    StimulusRate,
-    UpdateMode,
     Values,
 )
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = [
     "GrpcClient",
@@ -435,29 +436,10 @@ class GrpcClient:
             return False
         return True
 
-    def create_session(
-        self,
-        model: ModelLike,
-        *,
-        eta: FloatLike | None = None,
-        gamma: FloatLike | None = None,
-        priorities: FloatsLike | None = None,
-        stimulus_rate: StimulusRate | FloatLike | None = None,
-        optimistic_sd: FloatLike | None = None,
-        ridge: FloatLike | None = None,
-        epsilon: FloatLike | None = None,
-        seed: IntLike | None = None,
-        update_mode: UpdateMode | None = None,
-        history: IntLike | None = None,
-        curiosity: CuriosityLike | None = None,
-    ) -> SessionInfo:
+    def create_session(self, model: ModelLike, **agent: Unpack[AgentKwargs]) -> SessionInfo:
         """Creates a session; arguments as :meth:`mcapi_client.Client.create_session`."""
-        agent = AgentOptions(
-            eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
-            optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
-            update_mode=update_mode, history=history, curiosity=curiosity,
-        )
-        return drive(self._protocol.create_session(model, agent), self._send)
+        options = AgentOptions(**agent)
+        return drive(self._protocol.create_session(model, options), self._send)
 
     def get_session(self, session_id: str) -> SessionInfo:
         """A session's drive, tick, policy version, model, configuration and statistics."""
@@ -802,29 +784,10 @@ class AsyncGrpcClient:
                 return False
             await asyncio.sleep(min(0.01, max(0.0, deadline - loop.time())))
 
-    async def create_session(
-        self,
-        model: ModelLike,
-        *,
-        eta: FloatLike | None = None,
-        gamma: FloatLike | None = None,
-        priorities: FloatsLike | None = None,
-        stimulus_rate: StimulusRate | FloatLike | None = None,
-        optimistic_sd: FloatLike | None = None,
-        ridge: FloatLike | None = None,
-        epsilon: FloatLike | None = None,
-        seed: IntLike | None = None,
-        update_mode: UpdateMode | None = None,
-        history: IntLike | None = None,
-        curiosity: CuriosityLike | None = None,
-    ) -> SessionInfo:
+    async def create_session(self, model: ModelLike, **agent: Unpack[AgentKwargs]) -> SessionInfo:
         """Creates a session; arguments as :meth:`mcapi_client.Client.create_session`."""
-        agent = AgentOptions(
-            eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
-            optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
-            update_mode=update_mode, history=history, curiosity=curiosity,
-        )
-        return await adrive(self._protocol.create_session(model, agent), self._send)
+        options = AgentOptions(**agent)
+        return await adrive(self._protocol.create_session(model, options), self._send)
 
     async def get_session(self, session_id: str) -> SessionInfo:
         """A session's details; see :meth:`GrpcClient.get_session`."""

@@ -20,7 +20,7 @@ from __future__ import annotations
 import asyncio
 import time
 from collections.abc import AsyncIterator, Iterable, Iterator, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 try:
     import httpx
@@ -40,9 +40,8 @@ from .models import ModelLike
 from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .types import (
     ActionRef,
+    AgentKwargs,
     AgentOptions,
-    CuriosityLike,
-    FloatLike,
     HistoryEntry,
     Observation,
     ObservationLike,
@@ -50,10 +49,11 @@ from .types import (
     SessionPage,
     SessionSummary,
     Step,
-    StimulusRate,
-    UpdateMode,
     Values,
 )
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = ["Client", "AsyncClient", "DEFAULT_URL", "ModelLike"]
 
@@ -155,55 +155,21 @@ class Client:
         except httpx.HTTPError:
             return False
 
-    def create_session(
-        self,
-        model: ModelLike,
-        *,
-        eta: FloatLike | None = None,
-        gamma: FloatLike | None = None,
-        priorities: FloatsLike | None = None,
-        stimulus_rate: StimulusRate | FloatLike | None = None,
-        optimistic_sd: FloatLike | None = None,
-        ridge: FloatLike | None = None,
-        epsilon: FloatLike | None = None,
-        seed: IntLike | None = None,
-        update_mode: UpdateMode | None = None,
-        history: IntLike | None = None,
-        curiosity: CuriosityLike | None = None,
-    ) -> SessionInfo:
+    def create_session(self, model: ModelLike, **agent: Unpack[AgentKwargs]) -> SessionInfo:
         """Creates a session on a model; unset agent options take the server's defaults.
-
-        Numbers may be numpy scalars and ``priorities`` a numpy array.
 
         Args:
             model: A :class:`~mcapi_client.models.Model`, the model's JSON, or a preset name.
-            eta: MCA rate, 0 < eta <= 0.5.
-            gamma: Discount in [0, 1).
-            priorities: Priority in (0, 1] per stimulus dimension.
-            stimulus_rate: ``"sample_mean"`` or a constant rate in (0, 1].
-            optimistic_sd: Sd of the optimistic initialisation of Xi.
-            ridge: Ridge added to A only when singular.
-            epsilon: Epsilon-greedy exploration in [0, 1].
-            seed: Seed of the session's RNG (drawn by the server when unset).
-            update_mode: ``"lockstep"`` (default) or ``"async"``.
-            history: Recent ticks kept for :meth:`history`.
-            curiosity: A curiosity channel: a
-                :class:`~mcapi_client.types.CuriosityConfig`, its JSON, or the
-                signal dimension alone. The server appends a stimulus
-                dimension ``"curiosity"`` (last) and computes it from the
-                ``signal`` samples of observations; send only the model's own
-                (extrinsic) stimulus components. ``priorities``, if given,
-                need one entry for it too.
+            **agent: The agent options, by keyword: those of
+                :class:`~mcapi_client.AgentKwargs`, documented there (``seed``,
+                ``eta``, ``curiosity``, ...). Numbers may be numpy scalars and
+                ``priorities`` a numpy array; an unknown keyword is a ``TypeError``.
 
         Returns:
             The new session, with its effective configuration (seed included).
         """
-        agent = AgentOptions(
-            eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
-            optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
-            update_mode=update_mode, history=history, curiosity=curiosity,
-        )
-        return drive(self._protocol.create_session(model, agent), self._send)
+        options = AgentOptions(**agent)
+        return drive(self._protocol.create_session(model, options), self._send)
 
     def get_session(self, session_id: str) -> SessionInfo:
         """A session's drive, tick, policy version, model, configuration and statistics."""
@@ -365,29 +331,10 @@ class AsyncClient:
         except httpx.HTTPError:
             return False
 
-    async def create_session(
-        self,
-        model: ModelLike,
-        *,
-        eta: FloatLike | None = None,
-        gamma: FloatLike | None = None,
-        priorities: FloatsLike | None = None,
-        stimulus_rate: StimulusRate | FloatLike | None = None,
-        optimistic_sd: FloatLike | None = None,
-        ridge: FloatLike | None = None,
-        epsilon: FloatLike | None = None,
-        seed: IntLike | None = None,
-        update_mode: UpdateMode | None = None,
-        history: IntLike | None = None,
-        curiosity: CuriosityLike | None = None,
-    ) -> SessionInfo:
+    async def create_session(self, model: ModelLike, **agent: Unpack[AgentKwargs]) -> SessionInfo:
         """Creates a session; see :meth:`Client.create_session`."""
-        agent = AgentOptions(
-            eta=eta, gamma=gamma, priorities=priorities, stimulus_rate=stimulus_rate,
-            optimistic_sd=optimistic_sd, ridge=ridge, epsilon=epsilon, seed=seed,
-            update_mode=update_mode, history=history, curiosity=curiosity,
-        )
-        return await adrive(self._protocol.create_session(model, agent), self._send)
+        options = AgentOptions(**agent)
+        return await adrive(self._protocol.create_session(model, options), self._send)
 
     async def get_session(self, session_id: str) -> SessionInfo:
         """A session's details; see :meth:`Client.get_session`."""

@@ -14,24 +14,29 @@ belongs is a ``TypeError``.
 
 from __future__ import annotations
 
+import difflib
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Literal, SupportsIndex, Union
+from typing import TYPE_CHECKING, Any, Literal, SupportsIndex, Union, cast
 
 from ._normalise import (
     FloatLike,
     FloatsLike,
     IntLike,
     as_float,
+    as_floats,
     as_int,
-    as_opt_float,
     as_opt_floats,
     as_opt_int,
     is_int_like,
     plain,
 )
+from ._params import AGENT_OPTIONS, AgentKwargs
 from .errors import error_for
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = [
     "IntLike",
@@ -49,6 +54,8 @@ __all__ = [
     "ModelSummary",
     "LearnedSummary",
     "AgentConfig",
+    "AgentKwargs",
+    "AGENT_OPTIONS",
     "AgentOptions",
     "SessionStats",
     "SessionInfo",
@@ -349,28 +356,83 @@ class AgentConfig:
     curiosity: CuriosityConfig | None = None
 
 
+def _as_stimulus_rate(x: object, name: str) -> StimulusRate:
+    """A ``stimulus_rate``: a rule's name as given (the server, or the gRPC
+    encoding, refuses one it does not know), else a number."""
+    return cast(StimulusRate, x) if isinstance(x, str) else as_float(x, name)
+
+
+def _as_given(x: object, name: str) -> object:
+    """A value passed on as given (an ``update_mode``: the server, or the gRPC
+    encoding, refuses one it does not know)."""
+    return x
+
+
+def _as_curiosity(x: object, name: str) -> CuriosityConfig:
+    return as_curiosity(cast(CuriosityLike, x))
+
+
+_NORMALISERS: dict[str, Callable[[Any, str], object]] = {
+    "FloatLike | None": as_float,
+    "FloatsLike | None": as_floats,
+    "IntLike | None": as_int,
+    "StimulusRate | FloatLike | None": _as_stimulus_rate,
+    "UpdateMode | None": _as_given,
+    "CuriosityLike | None": _as_curiosity,
+}
+"""The normaliser of each kind of agent option, by the option's annotation in
+:class:`~mcapi_client._params.AgentKwargs` (as written there; never given
+``None``)."""
+
+
+def _normaliser(name: str) -> Callable[[Any, str], object]:
+    """The normaliser of the agent option ``name``, by its annotation's kind."""
+    annotation = AgentKwargs.__annotations__[name]
+    # With postponed annotations a TypedDict keeps each as a ForwardRef of its text.
+    kind = str(getattr(annotation, "__forward_arg__", annotation))
+    try:
+        return _NORMALISERS[kind]
+    except KeyError:
+        raise RuntimeError(
+            f"agent option `{name}`: no normaliser for its kind `{kind}` (mcapi_client/_params.py); "
+            "add one to mcapi_client.types._NORMALISERS"
+        ) from None
+
+
+_AGENT_NORMALISERS: dict[str, Callable[[Any, str], object]] = {
+    name: _normaliser(name) for name in AGENT_OPTIONS
+}
+"""The normaliser of each agent option, in the server's order."""
+
+
+def _unknown_options(names: list[str]) -> str:
+    """The message of the ``TypeError`` for keyword arguments that are not agent options."""
+    parts = []
+    for name in names:
+        close = difflib.get_close_matches(name, AGENT_OPTIONS, n=1)
+        parts.append(f"{name!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    plural = "s" if len(names) > 1 else ""
+    return (
+        f"unexpected keyword argument{plural} {', '.join(parts)}: "
+        f"the agent options are {', '.join(AGENT_OPTIONS)}"
+    )
+
+
 @dataclass(frozen=True, slots=True, init=False)
 class AgentOptions:
     """The agent configuration a client asks for; ``None`` takes the server's default.
 
-    Clients build this from the keyword arguments of ``create_session``;
-    numbers may be numpy scalars, ``priorities`` a numpy array, ``curiosity``
-    anything :data:`CuriosityLike`. The fields hold plain Python values.
+    Clients build this from the keyword arguments of ``create_session``, the
+    options of :class:`~mcapi_client.AgentKwargs` (documented there), given
+    by keyword; an unknown keyword is a ``TypeError``. Numbers may be numpy
+    scalars, ``priorities`` a numpy array, ``curiosity`` anything
+    :data:`CuriosityLike`.
 
-    Attributes:
-        eta: MCA rate, 0 < eta <= 0.5 (default 0.01).
-        gamma: Discount in [0, 1) (default 0.95).
-        priorities: Priority in (0, 1] per stimulus dimension (default all 1).
-        stimulus_rate: ``"sample_mean"`` (default) or a constant in (0, 1].
-        optimistic_sd: Sd of the optimistic initialisation (default 0.3).
-        ridge: Ridge added to A only when singular (default 1e-6).
-        epsilon: Epsilon-greedy exploration in [0, 1] (default 0).
-        seed: Seed of the session's RNG (default: drawn by the server).
-        update_mode: ``"lockstep"`` (default) or ``"async"``.
-        history: Recent ticks kept for the history (default 256).
-        curiosity: A curiosity channel (default none); the server appends the
-            stimulus dimension ``"curiosity"``, so ``priorities``, if given,
-            have one entry more than the model's stimuli.
+    The fields, one per option in the order of :data:`~mcapi_client.AGENT_OPTIONS`,
+    hold plain Python values: ``float``, ``int``, ``list[float]``, a
+    :class:`CuriosityConfig`. With a curiosity channel the server appends the
+    stimulus dimension ``"curiosity"``, so ``priorities``, if given, have one
+    entry more than the model's stimuli.
     """
 
     eta: float | None
@@ -385,38 +447,15 @@ class AgentOptions:
     history: int | None
     curiosity: CuriosityConfig | None
 
-    def __init__(
-        self,
-        eta: FloatLike | None = None,
-        gamma: FloatLike | None = None,
-        priorities: FloatsLike | None = None,
-        stimulus_rate: Literal["sample_mean"] | FloatLike | None = None,
-        optimistic_sd: FloatLike | None = None,
-        ridge: FloatLike | None = None,
-        epsilon: FloatLike | None = None,
-        seed: IntLike | None = None,
-        update_mode: UpdateMode | None = None,
-        history: IntLike | None = None,
-        curiosity: CuriosityLike | None = None,
-    ) -> None:
-        rate: StimulusRate | None = (
-            stimulus_rate if isinstance(stimulus_rate, str) or stimulus_rate is None
-            else as_float(stimulus_rate, "stimulus_rate")
-        )
-        for name, value in (
-            ("eta", as_opt_float(eta, "eta")),
-            ("gamma", as_opt_float(gamma, "gamma")),
-            ("priorities", as_opt_floats(priorities, "priorities")),
-            ("stimulus_rate", rate),
-            ("optimistic_sd", as_opt_float(optimistic_sd, "optimistic_sd")),
-            ("ridge", as_opt_float(ridge, "ridge")),
-            ("epsilon", as_opt_float(epsilon, "epsilon")),
-            ("seed", as_opt_int(seed, "seed")),
-            ("update_mode", update_mode),
-            ("history", as_opt_int(history, "history")),
-            ("curiosity", None if curiosity is None else as_curiosity(curiosity)),
-        ):
-            object.__setattr__(self, name, value)
+    def __init__(self, **options: Unpack[AgentKwargs]) -> None:
+        given: Mapping[str, object] = options
+        unknown = [name for name in given if name not in _AGENT_NORMALISERS]
+        if unknown:
+            raise TypeError(_unknown_options(unknown))
+        for name in AGENT_OPTIONS:
+            value = given.get(name)
+            normalise = _AGENT_NORMALISERS[name]
+            object.__setattr__(self, name, None if value is None else normalise(value, name))
 
     def to_json(self) -> dict[str, object]:
         """The ``agent`` object of a REST create request (unset fields left out)."""

@@ -19,7 +19,7 @@ KEY_A, KEY_B = "test-key-a-0123456789", "test-key-b-0123456789"
 def keyed_server(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
     """A server with two API keys."""
     if not supports_api_keys():
-        pytest.skip("this mcapi binary has no --api-key flag yet (issue 4): rebuild it once API keys land")
+        pytest.skip("this mcapi binary has no --api-key flag: it predates API keys; rebuild it")
     srv = start_server(tmp_path_factory.mktemp("keyed"), ["--api-key", KEY_A, "--api-key", KEY_B])
     yield srv
     srv.stop()

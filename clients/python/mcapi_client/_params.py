@@ -1,0 +1,76 @@
+"""The agent options of a session, one per parameter of the server's table.
+
+Generated from the parameter tables of mcapi-core and mcapi-server by
+`make generate`; do not edit by hand (a test fails when it differs).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Final, TypedDict
+
+if TYPE_CHECKING:
+    from ._normalise import FloatLike, FloatsLike, IntLike
+    from .types import CuriosityLike, StimulusRate, UpdateMode
+
+
+class AgentKwargs(TypedDict, total=False):
+    """The agent options of ``create_session``; one left out takes the server's default."""
+
+    eta: FloatLike | None
+    """MCA learning rate eta (Eq. 1), in (0, 0.5]; default 0.01."""
+    gamma: FloatLike | None
+    """Discount gamma, in [0, 1); default 0.95."""
+    priorities: FloatsLike | None
+    """Priorities rho, one per stimulus dimension, each in (0, 1]; default all 1."""
+    stimulus_rate: StimulusRate | FloatLike | None
+    """How Xi learns: "sample_mean" or a constant rate in (0, 1]; default "sample_mean"."""
+    optimistic_sd: FloatLike | None
+    """Sd of the optimistic initialisation of Xi, in [0, inf); default 0.3."""
+    ridge: FloatLike | None
+    """Ridge added to A only when singular, in (0, inf); default 1e-06."""
+    epsilon: FloatLike | None
+    """Epsilon-greedy exploration, in [0, 1]; default 0."""
+    seed: IntLike | None
+    """Seed of the session's RNG; default drawn by the server (and returned)."""
+    update_mode: UpdateMode | None
+    """"lockstep" (reply after one policy update) or "async"; default "lockstep"."""
+    history: IntLike | None
+    """Recent ticks kept for the history; default 256."""
+    curiosity: CuriosityLike | None
+    """A curiosity channel: the server appends the stimulus dimension "curiosity"; default none."""
+
+
+AGENT_OPTIONS: Final[tuple[str, ...]] = (
+    "eta",
+    "gamma",
+    "priorities",
+    "stimulus_rate",
+    "optimistic_sd",
+    "ridge",
+    "epsilon",
+    "seed",
+    "update_mode",
+    "history",
+    "curiosity",
+)
+"""The keys of :class:`AgentKwargs`, in the server's order."""
+
+CURIOSITY_PARAMS: Final[tuple[str, ...]] = (
+    "max_centres",
+    "beta",
+    "tau",
+    "lag",
+    "eta_c",
+    "gain",
+    "clip",
+    "delta",
+    "freeze_after",
+    "explain_below",
+    "explain_min_samples",
+    "dt",
+    "floor_rel",
+    "floor_abs",
+    "initial_error",
+    "max_sources",
+)
+"""The constants of a curiosity channel (the keys of ``CuriosityConfig.params``)."""
