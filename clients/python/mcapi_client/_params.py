@@ -17,27 +17,27 @@ class AgentKwargs(TypedDict, total=False):
     """The agent options of ``create_session``; one left out takes the server's default."""
 
     eta: FloatLike | None
-    """MCA learning rate eta (Eq. 1), in (0, 0.5]; default 0.01."""
+    """MCA learning rate eta of Eq. 1, in (0, 0.5]; default 0.01."""
     gamma: FloatLike | None
     """Discount gamma, in [0, 1); default 0.95."""
     priorities: FloatsLike | None
-    """Priorities rho, one per stimulus dimension, each in (0, 1]; default all 1."""
+    """Priorities rho, one per stimulus dimension, a curiosity dimension included (Lambda = diag(1/rho)), in (0, 1]; default all 1."""
     stimulus_rate: StimulusRate | FloatLike | None
-    """How Xi learns: "sample_mean" or a constant rate in (0, 1]; default "sample_mean"."""
+    """How Xi learns: the sample mean of each pair, or a constant rate; default "sample_mean"."""
     optimistic_sd: FloatLike | None
-    """Sd of the optimistic initialisation of Xi, in [0, inf); default 0.3."""
+    """Sigma of the optimistic initial draw of Xi, in [0, inf); default 0.3."""
     ridge: FloatLike | None
-    """Ridge added to A only when singular, in (0, inf); default 1e-06."""
+    """Ridge lambda added to A only when A is singular, in (0, inf); default 1e-6."""
     epsilon: FloatLike | None
-    """Epsilon-greedy exploration, in [0, 1]; default 0."""
+    """Epsilon of epsilon-greedy exploration, in [0, 1]; default 0."""
     seed: IntLike | None
-    """Seed of the session's RNG; default drawn by the server (and returned)."""
+    """Seed of the session's RNG (returned, so a session can be made again); default drawn by the server."""
     update_mode: UpdateMode | None
-    """"lockstep" (reply after one policy update) or "async"; default "lockstep"."""
+    """"lockstep": the reply follows exactly one policy update; "async": the reply comes at once and the tick loop updates behind it; default "lockstep"."""
     history: IntLike | None
-    """Recent ticks kept for the history; default 256."""
+    """Recent ticks kept for /history; default 256."""
     curiosity: CuriosityLike | None
-    """A curiosity channel: the server appends the stimulus dimension "curiosity"; default none."""
+    """A curiosity channel: the server appends a stimulus dimension "curiosity", last, and computes it from the raw "signal" of observations; default none."""
 
 
 AGENT_OPTIONS: Final[tuple[str, ...]] = (

@@ -12,12 +12,16 @@
 //!   mapping.
 //! - [`cluster`]: the shard map, placement on replicas and the router's
 //!   configuration (`mcapi cluster`).
+//! - [`generated`]: the files written from the parameter tables (the
+//!   docs' tables, the Python client's options) and the checks that keep
+//!   the proto and the OpenAPI document in step with them.
 //! - [`config`], [`telemetry`], [`server`]: `mcapi serve`'s one config
 //!   struct, logging and metrics, and the start-up that binds both ports.
 
 pub mod api;
 pub mod cluster;
 pub mod config;
+pub mod generated;
 pub mod server;
 pub mod service;
 pub mod store;

@@ -10,6 +10,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use mcapi_core::params::AGENT_PARAMS;
+use mcapi_core::params::spec::{Default, Kind, Max, Param};
 use mcapi_core::{AgentParams, CuriosityParams, StimulusRate, ValidParams};
 
 /// How a session's reply relates to its policy update.
@@ -25,6 +27,54 @@ pub enum UpdateMode {
 
 /// Default length of the history ring buffer.
 pub const DEFAULT_HISTORY: usize = 256;
+
+/// `update_mode`: how a session's reply relates to its policy update.
+pub const UPDATE_MODE: Param = Param {
+    name: "update_mode",
+    kind: Kind::Choice(&["lockstep", "async"]),
+    default: Default::Name("lockstep"),
+    unit: "",
+    doc: "`lockstep`: the reply follows exactly one policy update; `async`: the reply \
+          comes at once and the tick loop updates behind it",
+    see: "sessions.md#update-modes",
+};
+
+/// `history`: the recent ticks a session keeps.
+pub const HISTORY: Param = Param {
+    name: "history",
+    kind: Kind::Integer {
+        min: 0,
+        max: Max::Limit {
+            flag: "--max-history",
+            hard: u64::MAX,
+        },
+    },
+    default: Default::Integer(DEFAULT_HISTORY as u64),
+    unit: "ticks",
+    doc: "recent ticks kept for /history",
+    see: "",
+};
+
+/// `curiosity`: a curiosity channel.
+pub const CURIOSITY: Param = Param {
+    name: "curiosity",
+    kind: Kind::Object("CuriosityConfig"),
+    default: Default::Absent,
+    unit: "",
+    doc: "a curiosity channel: the server appends a stimulus dimension `curiosity`, last, \
+          and computes it from the raw `signal` of observations",
+    see: "algorithm.md#7-curiosity-the-intmca-channel-sec-43-eqs-6-7",
+};
+
+/// The options a session adds to the core's agent parameters, in the
+/// order of [`SessionConfig`]'s fields after them.
+pub const SESSION_PARAMS: [Param; 3] = [UPDATE_MODE, HISTORY, CURIOSITY];
+
+/// Every option of `agent` in a create request, in [`SessionConfig`]'s
+/// order: the core's table, then the session's.
+pub fn session_options() -> impl Iterator<Item = &'static Param> {
+    AGENT_PARAMS.iter().chain(SESSION_PARAMS.iter())
+}
 
 /// Agent configuration of a session; every field is optional.
 #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, utoipa::ToSchema)]
@@ -195,4 +245,48 @@ pub struct EffectiveConfig {
     /// The curiosity channel, every parameter set; absent without one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curiosity: Option<CuriosityConfig>,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// [`SessionConfig`] and [`EffectiveConfig`] have one field per entry
+    /// of the tables, in their order.
+    #[test]
+    fn the_configs_have_one_field_per_table_entry() {
+        let names: Vec<&str> = session_options().map(|p| p.name).collect();
+        let config = SessionConfig {
+            eta: Some(0.1),
+            gamma: Some(0.5),
+            priorities: Some(vec![1.0]),
+            stimulus_rate: Some(StimulusRate::Constant(0.5)),
+            optimistic_sd: Some(0.1),
+            ridge: Some(1.0),
+            epsilon: Some(0.0),
+            seed: Some(1),
+            update_mode: Some(UpdateMode::Async),
+            history: Some(3),
+            curiosity: Some(CuriosityConfig {
+                signal_dim: 2,
+                params: CuriosityParams::default(),
+            }),
+        };
+        let mut keys: Vec<String> = serde_json::to_value(&config)
+            .expect("serialises")
+            .as_object()
+            .expect("an object")
+            .keys()
+            .cloned()
+            .collect();
+        let mut sorted = names.clone();
+        sorted.sort_unstable();
+        keys.sort_unstable();
+        assert_eq!(keys, sorted);
+        let params = config.params().check(1, 0).expect("valid");
+        let effective = serde_json::to_value(config.effective(&params)).expect("serialises");
+        let mut keys: Vec<&String> = effective.as_object().expect("an object").keys().collect();
+        keys.sort_unstable();
+        assert_eq!(keys, sorted);
+    }
 }

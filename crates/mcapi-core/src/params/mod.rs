@@ -1,10 +1,16 @@
 //! Agent parameters, checked once (`AgentParams::check -> ValidParams`) so
-//! that the algorithm only ever sees valid values. Defaults follow
-//! docs/algorithm.md §2-§6.
+//! that the algorithm only ever sees valid values. Each parameter's name,
+//! range, default and doc are declared once, in [`table`]; the check reads
+//! them from there. Defaults follow docs/algorithm.md §2-§6.
+
+pub mod spec;
+pub mod table;
 
 use serde::{Deserialize, Serialize};
 
-use super::error::{AlgoError, Result};
+use super::error::Result;
+pub use spec::{Bound, Kind, Max, Param};
+pub use table::{AGENT_PARAMS, CURIOSITY_PARAMS};
 
 /// How the stimulus function Ξ learns (Algorithm 1, line 5).
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -31,13 +37,20 @@ impl Default for StimulusRate {
 }
 
 /// Default MCA learning rate η (docs/algorithm.md §6).
-pub const DEFAULT_ETA: f64 = 0.01;
+pub const DEFAULT_ETA: f64 = real_default(table::ETA);
 /// Default discount γ (the hallway's).
-pub const DEFAULT_GAMMA: f64 = 0.95;
+pub const DEFAULT_GAMMA: f64 = real_default(table::GAMMA);
 /// Default σ of the optimistic initialisation of Ξ (docs/algorithm.md §3).
-pub const DEFAULT_OPTIMISTIC_SD: f64 = 0.3;
+pub const DEFAULT_OPTIMISTIC_SD: f64 = real_default(table::OPTIMISTIC_SD);
 /// Default ridge λ, added only when A is singular (docs/algorithm.md §2.6).
-pub const DEFAULT_RIDGE: f64 = 1e-6;
+pub const DEFAULT_RIDGE: f64 = real_default(table::RIDGE);
+
+const fn real_default(p: Param) -> f64 {
+    match p.default {
+        spec::Default::Real(x) => x,
+        _ => f64::NAN,
+    }
+}
 
 /// Agent configuration as a client sends it; every field is optional.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
@@ -90,82 +103,13 @@ pub struct ValidParams {
     pub seed: u64,
 }
 
-fn bad(name: &'static str, reason: impl Into<String>) -> AlgoError {
-    AlgoError::InvalidParameter {
-        name,
-        reason: reason.into(),
-    }
-}
-
-fn finite(name: &'static str, x: f64) -> Result<f64> {
-    if x.is_finite() {
-        Ok(x)
-    } else {
-        Err(bad(name, "must be a finite number"))
-    }
-}
-
 impl AgentParams {
-    /// Validates against a model with `n_stimuli` stimulus dimensions.
-    /// `fallback_seed` is used when no seed was given.
+    /// Validates against a model with `n_stimuli` stimulus dimensions, each
+    /// field against its entry of [`table`] (η ≤ 0.5 is the first half of
+    /// condition (1), docs/algorithm.md §4). `fallback_seed` is used when
+    /// no seed was given.
     pub fn check(&self, n_stimuli: usize, fallback_seed: u64) -> Result<ValidParams> {
-        let eta = finite("eta", self.eta.unwrap_or(DEFAULT_ETA))?;
-        // Condition (1), first half (docs/algorithm.md §4).
-        if !(eta > 0.0 && eta <= 0.5) {
-            return Err(bad(
-                "eta",
-                format!("{eta} is not in (0, 0.5] (condition (1))"),
-            ));
-        }
-        let gamma = finite("gamma", self.gamma.unwrap_or(DEFAULT_GAMMA))?;
-        if !(0.0..1.0).contains(&gamma) {
-            return Err(bad("gamma", format!("{gamma} is not in [0, 1)")));
-        }
-        let priorities = match &self.priorities {
-            None => vec![1.0; n_stimuli],
-            Some(rho) => {
-                if rho.len() != n_stimuli {
-                    return Err(bad(
-                        "priorities",
-                        format!(
-                            "has {} entries, expected one per stimulus ({n_stimuli})",
-                            rho.len()
-                        ),
-                    ));
-                }
-                for (i, &r) in rho.iter().enumerate() {
-                    if !(r.is_finite() && r > 0.0 && r <= 1.0) {
-                        return Err(bad(
-                            "priorities",
-                            format!("entry {i} = {r} is not in (0, 1]"),
-                        ));
-                    }
-                }
-                rho.clone()
-            }
-        };
-        let stimulus_rate = self.stimulus_rate.unwrap_or_default();
-        if let StimulusRate::Constant(c) = stimulus_rate
-            && !(c.is_finite() && c > 0.0 && c <= 1.0)
-        {
-            return Err(bad("stimulus_rate", format!("{c} is not in (0, 1]")));
-        }
-        let optimistic_sd = finite(
-            "optimistic_sd",
-            self.optimistic_sd.unwrap_or(DEFAULT_OPTIMISTIC_SD),
-        )?;
-        if optimistic_sd < 0.0 {
-            return Err(bad("optimistic_sd", format!("{optimistic_sd} is negative")));
-        }
-        let ridge = finite("ridge", self.ridge.unwrap_or(DEFAULT_RIDGE))?;
-        if ridge <= 0.0 {
-            return Err(bad("ridge", format!("{ridge} must be positive")));
-        }
-        let epsilon = finite("epsilon", self.epsilon.unwrap_or(0.0))?;
-        if !(0.0..=1.0).contains(&epsilon) {
-            return Err(bad("epsilon", format!("{epsilon} is not in [0, 1]")));
-        }
-        Ok(ValidParams {
+        let Self {
             eta,
             gamma,
             priorities,
@@ -173,7 +117,25 @@ impl AgentParams {
             optimistic_sd,
             ridge,
             epsilon,
-            seed: self.seed.unwrap_or(fallback_seed),
+            seed,
+        } = self;
+        // In the table's order, so the first bad field is the one named.
+        let eta = table::ETA.real(*eta)?;
+        let gamma = table::GAMMA.real(*gamma)?;
+        let priorities = table::PRIORITIES.per_stimulus(priorities.as_deref(), n_stimuli)?;
+        let stimulus_rate = stimulus_rate.unwrap_or_default();
+        if let StimulusRate::Constant(c) = stimulus_rate {
+            table::STIMULUS_RATE.real(Some(c))?;
+        }
+        Ok(ValidParams {
+            eta,
+            gamma,
+            priorities,
+            stimulus_rate,
+            optimistic_sd: table::OPTIMISTIC_SD.real(*optimistic_sd)?,
+            ridge: table::RIDGE.real(*ridge)?,
+            epsilon: table::EPSILON.real(*epsilon)?,
+            seed: seed.unwrap_or(fallback_seed),
         })
     }
 }
@@ -269,6 +231,32 @@ mod tests {
                 "{msg:?} should contain {expected:?}"
             );
         }
+    }
+
+    #[test]
+    fn the_table_names_every_field_in_order() {
+        let full = ValidParams {
+            eta: 0.1,
+            gamma: 0.5,
+            priorities: vec![1.0],
+            stimulus_rate: StimulusRate::Constant(0.5),
+            optimistic_sd: 0.1,
+            ridge: 1.0,
+            epsilon: 0.1,
+            seed: 1,
+        }
+        .to_params();
+        let json = serde_json::to_value(&full).expect("serialises");
+        let keys: Vec<&str> = json
+            .as_object()
+            .expect("an object")
+            .keys()
+            .map(String::as_str)
+            .collect();
+        let mut names: Vec<&str> = AGENT_PARAMS.iter().map(|p| p.name).collect();
+        names.sort_unstable();
+        // serde_json's map is sorted.
+        assert_eq!(keys, names);
     }
 
     #[test]
