@@ -17,7 +17,7 @@ use serde::{Deserialize, Serialize};
 
 use super::drive::Drive;
 use super::error::{AlgoError, MAX_STIMULUS, Result};
-use super::learned::{LearnedModel, LearnedSnapshot, TransitionCounts, ValidLearnedParams};
+use super::learned::{LearnedModel, TransitionCounts, ValidLearnedParams};
 use super::lstdq::{PlanOutcome, Planner, PlannerStats, PlanningModel};
 use super::params::ValidParams;
 use super::stimulus::StimulusFunction;
@@ -141,6 +141,18 @@ pub struct AgentSnapshot {
     pub policy_version: u64,
     /// R changed since the last plan.
     pub dirty: bool,
+}
+
+/// The resumable state of a learned-model agent: the agent's own snapshot
+/// (policy and Q include the absorbing state when there is one) and the
+/// counts, from which P̂ is rebuilt exactly. It lives here, beside
+/// [`AgentSnapshot`], so that [`crate::learned`] needs nothing of the agent.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct LearnedSnapshot {
+    /// Everything an agent with a known model keeps.
+    pub agent: AgentSnapshot,
+    /// N(s, a, s′).
+    pub counts: TransitionCounts,
 }
 
 /// One MCA-PI agent: its drive, stimulus function, policy and RNG.
@@ -697,7 +709,6 @@ mod tests {
     use super::*;
     use crate::basis::Basis;
     use crate::drive::norm;
-    use crate::learned::LearnedSnapshot;
     use crate::model::hallway;
     use crate::params::AgentParams;
 

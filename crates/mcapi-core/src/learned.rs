@@ -313,17 +313,6 @@ impl LearnedModel {
     }
 }
 
-/// The resumable state of a learned-model agent: the agent's own snapshot
-/// (policy and Q include the absorbing state when there is one) and the
-/// counts, from which P̂ is rebuilt exactly.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct LearnedSnapshot {
-    /// Everything an agent with a known model keeps.
-    pub agent: super::agent::AgentSnapshot,
-    /// N(s, a, s′).
-    pub counts: TransitionCounts,
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;

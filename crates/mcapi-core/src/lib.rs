@@ -27,7 +27,9 @@ pub mod params;
 pub mod spec;
 pub mod stimulus;
 
-pub use agent::{Agent, AgentSnapshot, Observation, ObserveOutcome, RngState, Step};
+pub use agent::{
+    Agent, AgentSnapshot, LearnedSnapshot, Observation, ObserveOutcome, RngState, Step,
+};
 pub use basis::Basis;
 pub use curiosity::{
     CuriosityChannel, CuriosityParams, CuriosityStep, Eq6Source, Signals, ValidCuriosityParams,
@@ -37,9 +39,7 @@ pub use curious_agent::{
 };
 pub use drive::Drive;
 pub use error::AlgoError;
-pub use learned::{
-    LearnedModel, LearnedParams, LearnedSnapshot, Optimism, TransitionCounts, ValidLearnedParams,
-};
+pub use learned::{LearnedModel, LearnedParams, Optimism, TransitionCounts, ValidLearnedParams};
 pub use lstdq::{PlanOutcome, Planner, PlanningModel};
 pub use model::{EnvModel, GridMap, Preset, Source};
 pub use params::{AgentParams, StimulusRate, ValidParams};

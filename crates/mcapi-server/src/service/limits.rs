@@ -12,7 +12,6 @@ use mcapi_core::{BasisSpec, EnvModel};
 
 use super::agent_config::SessionConfig;
 use super::error::ServiceError;
-use super::spec::LearnedSpec;
 use super::wire::SessionCost;
 
 /// Caps on what clients may ask of the server.
@@ -416,33 +415,34 @@ impl Limits {
     /// Checks a full model whose transitions the agent learns before its
     /// structure is built: names, states × actions (and states alone, so
     /// that no action list makes the state count free), stimuli.
-    pub fn check_learned_spec(&self, spec: &LearnedSpec) -> Result<(), ServiceError> {
-        if spec.actions.is_empty() {
+    pub fn check_learned_spec(
+        &self,
+        states: usize,
+        actions: &[String],
+        stimuli: &[String],
+        state_names: Option<&[String]>,
+    ) -> Result<(), ServiceError> {
+        if actions.is_empty() {
             return Err(ServiceError::field(
                 "model.actions",
                 "must name at least one action",
             ));
         }
-        if spec.actions.len() > self.max_pairs {
+        if actions.len() > self.max_pairs {
             return Err(exceeded(
                 "`model.actions` length",
-                spec.actions.len(),
+                actions.len(),
                 self.max_pairs,
             ));
         }
-        if spec.states > self.max_pairs {
-            return Err(exceeded("`model.states`", spec.states, self.max_pairs));
+        if states > self.max_pairs {
+            return Err(exceeded("`model.states`", states, self.max_pairs));
         }
-        self.check_structure(
-            spec.states,
-            &spec.actions,
-            &spec.stimuli,
-            spec.state_names.as_deref(),
-        )?;
-        if spec.stimuli.len() > self.max_stimuli {
+        self.check_structure(states, actions, stimuli, state_names)?;
+        if stimuli.len() > self.max_stimuli {
             return Err(exceeded(
                 "`model.stimuli` length",
-                spec.stimuli.len(),
+                stimuli.len(),
                 self.max_stimuli,
             ));
         }

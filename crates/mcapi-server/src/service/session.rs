@@ -17,7 +17,6 @@ use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, enco
 use super::error::{ServiceError, StorageError};
 use super::history::{RingTick, push_tick};
 use super::learner::Learner;
-use super::table::Evicted;
 use super::wire::{HistoryEntry, ModelSummary, ObservationIn, SessionCost, StepOut};
 
 /// Mutable state of a session, behind its lock.
@@ -788,4 +787,30 @@ pub(crate) enum Update {
     Observe = 1,
     /// An async-mode policy update.
     Plan = 2,
+}
+
+/// Who holds a session: the SHA-256 of its API key, or `None` without keys.
+pub type Owner = Option<[u8; 32]>;
+
+/// What the table keeps of an evicted session: enough to list it, charge
+/// its owner and price a message without loading it (about 100 bytes,
+/// against kilobytes for the session).
+#[derive(Debug)]
+pub struct Evicted {
+    /// Its owner.
+    pub owner: Owner,
+    /// Its estimated cost, as charged while it was resident.
+    pub cost: SessionCost,
+    /// Ticks so far.
+    pub tick: u64,
+    /// States of its model.
+    pub states: usize,
+    /// Lockstep or async.
+    pub mode: UpdateMode,
+    /// The session clock at its last applied observation (0: none since
+    /// the server started), carried into the session loaded back.
+    pub last_observed_ns: u64,
+    /// Every write of the session is in the store's frames up to this one
+    /// ([`crate::store::Store::committed`] when it left memory).
+    pub lsn: u64,
 }

@@ -273,7 +273,12 @@ impl ModelInput {
                 (EnvModel::from_spec(spec)?, spec.basis.clone())
             }
             Self::Learned(spec) => {
-                limits.check_learned_spec(spec)?;
+                limits.check_learned_spec(
+                    spec.states,
+                    &spec.actions,
+                    &spec.stimuli,
+                    spec.state_names.as_deref(),
+                )?;
                 if matches!(spec.basis, Some(BasisSpec::ProtoValue { .. })) {
                     return Err(ServiceError::field(
                         "model.basis",

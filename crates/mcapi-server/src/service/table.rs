@@ -8,14 +8,10 @@ use std::collections::btree_map::{self, BTreeMap};
 use std::ops::Bound;
 use std::sync::Arc;
 
-use super::agent_config::UpdateMode;
 use super::cost;
 use super::limits::Usage;
-use super::session::SessionRef;
+use super::session::{Evicted, Owner, SessionRef};
 use super::wire::SessionCost;
-
-/// Who holds a session: the SHA-256 of its API key, or `None` without keys.
-pub type Owner = Option<[u8; 32]>;
 
 /// A session in the table.
 #[derive(Debug, Clone)]
@@ -24,29 +20,6 @@ pub enum Entry {
     Resident(SessionRef),
     /// Evicted to the store: loaded back on its next request.
     Evicted(Arc<Evicted>),
-}
-
-/// What the table keeps of an evicted session: enough to list it, charge
-/// its owner and price a message without loading it (about 100 bytes,
-/// against kilobytes for the session).
-#[derive(Debug)]
-pub struct Evicted {
-    /// Its owner.
-    pub owner: Owner,
-    /// Its estimated cost, as charged while it was resident.
-    pub cost: SessionCost,
-    /// Ticks so far.
-    pub tick: u64,
-    /// States of its model.
-    pub states: usize,
-    /// Lockstep or async.
-    pub mode: UpdateMode,
-    /// The session clock at its last applied observation (0: none since
-    /// the server started), carried into the session loaded back.
-    pub last_observed_ns: u64,
-    /// Every write of the session is in the store's frames up to this one
-    /// ([`crate::store::Store::committed`] when it left memory).
-    pub lsn: u64,
 }
 
 impl Entry {
