@@ -16,7 +16,7 @@
 //! Checked three ways: `tests/integration/openapi.rs` (each bound equals the limit it
 //! describes; documented examples are accepted and near misses refused),
 //! schemathesis against the live server (`make contract`) and the fuzzer
-//! (`tests/fuzz.rs`).
+//! (`tests/fuzz/`).
 
 use std::borrow::Cow;
 
