@@ -28,7 +28,7 @@ k8s-validate:
 	bash tools/k8s-validate.sh
 
 # Rewrites deploy/k8s/10-mcapi-cluster.yaml (shard map and HAProxy
-# configuration) with the debug binary; tests/integration/cluster.rs fails while the
+# configuration) with the debug binary; tests/integration/cluster/kubernetes.rs fails while the
 # committed file differs from what this writes.
 k8s-configmap: build
 	bash tools/k8s-configmap.sh
@@ -85,7 +85,7 @@ python-lint: python-venv
 python-test: build python-venv
 	cd $(PY_CLIENT) && MCAPI_BIN=$(MCAPI_BIN) .venv/bin/pytest
 
-# The REST contract (issue 12): schemathesis (pinned, installed into
+# The REST contract (README, "The contract"): schemathesis (pinned, installed into
 # .venv-tools/) against the debug binary with an in-memory store and an API
 # key on free ports, every phase (examples, coverage, fuzzing, stateful)
 # and every check, 0 failures; then the server must still be up and quick.
@@ -94,7 +94,7 @@ python-test: build python-venv
 contract: build
 	bash tools/contract.sh
 
-# The generative fuzzer (tests/fuzz.rs) for longer than `unit` runs it:
+# The generative fuzzer (tests/fuzz/) for longer than `unit` runs it:
 # FUZZ_CASES cases per test (unit: 5000). A failure prints its FUZZ_SEED.
 FUZZ_CASES ?= 20000
 fuzz:
@@ -115,7 +115,7 @@ e2e: build
 	  CHROMIUM="$(CHROMIUM)" MCAPI_BIN="$(MCAPI_BIN)" node dashboard.mjs; \
 	fi
 
-# The container image (issue 13, tools/container-test.sh): built with podman
+# The container image (tools/container-test.sh): built with podman
 # from the Dockerfile on locally made base images, then run with a read-only
 # root filesystem and a volume, driven over REST and gRPC, stopped with
 # SIGTERM and killed with SIGKILL; every acknowledged observation must
@@ -151,7 +151,7 @@ container-bench: python-venv
 bench:
 	$(CARGO) bench --bench tick
 
-# Every row of issue 15's table in one run (benches/server.sh): the server
+# Every row of BENCHMARKS.md §8's targets table in one run (benches/server.sh): the server
 # pinned to core 0, the load generator to core 1, each target with its
 # measurement and ratio (BENCHMARKS.md §8). About 12 minutes; QUICK=1 for a
 # short run, MEMORY_SESSIONS=1000000 for the memory row at full size. Not

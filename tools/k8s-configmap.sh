@@ -3,7 +3,7 @@
 # the shard map (for the replicas) and HAProxy's configuration and map file
 # (for the router), from `mcapi cluster plan` and
 # `mcapi cluster haproxy-config --configmap`. The manifests thus cannot
-# drift from the code: tests/integration/cluster.rs runs this script and compares.
+# drift from the code: tests/integration/cluster/kubernetes.rs runs this script and compares.
 #
 #   bash tools/k8s-configmap.sh               # rewrites deploy/k8s/10-mcapi-cluster.yaml
 #   bash tools/k8s-configmap.sh OUT.yaml      # writes elsewhere

@@ -17,7 +17,7 @@
 //! Checked three ways: `tests/integration/openapi.rs` (each bound equals
 //! the limit it describes; documented examples are accepted and near
 //! misses refused), schemathesis against the live server (`make contract`)
-//! and the fuzzer (`tests/fuzz.rs`).
+//! and the fuzzer (`tests/fuzz/`).
 
 pub mod agent;
 mod builders;
