@@ -1,4 +1,4 @@
-//! The typed gRPC `Model` (issue 14, item 4) on the full server
+//! The typed gRPC `Model` (docs/grpc.md) on the full server
 //! (`server::start`, both ports on real sockets, a durable store):
 //! - a typed preset, grid map and full table (deterministic and stochastic)
 //!   each create a session whose model summary equals the one the

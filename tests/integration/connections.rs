@@ -1,4 +1,4 @@
-//! Connections are bounded (issue 12 §6), over real sockets against the
+//! Connections are bounded (docs/limits.md), over real sockets against the
 //! real binary: slow-loris connections are closed after the header-read
 //! timeout, connections beyond `--max-connections` wait for a slot, slow
 //! requests get `request_timeout`, watch streams per key are limited over

@@ -1,5 +1,5 @@
-//! Sessions with a curiosity channel on the real binary (issue 6, server
-//! part; docs/algorithm.md §7):
+//! Sessions with a curiosity channel on the real binary (the server
+//! part of docs/algorithm.md §7):
 //! - over REST, every reply of a lockstep curious session equals a core
 //!   `CuriousAgent` stepped alongside, bit for bit (action, D, |r|, ξ_cur,
 //!   ε), through a module freeze; history and values expose ξ_cur, ε, the

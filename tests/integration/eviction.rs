@@ -1,5 +1,5 @@
-//! Idle sessions leave memory and come back bit for bit (issue 15, item 5;
-//! docs/sessions.md, "Idle sessions"):
+//! Idle sessions leave memory and come back bit for bit (docs/sessions.md,
+//! "Idle sessions"):
 //! - sessions driven while another thread evicts every session not in use,
 //!   as often as it can, answer exactly as the same sessions on a server
 //!   that never evicts: every reply, then Q, π, V, R, Ξ and the history;

@@ -1,4 +1,4 @@
-//! A real full disk (issue 12, section 5), on the real binary: the data
+//! A real full disk (docs/operations.md), on the real binary: the data
 //! directory is a small tmpfs this test mounts itself, and the test fills it
 //! with a file while the server runs. redb latches the first I/O error
 //! (ENOSPC), so without a reopen every later commit would fail until a

@@ -1,5 +1,5 @@
-//! Sessions whose transitions the agent learns (issue 17,
-//! docs/algorithm.md §8), over REST and gRPC: the three-room maze posted
+//! Sessions whose transitions the agent learns (docs/algorithm.md
+//! §8), over REST and gRPC: the three-room maze posted
 //! as a grid map with `"learn": true` is explored and `known_fraction`
 //! rises; absurd learned models are refused with a precise 4xx; and a
 //! learned session driven over each transport survives `kill -9` bit-equal

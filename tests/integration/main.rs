@@ -1,7 +1,7 @@
 //! The server's integration tests, in one test binary: one link of the
 //! whole server instead of one per file, which is most of what a cold
 //! `make test` spends compiling. Each module is one subject (`cargo test
-//! --test integration crash::` runs one). `tests/fuzz.rs` and
+//! --test integration crash::` runs one). `tests/fuzz/` and
 //! `tests/grpc_model.rs` stay binaries of their own: they measure their
 //! own process's resident memory, which other tests would disturb here.
 

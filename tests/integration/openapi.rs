@@ -1,9 +1,9 @@
-//! The OpenAPI document is exact (issue 12, section 7): every operation is
+//! The OpenAPI document is exact (docs/rest.md): every operation is
 //! tagged and documents its errors, the session routes are linked from
 //! `POST /v1/sessions`, every bound the server enforces is in the schema
 //! with the value of the limit it describes, and the body forms are
 //! `oneOf`s. The server side of each bound (the contract's other half) is
-//! exercised by schemathesis (`make contract`) and `tests/fuzz.rs`; here,
+//! exercised by schemathesis (`make contract`) and `tests/fuzz/`; here,
 //! the cases the issue named are sent through the real router.
 
 use std::sync::Arc;

@@ -675,7 +675,7 @@ async fn grids_of_ten_and_a_hundred_thousand_states_are_served() {
     );
 }
 
-/// Issue 17, item 3: a 100 × 100 grid with 30 proto-value functions (the
+/// A 100 × 100 grid with 30 proto-value functions (the
 /// sparse eigensolver, docs/algorithm.md §5) is created and driven; absurd
 /// proto-value requests are refused with a precise 4xx before the
 /// eigensolver (or, for a map, the model) allocates anything.
@@ -769,7 +769,7 @@ async fn a_hundred_by_hundred_grid_with_thirty_pvfs_is_served_and_absurd_ones_ar
         "{err}"
     );
     // 267 rooms of three cells and no doors (801 states, found by
-    // tests/fuzz.rs): eigenvalue 0 repeats 267 times, beyond the sparse
+    // tests/fuzz/): eigenvalue 0 repeats 267 times, beyond the sparse
     // solver's block, which its second stage solves from the null space.
     let rooms: Vec<&str> = std::iter::repeat_n(["#####", "#a.b#"], 267)
         .flatten()
