@@ -178,7 +178,7 @@ pub struct Agent {
     /// R changed since the last plan.
     dirty: bool,
     /// The learned transition model P̂, when the model has no posted P
-    /// (issue 17); `None` plans on the known P of `ctx`.
+    /// (docs/algorithm.md §8); `None` plans on the known P of `ctx`.
     learned: Option<Box<LearnedModel>>,
 }
 
@@ -189,7 +189,7 @@ impl Agent {
         Self::with_learned(ctx, params, None)
     }
 
-    /// A fresh agent that learns P (issue 17): `ctx` gives the states,
+    /// A fresh agent that learns P (docs/algorithm.md §8): `ctx` gives the states,
     /// actions, valid pairs and basis (its P is never read), the agent
     /// counts the transitions it makes and plans on P̂ (see
     /// [`crate::learned`]). Ξ, D and π₀ are drawn exactly as in
@@ -374,7 +374,7 @@ impl Agent {
         let (real, absorbing) = self.rewards.split_at_mut(pairs);
         self.stimulus.rewards_into(&self.scaled_drive, real);
         if let Some(r_star) = absorbing.first_mut() {
-            // R-max (issue 17): s* earns the best reward of any valid pair.
+            // R-max (docs/algorithm.md §8): s* earns the best reward of any valid pair.
             *r_star = real.iter().copied().fold(0.0, f64::max);
         }
     }

@@ -1,4 +1,4 @@
-//! Learned transition models (issue 17): the agent estimates P from what it
+//! Learned transition models (docs/algorithm.md §8): the agent estimates P from what it
 //! sees instead of being given it.
 //!
 //! The agent keeps sparse counts N(s, a, s′) of the transitions it made

@@ -284,7 +284,7 @@ impl EnvModel {
         Self::deterministic(next, names(&["left", "right", "stay"]), stimuli)
     }
 
-    /// The starting point of a learned transition model P̂ (issue 17): the
+    /// The starting point of a learned transition model P̂ (docs/algorithm.md §8): the
     /// states, actions and valid pairs of `structure` (its P is ignored),
     /// with every pair still unknown. An unknown pair moves to the absorbing
     /// optimistic state s* = |S| when `absorbing` (R-max style: s* is one

@@ -1,4 +1,4 @@
-//! Large worlds (issue 17, item 3): open square grid maps of about 1,000,
+//! Large worlds (docs/algorithm.md §5, the sparse solver): open square grid maps of about 1,000,
 //! 10,000 and 100,000 states (32², 100², 316²; five actions, two stimulus
 //! sources in opposite corners), with the indicator basis.
 //!

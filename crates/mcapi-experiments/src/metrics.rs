@@ -136,7 +136,7 @@ pub fn trial_metrics(rec: &TrialRecord, sources: &[usize]) -> TrialMetrics {
     m.insert("lstdq_error_mean".into(), err_mean);
     m.insert("factorisation_reuse".into(), rec.reuse_fraction);
     // How much of the model is known at the end, and from which tick on
-    // all of it (issue 17; 1 and tick 1 for a known model).
+    // all of it (docs/algorithm.md §8; 1 and tick 1 for a known model).
     m.insert(
         "model_known".into(),
         rec.known.last().map_or(1.0, |&k| f64::from(k)),

@@ -59,7 +59,7 @@ pub enum Controller {
         /// Exploration ε.
         epsilon: f64,
         /// `Some`: the agent learns P̂ from its own transitions instead of
-        /// planning on the world's P (issue 17).
+        /// planning on the world's P (docs/algorithm.md §8).
         learned: Option<ValidLearnedParams>,
     },
     /// Brownian exploration on a chain: step = round(N(0, σ)), clipped.
@@ -106,7 +106,7 @@ pub enum ModelChoice {
     #[default]
     Known,
     /// P̂ learned from the agent's own transitions, reported against the
-    /// known model on the same seeds (issue 17).
+    /// known model on the same seeds (docs/algorithm.md §8).
     Learned,
 }
 
@@ -568,7 +568,7 @@ impl<'a> Simulation<'a> {
         Self::with_world(world, start, ctx, params, None)
     }
 
-    /// Like [`Simulation::new`], for an agent that learns P̂ (issue 17).
+    /// Like [`Simulation::new`], for an agent that learns P̂ (docs/algorithm.md §8).
     pub fn new_learned(
         exp: &'a Experiment,
         ctx: Arc<PlanningModel>,

@@ -517,7 +517,7 @@ fn draw_hallway(
 }
 
 /// Cumulative stimulus (all sources) of the known and the learned model,
-/// and how much of the learned model is known (issue 17).
+/// and how much of the learned model is known (docs/algorithm.md §8).
 fn learned_vs_known(
     known: &[TrialRecord],
     learned: &[TrialRecord],

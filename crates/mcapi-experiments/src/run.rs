@@ -51,7 +51,7 @@ pub struct Summary {
     /// Slip probability of the world (0: deterministic).
     #[serde(default)]
     pub slip: f64,
-    /// Learned against known model on the same seeds (issue 17):
+    /// Learned against known model on the same seeds (docs/algorithm.md §8):
     /// `{"<learned>_vs_<known>": {metric: Stat}}`, where the `*_ratio`
     /// metrics are per-trial ratios learned / known and
     /// `stimulus_ratio_of_means` is mean learned / mean known.

@@ -88,7 +88,7 @@ impl PlanningModel {
     }
 
     /// The same basis on another model with the same states and actions
-    /// (a learned P̂, issue 17); ΦᵀΦ and M are computed for it.
+    /// (a learned P̂, docs/algorithm.md §8); ΦᵀΦ and M are computed for it.
     pub fn with_model(&self, model: EnvModel) -> Result<Self> {
         if let Basis::StateBlocks(f) = &self.basis
             && f.states() != model.states()
@@ -316,7 +316,7 @@ impl Planner {
         Ok(planner)
     }
 
-    /// Tells the planner that P changed (a learned P̂, issue 17): a model
+    /// Tells the planner that P changed (a learned P̂, docs/algorithm.md §8): a model
     /// that is no longer deterministic moves the functional-graph engine to
     /// Gauss–Seidel, warm-started from its V; a feature basis rebuilds A
     /// (which holds P through M) at the next update.

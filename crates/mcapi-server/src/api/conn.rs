@@ -1,6 +1,6 @@
-//! Connection limits of both transports (issue 12, "Connections are
-//! bounded"): how many connections a port holds, how long a client may take
-//! to send a request head (REST) or the HTTP/2 preface (gRPC), how long a
+//! Connection limits of both transports (docs/limits.md): how many
+//! connections a port holds, how long a client may take to send a request
+//! head (REST) or the HTTP/2 preface (gRPC), how long a
 //! request may take, TCP keep-alive, and panic isolation.
 //!
 //! The REST port is served here with hyper's HTTP/1.1 connection builder

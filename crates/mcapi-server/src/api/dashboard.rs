@@ -1,4 +1,4 @@
-//! The live dashboard (issue 7): a page served at `/` and the
+//! The live dashboard (README, "Dashboard"): a page served at `/` and the
 //! server-sent-events stream of a session it reads,
 //! `GET /v1/sessions/{id}/events`.
 //!

@@ -11,7 +11,7 @@
 //! when the server shuts down, so a graceful shutdown is not held up by
 //! long-lived streams.
 //!
-//! Bounds ([`serve_with`], issue 12): keys are checked and `Observe`
+//! Bounds ([`serve_with`], docs/limits.md): keys are checked and `Observe`
 //! batches counted before a message is decoded ([`guard`]); a caller's
 //! `Watch` streams count against its budget of watch streams, shared with
 //! the REST event streams ([`crate::api::streams`]); connections, HTTP/2

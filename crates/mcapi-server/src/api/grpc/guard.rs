@@ -1,5 +1,5 @@
 //! A tower layer in front of the gRPC services that refuses what must not
-//! be decoded (issue 12, "Connections are bounded"):
+//! be decoded (docs/limits.md):
 //!
 //! - Every `mcapi.v1.Agents` call is authenticated from its `authorization`
 //!   metadata **before its body is read**: a caller without a valid key
