@@ -1,0 +1,154 @@
+//! Creating a session: checked against the limits and the caller's quota,
+//! built by [`super::super::setup`] off the runtime, logged to the store
+//! before it is installed in the table.
+
+use super::*;
+
+impl SessionManager {
+    /// Creates a session. Synchronous and possibly slow (a PVF basis costs
+    /// an eigendecomposition; with a store, the creation is committed before
+    /// this returns): call it off the async runtime.
+    pub fn create(&self, caller: Caller, req: CreateSession) -> Result<SessionInfo, ServiceError> {
+        let CreateSession { model, agent } = req;
+        if self.len() >= self.limits.max_sessions {
+            return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+        }
+        let model_text = self.durability.as_ref().map(|_| model.to_string());
+        let input = ModelInput::parse(model)?;
+        self.create_from(caller, input, &agent, model_text)
+    }
+
+    /// Creates a session from a model already parsed (gRPC's typed `Model`,
+    /// converted in `api::grpc::convert`); otherwise as [`Self::create`],
+    /// with the same checks in the same order.
+    pub fn create_parsed(
+        &self,
+        caller: Caller,
+        input: ModelInput,
+        agent: &SessionConfig,
+    ) -> Result<SessionInfo, ServiceError> {
+        if self.len() >= self.limits.max_sessions {
+            return Err(ServiceError::TooManySessions(self.limits.max_sessions));
+        }
+        let model_text = match &self.durability {
+            Some(_) => Some(input.to_json_text()?),
+            None => None,
+        };
+        self.create_from(caller, input, agent, model_text)
+    }
+
+    pub(super) fn create_from(
+        &self,
+        caller: Caller,
+        input: ModelInput,
+        agent: &SessionConfig,
+        model_text: Option<String>,
+    ) -> Result<SessionInfo, ServiceError> {
+        let owner = caller.owner();
+        // Refused early when the key's quota of sessions is used up.
+        self.limits.check_cost(
+            &SessionCost {
+                bytes: 0,
+                tick_us: 0,
+            },
+            self.sessions.read().usage(&owner),
+        )?;
+        let (learner, summary, config) = self.setup.build(&input, agent, &self.limits)?;
+        let cost = cost::estimate(&summary, &config);
+        self.limits
+            .check_cost(&cost, self.sessions.read().usage(&owner))?;
+        // Held until the session is in the table: a move freezing the
+        // shard waits for it (docs/cluster.md, "How a shard moves").
+        let (shard, _guard) = match &self.placement {
+            // Only in a shard owned here, so a create is never misdirected.
+            Some(p) => {
+                let guard = p.mint(self.setup.fresh_u64()).ok_or_else(|| {
+                    ServiceError::Unavailable(format!(
+                        "replica `{}` owns no shard open for new sessions right now; retry (the router sends creates to every replica in turn)",
+                        p.replica()
+                    ))
+                })?;
+                (guard.shard(), Some(guard))
+            }
+            None => ((self.setup.fresh_u64() % SHARDS) as u16, None),
+        };
+        let id = format!("s{shard:04x}.{}", ulid::Ulid::new());
+        if let (Some(d), Some(model)) = (&self.durability, model_text) {
+            let record = durable::SessionRecord {
+                model,
+                config: config.clone(),
+                owner: caller.owner(),
+            };
+            let bytes = serde_json::to_vec(&record)
+                .map_err(|e| ServiceError::Internal(format!("encoding a session record: {e}")))?;
+            d.store
+                .submit(vec![crate::store::Write::Session {
+                    id: Arc::from(id.as_str()),
+                    record: bytes,
+                }])
+                .wait_blocking()
+                .map_err(ServiceError::from)?;
+        }
+        let session = Arc::new(Session::resume(
+            id.clone(),
+            learner,
+            summary,
+            config,
+            self.durability.clone(),
+            session::Resumed {
+                owner: caller.owner(),
+                // What a rebuild from its record gives, until it observes.
+                pristine: true,
+                ..session::Resumed::default()
+            },
+        ));
+        {
+            let mut sessions = self.sessions.write();
+            // Checked again under the lock: concurrent creates see each other.
+            let refused = if sessions.len() >= self.limits.max_sessions {
+                Some(ServiceError::TooManySessions(self.limits.max_sessions))
+            } else {
+                self.limits.check_cost(&cost, sessions.usage(&owner)).err()
+            };
+            if let Some(e) = refused {
+                drop(sessions);
+                // Undo the stored record; the client sees the limit.
+                if let Some(commit) = session.delete() {
+                    let _ = commit.wait_blocking();
+                }
+                return Err(e);
+            }
+            sessions.insert(id.clone(), Arc::clone(&session));
+            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        }
+        tracing::info!(session = %id, states = session.model.states, "session created");
+        Ok(info_of(&session))
+    }
+
+    /// Puts a session loaded back in place of its eviction `was`. Two
+    /// requests may load the same session at once: both rebuilt it from
+    /// the same stored state, the first to get here is served and the
+    /// other's copy dropped. Gone meanwhile (deleted, its shard moved):
+    /// `NotFound`.
+    pub(super) fn install(
+        &self,
+        id: &str,
+        was: &Entry,
+        fresh: SessionRef,
+    ) -> Result<SessionRef, ServiceError> {
+        if let Entry::Evicted(stub) = was {
+            fresh.set_last_observed_ns(stub.last_observed_ns);
+        }
+        let mut sessions = self.sessions.write();
+        if sessions.swap(id, was, Entry::Resident(Arc::clone(&fresh))) {
+            metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
+            drop(sessions);
+            metrics::counter!("mcapi_session_loads_total").increment(1);
+            return Ok(fresh);
+        }
+        match sessions.get(id) {
+            Some(Entry::Resident(s)) => Ok(Arc::clone(s)),
+            _ => Err(ServiceError::NotFound(id.to_string())),
+        }
+    }
+}

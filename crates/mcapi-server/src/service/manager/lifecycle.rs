@@ -1,0 +1,267 @@
+//! A session's life beyond its requests: deletion, recovery of the stored
+//! sessions at start, reload after a storage failure, and eviction of idle
+//! sessions to the store.
+
+use super::*;
+
+impl SessionManager {
+    /// Deletes a session and, with a store, its stored data. The deletion is
+    /// committed before anything is removed: if the commit fails, the
+    /// session stays and is served as before (the client gets
+    /// `storage_unavailable` and may retry); once it returns `Ok`, the
+    /// session is gone, restarts included.
+    #[tracing::instrument(level = "debug", skip(self))]
+    pub async fn delete(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
+        let _guard = self.enter_shard(id)?;
+        let session = self.visible_session_async(caller, id).await?;
+        self.store_writable()?;
+        let result = match session.begin_delete()? {
+            Some(commit) => commit.wait().await.map_err(ServiceError::from),
+            None => Ok(()),
+        };
+        // A reload during the commit may have replaced the session in the
+        // map; the delete ends on both.
+        let current = self.resident(id).filter(|s| !Arc::ptr_eq(s, &session));
+        if let Err(e) = result {
+            session.end_delete(false);
+            if let Some(s) = current {
+                s.end_delete(false);
+            }
+            tracing::warn!(session = %id, error = %e, "session not deleted: its deletion was not committed");
+            return Err(e);
+        }
+        {
+            let mut sessions = self.sessions.write();
+            sessions.remove(id);
+            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        }
+        session.end_delete(true);
+        if let Some(s) = current {
+            s.end_delete(true);
+        }
+        tracing::info!(session = %id, "session deleted");
+        Ok(())
+    }
+
+    /// Loads every stored session ([`recovery::recover_all`]) and marks the
+    /// manager ready when done. A session whose records do not decode or
+    /// replay is skipped (logged, counted, listed in the report, its data
+    /// left in the store); a store that cannot be read fails the recovery.
+    pub fn recover(&self) -> Result<RecoveryReport, ServiceError> {
+        let Some(d) = &self.durability else {
+            self.ready.store(true, Ordering::Release);
+            return Ok(RecoveryReport::default());
+        };
+        let placement = self.placement.as_deref();
+        // With eviction, recovered sessions stay in the store until their
+        // first request: a store of a million sessions starts without
+        // needing them all in memory at once.
+        // A rebuilt session is pristine: it goes unless an update is due.
+        let keep = |session: SessionRef| match self.evict_after {
+            Some(_) => session
+                .still_evictable(cost::estimate(&session.model, &session.config))
+                .map_or(Entry::Resident(session), |stub| {
+                    Entry::Evicted(Arc::new(stub))
+                }),
+            None => Entry::Resident(session),
+        };
+        let (rebuilt, report) =
+            recovery::recover_all(&self.setup, &self.limits, d, placement, keep)?;
+        if report.not_owned > 0 {
+            tracing::warn!(
+                sessions = report.not_owned,
+                store = %d.store.path().display(),
+                "stored sessions of shards this replica does not own are kept in the store, not served"
+            );
+        }
+        let mut sessions = self.sessions.write();
+        for (id, entry) in rebuilt {
+            sessions.insert_entry(id, entry);
+        }
+        metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+        metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
+        drop(sessions);
+        if report.skipped > 0 {
+            tracing::warn!(
+                skipped = report.skipped,
+                ids = ?report.skipped_ids,
+                store = %d.store.path().display(),
+                "stored sessions skipped at recovery"
+            );
+        }
+        // Logged before the server reports ready, so whoever sees it ready
+        // finds the line in the log.
+        if report.sessions > 0 {
+            tracing::info!(
+                sessions = report.sessions,
+                replayed = report.replayed,
+                seconds = report.seconds,
+                evicted = self.evicted_len(),
+                "sessions recovered"
+            );
+        }
+        self.ready.store(true, Ordering::Release);
+        Ok(report)
+    }
+
+    /// Replaces a session whose commit failed by a fresh recovery of its
+    /// durable state (snapshot and log, as at start, [`recovery::rebuild`]),
+    /// then lets the store accept its writes again
+    /// ([`crate::store::Write::Resume`]). The old session is marked stale
+    /// first, so nothing is applied to it while this runs. A no-op if the
+    /// session was deleted or already replaced.
+    pub fn reload(&self, session: &SessionRef) -> Result<(), RecoveryError> {
+        let Some(d) = &self.durability else {
+            return Ok(());
+        };
+        session.mark_stale();
+        let _one_at_a_time = self.reloading.lock();
+        let current = |sessions: &SessionTable| {
+            sessions
+                .get(&session.id)
+                .and_then(Entry::resident)
+                .is_some_and(|s| Arc::ptr_eq(s, session))
+        };
+        if !current(&self.sessions.read()) {
+            return Ok(());
+        }
+        let stored = d
+            .store
+            .session(&session.id)?
+            .ok_or_else(|| RecoveryError::Missing(session.id.clone()))?;
+        let (fresh, replayed) = recovery::rebuild(&self.setup, &self.limits, d, stored)?;
+        // Queued before the fresh session can submit anything, so the
+        // store readmits exactly the writes that continue the durable state.
+        drop(d.store.submit(vec![Write::Resume {
+            id: Arc::from(session.id.as_str()),
+        }]));
+        let mut sessions = self.sessions.write();
+        if current(&sessions) {
+            // A delete in flight on the old session goes on with the new
+            // one: it takes no observation until the delete ends.
+            if session.is_deleting() {
+                fresh.inherit_deleting();
+            }
+            sessions.insert(session.id.clone(), fresh);
+        }
+        drop(sessions);
+        tracing::info!(session = %session.id, replayed, "session reloaded from its durable state");
+        Ok(())
+    }
+
+    /// Number of sessions evicted to the store (docs/sessions.md, "Idle
+    /// sessions").
+    pub fn evicted_len(&self) -> usize {
+        self.sessions.read().evicted()
+    }
+
+    /// Starts the evictor: a thread that, four times per `evict_after`
+    /// (at most once a minute, at least every 10 ms), evicts the sessions
+    /// inactive that long ([`Self::evict_idle`]), so a session leaves
+    /// between `evict_after` and 1.25 `evict_after` after its last
+    /// observation; a pass over a million resident sessions touches each
+    /// once. Nothing without a store or `evict_after`. It stops with
+    /// [`Self::shutdown`] or when the manager is dropped.
+    pub fn start_evictor(self: &Arc<Self>) -> std::io::Result<()> {
+        let Some(after) = self.evict_after else {
+            return Ok(());
+        };
+        let period = (after / 4).clamp(Duration::from_millis(10), Duration::from_secs(60));
+        let manager = Arc::downgrade(self);
+        std::thread::Builder::new()
+            .name("mcapi-evict".into())
+            .spawn(move || {
+                loop {
+                    std::thread::sleep(period);
+                    let Some(m) = manager.upgrade() else { break };
+                    if m.stopping.load(Ordering::Acquire) {
+                        break;
+                    }
+                    if m.is_ready() {
+                        m.evict_idle(after);
+                    }
+                }
+            })
+            .map(drop)
+    }
+
+    /// One eviction pass: every resident session inactive for at least
+    /// `idle` whose state the store rebuilds bit for bit leaves memory,
+    /// after a snapshot if it changed since it was built
+    /// ([`Session::prepare_eviction`]); the table keeps a stub of it
+    /// ([`super::table::Evicted`]) and its next request loads it back.
+    /// A session in use (a request or a tick job holds it), with a policy
+    /// update pending, being deleted or rolled back stays. The table is
+    /// read a chunk at a time and written once per chunk, so requests are
+    /// not held up by a pass over a million sessions. Returns how many
+    /// left. Blocking.
+    pub fn evict_idle(&self, idle: Duration) -> usize {
+        if self.durability.is_none() {
+            return 0;
+        }
+        let mut after: Option<String> = None;
+        let mut evicted = 0;
+        loop {
+            let (candidates, last) = {
+                let sessions = self.sessions.read();
+                let mut candidates = Vec::new();
+                let mut last = None;
+                for (id, entry) in sessions.after(after.as_deref()).take(EVICT_CHUNK) {
+                    last = Some(id);
+                    if let Entry::Resident(s) = entry
+                        && Arc::strong_count(s) == 1
+                        && s.inactive() >= idle
+                    {
+                        candidates.push(Arc::clone(s));
+                    }
+                }
+                (candidates, last.cloned())
+            };
+            let prepared: Vec<_> = candidates
+                .into_iter()
+                .filter_map(|s| s.prepare_eviction().map(|commit| (s, commit)))
+                .collect();
+            let mut ready = Vec::with_capacity(prepared.len());
+            for (s, commit) in prepared {
+                match commit.map(crate::store::Commit::wait_blocking).transpose() {
+                    Ok(_) => ready.push(s),
+                    Err(e) => {
+                        s.not_pristine();
+                        tracing::warn!(session = %s.id, error = %e, "session kept in memory: its eviction snapshot was not committed");
+                    }
+                }
+            }
+            if !ready.is_empty() {
+                let mut sessions = self.sessions.write();
+                for s in &ready {
+                    // Held by the table and `ready` only: no request or
+                    // job has it, and none can take it while the lock is
+                    // held.
+                    if Arc::strong_count(s) != 2 {
+                        continue;
+                    }
+                    let Some(stub) = s.still_evictable(cost::estimate(&s.model, &s.config)) else {
+                        continue;
+                    };
+                    let was = Entry::Resident(Arc::clone(s));
+                    if sessions.swap(&s.id, &was, Entry::Evicted(Arc::new(stub))) {
+                        evicted += 1;
+                    }
+                }
+                metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
+                drop(sessions);
+                // The sessions are freed here, outside the lock.
+                drop(ready);
+            }
+            match last {
+                Some(id) => after = Some(id),
+                None => break,
+            }
+        }
+        if evicted > 0 {
+            metrics::counter!("mcapi_session_evictions_total").increment(evicted as u64);
+            tracing::debug!(sessions = evicted, "idle sessions evicted to the store");
+        }
+        evicted
+    }
+}

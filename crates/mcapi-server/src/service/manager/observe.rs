@@ -1,0 +1,189 @@
+//! Observations: priced, applied by the session, made durable before the
+//! reply (lockstep and async); values and history.
+
+use super::*;
+
+impl SessionManager {
+    /// Applies observations in order and returns one reply each (docs/sessions.md,
+    /// "Observing"). Lockstep sessions reply after their update
+    /// on the tick pool; async sessions reply at once and queue an update.
+    pub async fn observe(
+        &self,
+        caller: Caller,
+        id: &str,
+        batch: Vec<ObservationIn>,
+    ) -> Result<Vec<StepOut>, ServiceError> {
+        if batch.is_empty() {
+            return Err(ServiceError::field("observations", "must not be empty"));
+        }
+        if batch.len() > self.limits.max_batch {
+            return Err(ServiceError::LimitExceeded(format!(
+                "`observations` has {} entries; the limit is {}",
+                batch.len(),
+                self.limits.max_batch
+            )));
+        }
+        let _guard = self.enter_shard(id)?;
+        // Loaded back if evicted; rolled back first if an earlier commit
+        // failed.
+        let session = not_failed(self.visible_session_async(caller, id).await?)?;
+        self.limits.check_batch_cost(
+            batch.len(),
+            &cost::estimate(&session.model, &session.config),
+        )?;
+        // While the store cannot write, nothing is applied: the client gets
+        // `storage_unavailable` at once and retries.
+        self.store_writable()?;
+        let result = self.observe_on(&session, batch).await;
+        if let Err(ServiceError::Storage(detail)) = &result {
+            // The observations are applied in memory but not durable, and
+            // the store refuses the session's writes from now on: roll it
+            // back to what is durable before it takes another observation.
+            // Rare, and a few milliseconds of reading: done on this task.
+            tracing::warn!(session = %id, error = %detail, "reloading the session after a failed commit");
+            if let Err(e) = self.reload(&session) {
+                tracing::error!(session = %id, error = %e, "reload failed; the session takes no observations until one succeeds");
+            }
+        }
+        result
+    }
+
+    /// Checks the estimated CPU time of one `InteractBatch` message: `n`
+    /// observations for each of its sessions, together at most
+    /// `--max-batch-ms`, as one `Observe` batch. Sessions the caller cannot
+    /// see count nothing (their observations are refused anyway).
+    pub fn check_message_cost<'a>(
+        &self,
+        caller: Caller,
+        sessions: impl IntoIterator<Item = (&'a str, usize)>,
+    ) -> Result<(), ServiceError> {
+        let mut us = 0u64;
+        for (id, n) in sessions {
+            // Priced from the table: an evicted session is not loaded here.
+            if let Ok(entry) = self.visible_entry(caller, id) {
+                us = us.saturating_add(entry.cost().tick_us.saturating_mul(n as u64));
+            }
+        }
+        if us / 1000 > self.limits.max_batch_ms {
+            return Err(ServiceError::LimitExceeded(format!(
+                "the message's observations cost an estimated {} ms in all; the limit per \
+                 message is {} ms (--max-batch-ms): send fewer per message",
+                us / 1000,
+                self.limits.max_batch_ms
+            )));
+        }
+        Ok(())
+    }
+
+    pub(super) async fn observe_on(
+        &self,
+        session: &SessionRef,
+        batch: Vec<ObservationIn>,
+    ) -> Result<Vec<StepOut>, ServiceError> {
+        let session = Arc::clone(session);
+        let n = batch.len() as u64;
+        // Updates measured to be cheap run here: a hand-off to the pool
+        // would cost more than the update itself.
+        let inline = session.plan_cost_ns().saturating_mul(n) <= self.inline_plan_ns;
+        let out = match session.mode {
+            UpdateMode::Lockstep if inline => {
+                let started = Instant::now();
+                let observed = session.observe(&batch, true);
+                tick::meters()
+                    .tick_seconds
+                    .record(started.elapsed().as_secs_f64());
+                if let Err(e @ ServiceError::Algo(mcapi_core::AlgoError::Numerical(_))) =
+                    &observed.result
+                {
+                    tick::log_plan_error(&session, e);
+                }
+                observed.durable().await?
+            }
+            UpdateMode::Lockstep => {
+                let (tx, rx) = oneshot::channel();
+                self.pool.submit(Job::Observe {
+                    session,
+                    batch,
+                    reply: tx,
+                })?;
+                // The pool drains its queue before it stops, so a reply
+                // that never comes means the job itself failed.
+                rx.await
+                    .map_err(|_| ServiceError::Internal("a tick job ended without a reply".into()))?
+                    .durable()
+                    .await?
+            }
+            UpdateMode::Async => {
+                // Observing alone recomputes R for every pair and, with a
+                // curiosity channel, learns each signal sample: beyond the
+                // inline budget that runs on the blocking pool.
+                let observe_ns = cost::observe_us(&session.model, &session.config)
+                    .saturating_mul(1000)
+                    .saturating_mul(n);
+                let observed = if observe_ns <= self.inline_plan_ns.max(50_000) {
+                    session.observe(&batch, false)
+                } else {
+                    let session = Arc::clone(&session);
+                    tokio::task::spawn_blocking(move || session.observe(&batch, false))
+                        .await
+                        .map_err(|e| {
+                            ServiceError::Internal(format!("an observation task failed: {e}"))
+                        })?
+                };
+                if inline && observed.result.is_ok() {
+                    let started = Instant::now();
+                    match session.plan_if_needed() {
+                        Ok(true) => tick::meters()
+                            .tick_seconds
+                            .record(started.elapsed().as_secs_f64()),
+                        Ok(false) => {}
+                        Err(e) => tick::log_plan_error(&session, &e),
+                    }
+                } else if session.try_enqueue()
+                    && let Err(e) = self.pool.submit(Job::Plan(Arc::clone(&session)))
+                {
+                    session.dequeued();
+                    tracing::warn!(session = %session.id, error = %e, "policy update not queued");
+                }
+                observed.durable().await?
+            }
+        };
+        tick::meters().observations.increment(n);
+        Ok(out)
+    }
+
+    /// Value tables of a session.
+    #[tracing::instrument(level = "debug", skip(self))]
+    pub fn values(
+        &self,
+        caller: Caller,
+        id: &str,
+        sel: ValueSelection,
+    ) -> Result<Values, ServiceError> {
+        let session = self.session_for(caller, id)?;
+        sel.check_size(&session.model, self.limits.max_response_bytes)?;
+        Ok(values::tables(&session, sel))
+    }
+
+    /// The most recent `limit` ticks of a session's history, oldest first.
+    pub fn history(
+        &self,
+        caller: Caller,
+        id: &str,
+        limit: Option<usize>,
+    ) -> Result<Vec<HistoryEntry>, ServiceError> {
+        let session = self.session_for(caller, id)?;
+        let limit = limit.unwrap_or(usize::MAX).min(session.config.history);
+        // About 24 bytes per number: D, the stimulus, and the fixed fields.
+        let entry = (2 * session.model.stimuli.len() + 12) * 24;
+        let bytes = limit.saturating_mul(entry);
+        if bytes > self.limits.max_response_bytes {
+            return Err(ServiceError::LimitExceeded(format!(
+                "{limit} history entries would take about {bytes} bytes; the limit of one response is {} (--max-response-bytes): ask for at most {} with `limit`",
+                self.limits.max_response_bytes,
+                self.limits.max_response_bytes / entry
+            )));
+        }
+        Ok(session.history(limit))
+    }
+}
