@@ -10,6 +10,8 @@ mod create;
 mod lifecycle;
 mod lookup;
 mod observe;
+#[cfg(test)]
+mod tests;
 
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};

@@ -1,0 +1,171 @@
+//! The manager's own tests, called directly (no transport): the life of a
+//! session through each of its concerns (create, lookup, observe,
+//! lifecycle), what another key sees, the bounds of a listing page and of a
+//! batch, and that the same seed gives the same session.
+
+use std::sync::Arc;
+
+use serde_json::json;
+
+use super::*;
+use crate::service::agent_config::SessionConfig;
+use crate::service::wire::ObservationIn;
+
+fn manager() -> Arc<SessionManager> {
+    Arc::new(SessionManager::new(Limits::default(), 1).expect("manager"))
+}
+
+fn hallway(seed: u64) -> CreateSession {
+    CreateSession {
+        model: json!({"preset": "hallway"}),
+        agent: SessionConfig {
+            seed: Some(seed),
+            ..SessionConfig::default()
+        },
+    }
+}
+
+fn obs(state: usize, stimulus: Option<Vec<f64>>) -> ObservationIn {
+    ObservationIn {
+        state,
+        stimulus,
+        action_taken: None,
+        signal: None,
+        signal_source: None,
+    }
+}
+
+fn rt() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime")
+}
+
+const KEY_A: Caller = Caller::Key([1; 32]);
+const KEY_B: Caller = Caller::Key([2; 32]);
+
+#[test]
+fn a_session_is_created_observed_found_and_deleted() {
+    let rt = rt();
+    let m = manager();
+    let info = m.create(Caller::Anyone, hallway(7)).expect("create");
+    assert_eq!(info.tick, 0);
+    assert_eq!(m.len(), 1);
+    rt.block_on(async {
+        let steps = m
+            .observe(
+                Caller::Anyone,
+                &info.id,
+                vec![obs(0, None), obs(1, Some(vec![0.0, 0.0]))],
+            )
+            .await
+            .expect("a batch of two");
+        assert_eq!(steps.len(), 2);
+        // The first observation places the agent; the second is tick 1.
+        assert_eq!(m.get(Caller::Anyone, &info.id).expect("get").tick, 1);
+        m.delete(Caller::Anyone, &info.id).await.expect("delete");
+    });
+    assert!(m.is_empty());
+    assert!(matches!(
+        m.get(Caller::Anyone, &info.id),
+        Err(ServiceError::NotFound(_))
+    ));
+}
+
+#[test]
+fn another_key_finds_nothing_of_a_session_and_lists_none() {
+    let rt = rt();
+    let m = manager();
+    let id = m.create(KEY_A, hallway(1)).expect("create").id;
+    assert!(matches!(m.get(KEY_B, &id), Err(ServiceError::NotFound(_))));
+    assert!(m.list(KEY_B, None, None).expect("list").sessions.is_empty());
+    assert_eq!(m.list(KEY_A, None, None).expect("list").sessions.len(), 1);
+    rt.block_on(async {
+        let err = m
+            .observe(KEY_B, &id, vec![obs(0, None)])
+            .await
+            .expect_err("not B's session");
+        assert!(matches!(err, ServiceError::NotFound(_)), "{err:?}");
+        let err = m.delete(KEY_B, &id).await.expect_err("not B's session");
+        assert!(matches!(err, ServiceError::NotFound(_)), "{err:?}");
+    });
+    assert_eq!(m.len(), 1, "B's delete removed nothing");
+}
+
+#[test]
+fn listing_pages_through_every_session_in_id_order() {
+    let m = manager();
+    let mut ids: Vec<String> = (0..5)
+        .map(|seed| m.create(Caller::Anyone, hallway(seed)).expect("create").id)
+        .collect();
+    ids.sort();
+    let mut seen = Vec::new();
+    let mut after: Option<String> = None;
+    loop {
+        let page = m
+            .list(Caller::Anyone, after.as_deref(), Some(2))
+            .expect("a page");
+        assert!(page.sessions.len() <= 2);
+        seen.extend(page.sessions.iter().map(|s| s.id.clone()));
+        match page.next {
+            Some(next) => after = Some(next),
+            None => break,
+        }
+    }
+    assert_eq!(seen, ids);
+    for bad in [0, MAX_PAGE + 1] {
+        assert!(
+            m.list(Caller::Anyone, None, Some(bad)).is_err(),
+            "page size {bad} is refused"
+        );
+    }
+}
+
+#[test]
+fn an_empty_or_oversized_batch_is_refused_before_anything_is_applied() {
+    let rt = rt();
+    let m = manager();
+    let id = m.create(Caller::Anyone, hallway(3)).expect("create").id;
+    rt.block_on(async {
+        let err = m
+            .observe(Caller::Anyone, &id, Vec::new())
+            .await
+            .expect_err("empty");
+        assert!(matches!(err, ServiceError::BadRequest(_)), "{err:?}");
+        let too_many = vec![obs(0, None); m.limits().max_batch + 1];
+        let err = m
+            .observe(Caller::Anyone, &id, too_many)
+            .await
+            .expect_err("over the batch limit");
+        assert!(matches!(err, ServiceError::LimitExceeded(_)), "{err:?}");
+    });
+    assert_eq!(m.get(Caller::Anyone, &id).expect("get").tick, 0);
+}
+
+#[test]
+fn the_same_seed_and_observations_give_the_same_session() {
+    let rt = rt();
+    let m = manager();
+    let a = m.create(Caller::Anyone, hallway(11)).expect("create").id;
+    let b = m.create(Caller::Anyone, hallway(11)).expect("create").id;
+    rt.block_on(async {
+        let batch = || {
+            vec![
+                obs(0, None),
+                obs(1, Some(vec![1.0, 0.0])),
+                obs(2, Some(vec![0.0, 0.0])),
+            ]
+        };
+        let sa = m.observe(Caller::Anyone, &a, batch()).await.expect("a");
+        let sb = m.observe(Caller::Anyone, &b, batch()).await.expect("b");
+        let json = |s: &[StepOut]| serde_json::to_string(s).expect("serialises");
+        assert_eq!(json(&sa), json(&sb));
+    });
+    let (ia, ib) = (
+        m.get(Caller::Anyone, &a).expect("a"),
+        m.get(Caller::Anyone, &b).expect("b"),
+    );
+    assert_eq!(ia.drive, ib.drive);
+    assert_eq!(ia.tick, ib.tick);
+}
