@@ -1,6 +1,6 @@
 #!/usr/bin/env python3
 """/healthz latency while the most expensive legal requests and hundreds of
-half-open connections are in flight (issue 12, BENCHMARKS.md section 6).
+half-open connections are in flight (BENCHMARKS.md section 6).
 
     python3 benches/hostile_load.py [--bin target/release/mcapi] [--seconds 20]
 

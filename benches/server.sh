@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# Every row of issue 15's table ("Throughput near the wire") in one run, with
+# Every row of the performance targets' table ("Throughput near the wire") in one run, with
 # ratios and targets, as a Markdown report on stdout (BENCHMARKS.md §8).
 #
 #   benches/server.sh                      # full run (about 12 minutes here)
