@@ -6,9 +6,10 @@
 #   QUICK=1 benches/server.sh              # short windows, 10,000 idle sessions
 #   MEMORY_SESSIONS=1000000 benches/server.sh   # the memory row at the target's size
 #
-# Pinning, as the issue measured: the server on core $SERVER_CORE (default 0,
-# `taskset -c 0 mcapi serve`), the load generator on core $LOADGEN_CORE
-# (default 1, `taskset -c 1 mcapi loadgen --threads 1`). Every server is a
+# Pinning, as the "before" figures of BENCHMARKS.md §8 were measured: the
+# server on core $SERVER_CORE (default 0, `taskset -c 0 mcapi serve`), the
+# load generator on core $LOADGEN_CORE (default 1,
+# `taskset -c 1 mcapi loadgen --threads 1`). Every server is a
 # fresh process with a fresh data directory (mktemp), killed on exit. The
 # load generator's own Markdown tables and JSON results (`--json`) go to
 # $OUT (default target/bench-server/<time>/), this report to stdout,
