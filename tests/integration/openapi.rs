@@ -4,7 +4,8 @@
 //! with the value of the limit it describes, and the body forms are
 //! `oneOf`s. The server side of each bound (the contract's other half) is
 //! exercised by schemathesis (`make contract`) and `tests/fuzz/`; here,
-//! the cases the issue named are sent through the real router.
+//! three bodies the schema once let through are sent through the real
+//! router.
 
 use std::sync::Arc;
 
@@ -238,7 +239,7 @@ fn every_body_form_is_a_closed_one_of_branch() {
         ]
     );
     // Each branch is closed and requires its distinguishing key, so `{}` is
-    // none of them (the issue: `model: {}` was schema-valid).
+    // none of them (`model: {}` was once schema-valid).
     for (name, key) in [
         ("PresetModel", "preset"),
         ("GridModel", "grid"),
@@ -261,8 +262,8 @@ fn every_body_form_is_a_closed_one_of_branch() {
         schema(&d, "FullModelTransitions")["properties"]["next"]["type"],
         "null"
     );
-    // `action_taken`: an index or a name, not any object (the issue:
-    // `action_taken: {}` was schema-valid).
+    // `action_taken`: an index or a name, not any object (`action_taken:
+    // {}` was once schema-valid).
     let action = schema(&d, "ActionRef")["oneOf"].as_array().expect("oneOf");
     assert_eq!(action[0]["type"], "integer");
     assert_eq!(action[1]["type"], "string");
@@ -313,7 +314,7 @@ fn app() -> axum::Router {
 }
 
 #[tokio::test]
-async fn the_issues_three_cases_and_the_examples() {
+async fn three_bodies_once_schema_valid_and_the_examples() {
     let app = app();
     // The documented examples are accepted.
     let d = doc(&Limits::default());

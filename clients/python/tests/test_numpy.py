@@ -246,7 +246,7 @@ def test_every_method_takes_numpy_over_the_wire(kind: str, server: Server) -> No
             epsilon=np.float32(0.0), history=np.int32(50),
         ).id
         py_id = mc.create_session(world, seed=8, **options).id
-        state = np.int64(25)  # the example: "Object of type int64 is not JSON serializable"
+        state = np.int64(25)  # once failed: "Object of type int64 is not JSON serializable"
         a, b = mc.observe(np_id, state), mc.observe(py_id, int(state))
         assert a == b
         for i in range(40):
