@@ -13,7 +13,7 @@ use std::time::{Duration, Instant};
 use parking_lot::{Mutex, RwLock};
 use tokio::sync::oneshot;
 
-use crate::store::{Store, Write};
+use mcapi_store::{Store, Write};
 
 use super::agent_config::{SessionConfig, UpdateMode};
 use super::auth::{ApiKeys, Caller};
@@ -336,7 +336,7 @@ impl SessionManager {
             let bytes = serde_json::to_vec(&record)
                 .map_err(|e| ServiceError::Internal(format!("encoding a session record: {e}")))?;
             d.store
-                .submit(vec![crate::store::Write::Session {
+                .submit(vec![mcapi_store::Write::Session {
                     id: Arc::from(id.as_str()),
                     record: bytes,
                 }])
@@ -895,7 +895,7 @@ impl SessionManager {
         let n = commits.len();
         let failed = commits
             .into_iter()
-            .map(crate::store::Commit::wait_blocking)
+            .map(mcapi_store::Commit::wait_blocking)
             .filter(Result::is_err)
             .count();
         tracing::info!(snapshots = n, failed, "snapshots written at shutdown");
@@ -1001,7 +1001,7 @@ impl SessionManager {
     /// Replaces a session whose commit failed by a fresh recovery of its
     /// durable state (snapshot and log, as at start, [`recovery::rebuild`]),
     /// then lets the store accept its writes again
-    /// ([`crate::store::Write::Resume`]). The old session is marked stale
+    /// ([`mcapi_store::Write::Resume`]). The old session is marked stale
     /// first, so nothing is applied to it while this runs. A no-op if the
     /// session was deleted or already replaced.
     pub fn reload(&self, session: &SessionRef) -> Result<(), RecoveryError> {
@@ -1117,7 +1117,7 @@ impl SessionManager {
                 .collect();
             let mut ready = Vec::with_capacity(prepared.len());
             for (s, commit) in prepared {
-                match commit.map(crate::store::Commit::wait_blocking).transpose() {
+                match commit.map(mcapi_store::Commit::wait_blocking).transpose() {
                     Ok(_) => ready.push(s),
                     Err(e) => {
                         s.not_pristine();

@@ -8,9 +8,9 @@ use std::time::Instant;
 
 use parking_lot::Mutex;
 
-use crate::store::{Commit, Store, Write};
 use mcapi_core::spec::ActionRef;
 use mcapi_core::{AlgoError, Observation};
+use mcapi_store::{Commit, Store, Write};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};

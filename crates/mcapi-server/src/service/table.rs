@@ -45,7 +45,7 @@ pub struct Evicted {
     /// the server started), carried into the session loaded back.
     pub last_observed_ns: u64,
     /// Every write of the session is in the store's frames up to this one
-    /// ([`crate::store::Store::committed`] when it left memory).
+    /// ([`mcapi_store::Store::committed`] when it left memory).
     pub lsn: u64,
 }
 
