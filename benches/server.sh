@@ -9,7 +9,7 @@
 # Pinning, as the "before" figures of BENCHMARKS.md §8 were measured: the
 # server on core $SERVER_CORE (default 0, `taskset -c 0 mcapi serve`), the
 # load generator on core $LOADGEN_CORE (default 1,
-# `taskset -c 1 mcapi loadgen --threads 1`). Every server is a
+# `taskset -c 1 mcapi-loadgen --threads 1`). Every server is a
 # fresh process with a fresh data directory (mktemp), killed on exit. The
 # load generator's own Markdown tables and JSON results (`--json`) go to
 # $OUT (default target/bench-server/<time>/), this report to stdout,
@@ -18,6 +18,9 @@
 # Environment:
 #   MCAPI            the binary (default target/release/mcapi, built with
 #                    `cargo build --release --locked --bin mcapi` if missing)
+#   LOADGEN          the load generator (default mcapi-loadgen next to
+#                    $MCAPI, built with `cargo build --release --locked
+#                    -p mcapi-loadgen` if missing)
 #   QUICK=1          1 s warm-up + 3 s windows (default 2 + 10), 10,000 idle
 #                    sessions, short criterion run
 #   WARMUP, DURATION seconds per measurement (override QUICK's)
@@ -55,6 +58,11 @@ done
 if [ ! -x "$MCAPI" ]; then
   echo "building $MCAPI" >&2
   cargo build --release --locked --bin mcapi >&2
+fi
+LOADGEN=${LOADGEN:-$(dirname "$MCAPI")/mcapi-loadgen}
+if [ ! -x "$LOADGEN" ]; then
+  echo "building $LOADGEN" >&2
+  cargo build --release --locked -p mcapi-loadgen >&2
 fi
 
 SERVER_PID=""
@@ -114,7 +122,7 @@ loadgen() {
   local name=$1
   shift
   echo "== $name" >&2
-  taskset -c "$LOADGEN_CORE" "$MCAPI" loadgen --threads 1 \
+  taskset -c "$LOADGEN_CORE" "$LOADGEN" --threads 1 \
     --http "$HTTP_URL" --grpc "$GRPC_URL" --server-pid "$SERVER_PID" \
     --warmup-secs "$WARMUP" --duration-secs "$DURATION" \
     --json "$OUT/$name.json" "$@" >"$OUT/$name.md"
@@ -205,7 +213,7 @@ cat <<EOF
 Command: \`$([ "$QUICK" = 1 ] && echo "QUICK=1 ")$([ "$MCAPI" != target/release/mcapi ] && echo "MCAPI=$MCAPI ")MEMORY_SESSIONS=$MEMORY_SESSIONS benches/server.sh\`
 (warm-up $WARMUP s + window $DURATION s per measurement), commit $COMMIT$DIRTY,
 $STARTED to $FINISHED, $(nproc) cores ($(grep -m1 'model name' /proc/cpuinfo | cut -d: -f2 | sed 's/^ *//')).
-Server on core $SERVER_CORE, \`mcapi loadgen --threads 1\` on core $LOADGEN_CORE; async hallway sessions.
+Server on core $SERVER_CORE, \`mcapi-loadgen --threads 1\` on core $LOADGEN_CORE; async hallway sessions.
 Raw results: \`$OUT\`.
 
 | row | measured | target | met? |

@@ -9,8 +9,8 @@
 #
 #   BEFORE=/tmp/mcapi-old AFTER=target/release/mcapi benches/store-ab.sh
 #
-# The load generator is AFTER's in every run (LOADGEN to choose another),
-# so only the server differs within a pair.
+# The load generator is the `mcapi-loadgen` next to AFTER in every run
+# (LOADGEN to choose another), so only the server differs within a pair.
 #
 # Environment: ROUNDS (3), WARMUP (2), DURATION (8), OUT (raw JSON,
 # default target/bench-store-ab/<time>/). One line per run on stdout.
@@ -18,7 +18,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 : "${BEFORE:?set BEFORE to the baseline binary}"
 AFTER=${AFTER:-target/release/mcapi}
-LOADGEN=${LOADGEN:-$AFTER}
+LOADGEN=${LOADGEN:-$(dirname "$AFTER")/mcapi-loadgen}
 ROUNDS=${ROUNDS:-3}
 WARMUP=${WARMUP:-2}
 DURATION=${DURATION:-8}
@@ -58,7 +58,7 @@ run() {
     curl -fsS "http://127.0.0.1:$hp/readyz" >/dev/null 2>&1 && break
     sleep 0.1
   done
-  taskset -c 1 "$LOADGEN" loadgen --threads 1 --http "http://127.0.0.1:$hp" \
+  taskset -c 1 "$LOADGEN" --threads 1 --http "http://127.0.0.1:$hp" \
     --grpc "http://127.0.0.1:$gp" --server-pid "$PID" --warmup-secs "$WARMUP" \
     --duration-secs "$DURATION" --no-paced --scenario rest --sessions "$sessions" \
     --max-connections "$conns" --modes async --json "$OUT/$name.json" >"$OUT/$name.md"

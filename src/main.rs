@@ -5,8 +5,6 @@ use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-mod loadgen;
-
 /// mimalloc returns freed memory to the system (the default feature; see
 /// Cargo.toml and BENCHMARKS.md §8).
 #[cfg(feature = "mimalloc")]
@@ -38,8 +36,6 @@ enum Command {
     Experiment(ExperimentArgs),
     /// Exit 0 if the server's health endpoint answers 200 (for container health checks).
     Healthcheck(HealthcheckArgs),
-    /// Load-test a running server over real sockets (REST, gRPC, memory) and print the results.
-    Loadgen(loadgen::LoadgenArgs),
     /// Shard maps and the router of a cluster of replicas (docs/cluster.md).
     Cluster {
         #[command(subcommand)]
@@ -133,7 +129,6 @@ fn main() -> ExitCode {
             experiment(args)
         }
         Command::Healthcheck(args) => healthcheck(&args),
-        Command::Loadgen(args) => loadgen::run(args),
         Command::Cluster { command } => cluster::cli::run(command),
     };
     match result {

@@ -22,7 +22,7 @@ use mcapi_server::service::{
     Caller, CreateSession, Limits, ManagerOptions, ObservationIn, SessionConfig, SessionManager,
     StepOut, ValueSelection,
 };
-use mcapi_server::store::Store;
+use mcapi_store::Store;
 use serde_json::{Value, json};
 
 /// The four kinds of session driven: (model, agent).

@@ -179,7 +179,7 @@ fn dockerfile_uses_only_flags_the_binary_knows() {
 }
 
 /// The memory of deleted sessions goes back to the system within seconds,
-/// with nothing else for the server to do: `mcapi loadgen --scenario
+/// with nothing else for the server to do: `mcapi-loadgen --scenario
 /// memory` creates sessions, observes each once, deletes them all and reads
 /// the server's RSS. Before the allocator's purger thread and the 1 s
 /// keep-alive of blocking threads (src/main.rs), an idle server kept all of
@@ -202,8 +202,8 @@ async fn deleted_sessions_give_their_memory_back() {
     };
     let server = Server::start(&launch, out_dir.path().join("serve.log")).await;
     let json = out_dir.path().join("memory.json");
-    let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
-        .args(["loadgen", "--scenario", "memory", "--threads", "1"])
+    let out = Command::new(loadgen_bin())
+        .args(["--scenario", "memory", "--threads", "1"])
         .args(["--http", &server.base()])
         .args(["--grpc", &server.grpc_url()])
         .args(["--memory-sessions", "5000", "--settle-secs", "4"])
@@ -211,7 +211,7 @@ async fn deleted_sessions_give_their_memory_back() {
         .arg("--json")
         .arg(&json)
         .output()
-        .expect("mcapi loadgen runs");
+        .expect("mcapi-loadgen runs");
     drop(server);
     assert!(
         out.status.success(),
@@ -239,4 +239,20 @@ async fn deleted_sessions_give_their_memory_back() {
         "only {:.0}% of the sessions' memory came back: {summary}",
         100.0 * returned
     );
+}
+
+/// The `mcapi-loadgen` binary: another package of the workspace, so Cargo
+/// gives its path to no test of this one; it is built next to `mcapi` in the
+/// same target directory (`cargo test --workspace` builds it; a run of this
+/// package's tests alone needs `cargo build -p mcapi-loadgen` first).
+fn loadgen_bin() -> std::path::PathBuf {
+    let mcapi = std::path::Path::new(env!("CARGO_BIN_EXE_mcapi"));
+    let bin = mcapi.with_file_name(format!("mcapi-loadgen{}", std::env::consts::EXE_SUFFIX));
+    assert!(
+        bin.exists(),
+        "{} is missing: build it with `cargo build -p mcapi-loadgen` \
+         (`cargo test --workspace` does)",
+        bin.display()
+    );
+    bin
 }

@@ -1,7 +1,7 @@
 //! The gRPC API of mcapi, package `mcapi.v1` (docs/grpc.md): the prost
 //! messages and the tonic client and server generated from
 //! `proto/mcapi/v1/agents.proto` at the workspace's top level, shared by the
-//! server (`mcapi-server`) and the load generator (`mcapi loadgen`).
+//! server (`mcapi-server`) and the load generator (`mcapi-loadgen`).
 
 #![allow(missing_docs)]
 

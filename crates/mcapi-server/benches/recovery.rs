@@ -18,7 +18,7 @@ use mcapi_server::service::Limits;
 use mcapi_server::service::{
     Caller, CreateSession, ManagerOptions, ObservationIn, SessionConfig, SessionManager, UpdateMode,
 };
-use mcapi_server::store::Store;
+use mcapi_store::Store;
 
 fn hallway_stimulus(state: usize) -> Vec<f64> {
     match state {
@@ -116,7 +116,7 @@ fn main() -> anyhow::Result<()> {
         drop(manager);
         store.close();
     }
-    let file = dir.path().join(mcapi_server::store::FILE_NAME);
+    let file = dir.path().join(mcapi_store::FILE_NAME);
     let bytes = std::fs::metadata(&file)?.len();
     println!(
         "fixture: {sessions} sessions x {observations} observations written in {:.1} s; store file {:.0} MiB",

@@ -51,9 +51,9 @@ pub struct ServeConfig {
     /// kernel (survives kill -9 of the process, not a power cut; synced in
     /// the background every 5 ms).
     #[arg(long, env = "MCAPI_DURABILITY", value_enum, default_value = "sync")]
-    pub durability: crate::store::Durability,
+    pub durability: mcapi_store::Durability,
     /// Ceiling of the durable store's page cache, in MiB (1 to 65536).
-    #[arg(long, env = "MCAPI_STORE_CACHE_MIB", default_value_t = (crate::store::DEFAULT_CACHE_BYTES >> 20) as u64)]
+    #[arg(long, env = "MCAPI_STORE_CACHE_MIB", default_value_t = (mcapi_store::DEFAULT_CACHE_BYTES >> 20) as u64)]
     pub store_cache_mib: u64,
     /// With the durable store: a session inactive (no observation) for
     /// this many seconds leaves memory, after a snapshot, and is loaded

@@ -5,9 +5,9 @@
 //! sessions, over REST (axum) and gRPC (tonic).
 //!
 //! Modules, from the bottom up (docs/architecture.md, "The layers"):
-//! - [`store`]: durable session storage (redb, or memory).
 //! - [`service`]: the session layer both transports call (sessions, tick
-//!   loop, limits, recovery).
+//!   loop, limits, recovery), over the durable store ([`mcapi_store`], or
+//!   memory).
 //! - [`api`]: thin transport adapters over [`service`], with one error
 //!   mapping.
 //! - [`cluster`]: the shard map, placement on replicas and the router's
@@ -24,5 +24,4 @@ pub mod config;
 pub mod generated;
 pub mod server;
 pub mod service;
-pub mod store;
 pub mod telemetry;

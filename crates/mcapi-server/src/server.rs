@@ -22,8 +22,8 @@ use crate::api::streams::StreamLimiter;
 use crate::api::{AppState, router};
 use crate::config::{ServeConfig, StoreKind};
 use crate::service::SessionManager;
-use crate::store::Store;
 use crate::telemetry;
+use mcapi_store::Store;
 
 /// A running server.
 pub struct Running {

@@ -345,7 +345,7 @@ fn tighter_limits_at_restart_keep_the_stored_sessions() {
     use mcapi_server::service::{
         Caller, CreateSession, Limits, ManagerOptions, ServiceError, SessionConfig, SessionManager,
     };
-    use mcapi_server::store::Store;
+    use mcapi_store::Store;
     use std::sync::Arc;
 
     let data = tempfile::tempdir().expect("data dir");

@@ -19,7 +19,7 @@ fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
         Caller, CreateSession, Limits, ManagerOptions, ObservationIn, ServiceError, SessionConfig,
         SessionManager,
     };
-    use mcapi_server::store::Store;
+    use mcapi_store::Store;
     use std::sync::Arc;
 
     // Plain threads: `create` and `shutdown` block on the store.
@@ -101,7 +101,7 @@ fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
 
 /// A manager on the store in `dir`, recovered; `snapshot_every` as given.
 fn in_process(
-    store: std::sync::Arc<mcapi_server::store::Store>,
+    store: std::sync::Arc<mcapi_store::Store>,
     snapshot_every: u64,
 ) -> mcapi_server::service::SessionManager {
     use mcapi_server::service::{Limits, ManagerOptions, SessionManager};
@@ -150,7 +150,7 @@ fn observation(state: usize, first: bool) -> mcapi_server::service::ObservationI
 #[test]
 fn a_delete_whose_commit_fails_keeps_the_session_and_its_retry_deletes_it() {
     use mcapi_server::service::{Caller, ServiceError};
-    use mcapi_server::store::Store;
+    use mcapi_store::Store;
     use std::sync::Arc;
 
     let rt = tokio::runtime::Runtime::new().expect("runtime");
@@ -213,7 +213,7 @@ fn a_delete_whose_commit_fails_keeps_the_session_and_its_retry_deletes_it() {
 fn a_lockstep_observation_whose_plan_fails_is_logged() {
     use mcapi_core::AlgoError;
     use mcapi_server::service::{Caller, ServiceError, ValueSelection};
-    use mcapi_server::store::Store;
+    use mcapi_store::Store;
     use std::sync::Arc;
 
     let rt = tokio::runtime::Runtime::new().expect("runtime");

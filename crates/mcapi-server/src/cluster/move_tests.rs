@@ -19,7 +19,7 @@ use super::plan::{ordinal_names, plan};
 use crate::api::{AppState, router};
 use crate::service::shards::Manifest;
 use crate::service::{ApiKeys, Limits, ManagerOptions, SessionManager};
-use crate::store::Store;
+use mcapi_store::Store;
 
 const KEY: &str = "admin-key-of-the-test";
 

@@ -1,4 +1,4 @@
-//! What the service keeps in the store (`crate::store`) and how it reads it
+//! What the service keeps in the store (`mcapi_store`) and how it reads it
 //! back: the creation record of a session, its snapshots and its log of
 //! observations (docs/sessions.md, "Durability and recovery").
 //!
@@ -17,8 +17,8 @@
 
 use serde::{Deserialize, Serialize};
 
-pub use crate::store::RECORD_V2;
 use mcapi_core::{AgentSnapshot, CuriousSnapshot, LearnedSnapshot};
+pub use mcapi_store::RECORD_V2;
 
 use super::agent_config::EffectiveConfig;
 use super::error::{DecodeError, DecodeFault, ServiceError};

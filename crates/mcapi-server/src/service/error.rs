@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use thiserror::Error;
 
-use crate::store::StoreError;
 use mcapi_core::AlgoError;
+use mcapi_store::StoreError;
 
 /// Everything a service call can fail with.
 #[derive(Debug, Error)]

@@ -16,8 +16,8 @@ use std::collections::VecDeque;
 use std::sync::Arc;
 
 use crate::cluster::Placement;
-use crate::store::{StoreError, StoredSession};
 use mcapi_core::{Agent, CuriousAgent};
+use mcapi_store::{StoreError, StoredSession};
 
 use super::agent_config::SessionConfig;
 use super::durable::{self, LearnerSnapshot, LogEntry};

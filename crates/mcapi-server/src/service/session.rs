@@ -8,9 +8,9 @@ use std::time::Instant;
 
 use parking_lot::Mutex;
 
-use crate::store::{Commit, Store, Write};
 use mcapi_core::spec::ActionRef;
 use mcapi_core::{AlgoError, Observation};
+use mcapi_store::{Commit, Store, Write};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};
@@ -811,6 +811,6 @@ pub struct Evicted {
     /// the server started), carried into the session loaded back.
     pub last_observed_ns: u64,
     /// Every write of the session is in the store's frames up to this one
-    /// ([`crate::store::Store::committed`] when it left memory).
+    /// ([`mcapi_store::Store::committed`] when it left memory).
     pub lsn: u64,
 }

@@ -37,7 +37,7 @@ use super::manager::SessionManager;
 use super::recovery;
 use crate::cluster::map::{ReplicaName, shard_key};
 use crate::cluster::{Placement, ShardState};
-use crate::store::{StoredSession, Write};
+use mcapi_store::{StoredSession, Write};
 
 /// Longest wait for the requests changing a shard to end once it is frozen.
 pub const FREEZE_DRAIN: Duration = Duration::from_secs(10);
@@ -246,7 +246,7 @@ impl SessionManager {
         let mut present = std::collections::HashSet::new();
         for s in stored {
             present.insert(s.id.clone());
-            let full = |s: crate::store::ExportedSession| MovedSession::Full {
+            let full = |s: mcapi_store::ExportedSession| MovedSession::Full {
                 id: s.id,
                 record: s.record,
                 snapshot: s.snapshot,
@@ -593,7 +593,7 @@ pub fn boot_id() -> u64 {
 /// A delete of every session of `shard` in `store`, read off the runtime
 /// (what an import's first part, an abort and a release remove).
 async fn stored_deletes(
-    store: &Arc<crate::store::Store>,
+    store: &Arc<mcapi_store::Store>,
     shard: u16,
     step: &str,
 ) -> Result<Vec<Write>, ServiceError> {

@@ -82,7 +82,7 @@ impl SessionManager {
             let bytes = serde_json::to_vec(&record)
                 .map_err(|e| ServiceError::Internal(format!("encoding a session record: {e}")))?;
             d.store
-                .submit(vec![crate::store::Write::Session {
+                .submit(vec![mcapi_store::Write::Session {
                     id: Arc::from(id.as_str()),
                     record: bytes,
                 }])

@@ -107,7 +107,7 @@ impl SessionManager {
     /// Replaces a session whose commit failed by a fresh recovery of its
     /// durable state (snapshot and log, as at start, [`recovery::rebuild`]),
     /// then lets the store accept its writes again
-    /// ([`crate::store::Write::Resume`]). The old session is marked stale
+    /// ([`mcapi_store::Write::Resume`]). The old session is marked stale
     /// first, so nothing is applied to it while this runs. A no-op if the
     /// session was deleted or already replaced.
     pub fn reload(&self, session: &SessionRef) -> Result<(), RecoveryError> {
@@ -223,7 +223,7 @@ impl SessionManager {
                 .collect();
             let mut ready = Vec::with_capacity(prepared.len());
             for (s, commit) in prepared {
-                match commit.map(crate::store::Commit::wait_blocking).transpose() {
+                match commit.map(mcapi_store::Commit::wait_blocking).transpose() {
                     Ok(_) => ready.push(s),
                     Err(e) => {
                         s.not_pristine();

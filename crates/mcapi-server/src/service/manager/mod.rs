@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 use parking_lot::{Mutex, RwLock};
 use tokio::sync::oneshot;
 
-use crate::store::{Store, Write};
+use mcapi_store::{Store, Write};
 
 use super::agent_config::{SessionConfig, UpdateMode};
 use super::auth::{ApiKeys, Caller};
@@ -349,7 +349,7 @@ impl SessionManager {
         let n = commits.len();
         let failed = commits
             .into_iter()
-            .map(crate::store::Commit::wait_blocking)
+            .map(mcapi_store::Commit::wait_blocking)
             .filter(Result::is_err)
             .count();
         tracing::info!(snapshots = n, failed, "snapshots written at shutdown");

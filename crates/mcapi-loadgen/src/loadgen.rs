@@ -1,5 +1,6 @@
-//! `mcapi loadgen`: a load generator for a running `mcapi serve`, over real
-//! sockets (issue 3's measurements).
+//! `mcapi-loadgen` (formerly `mcapi loadgen`): a load generator for a
+//! running `mcapi serve`, over real sockets (the server's throughput,
+//! latency and memory measurements of BENCHMARKS.md).
 //!
 //! Scenarios:
 //!
@@ -67,7 +68,7 @@ use mcapi_proto as pb;
 use mcapi_proto::SESSION_METADATA;
 use mcapi_proto::agents_client::AgentsClient;
 
-/// `mcapi loadgen` options.
+/// `mcapi-loadgen` options.
 #[derive(Debug, Clone, Args)]
 pub struct LoadgenArgs {
     /// Base URL of the server's REST port.

@@ -64,7 +64,7 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
-use super::{StoreError, Write};
+use crate::{StoreError, Write};
 
 /// The log's directory inside the data directory.
 pub const WAL_DIR: &str = "wal";
@@ -102,7 +102,7 @@ pub enum Durability {
     Sync,
     /// After the frame reaches the kernel (`write`): survives a crash of
     /// the process (`kill -9`), not of the machine; the log is synced in
-    /// the background every [`OS_SYNC_INTERVAL`](super::OS_SYNC_INTERVAL).
+    /// the background every [`OS_SYNC_INTERVAL`](crate::OS_SYNC_INTERVAL).
     Os,
 }
 

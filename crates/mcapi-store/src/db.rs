@@ -23,8 +23,8 @@ use std::time::Instant;
 
 use redb::{Database, Durability, ReadableTable, TableDefinition};
 
-use super::wal::{self, Frame};
-use super::{StoreError, Write};
+use crate::wal::{self, Frame};
+use crate::{StoreError, Write};
 
 /// Version of the on-disk layout. Formats 2 and 3 are upgraded at open;
 /// a file of any other version is refused.

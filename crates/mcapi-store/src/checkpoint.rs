@@ -23,7 +23,7 @@
 //! [`StoreError::Unavailable`] instead of the latched error), and reopens
 //! it with backoff. A reopen counts only once a probe commit succeeds on
 //! the new handle; until then the store reports the fault
-//! ([`super::Store::health`]) and the writer refuses new writes, so the
+//! ([`crate::Store::health`]) and the writer refuses new writes, so the
 //! frames waiting here stay bounded. Nothing waiting is lost: the frames are
 //! in the log, and the checkpoint is retried after the reopen.
 
@@ -35,9 +35,11 @@ use std::time::{Duration, Instant};
 use crossbeam_channel::{Receiver, RecvTimeoutError};
 use redb::Database;
 
-use super::db::{self, DbFailure};
-use super::wal;
-use super::{Retry, Shared, StoreError, Write};
+use crate::db::{self, DbFailure};
+use crate::retry::Retry;
+use crate::shared::Shared;
+use crate::wal;
+use crate::{StoreError, Write};
 
 /// Longest a durable frame waits before it is applied to redb.
 pub const CHECKPOINT_INTERVAL: Duration = Duration::from_millis(500);
@@ -54,7 +56,7 @@ pub(super) struct Frame {
 }
 
 impl Frame {
-    /// What it adds to [`super::Shared::frame_bytes`] while it waits in
+    /// What it adds to [`Shared::frame_bytes`] while it waits in
     /// the channel.
     pub(super) fn size(writes: &[Write]) -> usize {
         writes.iter().map(Write::size).sum()
