@@ -10,7 +10,7 @@
 //! and at most two temporaries (`*.tmp`, segments being zero-filled; any left
 //! by a crash are deleted at open).
 //!
-//! ## Segment format, version 2 (written since issue 15)
+//! ## Segment format, version 2 (what the log writes; version 1 is still read)
 //!
 //! A segment is a file of a fixed size, a whole number of 512-byte
 //! sectors, **filled with zeros before it is used** (by a background thread
