@@ -21,7 +21,8 @@ class AgentKwargs(TypedDict, total=False):
     gamma: FloatLike | None
     """Discount gamma, in [0, 1); default 0.95."""
     priorities: FloatsLike | None
-    """Priorities rho, one per stimulus dimension, a curiosity dimension included (Lambda = diag(1/rho)), in (0, 1]; default all 1."""
+    """Priorities rho, one per stimulus dimension, a curiosity dimension included (Lambda =
+    diag(1/rho)), in (0, 1]; default all 1."""
     stimulus_rate: StimulusRate | FloatLike | None
     """How Xi learns: the sample mean of each pair, or a constant rate; default "sample_mean"."""
     optimistic_sd: FloatLike | None
@@ -31,13 +32,16 @@ class AgentKwargs(TypedDict, total=False):
     epsilon: FloatLike | None
     """Epsilon of epsilon-greedy exploration, in [0, 1]; default 0."""
     seed: IntLike | None
-    """Seed of the session's RNG (returned, so a session can be made again); default drawn by the server."""
+    """Seed of the session's RNG (returned, so a session can be made again); default drawn by the
+    server."""
     update_mode: UpdateMode | None
-    """"lockstep": the reply follows exactly one policy update; "async": the reply comes at once and the tick loop updates behind it; default "lockstep"."""
+    """"lockstep": the reply follows exactly one policy update; "async": the reply comes at once and
+    the tick loop updates behind it; default "lockstep"."""
     history: IntLike | None
     """Recent ticks kept for /history; default 256."""
     curiosity: CuriosityLike | None
-    """A curiosity channel: the server appends a stimulus dimension "curiosity", last, and computes it from the raw "signal" of observations; default none."""
+    """A curiosity channel: the server appends a stimulus dimension "curiosity", last, and computes
+    it from the raw "signal" of observations; default none."""
 
 
 AGENT_OPTIONS: Final[tuple[str, ...]] = (
@@ -54,6 +58,22 @@ AGENT_OPTIONS: Final[tuple[str, ...]] = (
     "curiosity",
 )
 """The keys of :class:`AgentKwargs`, in the server's order."""
+
+AGENT_KINDS: Final[dict[str, str]] = {
+    "eta": "real",
+    "gamma": "real",
+    "priorities": "per_stimulus",
+    "stimulus_rate": "real_or_name",
+    "optimistic_sd": "real",
+    "ridge": "real",
+    "epsilon": "real",
+    "seed": "integer",
+    "update_mode": "choice",
+    "history": "integer",
+    "curiosity": "object",
+}
+"""What each option holds: "real", "integer", "per_stimulus", "real_or_name",
+"choice" or "object" (the readers of a session's configuration follow it)."""
 
 CURIOSITY_PARAMS: Final[tuple[str, ...]] = (
     "max_centres",

@@ -93,6 +93,27 @@ fn ascii(text: &str) -> String {
     out.replace('`', "\"")
 }
 
+/// `text` in lines of at most `width` characters (words are not split),
+/// each starting with `indent`.
+fn wrap(text: &str, indent: &str, width: usize) -> String {
+    let mut out = String::new();
+    let mut line = String::from(indent);
+    for word in text.split(' ') {
+        if line.len() > indent.len() && line.len() + 1 + word.len() > width {
+            out.push_str(line.trim_end());
+            out.push('\n');
+            line = String::from(indent);
+        }
+        if line.len() > indent.len() {
+            line.push(' ');
+        }
+        line.push_str(word);
+    }
+    out.push_str(&line);
+    out.push('\n');
+    out
+}
+
 /// The Python annotation of a parameter's option (the client's
 /// normalisers key on it: mcapi_client/types.py).
 fn python_type(p: &Param) -> String {
@@ -162,17 +183,32 @@ class AgentKwargs(TypedDict, total=False):
             _ => String::new(),
         };
         let _ = writeln!(out, "    {}: {} | None", p.name, python_type(p));
-        let _ = writeln!(
-            out,
-            "    \"\"\"{doc}{allowed}; default {}.\"\"\"",
+        let text = format!(
+            "\"\"\"{doc}{allowed}; default {}.\"\"\"",
             ascii(&p.default_text())
         );
+        out.push_str(&wrap(&text, "    ", 100));
     }
     out.push_str("\n\nAGENT_OPTIONS: Final[tuple[str, ...]] = (\n");
     for p in &options {
         let _ = writeln!(out, "    \"{}\",", p.name);
     }
     out.push_str(")\n\"\"\"The keys of :class:`AgentKwargs`, in the server's order.\"\"\"\n\n");
+    out.push_str("AGENT_KINDS: Final[dict[str, str]] = {\n");
+    for p in &options {
+        let kind = match p.kind {
+            Kind::Real { .. } => "real",
+            Kind::Integer { .. } => "integer",
+            Kind::PerStimulus { .. } => "per_stimulus",
+            Kind::RealOrName { .. } => "real_or_name",
+            Kind::Choice(_) => "choice",
+            Kind::Object(_) => "object",
+        };
+        let _ = writeln!(out, "    \"{}\": \"{kind}\",", p.name);
+    }
+    out.push_str(
+        "}\n\"\"\"What each option holds: \"real\", \"integer\", \"per_stimulus\", \"real_or_name\",\n\"choice\" or \"object\" (the readers of a session's configuration follow it).\"\"\"\n\n",
+    );
     out.push_str("CURIOSITY_PARAMS: Final[tuple[str, ...]] = (\n");
     for p in &CURIOSITY_PARAMS {
         let _ = writeln!(out, "    \"{}\",", p.name);
@@ -292,16 +328,20 @@ mod tests {
         fields
     }
 
+    /// One field per option, of the option's type; the text may list them
+    /// in any order (a new field is added with the next free number).
     #[test]
-    fn the_proto_has_one_field_per_option_in_order() {
+    fn the_proto_has_one_field_per_option() {
         let proto =
             std::fs::read_to_string(repo("proto/mcapi/v1/agents.proto")).expect("agents.proto");
         for message in ["SessionConfig", "EffectiveConfig"] {
             let fields = proto_fields(&proto, message);
-            let names: Vec<&str> = fields.iter().map(|(n, _)| n.as_str()).collect();
-            let expected: Vec<&str> = session_options().map(|p| p.name).collect();
+            let mut names: Vec<&str> = fields.iter().map(|(n, _)| n.as_str()).collect();
+            let mut expected: Vec<&str> = session_options().map(|p| p.name).collect();
+            names.sort_unstable();
+            expected.sort_unstable();
             assert_eq!(names, expected, "the fields of {message}");
-            for (p, (_, ty)) in session_options().zip(&fields) {
+            for p in session_options() {
                 let want = match p.kind {
                     Kind::Real { .. } => "double".to_owned(),
                     Kind::Integer { .. } => "uint64".to_owned(),
@@ -310,7 +350,11 @@ mod tests {
                     Kind::Choice(_) => pascal(p.name),
                     Kind::Object(schema) => schema.to_owned(),
                 };
-                assert_eq!(ty, &want, "{message}.{}", p.name);
+                let ty = fields
+                    .iter()
+                    .find(|(n, _)| n == p.name)
+                    .map(|(_, ty)| ty.as_str());
+                assert_eq!(ty, Some(want.as_str()), "{message}.{}", p.name);
             }
         }
     }

@@ -52,56 +52,73 @@ const fn real_default(p: Param) -> f64 {
     }
 }
 
-/// Agent configuration as a client sends it; every field is optional.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-#[serde(deny_unknown_fields)]
-pub struct AgentParams {
-    /// MCA learning rate η (Eq. 1), 0 < η <= 0.5.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub eta: Option<f64>,
-    /// Discount γ in [0, 1).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub gamma: Option<f64>,
-    /// Priorities ρ in (0, 1]^n; Λ = diag(1/ρ). Default all ones.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub priorities: Option<Vec<f64>>,
-    /// Learning rate of Ξ.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub stimulus_rate: Option<StimulusRate>,
-    /// σ of the optimistic initialisation Ξ ~ N(0, σ²).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub optimistic_sd: Option<f64>,
-    /// Ridge λ added to A only when A is singular.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub ridge: Option<f64>,
-    /// ε of ε-greedy exploration (our addition; default 0, off).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub epsilon: Option<f64>,
-    /// Seed of the agent's ChaCha RNG; drawn at random when absent.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub seed: Option<u64>,
+/// The agent's parameters as Rust fields, in the order of
+/// [`table::AGENT_PARAMS`]: the one list from which the core's
+/// [`AgentParams`] and [`ValidParams`] and the server's session
+/// configurations are generated. `agent_params!(m)` calls the macro `m`
+/// with the list (`/// doc` then `name: Type,` per parameter).
+#[macro_export]
+macro_rules! agent_params {
+    ($then:ident) => {
+        $then! {
+            /// MCA learning rate η (Eq. 1), 0 < η <= 0.5.
+            eta: f64,
+            /// Discount γ in [0, 1).
+            gamma: f64,
+            /// Priorities ρ in (0, 1], one per stimulus dimension; Λ = diag(1/ρ).
+            priorities: Vec<f64>,
+            /// Learning rate of Ξ (Algorithm 1, line 5).
+            stimulus_rate: $crate::StimulusRate,
+            /// σ of the optimistic initialisation Ξ ~ N(0, σ²).
+            optimistic_sd: f64,
+            /// Ridge λ added to A only when A is singular.
+            ridge: f64,
+            /// ε of ε-greedy exploration (our addition; default 0, off).
+            epsilon: f64,
+            /// Seed of the agent's ChaCha RNG; drawn at random when absent.
+            seed: u64,
+        }
+    };
 }
 
-/// Checked parameters; only [`AgentParams::check`] makes them.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ValidParams {
-    /// η.
-    pub eta: f64,
-    /// γ.
-    pub gamma: f64,
-    /// ρ, one per stimulus dimension.
-    pub priorities: Vec<f64>,
-    /// Ξ learning rate.
-    pub stimulus_rate: StimulusRate,
-    /// σ of Ξ's initialisation.
-    pub optimistic_sd: f64,
-    /// Ridge λ.
-    pub ridge: f64,
-    /// Exploration ε.
-    pub epsilon: f64,
-    /// RNG seed.
-    pub seed: u64,
+/// [`AgentParams`] (every field optional, as a client sends it),
+/// [`ValidParams`] (every field checked) and the way back.
+macro_rules! param_structs {
+    ($($(#[doc = $doc:literal])* $name:ident: $ty:ty,)*) => {
+        /// Agent configuration as a client sends it; every field is optional.
+        #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+        #[serde(deny_unknown_fields)]
+        pub struct AgentParams {
+            $(
+                $(#[doc = $doc])*
+                #[serde(default, skip_serializing_if = "Option::is_none")]
+                pub $name: Option<$ty>,
+            )*
+        }
+
+        /// Checked parameters; only [`AgentParams::check`] makes them.
+        #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+        pub struct ValidParams {
+            $(
+                $(#[doc = $doc])*
+                pub $name: $ty,
+            )*
+        }
+
+        impl ValidParams {
+            /// Back to the optional form, every field set (the effective
+            /// configuration).
+            #[allow(clippy::clone_on_copy)]
+            pub fn to_params(&self) -> AgentParams {
+                AgentParams {
+                    $($name: Some(self.$name.clone()),)*
+                }
+            }
+        }
+    };
 }
+
+agent_params!(param_structs);
 
 impl AgentParams {
     /// Validates against a model with `n_stimuli` stimulus dimensions, each
@@ -137,22 +154,6 @@ impl AgentParams {
             epsilon: table::EPSILON.real(*epsilon)?,
             seed: seed.unwrap_or(fallback_seed),
         })
-    }
-}
-
-impl ValidParams {
-    /// Back to the optional form, every field set (the effective configuration).
-    pub fn to_params(&self) -> AgentParams {
-        AgentParams {
-            eta: Some(self.eta),
-            gamma: Some(self.gamma),
-            priorities: Some(self.priorities.clone()),
-            stimulus_rate: Some(self.stimulus_rate),
-            optimistic_sd: Some(self.optimistic_sd),
-            ridge: Some(self.ridge),
-            epsilon: Some(self.epsilon),
-            seed: Some(self.seed),
-        }
     }
 }
 
@@ -235,17 +236,18 @@ mod tests {
 
     #[test]
     fn the_table_names_every_field_in_order() {
-        let full = ValidParams {
-            eta: 0.1,
-            gamma: 0.5,
-            priorities: vec![1.0],
-            stimulus_rate: StimulusRate::Constant(0.5),
-            optimistic_sd: 0.1,
-            ridge: 1.0,
-            epsilon: 0.1,
-            seed: 1,
-        }
-        .to_params();
+        // One example value per entry of the table: the fields must take
+        // them (unknown fields are refused), check them and give them back.
+        let request: serde_json::Map<String, serde_json::Value> = AGENT_PARAMS
+            .iter()
+            .map(|p| (p.name.to_owned(), p.example()))
+            .collect();
+        let params: AgentParams =
+            serde_json::from_value(request.into()).expect("every entry is a field");
+        let full = params
+            .check(1, 0)
+            .expect("the examples are valid")
+            .to_params();
         let json = serde_json::to_value(&full).expect("serialises");
         let keys: Vec<&str> = json
             .as_object()

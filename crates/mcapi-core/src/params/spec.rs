@@ -197,6 +197,19 @@ impl Param {
         }
     }
 
+    /// A valid value, as JSON: the default where there is one, one entry
+    /// for a per-stimulus parameter, `null` for an absent object.
+    pub fn example(&self) -> serde_json::Value {
+        match self.default {
+            Default::Real(x) => x.into(),
+            Default::Integer(n) => n.into(),
+            Default::Name(name) => name.into(),
+            Default::AllOnes => vec![1.0].into(),
+            Default::Drawn => 7.into(),
+            Default::Absent => serde_json::Value::Null,
+        }
+    }
+
     /// The error naming this parameter.
     pub fn bad(&self, reason: impl Into<String>) -> AlgoError {
         AlgoError::InvalidParameter {

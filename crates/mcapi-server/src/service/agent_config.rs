@@ -3,10 +3,12 @@
 //! service adds the update mode, the history length and the curiosity
 //! channel. [`SessionConfig`] is what a client sends (every field
 //! optional), [`EffectiveConfig`] what a session runs with (every field
-//! set, the seed drawn); every conversion between them, and to and from
-//! the core's types, is here, each destructuring its source completely so
-//! a new field does not compile until it is handled. The proto messages
-//! convert in one place too, `crate::api::grpc::convert`.
+//! set, the seed drawn). Both, and every conversion between them and to and
+//! from the core's types, are generated from the core's one list of agent
+//! parameters ([`mcapi_core::agent_params`]), so a parameter added there
+//! needs no edit here. The proto messages convert in one place,
+//! `crate::api::grpc::convert`, which destructures them completely so that
+//! a new field does not compile until it is handled.
 
 use serde::{Deserialize, Serialize};
 
@@ -76,35 +78,120 @@ pub fn session_options() -> impl Iterator<Item = &'static Param> {
     AGENT_PARAMS.iter().chain(SESSION_PARAMS.iter())
 }
 
-/// Agent configuration of a session; every field is optional.
-#[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, utoipa::ToSchema)]
-#[serde(deny_unknown_fields)]
-pub struct SessionConfig {
-    /// MCA rate η (Eq. 1), 0 < η <= 0.5; default 0.01.
-    pub eta: Option<f64>,
-    /// Discount γ in [0, 1); default 0.95.
-    pub gamma: Option<f64>,
-    /// Priorities ρ in (0, 1], one per stimulus; default all 1.
-    pub priorities: Option<Vec<f64>>,
-    /// `"sample_mean"` (default) or a constant rate in (0, 1].
-    #[schema(value_type = Option<Object>)]
-    pub stimulus_rate: Option<StimulusRate>,
-    /// σ of the optimistic initialisation of Ξ; default 0.3.
-    pub optimistic_sd: Option<f64>,
-    /// Ridge added to A only when singular; default 1e-6.
-    pub ridge: Option<f64>,
-    /// ε-greedy exploration; default 0.
-    pub epsilon: Option<f64>,
-    /// Seed of the session's RNG; drawn at random when absent and returned.
-    pub seed: Option<u64>,
-    /// `lockstep` (default) or `async`.
-    pub update_mode: Option<UpdateMode>,
-    /// Number of recent ticks kept for `/history`; default 256.
-    pub history: Option<usize>,
-    /// A curiosity channel (docs/algorithm.md §7): the server appends a stimulus
-    /// dimension `curiosity`, last, and computes it from raw `signal`s.
-    pub curiosity: Option<CuriosityConfig>,
+/// The schema of an agent parameter's field in the derived OpenAPI
+/// schemas: the type's own, or a `$ref` for the types the document writes
+/// out by hand (`crate::api::schemas`).
+trait FieldSchema {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema>;
 }
+
+impl FieldSchema for f64 {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        <f64 as utoipa::PartialSchema>::schema()
+    }
+}
+
+impl FieldSchema for u64 {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        <u64 as utoipa::PartialSchema>::schema()
+    }
+}
+
+impl FieldSchema for Vec<f64> {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        <Vec<f64> as utoipa::PartialSchema>::schema()
+    }
+}
+
+impl FieldSchema for StimulusRate {
+    fn schema() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
+        utoipa::openapi::Ref::from_schema_name("StimulusRate").into()
+    }
+}
+
+/// [`SessionConfig`], [`EffectiveConfig`] and every conversion between them
+/// and the core's types, from the core's list of agent parameters
+/// ([`mcapi_core::agent_params`]) and the session's own three options: a
+/// parameter added to the core's list is a field of both, converted, with
+/// no edit here.
+macro_rules! session_configs {
+    ($($(#[doc = $doc:literal])* $name:ident: $ty:ty,)*) => {
+        /// Agent configuration of a session; every field is optional.
+        #[derive(Debug, Clone, PartialEq, Default, Serialize, Deserialize, utoipa::ToSchema)]
+        #[serde(deny_unknown_fields)]
+        pub struct SessionConfig {
+            $(
+                $(#[doc = $doc])*
+                #[schema(schema_with = <$ty as FieldSchema>::schema)]
+                pub $name: Option<$ty>,
+            )*
+            /// `lockstep` (default) or `async`.
+            pub update_mode: Option<UpdateMode>,
+            /// Number of recent ticks kept for `/history`; default 256.
+            pub history: Option<usize>,
+            /// A curiosity channel (docs/algorithm.md §7): the server appends
+            /// a stimulus dimension `curiosity`, last, and computes it from
+            /// raw `signal`s.
+            pub curiosity: Option<CuriosityConfig>,
+        }
+
+        /// The effective configuration of a session, every field set.
+        #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+        pub struct EffectiveConfig {
+            $(
+                $(#[doc = $doc])*
+                #[schema(schema_with = <$ty as FieldSchema>::schema)]
+                pub $name: $ty,
+            )*
+            /// Update mode.
+            pub update_mode: UpdateMode,
+            /// History length.
+            pub history: usize,
+            /// The curiosity channel, every parameter set; absent without one.
+            #[serde(default, skip_serializing_if = "Option::is_none")]
+            pub curiosity: Option<CuriosityConfig>,
+        }
+
+        impl SessionConfig {
+            /// The algorithm's part, for [`AgentParams::check`].
+            pub fn params(&self) -> AgentParams {
+                AgentParams {
+                    $($name: self.$name.clone(),)*
+                }
+            }
+
+            /// The effective configuration of a session whose algorithm's
+            /// part checked into `params`: the service's part resolved to
+            /// its defaults.
+            #[allow(clippy::clone_on_copy)]
+            pub fn effective(&self, params: &ValidParams) -> EffectiveConfig {
+                EffectiveConfig {
+                    $($name: params.$name.clone(),)*
+                    update_mode: self.update_mode.unwrap_or_default(),
+                    history: self.history.unwrap_or(DEFAULT_HISTORY),
+                    curiosity: self.curiosity.clone(),
+                }
+            }
+        }
+
+        /// The request that builds a session with exactly this configuration
+        /// again (recovery rebuilds a stored session from its effective
+        /// configuration).
+        impl From<&EffectiveConfig> for SessionConfig {
+            #[allow(clippy::clone_on_copy)]
+            fn from(c: &EffectiveConfig) -> Self {
+                Self {
+                    $($name: Some(c.$name.clone()),)*
+                    update_mode: Some(c.update_mode),
+                    history: Some(c.history),
+                    curiosity: c.curiosity.clone(),
+                }
+            }
+        }
+    };
+}
+
+mcapi_core::agent_params!(session_configs);
 
 /// Name of the stimulus dimension a curiosity channel adds.
 pub const CURIOSITY_DIMENSION: &str = "curiosity";
@@ -122,131 +209,6 @@ pub struct CuriosityConfig {
     pub params: CuriosityParams,
 }
 
-impl SessionConfig {
-    /// The algorithm's part, for [`AgentParams::check`].
-    pub fn params(&self) -> AgentParams {
-        let Self {
-            eta,
-            gamma,
-            priorities,
-            stimulus_rate,
-            optimistic_sd,
-            ridge,
-            epsilon,
-            seed,
-            update_mode: _,
-            history: _,
-            curiosity: _,
-        } = self;
-        AgentParams {
-            eta: *eta,
-            gamma: *gamma,
-            priorities: priorities.clone(),
-            stimulus_rate: *stimulus_rate,
-            optimistic_sd: *optimistic_sd,
-            ridge: *ridge,
-            epsilon: *epsilon,
-            seed: *seed,
-        }
-    }
-
-    /// The effective configuration of a session whose algorithm's part
-    /// checked into `params`: the service's part resolved to its defaults.
-    pub fn effective(&self, params: &ValidParams) -> EffectiveConfig {
-        let ValidParams {
-            eta,
-            gamma,
-            priorities,
-            stimulus_rate,
-            optimistic_sd,
-            ridge,
-            epsilon,
-            seed,
-        } = params;
-        EffectiveConfig {
-            eta: *eta,
-            gamma: *gamma,
-            priorities: priorities.clone(),
-            stimulus_rate: *stimulus_rate,
-            optimistic_sd: *optimistic_sd,
-            ridge: *ridge,
-            epsilon: *epsilon,
-            seed: *seed,
-            update_mode: self.update_mode.unwrap_or_default(),
-            history: self.history.unwrap_or(DEFAULT_HISTORY),
-            curiosity: self.curiosity.clone(),
-        }
-    }
-}
-
-/// The request that builds a session with exactly this configuration again
-/// (recovery rebuilds a stored session from its effective configuration).
-impl From<&EffectiveConfig> for SessionConfig {
-    fn from(c: &EffectiveConfig) -> Self {
-        let EffectiveConfig {
-            eta,
-            gamma,
-            priorities,
-            stimulus_rate,
-            optimistic_sd,
-            ridge,
-            epsilon,
-            seed,
-            update_mode,
-            history,
-            curiosity,
-        } = c;
-        Self {
-            eta: Some(*eta),
-            gamma: Some(*gamma),
-            priorities: Some(priorities.clone()),
-            stimulus_rate: Some(*stimulus_rate),
-            optimistic_sd: Some(*optimistic_sd),
-            ridge: Some(*ridge),
-            epsilon: Some(*epsilon),
-            seed: Some(*seed),
-            update_mode: Some(*update_mode),
-            history: Some(*history),
-            curiosity: curiosity.clone(),
-        }
-    }
-}
-
-/// `$ref` to the stimulus-rate schema, which the OpenAPI document writes out
-/// by hand (`crate::api::schemas`).
-fn stimulus_rate_ref() -> utoipa::openapi::RefOr<utoipa::openapi::schema::Schema> {
-    utoipa::openapi::Ref::from_schema_name("StimulusRate").into()
-}
-
-/// The effective configuration of a session, every field set.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
-pub struct EffectiveConfig {
-    /// η.
-    pub eta: f64,
-    /// γ.
-    pub gamma: f64,
-    /// ρ.
-    pub priorities: Vec<f64>,
-    /// Ξ learning rate.
-    #[schema(schema_with = stimulus_rate_ref)]
-    pub stimulus_rate: StimulusRate,
-    /// σ of Ξ's initialisation.
-    pub optimistic_sd: f64,
-    /// Ridge λ.
-    pub ridge: f64,
-    /// ε.
-    pub epsilon: f64,
-    /// The seed (drawn by the server when not given).
-    pub seed: u64,
-    /// Update mode.
-    pub update_mode: UpdateMode,
-    /// History length.
-    pub history: usize,
-    /// The curiosity channel, every parameter set; absent without one.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub curiosity: Option<CuriosityConfig>,
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -256,22 +218,14 @@ mod tests {
     #[test]
     fn the_configs_have_one_field_per_table_entry() {
         let names: Vec<&str> = session_options().map(|p| p.name).collect();
-        let config = SessionConfig {
-            eta: Some(0.1),
-            gamma: Some(0.5),
-            priorities: Some(vec![1.0]),
-            stimulus_rate: Some(StimulusRate::Constant(0.5)),
-            optimistic_sd: Some(0.1),
-            ridge: Some(1.0),
-            epsilon: Some(0.0),
-            seed: Some(1),
-            update_mode: Some(UpdateMode::Async),
-            history: Some(3),
-            curiosity: Some(CuriosityConfig {
-                signal_dim: 2,
-                params: CuriosityParams::default(),
-            }),
-        };
+        // One example value per entry of the tables: the fields must take
+        // them (unknown fields are refused) and give them back.
+        let mut request: serde_json::Map<String, serde_json::Value> = session_options()
+            .map(|p| (p.name.to_owned(), p.example()))
+            .collect();
+        request.insert("curiosity".into(), serde_json::json!({"signal_dim": 2}));
+        let config: SessionConfig =
+            serde_json::from_value(request.into()).expect("every entry is a field");
         let mut keys: Vec<String> = serde_json::to_value(&config)
             .expect("serialises")
             .as_object()

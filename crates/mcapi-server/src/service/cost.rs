@@ -242,7 +242,7 @@ fn curiosity(c: &CuriosityConfig) -> (u64, f64) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::service::agent_config::UpdateMode;
+    use crate::service::agent_config::SessionConfig;
     use crate::service::wire::BasisSummary;
     use mcapi_core::CuriosityParams;
 
@@ -265,19 +265,14 @@ mod tests {
     }
 
     fn config(history: usize, curiosity: Option<CuriosityConfig>) -> EffectiveConfig {
-        EffectiveConfig {
-            eta: 0.01,
-            gamma: 0.95,
-            priorities: vec![1.0; 2],
-            stimulus_rate: mcapi_core::StimulusRate::default(),
-            optimistic_sd: 0.3,
-            ridge: 1e-6,
-            epsilon: 0.0,
-            seed: 1,
-            update_mode: UpdateMode::Lockstep,
-            history,
+        let request = SessionConfig {
+            seed: Some(1),
+            history: Some(history),
             curiosity,
-        }
+            ..SessionConfig::default()
+        };
+        let params = request.params().check(2, 1).expect("valid");
+        request.effective(&params)
     }
 
     #[test]
