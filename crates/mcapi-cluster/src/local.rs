@@ -26,7 +26,7 @@
 //! own nothing yet), writes the router's configuration with them and starts
 //! HAProxy again (clients reconnect), and records `replicas` in
 //! `cluster.json`; the rebalance then moves shards to them live
-//! (`super::mover`).
+//! ([`crate::mover`]).
 //!
 //! Children run in their own process group, so a terminal's Ctrl-C reaches
 //! only the supervisor, which stops them in order; on Linux each child also
@@ -42,11 +42,12 @@ use anyhow::{Context, Result, bail};
 use clap::Args;
 use serde::{Deserialize, Serialize};
 
-use super::cli::{write_atomic, write_router};
-use super::haproxy::{Backend, RouterSpec, find_haproxy};
-use super::map::{ReplicaName, ShardMap};
-use super::plan::{self, ordinal_names};
-use super::probe::http_ok;
+use mcapi_shards::plan::{self, ordinal_names};
+use mcapi_shards::{ReplicaName, ShardMap};
+
+use crate::cli::{write_atomic, write_router};
+use crate::haproxy::{Backend, RouterSpec, find_haproxy};
+use crate::probe::http_ok;
 
 /// The most replicas `cluster local` starts on one machine.
 pub const MAX_LOCAL_REPLICAS: usize = 64;
@@ -331,7 +332,7 @@ fn alive(pid: u32) -> bool {
 
 /// Runs `mcapi cluster local` until SIGTERM or Ctrl-C.
 pub fn run(args: &LocalArgs) -> Result<()> {
-    crate::telemetry::init_logging(crate::config::LogFormat::Text, "info");
+    crate::logging::init_logging();
     let setup = prepare(args)?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
@@ -895,7 +896,7 @@ async fn supervise(setup: Setup) -> Result<()> {
             processes: Vec::new(),
         },
     };
-    let signal = crate::server::shutdown_signal();
+    let signal = crate::signal::shutdown_signal();
     tokio::pin!(signal);
     let started = tokio::select! {
         r = async {
