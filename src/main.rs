@@ -12,11 +12,11 @@ use std::time::Instant;
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use clap::{Args, Parser, Subcommand};
+use mcapi_cluster::cli::ClusterCommand;
 use mcapi_experiments::curiosity;
 use mcapi_experiments::paper::{LearnedModelParams, ModelChoice, Optimism, Variant};
 use mcapi_experiments::run::results_table;
 use mcapi_experiments::{Experiment, ExperimentKind, RunOptions, run_experiment};
-use mcapi_server::cluster::{self, cli::ClusterCommand};
 use mcapi_server::config::{LogFormat, ServeConfig};
 use mcapi_server::{server, telemetry};
 
@@ -129,7 +129,7 @@ fn main() -> ExitCode {
             experiment(args)
         }
         Command::Healthcheck(args) => healthcheck(&args),
-        Command::Cluster { command } => cluster::cli::run(command),
+        Command::Cluster { command } => mcapi_cluster::cli::run(command),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -289,5 +289,5 @@ fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
 
 /// `mcapi healthcheck`: a plain HTTP/1.1 GET; success means a `200`.
 fn healthcheck(args: &HealthcheckArgs) -> anyhow::Result<()> {
-    cluster::probe::http_ok(&args.url, std::time::Duration::from_millis(args.timeout_ms))
+    mcapi_cluster::probe::http_ok(&args.url, std::time::Duration::from_millis(args.timeout_ms))
 }

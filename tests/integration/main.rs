@@ -24,3 +24,4 @@ mod openapi;
 mod parity;
 mod rest;
 mod serve;
+mod shard_move;

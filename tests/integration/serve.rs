@@ -243,8 +243,9 @@ async fn deleted_sessions_give_their_memory_back() {
 
 /// The `mcapi-loadgen` binary: another package of the workspace, so Cargo
 /// gives its path to no test of this one; it is built next to `mcapi` in the
-/// same target directory (`cargo test --workspace` builds it; a run of this
-/// package's tests alone needs `cargo build -p mcapi-loadgen` first).
+/// same target directory (`cargo test --workspace` builds it for
+/// mcapi-loadgen's own tests; a run of this package's tests alone needs
+/// `cargo build -p mcapi-loadgen` first).
 fn loadgen_bin() -> std::path::PathBuf {
     let mcapi = std::path::Path::new(env!("CARGO_BIN_EXE_mcapi"));
     let bin = mcapi.with_file_name(format!("mcapi-loadgen{}", std::env::consts::EXE_SUFFIX));

@@ -1,8 +1,13 @@
-//! The core knows nothing of the network (docs/architecture.md), and the crate
-//! boundary enforces it: this test reads the workspace's *resolved*
-//! dependency graph (`cargo metadata`) and walks mcapi-core's normal
-//! dependencies, transitively, the way `cargo tree -p mcapi-core -e normal`
-//! does. None of the server's, the store's or the plots' crates may appear.
+//! The crates' layers (docs/architecture.md), enforced on the workspace's
+//! *resolved* dependency graph (`cargo metadata`), normal dependencies only
+//! (the way `cargo tree -e normal` walks them; tests may reach further):
+//!
+//! - the core knows nothing of the network: none of the server's, the
+//!   store's or the plots' crates is in mcapi-core's closure;
+//! - every workspace crate depends only on the workspace crates its row of
+//!   [`ALLOWED`] names, so arrows only point down a layer and no crate
+//!   reaches one above it (mcapi-cluster never reaches mcapi-server,
+//!   mcapi-store and mcapi-shards reach no other mcapi crate).
 
 use std::collections::{HashMap, HashSet};
 use std::process::Command;
@@ -12,6 +17,28 @@ use serde_json::Value;
 /// Crates that would tie the core to async, the network, storage or plots.
 const FORBIDDEN: [&str; 10] = [
     "tokio", "axum", "tonic", "hyper", "prost", "tower", "redb", "plotters", "mio", "h2",
+];
+
+/// Each workspace crate and the workspace crates it may depend on directly
+/// (normal dependencies). A new crate needs a row here.
+const ALLOWED: [(&str, &[&str]); 9] = [
+    // The binary: CLI wiring only.
+    (
+        "mcapi",
+        &["mcapi-cluster", "mcapi-experiments", "mcapi-server"],
+    ),
+    ("mcapi-loadgen", &["mcapi-proto"]),
+    ("mcapi-cluster", &["mcapi-shards"]),
+    (
+        "mcapi-server",
+        &["mcapi-core", "mcapi-proto", "mcapi-shards", "mcapi-store"],
+    ),
+    ("mcapi-experiments", &["mcapi-core"]),
+    // The leaves.
+    ("mcapi-core", &[]),
+    ("mcapi-proto", &[]),
+    ("mcapi-shards", &[]),
+    ("mcapi-store", &[]),
 ];
 
 fn metadata() -> Value {
@@ -29,9 +56,9 @@ fn metadata() -> Value {
     serde_json::from_slice(&out.stdout).expect("cargo metadata prints JSON")
 }
 
-/// The names of every package mcapi-core reaches through normal
-/// (non-dev, non-build) dependency edges.
-fn normal_closure(meta: &Value) -> HashSet<String> {
+/// The names of the packages `root` depends on through normal (non-dev,
+/// non-build) edges: directly, or (`transitive`) through any path.
+fn normal_deps(meta: &Value, root: &str, transitive: bool) -> HashSet<String> {
     let names: HashMap<&str, &str> = meta["packages"]
         .as_array()
         .expect("packages")
@@ -51,9 +78,9 @@ fn normal_closure(meta: &Value) -> HashSet<String> {
         .collect();
     let root = names
         .iter()
-        .find(|(_, name)| **name == "mcapi-core")
+        .find(|(_, name)| **name == root)
         .map(|(id, _)| *id)
-        .expect("mcapi-core is a workspace package");
+        .unwrap_or_else(|| panic!("{root} is a workspace package"));
 
     let mut seen = HashSet::from([root]);
     let mut todo = vec![root];
@@ -65,17 +92,18 @@ fn normal_closure(meta: &Value) -> HashSet<String> {
                 .iter()
                 .any(|k| k["kind"].is_null());
             let pkg = dep["pkg"].as_str().expect("pkg");
-            if normal && seen.insert(pkg) {
+            if normal && seen.insert(pkg) && transitive {
                 todo.push(pkg);
             }
         }
     }
+    seen.remove(root);
     seen.into_iter().map(|id| names[id].to_owned()).collect()
 }
 
 #[test]
 fn core_dependency_closure_has_no_runtime_network_storage_or_plotting_crate() {
-    let closure = normal_closure(&metadata());
+    let closure = normal_deps(&metadata(), "mcapi-core", true);
     // The walk found the core's own dependencies, so it walked the right graph.
     for expected in ["nalgebra", "rand", "serde"] {
         assert!(
@@ -96,4 +124,71 @@ fn core_dependency_closure_has_no_runtime_network_storage_or_plotting_crate() {
         found.is_empty(),
         "mcapi-core's normal dependencies reach {found:?}: the core must stay free of async, network, storage and plots"
     );
+}
+
+/// The names of the workspace's crates.
+fn workspace_crates(meta: &Value) -> HashSet<String> {
+    let members: HashSet<&str> = meta["workspace_members"]
+        .as_array()
+        .expect("workspace_members")
+        .iter()
+        .map(|m| m.as_str().expect("member id"))
+        .collect();
+    meta["packages"]
+        .as_array()
+        .expect("packages")
+        .iter()
+        .filter(|p| members.contains(p["id"].as_str().expect("id")))
+        .map(|p| p["name"].as_str().expect("name").to_owned())
+        .collect()
+}
+
+#[test]
+fn every_crate_depends_only_on_the_workspace_crates_of_its_layer() {
+    let meta = metadata();
+    let crates = workspace_crates(&meta);
+    let mut listed: Vec<&str> = ALLOWED.iter().map(|(name, _)| *name).collect();
+    listed.sort_unstable();
+    let mut members: Vec<&str> = crates.iter().map(String::as_str).collect();
+    members.sort_unstable();
+    assert_eq!(
+        members, listed,
+        "every workspace crate needs exactly one row in ALLOWED"
+    );
+    let mut wrong = Vec::new();
+    for (name, allowed) in ALLOWED {
+        let mut found: Vec<String> = normal_deps(&meta, name, false)
+            .into_iter()
+            .filter(|d| crates.contains(d) && !allowed.contains(&d.as_str()))
+            .collect();
+        found.sort();
+        if !found.is_empty() {
+            wrong.push(format!("{name} -> {found:?}"));
+        }
+    }
+    assert!(
+        wrong.is_empty(),
+        "workspace dependencies outside the layers (ALLOWED): {wrong:?}"
+    );
+}
+
+#[test]
+fn the_tool_the_store_and_the_shard_map_reach_no_crate_above_them() {
+    let meta = metadata();
+    let crates = workspace_crates(&meta);
+    // (crate, workspace crates its whole closure may contain)
+    let cases: [(&str, &[&str]); 4] = [
+        ("mcapi-cluster", &["mcapi-shards"]),
+        ("mcapi-loadgen", &["mcapi-proto"]),
+        ("mcapi-store", &[]),
+        ("mcapi-shards", &[]),
+    ];
+    for (name, may) in cases {
+        let mut reached: Vec<String> = normal_deps(&meta, name, true)
+            .into_iter()
+            .filter(|d| crates.contains(d) && !may.contains(&d.as_str()))
+            .collect();
+        reached.sort();
+        assert!(reached.is_empty(), "{name} reaches {reached:?}");
+    }
 }

@@ -9,8 +9,8 @@ use clap::{Args, ValueEnum};
 use serde::Serialize;
 
 use crate::api::conn::ConnLimits;
-use crate::cluster::{Placement, ReplicaName, ShardMap};
 use crate::service::{ApiKeys, Limits, ManagerOptions};
+use mcapi_shards::{Placement, ReplicaName, ShardMap};
 
 /// Log output format.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]

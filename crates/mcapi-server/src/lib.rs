@@ -7,11 +7,10 @@
 //! Modules, from the bottom up (docs/architecture.md, "The layers"):
 //! - [`service`]: the session layer both transports call (sessions, tick
 //!   loop, limits, recovery), over the durable store ([`mcapi_store`], or
-//!   memory).
+//!   memory); on a replica of a cluster it asks the shard map's placement
+//!   ([`mcapi_shards`]) first.
 //! - [`api`]: thin transport adapters over [`service`], with one error
 //!   mapping.
-//! - [`cluster`]: the shard map, placement on replicas and the router's
-//!   configuration (`mcapi cluster`).
 //! - [`generated`]: the files written from the parameter tables (the
 //!   docs' tables, the Python client's options) and the checks that keep
 //!   the proto and the OpenAPI document in step with them.
@@ -19,9 +18,11 @@
 //!   struct, logging and metrics, and the start-up that binds both ports.
 
 pub mod api;
-pub mod cluster;
 pub mod config;
 pub mod generated;
 pub mod server;
 pub mod service;
 pub mod telemetry;
+
+#[cfg(test)]
+mod placement_tests;

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use common::{check_session, free_ports, grpc_request, http_client};
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::cluster::ShardMap;
+use mcapi_shards::ShardMap;
 
 use super::{
     LocalCluster, call, create_walks, haproxy_or_skip, mcapi, meta, owner_of, plan, process_exists,

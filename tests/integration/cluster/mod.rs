@@ -36,8 +36,8 @@ use common::{
 };
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::cluster::haproxy::find_haproxy;
-use mcapi_server::cluster::{ShardMap, shard_of_id};
+use mcapi_cluster::haproxy::find_haproxy;
+use mcapi_shards::{ShardMap, shard_of_id};
 use serde_json::{Value, json};
 use tonic::transport::Channel;
 

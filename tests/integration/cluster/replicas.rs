@@ -9,8 +9,8 @@ use std::time::{Duration, Instant};
 
 use common::{Server, free_ports, grpc_request, http_client};
 use mcapi_server::api::grpc::pb;
-use mcapi_server::cluster::haproxy::{runtime_command, set_owner};
-use mcapi_server::cluster::{ReplicaName, ShardMap, shard_key, shard_of_id};
+use mcapi_cluster::haproxy::{runtime_command, set_owner};
+use mcapi_shards::{ReplicaName, ShardMap, shard_key, shard_of_id};
 use serde_json::json;
 use tokio::sync::mpsc;
 use tokio_stream::wrappers::ReceiverStream;

@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use common::{Obs, Reply, check_session, grpc_request, http_client};
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::cluster::{ReplicaName, ShardMap, shard_key, shard_of_id};
+use mcapi_shards::{ReplicaName, ShardMap, shard_key, shard_of_id};
 use serde_json::Value;
 use tonic::Code;
 use tonic::transport::Channel;
@@ -291,8 +291,8 @@ async fn shards_move_live_while_sessions_are_driven_and_a_replica_is_killed() {
         );
     }
     let map = ShardMap::read(&cluster.dir.join("shards.map")).expect("map");
-    let names = mcapi_server::cluster::plan::ordinal_names("mcapi", 4).expect("names");
-    let planned = mcapi_server::cluster::plan::plan(&names, Some(&map0))
+    let names = mcapi_shards::plan::ordinal_names("mcapi", 4).expect("names");
+    let planned = mcapi_shards::plan::plan(&names, Some(&map0))
         .expect("plan")
         .map;
     assert_eq!(

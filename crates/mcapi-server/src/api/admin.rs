@@ -26,9 +26,9 @@ use serde::Deserialize;
 
 use crate::api::error::ApiError;
 use crate::api::extract::AppState;
-use crate::cluster::ReplicaName;
 use crate::service::ServiceError;
 use crate::service::shards::{Manifest, ShardData, parse_shard};
+use mcapi_shards::ReplicaName;
 
 /// Largest request body of an admin route: one shard's data.
 pub const MAX_ADMIN_BODY: usize = 1 << 30;

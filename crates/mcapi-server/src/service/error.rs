@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use thiserror::Error;
 
 use mcapi_core::AlgoError;
+use mcapi_shards::PlacementError;
 use mcapi_store::StoreError;
 
 /// Everything a service call can fail with.
@@ -121,6 +122,37 @@ impl ServiceError {
                 .into()
             }
             e => Self::field(field, e),
+        }
+    }
+}
+
+/// A replica's placement refuses with the service error of the same name
+/// (and the same message).
+impl From<PlacementError> for ServiceError {
+    fn from(e: PlacementError) -> Self {
+        match e {
+            PlacementError::NotFound(id) => Self::NotFound(id),
+            PlacementError::WrongReplica {
+                id,
+                shard,
+                owner,
+                replica,
+                epoch,
+            } => Self::WrongReplica {
+                id,
+                shard,
+                owner,
+                replica,
+                epoch,
+            },
+            PlacementError::ShardFrozen {
+                shard,
+                retry_after_secs,
+            } => Self::ShardFrozen {
+                shard,
+                retry_after_secs,
+            },
+            PlacementError::MoveConflict(why) => Self::MoveConflict(why),
         }
     }
 }

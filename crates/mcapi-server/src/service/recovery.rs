@@ -15,8 +15,8 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-use crate::cluster::Placement;
 use mcapi_core::{Agent, CuriousAgent};
+use mcapi_shards::Placement;
 use mcapi_store::{StoreError, StoredSession};
 
 use super::agent_config::SessionConfig;

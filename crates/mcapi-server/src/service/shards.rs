@@ -1,5 +1,5 @@
 //! A replica's side of a live shard move (docs/cluster.md, "How a shard
-//! moves"). The mover (`mcapi cluster move`, [`crate::cluster::mover`])
+//! moves"). The mover (`mcapi cluster move`, mcapi-cluster's `mover`)
 //! calls these through the admin routes (`api::admin`), in order:
 //!
 //! 1. source [`SessionManager::export_shard`] with no manifest: the
@@ -30,13 +30,11 @@ use std::collections::HashMap;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use serde::{Deserialize, Serialize};
-
 use super::error::{RecoveryError, ServiceError};
 use super::manager::SessionManager;
 use super::recovery;
-use crate::cluster::map::{ReplicaName, shard_key};
-use crate::cluster::{Placement, ShardState};
+pub use mcapi_shards::moves::{Manifest, MovedSession, ShardData, ShardStatus};
+use mcapi_shards::{Placement, ReplicaName, ShardState, shard_key};
 use mcapi_store::{StoredSession, Write};
 
 /// Longest wait for the requests changing a shard to end once it is frozen.
@@ -45,112 +43,6 @@ pub const FREEZE_DRAIN: Duration = Duration::from_secs(10);
 /// Most log entries one session may bring in a move (a session's log
 /// between snapshots is `--snapshot-every` long, at most a few thousand).
 pub const MAX_MOVE_ENTRIES: usize = 1 << 20;
-
-/// One session in a move.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub enum MovedSession {
-    /// The whole session: replaces whatever the target has of it.
-    Full {
-        /// Session id.
-        id: String,
-        /// The creation record.
-        record: Vec<u8>,
-        /// The newest snapshot and the sequence number it covers.
-        snapshot: Option<(u64, Vec<u8>)>,
-        /// The log after the snapshot.
-        entries: Vec<(u64, Vec<u8>)>,
-    },
-    /// Log entries after those the target has.
-    Tail {
-        /// Session id.
-        id: String,
-        /// The new entries, in order.
-        entries: Vec<(u64, Vec<u8>)>,
-    },
-}
-
-impl MovedSession {
-    /// Its id.
-    pub fn id(&self) -> &str {
-        match self {
-            Self::Full { id, .. } | Self::Tail { id, .. } => id,
-        }
-    }
-
-    /// The last sequence number the target holds once this is applied
-    /// (`None`: a session without observations), given what it held.
-    pub fn last_seq(&self, before: Option<u64>) -> Option<u64> {
-        match self {
-            Self::Full {
-                snapshot, entries, ..
-            } => entries
-                .last()
-                .map(|(s, _)| *s)
-                .or(snapshot.as_ref().map(|(s, _)| *s)),
-            Self::Tail { entries, .. } => entries.last().map(|(s, _)| *s).or(before),
-        }
-    }
-}
-
-/// A shard's data as one move step sends it (postcard on the wire).
-#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
-pub struct ShardData {
-    /// Sessions, whole or their tails.
-    pub sessions: Vec<MovedSession>,
-    /// Sessions deleted since the manifest (a delta only).
-    pub deleted: Vec<String>,
-}
-
-/// What the mover already holds of a shard: each session id and the last
-/// sequence number received (postcard on the wire).
-#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
-pub struct Manifest {
-    /// `(id, last sequence number)`, at most one entry per id.
-    pub sessions: Vec<(String, Option<u64>)>,
-}
-
-impl ShardData {
-    /// The manifest after applying this to `before`.
-    pub fn manifest(&self, before: &Manifest) -> Manifest {
-        let mut held: HashMap<&str, Option<u64>> = before
-            .sessions
-            .iter()
-            .map(|(id, s)| (id.as_str(), *s))
-            .collect();
-        for s in &self.sessions {
-            let prev = held.get(s.id()).copied().flatten();
-            held.insert(s.id(), s.last_seq(prev));
-        }
-        for id in &self.deleted {
-            held.remove(id.as_str());
-        }
-        let mut sessions: Vec<(String, Option<u64>)> = held
-            .into_iter()
-            .map(|(id, s)| (id.to_string(), s))
-            .collect();
-        sessions.sort();
-        Manifest { sessions }
-    }
-}
-
-/// A shard's state as the admin status call reports it.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct ShardStatus {
-    /// The shard's key.
-    pub shard: String,
-    /// `owned`, `frozen`, `importing` or `foreign`.
-    pub state: String,
-    /// Its owner in this replica's map.
-    pub owner: String,
-    /// This replica.
-    pub replica: String,
-    /// The epoch of this replica's map.
-    pub epoch: u64,
-    /// Sessions of the shard served here.
-    pub sessions: usize,
-    /// A number drawn when this process started: a mover sees a restart.
-    pub boot: u64,
-}
 
 fn state_name(s: ShardState) -> &'static str {
     match s {
@@ -163,14 +55,7 @@ fn state_name(s: ShardState) -> &'static str {
 
 /// Parses a shard key from a path (`s03a7`).
 pub fn parse_shard(key: &str) -> Result<u16, ServiceError> {
-    crate::cluster::map::shard_of_id(&format!("{key}."))
-        .filter(|&s| key.len() == 5 && usize::from(s) < crate::cluster::map::SHARDS)
-        .ok_or_else(|| {
-            ServiceError::field(
-                "shard",
-                format!("`{}` is not a shard key s0000..s03ff", key.escape_debug()),
-            )
-        })
+    mcapi_shards::parse_shard(key).map_err(|e| ServiceError::field("shard", e))
 }
 
 impl SessionManager {

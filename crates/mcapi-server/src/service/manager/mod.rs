@@ -39,11 +39,11 @@ use super::wire::{
     CreateSession, CuriosityInfo, HistoryEntry, ModelSummary, ObservationIn, SessionCost,
     SessionInfo, SessionPage, SessionStats, SessionSummary, StepOut, Values,
 };
-use crate::cluster::Placement;
-use crate::cluster::placement::ShardGuard;
+use mcapi_shards::Placement;
+use mcapi_shards::placement::ShardGuard;
 
 /// Number of virtual shards in session ids (fixed forever, docs/sessions.md).
-pub const SHARDS: u64 = 1024;
+pub const SHARDS: u64 = mcapi_shards::SHARDS as u64;
 
 /// Default and maximum page size of `list`.
 pub const DEFAULT_PAGE: usize = 100;
@@ -311,7 +311,11 @@ impl SessionManager {
     /// Clustered: refuses a session whose shard is not served here, else
     /// counts the request as changing its shard until the guard drops.
     fn enter_shard(&self, id: &str) -> Result<Option<ShardGuard>, ServiceError> {
-        self.placement.as_ref().map(|p| p.enter(id)).transpose()
+        self.placement
+            .as_ref()
+            .map(|p| p.enter(id))
+            .transpose()
+            .map_err(ServiceError::from)
     }
 
     /// Runs a synchronous service call on the blocking pool, so no reader

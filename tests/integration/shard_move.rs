@@ -13,12 +13,11 @@ use http_body_util::BodyExt;
 use serde_json::Value;
 use tower::ServiceExt;
 
-use super::map::{ReplicaName, ShardMap, shard_key, shard_of_id};
-use super::placement::Placement;
-use super::plan::{ordinal_names, plan};
-use crate::api::{AppState, router};
-use crate::service::shards::Manifest;
-use crate::service::{ApiKeys, Limits, ManagerOptions, SessionManager};
+use mcapi_server::api::{AppState, router};
+use mcapi_server::service::{ApiKeys, Limits, ManagerOptions, SessionManager};
+use mcapi_shards::moves::Manifest;
+use mcapi_shards::plan::{ordinal_names, plan};
+use mcapi_shards::{Placement, ReplicaName, ShardMap, shard_key, shard_of_id};
 use mcapi_store::Store;
 
 const KEY: &str = "admin-key-of-the-test";
@@ -95,11 +94,12 @@ async fn an_unadmitted_call_is_refused_before_its_body_is_read() {
     let polled = Arc::new(AtomicUsize::new(0));
     let counter = Arc::clone(&polled);
     let chunk = axum::body::Bytes::from(vec![0u8; 1 << 20]);
-    let chunks =
-        futures_util::stream::iter(0..crate::api::admin::MAX_ADMIN_BODY >> 20).map(move |_| {
+    let chunks = futures_util::stream::iter(0..mcapi_server::api::admin::MAX_ADMIN_BODY >> 20).map(
+        move |_| {
             counter.fetch_add(1, Ordering::SeqCst);
             Ok::<_, std::io::Error>(chunk.clone())
-        });
+        },
+    );
     let req = Request::builder()
         .method("POST")
         .uri(format!("/admin/shards/{shard}/import?begin=true"))

@@ -1,6 +1,6 @@
 //! The mover: `mcapi cluster move` and `mcapi cluster rebalance` on a
 //! running `mcapi cluster local` (docs/cluster.md, "How a shard moves").
-//! It drives the replicas' admin routes (`api::admin`) step by step,
+//! It drives the replicas' admin routes (mcapi-server's `api::admin`, over HTTP) step by step,
 //! relaying the shard's data from the source to the target itself (the
 //! replicas never call each other), writes the shard map file (the commit
 //! point of a move) and flips HAProxy's map through its Runtime API.
@@ -20,11 +20,12 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 
-use super::cli::write_atomic;
-use super::haproxy;
-use super::local::{ADMIN_KEY_FILE, MAP_FILE, STATE_FILE, State};
-use super::map::{ReplicaName, ShardMap, shard_key};
-use crate::service::shards::{Manifest, ShardData, ShardStatus};
+use mcapi_shards::moves::{Manifest, ShardData, ShardStatus};
+use mcapi_shards::{ReplicaName, ShardMap, shard_key};
+
+use crate::cli::write_atomic;
+use crate::haproxy;
+use crate::local::{ADMIN_KEY_FILE, MAP_FILE, STATE_FILE, State};
 
 /// Longest answer read from a replica (a shard's data).
 const MAX_ANSWER_BYTES: usize = 1 << 30;
@@ -401,7 +402,7 @@ pub fn rebalance(dir: &Path, n: usize) -> Result<Vec<MoveReport>> {
     }
     if n > running {
         write_atomic(
-            &dir.join(super::local::REQUEST_FILE),
+            &dir.join(crate::local::REQUEST_FILE),
             &format!("{{\"replicas\": {n}}}\n"),
         )?;
         let pid = i32::try_from(state.supervisor).context("a supervisor pid")?;
@@ -425,10 +426,10 @@ pub fn rebalance(dir: &Path, n: usize) -> Result<Vec<MoveReport>> {
     let mut mover = Mover::open(dir)?;
     mover.refresh(&read_state(dir)?);
     let map = mover.map()?;
-    let names = super::plan::ordinal_names("mcapi", n).map_err(anyhow::Error::msg)?;
-    let planned = super::plan::plan(&names, Some(&map))?.map;
+    let names = mcapi_shards::plan::ordinal_names("mcapi", n).map_err(anyhow::Error::msg)?;
+    let planned = mcapi_shards::plan::plan(&names, Some(&map))?.map;
     let mut reports = Vec::new();
-    for shard in 0..super::map::SHARDS as u16 {
+    for shard in 0..mcapi_shards::SHARDS as u16 {
         let to = planned.owner(shard);
         if map.owner(shard) != to {
             if let Some(r) = mover.move_shard(shard, to)? {

@@ -15,7 +15,7 @@
 
 use sha2::{Digest, Sha256};
 
-use super::map::{MapError, ReplicaName, SHARDS, ShardMap};
+use crate::map::{MapError, ReplicaName, SHARDS, ShardMap};
 
 /// The rendezvous weight of a replica for a shard.
 pub fn weight(shard: u16, replica: &ReplicaName) -> u64 {
@@ -61,9 +61,9 @@ pub fn plan(replicas: &[ReplicaName], from: Option<&ShardMap>) -> Result<Plan, M
             reason: "a plan needs at least one replica, each named once".into(),
         });
     }
-    if names.len() > super::map::MAX_REPLICAS {
+    if names.len() > crate::map::MAX_REPLICAS {
         return Err(MapError::TooManyReplicas {
-            max: super::map::MAX_REPLICAS,
+            max: crate::map::MAX_REPLICAS,
         });
     }
     let n = names.len();

@@ -10,17 +10,15 @@ use http_body_util::BodyExt;
 use serde_json::Value;
 use tower::ServiceExt;
 
-use super::placement::{Placement, ShardState};
-use super::plan::{ordinal_names, plan};
-use super::{ShardMap, shard_key, shard_of_id};
 use crate::api::error::to_status;
 use crate::api::{AppState, router};
 use crate::service::{Limits, ManagerOptions, ServiceError, SessionManager};
+use mcapi_shards::plan::{ordinal_names, plan};
+use mcapi_shards::{Placement, ReplicaName, ShardMap, ShardState, shard_key, shard_of_id};
 
 fn replica(map: &ShardMap, name: &str) -> (axum::Router, Arc<Placement>) {
     let placement = Arc::new(
-        Placement::new(map.clone(), super::ReplicaName::parse(name).expect("name"))
-            .expect("placement"),
+        Placement::new(map.clone(), ReplicaName::parse(name).expect("name")).expect("placement"),
     );
     let manager = SessionManager::with_options(ManagerOptions {
         placement: Some(Arc::clone(&placement)),

@@ -19,7 +19,7 @@ use std::os::unix::net::UnixStream;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use super::map::{ReplicaName, SHARDS, ShardMap, shard_key};
+use mcapi_shards::{ReplicaName, SHARDS, ShardMap, shard_key};
 
 /// Where one replica listens.
 #[derive(Debug, Clone, PartialEq, Eq)]
@@ -385,7 +385,7 @@ pub fn set_owner(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cluster::plan::{ordinal_names, plan};
+    use mcapi_shards::plan::{ordinal_names, plan};
 
     #[test]
     fn backends_parse_and_refuse_junk() {

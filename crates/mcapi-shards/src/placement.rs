@@ -12,7 +12,7 @@
 //! - `Foreign`: another replica's: 421 naming it (gRPC UNAVAILABLE).
 //!
 //! The states come from the map at start (owned or foreign); a shard move
-//! (`service::shards`, docs/cluster.md "How a shard moves") drives them
+//! (mcapi-server's `service::shards`, docs/cluster.md "How a shard moves") drives them
 //! with [`Placement::set_state`] and [`Placement::set_owner`]. Every
 //! request that changes a shard (create, observe, delete) holds a
 //! [`ShardGuard`] while it runs, so a move that freezes the shard can wait
@@ -23,8 +23,47 @@ use std::sync::atomic::{AtomicU32, Ordering};
 
 use parking_lot::RwLock;
 
-use super::map::{ReplicaName, SHARDS, ShardMap, shard_key, shard_of_id};
-use crate::service::ServiceError;
+use thiserror::Error;
+
+use crate::map::{ReplicaName, SHARDS, ShardMap, shard_key, shard_of_id};
+
+/// Why a request or a move step is refused here. The server turns each
+/// into its service error of the same name (and the same message).
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum PlacementError {
+    /// No such session: its id has no shard, so no replica can hold it.
+    #[error("session `{0}` not found")]
+    NotFound(String),
+    /// The session's shard belongs to another replica.
+    #[error(
+        "session `{id}` is in shard {shard}, owned by replica `{owner}` (shard map epoch {epoch}), not by this replica `{replica}`; retry through the router"
+    )]
+    WrongReplica {
+        /// The session.
+        id: String,
+        /// Its shard's key (`s03a7`).
+        shard: String,
+        /// The replica that owns it.
+        owner: String,
+        /// This replica.
+        replica: String,
+        /// The epoch of this replica's map.
+        epoch: u64,
+    },
+    /// The session's shard is being moved to another replica.
+    #[error(
+        "shard {shard} is being moved to another replica; nothing was done, retry in {retry_after_secs} s"
+    )]
+    ShardFrozen {
+        /// The shard's key.
+        shard: String,
+        /// Seconds to wait (`Retry-After`).
+        retry_after_secs: u64,
+    },
+    /// A move step that does not fit this replica's map (a stale mover).
+    #[error("{0}")]
+    MoveConflict(String),
+}
 
 /// Seconds a client is told to wait (`Retry-After`) while a shard is frozen.
 pub const FROZEN_RETRY_AFTER_SECS: u64 = 1;
@@ -167,10 +206,10 @@ impl Placement {
         owner: &ReplicaName,
         epoch: u64,
         state: ShardState,
-    ) -> Result<(), ServiceError> {
+    ) -> Result<(), PlacementError> {
         let mut inner = self.inner.write();
         if epoch <= inner.map.epoch() {
-            return Err(ServiceError::MoveConflict(format!(
+            return Err(PlacementError::MoveConflict(format!(
                 "epoch {epoch} is not above this replica's shard map epoch {}; another move came first (re-read the map and plan again)",
                 inner.map.epoch()
             )));
@@ -178,7 +217,7 @@ impl Placement {
         let map = inner
             .map
             .with_owner(shard, owner, epoch)
-            .map_err(|e| ServiceError::MoveConflict(e.to_string()))?;
+            .map_err(|e| PlacementError::MoveConflict(e.to_string()))?;
         inner.map = map;
         inner.states[usize::from(shard) % SHARDS] = state;
         Ok(())
@@ -193,7 +232,7 @@ impl Placement {
     /// request as changing the shard until it is dropped. Taken under the
     /// same lock a freeze takes, so a request either is counted before the
     /// freeze or refused after it.
-    pub fn enter(self: &Arc<Self>, id: &str) -> Result<ShardGuard, ServiceError> {
+    pub fn enter(self: &Arc<Self>, id: &str) -> Result<ShardGuard, PlacementError> {
         let inner = self.inner.read();
         self.check_in(&inner, id)?;
         let shard = shard_of_id(id).unwrap_or(0);
@@ -228,20 +267,20 @@ impl Placement {
     }
 
     /// `Ok` if requests for session `id` are served here now; otherwise the
-    /// refusal: [`ServiceError::WrongReplica`] naming the owner, or
-    /// [`ServiceError::ShardFrozen`]. An id without a shard cannot exist on
-    /// any replica: [`ServiceError::NotFound`].
-    pub fn check(&self, id: &str) -> Result<(), ServiceError> {
+    /// refusal: [`PlacementError::WrongReplica`] naming the owner, or
+    /// [`PlacementError::ShardFrozen`]. An id without a shard cannot exist on
+    /// any replica: [`PlacementError::NotFound`].
+    pub fn check(&self, id: &str) -> Result<(), PlacementError> {
         self.check_in(&self.inner.read(), id)
     }
 
-    fn check_in(&self, inner: &Inner, id: &str) -> Result<(), ServiceError> {
+    fn check_in(&self, inner: &Inner, id: &str) -> Result<(), PlacementError> {
         let Some(shard) = shard_of_id(id) else {
-            return Err(ServiceError::NotFound(id.to_string()));
+            return Err(PlacementError::NotFound(id.to_string()));
         };
         match inner.states[usize::from(shard)] {
             ShardState::Owned => Ok(()),
-            ShardState::Frozen => Err(ServiceError::ShardFrozen {
+            ShardState::Frozen => Err(PlacementError::ShardFrozen {
                 shard: shard_key(shard),
                 retry_after_secs: FROZEN_RETRY_AFTER_SECS,
             }),
@@ -249,7 +288,7 @@ impl Placement {
                 let owner = inner.map.owner(shard);
                 // An importing shard's map owner may be this replica once
                 // the map flips; until the move ends its data is elsewhere.
-                Err(ServiceError::WrongReplica {
+                Err(PlacementError::WrongReplica {
                     id: id.to_string(),
                     shard: shard_key(shard),
                     owner: owner.to_string(),
@@ -282,7 +321,7 @@ impl Placement {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::cluster::plan::{ordinal_names, plan};
+    use crate::plan::{ordinal_names, plan};
 
     fn two() -> (ShardMap, Vec<ReplicaName>) {
         let names = ordinal_names("mcapi", 2).expect("names");
@@ -301,7 +340,7 @@ mod tests {
         assert!(p.check(&own_id).is_ok());
         assert!(p.holds(&own_id));
         match p.check(&their_id) {
-            Err(ServiceError::WrongReplica {
+            Err(PlacementError::WrongReplica {
                 owner,
                 replica,
                 epoch,
@@ -316,12 +355,12 @@ mod tests {
         assert!(!p.holds(&their_id));
         assert!(matches!(
             p.check("nonsense"),
-            Err(ServiceError::NotFound(_))
+            Err(PlacementError::NotFound(_))
         ));
         p.set_state(mine[0], ShardState::Frozen);
         assert!(matches!(
             p.check(&own_id),
-            Err(ServiceError::ShardFrozen {
+            Err(PlacementError::ShardFrozen {
                 retry_after_secs: 1,
                 ..
             })

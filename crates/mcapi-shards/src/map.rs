@@ -22,7 +22,7 @@ use std::path::Path;
 use thiserror::Error;
 
 /// Virtual shards: fixed forever (the first four hex digits of a session id).
-pub const SHARDS: usize = crate::service::SHARDS as usize;
+pub const SHARDS: usize = 1024;
 
 /// Largest map file read, in bytes: 1024 lines of a shard and a name of
 /// [`MAX_REPLICA_NAME`] bytes take about 70 KiB; comments get the rest.
@@ -94,6 +94,14 @@ pub fn shard_of_id(id: &str) -> Option<u16> {
         return None;
     }
     parse_shard_key(key)
+}
+
+/// A shard key given alone (a path, a command line): `s0000`..`s03ff` to
+/// the shard number, or why it is not one.
+pub fn parse_shard(key: &str) -> Result<u16, String> {
+    parse_shard_key(key)
+        .filter(|&s| usize::from(s) < SHARDS)
+        .ok_or_else(|| format!("`{}` is not a shard key s0000..s03ff", key.escape_debug()))
 }
 
 /// `s0000`..`s03ff` (four lowercase hex digits) to the shard number.

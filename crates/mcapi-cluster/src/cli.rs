@@ -1,14 +1,15 @@
-//! `mcapi cluster ...`: the command-line side of the cluster (the binary's
-//! `main.rs` only dispatches here). This is a CLI: it prints.
+//! `mcapi cluster ...`: the command-line side of the cluster (the `mcapi`
+//! binary's `main.rs` only dispatches here). This is a CLI: it prints.
 
 use std::path::{Path, PathBuf};
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Subcommand};
 
-use super::haproxy::{self, Backend, RouterSpec};
-use super::map::{ReplicaName, ShardMap};
-use super::plan::{self, ordinal_names};
+use mcapi_shards::plan::{self, ordinal_names};
+use mcapi_shards::{ReplicaName, ShardMap};
+
+use crate::haproxy::{self, Backend, RouterSpec};
 
 /// `mcapi cluster` subcommands.
 #[derive(Debug, Subcommand)]
@@ -20,7 +21,7 @@ pub enum ClusterCommand {
     /// Run a whole cluster on this machine: N replicas and HAProxy on
     /// loopback, supervised (a replica that dies is started again) until
     /// SIGTERM or Ctrl-C.
-    Local(super::local::LocalArgs),
+    Local(crate::local::LocalArgs),
     /// Move one shard of a running `mcapi cluster local` to another
     /// replica, live: snapshot, freeze, delta, flip the map, drop at the
     /// source (docs/cluster.md).
@@ -51,7 +52,7 @@ pub struct RebalanceArgs {
     #[arg(long, default_value = "./cluster")]
     pub data_dir: PathBuf,
     /// Replicas after it (at least those running; at most 64).
-    #[arg(long, value_parser = clap::value_parser!(u16).range(1..=super::local::MAX_LOCAL_REPLICAS as i64))]
+    #[arg(long, value_parser = clap::value_parser!(u16).range(1..=crate::local::MAX_LOCAL_REPLICAS as i64))]
     pub replicas: u16,
 }
 
@@ -129,22 +130,23 @@ pub fn run(cmd: ClusterCommand) -> Result<()> {
     match cmd {
         ClusterCommand::Plan(args) => run_plan(&args),
         ClusterCommand::HaproxyConfig(args) => run_haproxy(&args),
-        ClusterCommand::Local(args) => super::local::run(&args),
+        ClusterCommand::Local(args) => crate::local::run(&args),
         ClusterCommand::Move(args) => run_move(&args),
         ClusterCommand::Rebalance(args) => run_rebalance(&args),
     }
 }
 
 fn run_move(args: &MoveArgs) -> Result<()> {
-    crate::telemetry::init_logging(crate::config::LogFormat::Text, "info");
-    let shard = crate::service::shards::parse_shard(&args.shard)
-        .map_err(|e| anyhow::anyhow!("--shard: {e}"))?;
+    crate::logging::init_logging();
+    // The message the replicas give for a bad shard in a path, as before.
+    let shard = mcapi_shards::parse_shard(&args.shard)
+        .map_err(|e| anyhow::anyhow!("--shard: `shard`: {e}"))?;
     let to = ReplicaName::parse(&args.to).map_err(|e| anyhow::anyhow!("--to: {e}"))?;
     let dir = std::fs::canonicalize(&args.data_dir)
         .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
-    let mover = super::mover::Mover::open(&dir)?;
+    let mover = crate::mover::Mover::open(&dir)?;
     match mover.move_shard(shard, &to)? {
-        Some(r) => println!("{}", super::mover::report_line(&r)),
+        Some(r) => println!("{}", crate::mover::report_line(&r)),
         None => println!(
             "{} is on {to} already (any unfinished step is done)",
             args.shard
@@ -154,11 +156,11 @@ fn run_move(args: &MoveArgs) -> Result<()> {
 }
 
 fn run_rebalance(args: &RebalanceArgs) -> Result<()> {
-    crate::telemetry::init_logging(crate::config::LogFormat::Text, "info");
+    crate::logging::init_logging();
     let dir = std::fs::canonicalize(&args.data_dir)
         .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
     let started = std::time::Instant::now();
-    let reports = super::mover::rebalance(&dir, usize::from(args.replicas))?;
+    let reports = crate::mover::rebalance(&dir, usize::from(args.replicas))?;
     let mut pauses: Vec<f64> = reports
         .iter()
         .map(|r| r.pause.as_secs_f64() * 1e3)
@@ -190,10 +192,10 @@ fn read_map(path: &Path) -> Result<ShardMap> {
 fn run_plan(args: &PlanArgs) -> Result<()> {
     let names: Vec<ReplicaName> = if args.names.is_empty() {
         let n = args.replicas.unwrap_or(0);
-        if n == 0 || n > super::map::MAX_REPLICAS {
+        if n == 0 || n > mcapi_shards::map::MAX_REPLICAS {
             bail!(
                 "--replicas must be between 1 and {}",
-                super::map::MAX_REPLICAS
+                mcapi_shards::map::MAX_REPLICAS
             );
         }
         ordinal_names(&args.prefix, n).map_err(anyhow::Error::msg)?

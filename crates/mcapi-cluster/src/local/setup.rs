@@ -1,0 +1,304 @@
+//! What `mcapi cluster local` checks and writes before a process starts:
+//! the flags, the shard map (planned or the data directory's), the admin
+//! key, the router's files and free loopback ports.
+
+use std::ffi::OsString;
+use std::net::{SocketAddr, TcpListener};
+use std::path::{Path, PathBuf};
+use std::process::Command;
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+
+use mcapi_shards::plan::{self, ordinal_names};
+use mcapi_shards::{ReplicaName, ShardMap};
+
+use super::process::{Process, Run, alive};
+use super::state::State;
+use super::{
+    ADMIN_KEY_FILE, DEFAULT_REPLICAS, LocalArgs, MANAGED_FLAGS, MAP_FILE, MAX_LOCAL_REPLICAS,
+    MAX_SOCKET_PATH, ROUTER, STATE_FILE,
+};
+use crate::cli::{write_atomic, write_router};
+use crate::haproxy::{Backend, RouterSpec, find_haproxy};
+
+/// Everything checked and written before a process starts.
+pub(super) struct Setup {
+    pub(super) dir: PathBuf,
+    pub(super) map: ShardMap,
+    pub(super) template: ReplicaTemplate,
+    pub(super) spec: RouterSpec,
+    pub(super) haproxy_cfg: PathBuf,
+    pub(super) admin_socket: PathBuf,
+    pub(super) http: SocketAddr,
+    pub(super) grpc: SocketAddr,
+    pub(super) processes: Vec<Process>,
+    pub(super) ready_timeout: Duration,
+    pub(super) drain_timeout: Duration,
+}
+
+pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
+    for extra in &args.serve_args {
+        if let Some(flag) = MANAGED_FLAGS
+            .iter()
+            .find(|f| extra == *f || extra.starts_with(&format!("{f}=")))
+        {
+            bail!(
+                "`{flag}` is set by `cluster local` for each replica; leave it out of the serve flags"
+            );
+        }
+    }
+    if args.http == args.grpc {
+        bail!("--http and --grpc must differ (both are {})", args.http);
+    }
+    for (flag, addr) in [("--http", args.http), ("--grpc", args.grpc)] {
+        TcpListener::bind(addr).with_context(|| {
+            format!("{flag} {addr} is not free (another cluster or server running?); choose another address")
+        })?;
+    }
+    let haproxy = match &args.haproxy {
+        Some(p) if p.is_file() => p.clone(),
+        Some(p) => bail!("--haproxy {}: no such file", p.display()),
+        None => find_haproxy().context(
+            "`haproxy` is not on PATH (nor in /usr/sbin): install HAProxy 2.6 or newer \
+             (apt-get install haproxy) or name it with --haproxy",
+        )?,
+    };
+    let exe = std::env::current_exe().context("finding this executable")?;
+
+    std::fs::create_dir_all(&args.data_dir)
+        .with_context(|| format!("creating {}", args.data_dir.display()))?;
+    let dir = std::fs::canonicalize(&args.data_dir)?;
+    if let Ok(text) = std::fs::read_to_string(dir.join(STATE_FILE))
+        && let Ok(state) = serde_json::from_str::<State>(&text)
+        && state.supervisor != std::process::id()
+        && alive(state.supervisor)
+    {
+        bail!(
+            "a cluster already runs on {} (supervisor pid {}); stop it first, or delete {} if that pid is not `mcapi cluster local`",
+            dir.display(),
+            state.supervisor,
+            dir.join(STATE_FILE).display()
+        );
+    }
+    let map = local_map(&dir, args.replicas.map(usize::from))?;
+    for sub in ["replicas", "router", "logs"] {
+        std::fs::create_dir_all(dir.join(sub))
+            .with_context(|| format!("creating {}", dir.join(sub).display()))?;
+    }
+    let admin_socket = dir.join("router").join("admin.sock");
+    if admin_socket.as_os_str().len() > MAX_SOCKET_PATH {
+        bail!(
+            "{} is longer than a Unix socket path may be ({MAX_SOCKET_PATH} bytes): use a shorter --data-dir",
+            admin_socket.display()
+        );
+    }
+
+    let admin_key = admin_key(&dir)?;
+    let ports = free_ports(map.replicas().len() * 2)?;
+    let mut processes = Vec::new();
+    let mut backends = Vec::new();
+    let template = ReplicaTemplate {
+        exe: exe.clone(),
+        dir: dir.clone(),
+        serve_args: args.serve_args.clone(),
+        admin_key,
+    };
+    for (k, name) in map.replicas().iter().enumerate() {
+        let (http, grpc) = (ports[2 * k], ports[2 * k + 1]);
+        backends.push(Backend {
+            replica: name.clone(),
+            rest: format!("127.0.0.1:{http}"),
+            grpc: format!("127.0.0.1:{grpc}"),
+        });
+        // `--joining` for every replica: one that gave all its shards
+        // away is no longer named by the map, and must still start again.
+        processes.push(template.process(name, http, grpc, true));
+    }
+    let router_dir = dir.join("router");
+    let spec = RouterSpec {
+        rest_bind: args.http.to_string(),
+        grpc_bind: args.grpc.to_string(),
+        map_path: router_dir.join("shards.map"),
+        stats_socket: admin_socket.clone(),
+        admin_bind: None,
+        backends,
+        resolvers: false,
+    };
+    write_router(&router_dir, &map, &spec)?;
+    check_router(&haproxy, &router_dir.join("haproxy.cfg"))?;
+    let haproxy_cfg = router_dir.join("haproxy.cfg");
+    processes.push(Process {
+        name: ROUTER.into(),
+        program: haproxy,
+        args: vec!["-db".into(), "-f".into(), haproxy_cfg.clone().into()],
+        env: Vec::new(),
+        log: dir.join("logs").join(format!("{ROUTER}.log")),
+        ports: None,
+        ready_url: format!("http://{}/readyz", args.http),
+        run: Run::Stopped,
+        streak: 0,
+        restarts: 0,
+    });
+    Ok(Setup {
+        dir,
+        map,
+        template,
+        spec,
+        haproxy_cfg,
+        admin_socket,
+        http: args.http,
+        grpc: args.grpc,
+        processes,
+        ready_timeout: Duration::from_secs(args.ready_timeout_secs),
+        drain_timeout: Duration::from_secs(args.drain_timeout_secs),
+    })
+}
+
+/// Checks a written router configuration with `haproxy -c`.
+pub(super) fn check_router(haproxy: &Path, cfg: &Path) -> Result<()> {
+    let check = Command::new(haproxy)
+        .arg("-c")
+        .arg("-f")
+        .arg(cfg)
+        .output()
+        .with_context(|| format!("running {} -c", haproxy.display()))?;
+    if !check.status.success() {
+        bail!(
+            "{} refuses {}:\n{}{}",
+            haproxy.display(),
+            cfg.display(),
+            String::from_utf8_lossy(&check.stdout),
+            String::from_utf8_lossy(&check.stderr)
+        );
+    }
+    Ok(())
+}
+
+/// The data directory's admin key, made (32 random hex digits, mode 0600)
+/// if missing.
+pub(super) fn admin_key(dir: &Path) -> Result<String> {
+    use std::os::unix::fs::OpenOptionsExt;
+    let path = dir.join(ADMIN_KEY_FILE);
+    if let Ok(text) = std::fs::read_to_string(&path)
+        && text.trim().len() >= 16
+    {
+        return Ok(text.trim().to_string());
+    }
+    let mut bytes = [0u8; 16];
+    std::fs::File::open("/dev/urandom")
+        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut bytes))
+        .context("reading /dev/urandom for the admin key")?;
+    let key: String = bytes.iter().map(|b| format!("{b:02x}")).collect();
+    let mut f = std::fs::OpenOptions::new()
+        .create(true)
+        .write(true)
+        .truncate(true)
+        .mode(0o600)
+        .open(&path)
+        .with_context(|| format!("writing {}", path.display()))?;
+    std::io::Write::write_all(&mut f, format!("{key}\n").as_bytes())?;
+    Ok(key)
+}
+
+/// How a replica process is made.
+pub(super) struct ReplicaTemplate {
+    pub(super) exe: PathBuf,
+    pub(super) dir: PathBuf,
+    pub(super) serve_args: Vec<String>,
+    pub(super) admin_key: String,
+}
+
+impl ReplicaTemplate {
+    pub(super) fn process(
+        &self,
+        name: &ReplicaName,
+        http: u16,
+        grpc: u16,
+        joining: bool,
+    ) -> Process {
+        let store = self.dir.join("replicas").join(name.as_str());
+        let mut argv: Vec<OsString> = vec![
+            "serve".into(),
+            "--http".into(),
+            format!("127.0.0.1:{http}").into(),
+            "--grpc".into(),
+            format!("127.0.0.1:{grpc}").into(),
+            "--data-dir".into(),
+            store.into(),
+            "--shard-map".into(),
+            self.dir.join(MAP_FILE).into(),
+            "--replica".into(),
+            name.as_str().into(),
+        ];
+        if joining {
+            argv.push("--joining".into());
+        }
+        argv.extend(self.serve_args.iter().map(OsString::from));
+        Process {
+            name: name.to_string(),
+            program: self.exe.clone(),
+            args: argv,
+            env: vec![("MCAPI_ADMIN_KEY".into(), self.admin_key.clone())],
+            log: self.dir.join("logs").join(format!("{name}.log")),
+            ports: Some((http, grpc)),
+            ready_url: format!("http://127.0.0.1:{http}/readyz"),
+            run: Run::Stopped,
+            streak: 0,
+            restarts: 0,
+        }
+    }
+}
+
+/// The data directory's map if it has one (its replicas must match
+/// `--replicas` when given), else a new plan over `mcapi-0..N-1`, written.
+pub(super) fn local_map(dir: &Path, replicas: Option<usize>) -> Result<ShardMap> {
+    let path = dir.join(MAP_FILE);
+    if path.exists() {
+        let map = ShardMap::read(&path).with_context(|| format!("shard map {}", path.display()))?;
+        let names: Vec<&str> = map.replicas().iter().map(ReplicaName::as_str).collect();
+        if map.replicas().len() > MAX_LOCAL_REPLICAS {
+            bail!(
+                "{} has {} replicas; `cluster local` runs at most {MAX_LOCAL_REPLICAS}",
+                path.display(),
+                names.len()
+            );
+        }
+        if names.contains(&ROUTER) {
+            bail!(
+                "{}: `{ROUTER}` names the router here; rename that replica",
+                path.display()
+            );
+        }
+        if let Some(n) = replicas
+            && n != names.len()
+        {
+            bail!(
+                "{} has {} replicas ({}), not {n}: leave out --replicas, and add replicas to the \
+                 running cluster with `mcapi cluster rebalance --replicas {n}` (or use a new --data-dir)",
+                path.display(),
+                names.len(),
+                names.join(", ")
+            );
+        }
+        return Ok(map);
+    }
+    let n = replicas.unwrap_or(DEFAULT_REPLICAS);
+    let names = ordinal_names("mcapi", n).map_err(anyhow::Error::msg)?;
+    let map = plan::plan(&names, None)?.map;
+    write_atomic(&path, &map.to_text())?;
+    Ok(map)
+}
+
+/// `n` distinct loopback ports free right now: all are held until all are
+/// known, so none is handed out twice.
+pub(super) fn free_ports(n: usize) -> Result<Vec<u16>> {
+    let listeners = (0..n)
+        .map(|_| TcpListener::bind("127.0.0.1:0"))
+        .collect::<std::io::Result<Vec<_>>>()
+        .context("finding free loopback ports")?;
+    listeners
+        .iter()
+        .map(|l| Ok(l.local_addr()?.port()))
+        .collect()
+}
