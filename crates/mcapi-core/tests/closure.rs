@@ -41,13 +41,27 @@ const ALLOWED: [(&str, &[&str]); 9] = [
     ("mcapi-store", &[]),
 ];
 
+/// The resolved graph, as `cargo metadata` prints it (`--locked`: the lock
+/// file's versions). Offline first; a fresh machine's cache lacks the
+/// manifests of crates that only other platforms build (cargo metadata lists
+/// every platform's), so then once more with the registry.
 fn metadata() -> Value {
     let cargo = option_env!("CARGO").unwrap_or("cargo");
-    let out = Command::new(cargo)
-        .args(["metadata", "--format-version", "1", "--offline", "--locked"])
-        .current_dir(env!("CARGO_MANIFEST_DIR"))
-        .output()
-        .expect("cargo metadata runs");
+    let run = |offline: bool| {
+        let mut args = vec!["metadata", "--format-version", "1", "--locked"];
+        if offline {
+            args.push("--offline");
+        }
+        Command::new(cargo)
+            .args(args)
+            .current_dir(env!("CARGO_MANIFEST_DIR"))
+            .output()
+            .expect("cargo metadata runs")
+    };
+    let mut out = run(true);
+    if !out.status.success() {
+        out = run(false);
+    }
     assert!(
         out.status.success(),
         "cargo metadata failed: {}",
