@@ -4,8 +4,8 @@
 use std::path::Path;
 use std::process::Command;
 
-use mcapi_shards::ShardMap;
 use mcapi_cluster::haproxy::find_haproxy;
+use mcapi_shards::ShardMap;
 
 use super::{haproxy_or_skip, stderr};
 

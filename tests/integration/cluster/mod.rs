@@ -34,9 +34,9 @@ use common::{
     Launch, Obs, Reply, Server, available, free_ports, grpc_create, http_client, observe_one,
     params, rest_create, step_state, stimulus,
 };
+use mcapi_cluster::haproxy::find_haproxy;
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_cluster::haproxy::find_haproxy;
 use mcapi_shards::{ShardMap, shard_of_id};
 use serde_json::{Value, json};
 use tonic::transport::Channel;

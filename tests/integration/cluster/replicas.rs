@@ -8,8 +8,8 @@ use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
 use common::{Server, free_ports, grpc_request, http_client};
-use mcapi_server::api::grpc::pb;
 use mcapi_cluster::haproxy::{runtime_command, set_owner};
+use mcapi_server::api::grpc::pb;
 use mcapi_shards::{ReplicaName, ShardMap, shard_key, shard_of_id};
 use serde_json::json;
 use tokio::sync::mpsc;
