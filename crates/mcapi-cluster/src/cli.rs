@@ -9,7 +9,8 @@ use clap::{Args, Subcommand};
 use mcapi_shards::plan::{self, ordinal_names};
 use mcapi_shards::{ReplicaName, ShardMap};
 
-use crate::haproxy::{self, Backend, RouterSpec};
+use crate::files::write_atomic;
+use crate::haproxy::{self, Backend, RouterSpec, write_router};
 
 /// `mcapi cluster` subcommands.
 #[derive(Debug, Subcommand)]
@@ -300,23 +301,5 @@ fn run_haproxy(args: &HaproxyArgs) -> Result<()> {
         map.epoch(),
         map.replicas().len()
     );
-    Ok(())
-}
-
-/// Writes `haproxy.cfg` and the HAProxy map file `shards.map` into
-/// `out_dir` (`haproxy-config`, and `cluster local` on every start).
-pub(crate) fn write_router(out_dir: &Path, map: &ShardMap, spec: &RouterSpec) -> Result<()> {
-    let cfg = haproxy::config(map, spec).map_err(anyhow::Error::msg)?;
-    write_atomic(&out_dir.join("shards.map"), &haproxy::map_file(map))?;
-    write_atomic(&out_dir.join("haproxy.cfg"), &cfg)?;
-    Ok(())
-}
-
-/// Writes a file through a temporary sibling and a rename, so a reader
-/// never sees half of it.
-pub(crate) fn write_atomic(path: &Path, text: &str) -> Result<()> {
-    let tmp = path.with_extension("tmp");
-    std::fs::write(&tmp, text).with_context(|| format!("writing {}", tmp.display()))?;
-    std::fs::rename(&tmp, path).with_context(|| format!("writing {}", path.display()))?;
     Ok(())
 }

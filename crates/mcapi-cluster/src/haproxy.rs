@@ -382,6 +382,19 @@ pub fn set_owner(
     }
 }
 
+/// Writes `haproxy.cfg` and the HAProxy map file `shards.map` into
+/// `out_dir` (`haproxy-config`, and `cluster local` on every start).
+pub(crate) fn write_router(
+    out_dir: &std::path::Path,
+    map: &ShardMap,
+    spec: &RouterSpec,
+) -> anyhow::Result<()> {
+    let cfg = config(map, spec).map_err(anyhow::Error::msg)?;
+    crate::files::write_atomic(&out_dir.join("shards.map"), &map_file(map))?;
+    crate::files::write_atomic(&out_dir.join("haproxy.cfg"), &cfg)?;
+    Ok(())
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

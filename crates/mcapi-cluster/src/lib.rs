@@ -12,6 +12,7 @@
 //! signal handling ([`signal`]) and logging ([`logging`]) are small.
 
 pub mod cli;
+pub mod files;
 pub mod haproxy;
 pub mod local;
 pub mod logging;

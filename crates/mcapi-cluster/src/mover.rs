@@ -23,7 +23,7 @@ use anyhow::{Context, Result, anyhow, bail};
 use mcapi_shards::moves::{Manifest, ShardData, ShardStatus};
 use mcapi_shards::{ReplicaName, ShardMap, shard_key};
 
-use crate::cli::write_atomic;
+use crate::files::write_atomic;
 use crate::haproxy;
 use crate::local::{ADMIN_KEY_FILE, MAP_FILE, STATE_FILE, State};
 

@@ -19,7 +19,8 @@ use super::{
     ADMIN_KEY_FILE, DEFAULT_REPLICAS, LocalArgs, MANAGED_FLAGS, MAP_FILE, MAX_LOCAL_REPLICAS,
     MAX_SOCKET_PATH, ROUTER, STATE_FILE,
 };
-use crate::cli::{write_atomic, write_router};
+use crate::files::write_atomic;
+use crate::haproxy::write_router;
 use crate::haproxy::{Backend, RouterSpec, find_haproxy};
 
 /// Everything checked and written before a process starts.

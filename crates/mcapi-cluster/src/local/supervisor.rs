@@ -16,7 +16,8 @@ use super::process::{Backoff, Event, Process, Run, send_signal};
 use super::setup::{ReplicaTemplate, Setup, check_router, free_ports};
 use super::state::State;
 use super::{MAP_FILE, MAX_LOCAL_REPLICAS, REQUEST_FILE, STATE_FILE};
-use crate::cli::{write_atomic, write_router};
+use crate::files::write_atomic;
+use crate::haproxy::write_router;
 use crate::haproxy::{Backend, RouterSpec};
 use crate::probe::http_ok;
 
