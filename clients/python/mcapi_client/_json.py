@@ -2,9 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
+from ._params import AGENT_KINDS, AGENT_OPTIONS
 from .types import (
     AgentConfig,
     BasisSummary,
@@ -125,22 +126,52 @@ def grid_layout(d: Json) -> GridLayout:
     )
 
 
-def agent_config(d: Json) -> AgentConfig:
-    """The effective agent configuration of a session."""
-    rate = d["stimulus_rate"]
-    return AgentConfig(
-        eta=float(d["eta"]),
-        gamma=float(d["gamma"]),
-        priorities=_floats(d["priorities"]),
-        stimulus_rate=rate if isinstance(rate, str) else float(rate),  # type: ignore[arg-type]
-        optimistic_sd=float(d["optimistic_sd"]),
-        ridge=float(d["ridge"]),
-        epsilon=float(d["epsilon"]),
-        seed=int(d["seed"]),
-        update_mode=d["update_mode"],
-        history=int(d["history"]),
-        curiosity=curiosity_config(d.get("curiosity")),
+def _real_or_name(x: Any) -> float | str:
+    return x if isinstance(x, str) else float(x)
+
+
+def _as_sent(x: Any) -> object:
+    return x
+
+
+_KIND_READERS: dict[str, Callable[[Any], object]] = {
+    "real": float,
+    "integer": int,
+    "per_stimulus": _floats,
+    "real_or_name": _real_or_name,  # a rule's name, or a number
+    "choice": _as_sent,  # the name, as sent
+}
+"""The reader of each kind of agent option (AGENT_KINDS) but "object"."""
+
+_OBJECT_READERS: dict[str, Callable[[Any], object]] = {"curiosity": curiosity_config}
+"""The reader of each agent option of the kind "object", by name (given ``None`` when absent)."""
+
+
+def _option_reader(name: str) -> Callable[[Json], object]:
+    """The reader of the agent option ``name`` from the ``agent`` object, by its kind."""
+    kind = AGENT_KINDS[name]
+    if kind == "object" and name in _OBJECT_READERS:
+        read_object = _OBJECT_READERS[name]
+        return lambda d: read_object(d.get(name))  # absent: the session has none
+    if kind != "object" and kind in _KIND_READERS:
+        read = _KIND_READERS[kind]
+        return lambda d: read(d[name])
+    raise RuntimeError(
+        f"agent option `{name}` of kind `{kind}` (mcapi_client/_params.py): no JSON reader; "
+        "add one to mcapi_client._json._KIND_READERS or _OBJECT_READERS"
     )
+
+
+_AGENT_READERS: dict[str, Callable[[Json], object]] = {
+    name: _option_reader(name) for name in AGENT_OPTIONS
+}
+"""The reader of each agent option, in the server's order."""
+
+
+def agent_config(d: Json) -> AgentConfig:
+    """The effective agent configuration of a session, every option read as its kind says."""
+    fields: dict[str, Any] = {name: read(d) for name, read in _AGENT_READERS.items()}
+    return AgentConfig(**fields)
 
 
 def session_info(d: Json) -> SessionInfo:

@@ -10,14 +10,18 @@ protobuf (the stubs' messages) but not grpcio.
 
 from __future__ import annotations
 
+import functools
 import json
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
+
+from google.protobuf.descriptor import EnumDescriptor
+from google.protobuf.message import Message
 
 from ._normalise import as_float, as_opt_int
-from ._params import AGENT_OPTIONS
+from ._params import AGENT_KINDS, AGENT_OPTIONS
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._sansio import Op, SessionCache
 from .errors import McapiError, Timeout, TransportError, WrongReplica, error_for
@@ -59,17 +63,6 @@ OWNER_TRAILER = "x-mcapi-owner"
 """Trailer naming the replica that owns a misdirected session's shard."""
 
 Metadata = tuple[tuple[str, str], ...]
-
-_ENCODED_APART = frozenset({"priorities", "stimulus_rate", "update_mode", "curiosity"})
-"""The agent options :func:`create_request` encodes one by one (a repeated
-field, a oneof, an enum, a message)."""
-
-_UPDATE_MODES: dict[str, int] = {"lockstep": pb.UPDATE_MODE_LOCKSTEP, "async": pb.UPDATE_MODE_ASYNC}
-_UPDATE_MODE_NAMES: dict[int, UpdateMode] = {
-    pb.UPDATE_MODE_LOCKSTEP: "lockstep",
-    pb.UPDATE_MODE_ASYNC: "async",
-}
-
 
 class _NotTyped(Exception):
     """A model JSON that the typed ``Model`` cannot carry as it is."""
@@ -243,34 +236,152 @@ def model_message(model: dict[str, Any]) -> pb.Model | None:
     return out
 
 
+def curiosity_message(c: CuriosityConfig, out: pb.CuriosityConfig) -> None:
+    """A curiosity channel into its message (set even with every default)."""
+    out.signal_dim = c.signal_dim
+    # The constants travel as the JSON object REST takes; empty: every default.
+    if c.params:
+        out.params_json = json.dumps(c.params)
+    out.SetInParent()
+
+
+# The agent options, encoded and read as AGENT_KINDS says. The messages follow
+# the server's parameter table: an option is the field of its name, except a
+# "real_or_name" one, the oneof of its name of the fields `<name>_rule` (an
+# enum of the named rules) and `<name>_constant`.
+
+
+@functools.cache
+def _enum_names(enum: EnumDescriptor) -> dict[int, str]:
+    """The client's name of each value of a proto enum but the zero one:
+    ``UPDATE_MODE_ASYNC`` is ``"async"``, lower-cased without the prefix that
+    names the zero value (``UPDATE_MODE_UNSPECIFIED``)."""
+    prefix = enum.values_by_number[0].name.removesuffix("UNSPECIFIED")
+    return {
+        int(v.number): str(v.name).removeprefix(prefix).lower() for v in enum.values if v.number != 0
+    }
+
+
+@functools.cache
+def _enum_numbers(enum: EnumDescriptor) -> dict[str, int]:
+    """The number of each client's name of a proto enum (see :func:`_enum_names`)."""
+    return {name: number for number, name in _enum_names(enum).items()}
+
+
+def _enum_of(m: Message, field: str) -> EnumDescriptor:
+    return m.DESCRIPTOR.fields_by_name[field].enum_type
+
+
+def _enum_name(m: Message, field: str) -> str:
+    """The name of the value of an enum field. One the client cannot name (the
+    zero value, never sent by the server, or one newer than these stubs) reads
+    as the enum's first named value, which is the server's default
+    (``"lockstep"``, ``"sample_mean"``)."""
+    names = _enum_names(_enum_of(m, field))
+    return names.get(getattr(m, field), next(iter(names.values())))
+
+
+def _enum_number(m: Message, field: str, option: str, value: object, otherwise: str = "") -> int:
+    """The number of the enum value named ``value``.
+
+    Raises:
+        ValueError: The enum has no value of that name.
+    """
+    numbers = _enum_numbers(_enum_of(m, field))
+    if value not in numbers:
+        choices = " or ".join([repr(name) for name in numbers] + ([otherwise] if otherwise else []))
+        raise ValueError(f"unknown {option} {value!r} (use {choices})")
+    return numbers[value]
+
+
+def _read_real_or_name(m: pb.EffectiveConfig, name: str) -> float | str:
+    constant = f"{name}_constant"
+    if m.WhichOneof(name) == constant:
+        return float(getattr(m, constant))
+    return _enum_name(m, f"{name}_rule")
+
+
+def _write_real_or_name(cfg: pb.SessionConfig, name: str, value: float | str) -> None:
+    if isinstance(value, str):
+        setattr(cfg, f"{name}_rule", _enum_number(cfg, f"{name}_rule", name, value, "a number"))
+    else:
+        setattr(cfg, f"{name}_constant", value)
+
+
+def _write_choice(cfg: pb.SessionConfig, name: str, value: object) -> None:
+    setattr(cfg, name, _enum_number(cfg, name, name, value))
+
+
+@dataclass(frozen=True, slots=True)
+class _Field:
+    """How an agent option is read from ``EffectiveConfig`` and written into
+    ``SessionConfig``; each takes the message and the option's name."""
+
+    read: Callable[[pb.EffectiveConfig, str], object]
+    write: Callable[[pb.SessionConfig, str, Any], None]
+
+
+def _set(cfg: pb.SessionConfig, name: str, value: float) -> None:
+    setattr(cfg, name, value)
+
+
+def _extend(cfg: pb.SessionConfig, name: str, value: list[float]) -> None:
+    getattr(cfg, name).extend(value)
+
+
+_PLAIN_NUMBERS = ("real", "integer")
+
+_KIND_FIELDS: dict[str, _Field] = {
+    "real": _Field(lambda m, name: float(getattr(m, name)), _set),
+    "integer": _Field(lambda m, name: int(getattr(m, name)), _set),
+    "per_stimulus": _Field(lambda m, name: [float(x) for x in getattr(m, name)], _extend),
+    "real_or_name": _Field(_read_real_or_name, _write_real_or_name),
+    "choice": _Field(_enum_name, _write_choice),
+}
+"""The encoding of each kind of agent option (AGENT_KINDS) but "object"."""
+
+_OBJECT_FIELDS: dict[str, _Field] = {
+    "curiosity": _Field(
+        lambda m, name: curiosity_config(m.curiosity) if m.HasField(name) else None,
+        lambda cfg, name, value: curiosity_message(value, cfg.curiosity),
+    ),
+}
+"""The encoding of each agent option of the kind "object", by name (unset: ``None``)."""
+
+
+def _agent_field(name: str) -> _Field:
+    """The encoding of the agent option ``name``, by its kind."""
+    kind = AGENT_KINDS[name]
+    if kind == "object" and name in _OBJECT_FIELDS:
+        return _OBJECT_FIELDS[name]
+    if kind != "object" and kind in _KIND_FIELDS:
+        return _KIND_FIELDS[kind]
+    raise RuntimeError(
+        f"agent option `{name}` of kind `{kind}` (mcapi_client/_params.py): no gRPC encoding; "
+        "add one to mcapi_client._pb._KIND_FIELDS or _OBJECT_FIELDS"
+    )
+
+
+_AGENT_FIELDS: dict[str, _Field] = {name: _agent_field(name) for name in AGENT_OPTIONS}
+"""The encoding of each agent option, in the server's order."""
+
+
+def agent_config(m: pb.EffectiveConfig) -> AgentConfig:
+    """A session's effective agent configuration, every option read as its kind says."""
+    fields: dict[str, Any] = {name: f.read(m, name) for name, f in _AGENT_FIELDS.items()}
+    return AgentConfig(**fields)
+
+
 def create_request(model: dict[str, Any], agent: AgentOptions) -> pb.CreateSessionRequest:
     """``CreateSession``: the model as the typed ``Model`` (see
     :func:`model_message`), else as the JSON the REST API takes."""
     cfg = pb.SessionConfig()
-    # Every other option is a number in the field of its name; AgentOptions
-    # holds plain ints and floats (numpy values were converted).
-    for name in AGENT_OPTIONS:
+    # Plain numbers first (protobuf refuses one out of its field's range), then
+    # the rest, each encoded as its kind says (see _AGENT_FIELDS).
+    for name in sorted(AGENT_OPTIONS, key=lambda n: AGENT_KINDS[n] not in _PLAIN_NUMBERS):
         value = getattr(agent, name)
-        if value is not None and name not in _ENCODED_APART:
-            setattr(cfg, name, value)
-    if agent.priorities is not None:
-        cfg.priorities.extend(agent.priorities)
-    if agent.stimulus_rate == "sample_mean":
-        cfg.stimulus_rate_rule = pb.STIMULUS_RATE_RULE_SAMPLE_MEAN
-    elif isinstance(agent.stimulus_rate, str):
-        raise ValueError(f"unknown stimulus_rate {agent.stimulus_rate!r} (use 'sample_mean' or a number)")
-    elif agent.stimulus_rate is not None:
-        cfg.stimulus_rate_constant = agent.stimulus_rate
-    if agent.update_mode is not None:
-        if agent.update_mode not in _UPDATE_MODES:
-            raise ValueError(f"unknown update_mode {agent.update_mode!r} (use 'lockstep' or 'async')")
-        cfg.update_mode = _UPDATE_MODES[agent.update_mode]  # type: ignore[assignment]
-    if agent.curiosity is not None:
-        cfg.curiosity.signal_dim = agent.curiosity.signal_dim
-        # The constants travel as the JSON object REST takes; empty: every default.
-        if agent.curiosity.params:
-            cfg.curiosity.params_json = json.dumps(agent.curiosity.params)
-        cfg.curiosity.SetInParent()
+        if value is not None:
+            _AGENT_FIELDS[name].write(cfg, name, value)
     typed = model_message(model)
     if typed is not None:
         return pb.CreateSessionRequest(model=typed, agent=cfg)
@@ -423,11 +534,7 @@ def step(m: pb.Step) -> Step:
 
 def session_info(m: pb.SessionInfo) -> SessionInfo:
     """A session's details."""
-    model, agent, stats = m.model, m.agent, m.stats
-    which = agent.WhichOneof("stimulus_rate")
-    rate: Any = (
-        agent.stimulus_rate_constant if which == "stimulus_rate_constant" else "sample_mean"
-    )
+    model, stats = m.model, m.stats
     return SessionInfo(
         id=m.id,
         tick=m.tick,
@@ -463,19 +570,7 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
                 else None
             ),
         ),
-        agent=AgentConfig(
-            eta=agent.eta,
-            gamma=agent.gamma,
-            priorities=list(agent.priorities),
-            stimulus_rate=rate,
-            optimistic_sd=agent.optimistic_sd,
-            ridge=agent.ridge,
-            epsilon=agent.epsilon,
-            seed=agent.seed,
-            update_mode=_UPDATE_MODE_NAMES.get(agent.update_mode, "lockstep"),
-            history=agent.history,
-            curiosity=curiosity_config(agent.curiosity) if agent.HasField("curiosity") else None,
-        ),
+        agent=agent_config(m.agent),
         stats=SessionStats(
             lstdq_error=stats.lstdq_error,
             lambda1_estimate=stats.lambda1_estimate,
@@ -501,7 +596,7 @@ def session_page(m: pb.ListSessionsResponse) -> SessionPage:
                 id=s.id,
                 tick=s.tick,
                 states=s.states,
-                update_mode=_UPDATE_MODE_NAMES.get(s.update_mode, "lockstep"),
+                update_mode=cast(UpdateMode, _enum_name(s, "update_mode")),
                 idle_ms=s.idle_ms if s.HasField("idle_ms") else None,
             )
             for s in m.sessions

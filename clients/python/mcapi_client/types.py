@@ -32,7 +32,7 @@ from ._normalise import (
     is_int_like,
     plain,
 )
-from ._params import AGENT_OPTIONS, AgentKwargs
+from ._params import AGENT_KINDS, AGENT_OPTIONS, AgentKwargs
 from .errors import error_for
 
 if TYPE_CHECKING:
@@ -464,9 +464,10 @@ class AgentOptions:
             value = getattr(self, name)
             if value is None:
                 continue
-            if name == "priorities":
+            kind = AGENT_KINDS[name]
+            if kind == "per_stimulus":
                 out[name] = list(value)
-            elif name == "curiosity":
+            elif kind == "object":
                 out[name] = value.to_json()
             else:
                 out[name] = value

@@ -22,10 +22,11 @@ from mcapi_client import (
     Client,
     CuriosityConfig,
     GrpcClient,
+    _json,
     _pb,
     models,
 )
-from mcapi_client._params import CURIOSITY_PARAMS
+from mcapi_client._params import AGENT_KINDS, CURIOSITY_PARAMS
 
 # Nothing listens there: a client that sent anything would fail otherwise
 # than with a TypeError.
@@ -135,3 +136,78 @@ def test_the_effective_configuration_lists_every_option_and_curiosity_constant(a
     assert got.agent.curiosity is not None and got.agent.curiosity.params is not None
     assert tuple(got.agent.curiosity.params) == CURIOSITY_PARAMS
     any_client.delete_session(info.id)
+
+
+_FIELD_TYPES = {"real": "float", "integer": "int", "per_stimulus": "list[float]"}
+
+
+def test_agent_config_fields_have_the_type_of_their_kind() -> None:
+    # The readers convert plain numbers by kind alone, so a field's type must agree.
+    for f in dataclasses.fields(AgentConfig):
+        kind = AGENT_KINDS[f.name]
+        if kind in _FIELD_TYPES:
+            assert f.type == _FIELD_TYPES[kind], f.name
+
+
+_EFFECTIVE_JSON: dict[str, Any] = {
+    "eta": 1, "gamma": 0.5, "priorities": [1, 0.5], "stimulus_rate": "sample_mean",
+    "optimistic_sd": 0, "ridge": 1e-6, "epsilon": 0, "seed": 7.0, "update_mode": "async",
+    "history": 256,
+}
+
+
+def test_the_json_reader_converts_each_option_by_its_kind() -> None:
+    cfg = _json.agent_config(_EFFECTIVE_JSON)
+    assert cfg == AgentConfig(1.0, 0.5, [1.0, 0.5], "sample_mean", 0.0, 1e-6, 0.0, 7, "async", 256)
+    assert [type(getattr(cfg, n)).__name__ for n in AGENT_OPTIONS] == [
+        "float", "float", "list", "str", "float", "float", "float", "int", "str", "int", "NoneType",
+    ]
+    rate = _json.agent_config({**_EFFECTIVE_JSON, "stimulus_rate": 1}).stimulus_rate
+    assert rate == 1.0 and type(rate) is float
+    with_channel = {**_EFFECTIVE_JSON, "curiosity": {"signal_dim": 2, "params": {"gain": 800}}}
+    assert _json.agent_config(with_channel).curiosity == CuriosityConfig(2, {"gain": 800})
+    with pytest.raises(KeyError, match="ridge"):
+        _json.agent_config({k: v for k, v in _EFFECTIVE_JSON.items() if k != "ridge"})
+
+
+def test_the_grpc_reader_converts_each_option_by_its_kind() -> None:
+    pb = _pb.pb
+    m = pb.EffectiveConfig(
+        eta=1, gamma=0.5, priorities=[1, 0.5], stimulus_rate_rule=pb.STIMULUS_RATE_RULE_SAMPLE_MEAN,
+        optimistic_sd=0, ridge=1e-6, epsilon=0, seed=7, update_mode=pb.UPDATE_MODE_ASYNC, history=256,
+    )
+    cfg = _pb.agent_config(m)
+    assert cfg == _json.agent_config(_EFFECTIVE_JSON)
+    assert [type(getattr(cfg, n)) for n in AGENT_OPTIONS] == [
+        type(getattr(_json.agent_config(_EFFECTIVE_JSON), n)) for n in AGENT_OPTIONS
+    ]
+    m.stimulus_rate_constant = 0.25
+    m.curiosity.signal_dim = 2
+    m.curiosity.params_json = '{"gain": 800}'
+    cfg = _pb.agent_config(m)
+    assert (cfg.stimulus_rate, cfg.curiosity) == (0.25, CuriosityConfig(2, {"gain": 800}))
+    # What the client cannot name reads as the default, as it always did.
+    unnamed = pb.EffectiveConfig(update_mode=pb.UPDATE_MODE_UNSPECIFIED)
+    assert (_pb.agent_config(unnamed).update_mode, _pb.agent_config(unnamed).stimulus_rate) == (
+        "lockstep", "sample_mean",
+    )
+    assert _pb.agent_config(pb.EffectiveConfig(update_mode=7)).update_mode == "lockstep"  # type: ignore[arg-type]
+    page = _pb.session_page(pb.ListSessionsResponse(sessions=[{"update_mode": pb.UPDATE_MODE_ASYNC}]))
+    assert page.sessions[0].update_mode == "async"
+
+
+def test_the_grpc_request_encodes_named_values_or_refuses_them() -> None:
+    hallway = models.model_json("hallway")
+    cfg = _pb.create_request(
+        hallway, AgentOptions(stimulus_rate="sample_mean", update_mode="lockstep")
+    ).agent
+    assert cfg.WhichOneof("stimulus_rate") == "stimulus_rate_rule"
+    assert cfg.stimulus_rate_rule == _pb.pb.STIMULUS_RATE_RULE_SAMPLE_MEAN
+    assert cfg.update_mode == _pb.pb.UPDATE_MODE_LOCKSTEP
+    assert _pb.create_request(hallway, AgentOptions(curiosity=2)).agent.HasField("curiosity")
+    with pytest.raises(ValueError, match=r"^unknown stimulus_rate 'mean' \(use 'sample_mean' or a number\)$"):
+        _pb.create_request(hallway, AgentOptions(stimulus_rate="mean"))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^unknown update_mode 'sync' \(use 'lockstep' or 'async'\)$"):
+        _pb.create_request(hallway, AgentOptions(update_mode="sync"))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match=r"^unknown update_mode 'unspecified'"):
+        _pb.create_request(hallway, AgentOptions(update_mode="unspecified"))  # type: ignore[arg-type]
