@@ -10,16 +10,8 @@ use serde::Serialize;
 
 use crate::api::conn::ConnLimits;
 use crate::service::{ApiKeys, Limits, ManagerOptions};
+pub use crate::telemetry::LogFormat;
 use mcapi_shards::{Placement, ReplicaName, ShardMap};
-
-/// Log output format.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
-pub enum LogFormat {
-    /// Human-readable lines.
-    Text,
-    /// One JSON object per line.
-    Json,
-}
 
 /// Where sessions are kept.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
@@ -405,5 +397,37 @@ impl ServeConfig {
         }
         self.placement()?;
         self.conn_limits().validate()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use clap::Args;
+
+    use super::*;
+    use crate::api::schemas::agent::limit_of;
+    use crate::service::agent_config::session_options;
+    use mcapi_core::params::{CURIOSITY_PARAMS, Kind, Max};
+
+    /// Every server limit the parameter tables name is a flag of `mcapi
+    /// serve` that the OpenAPI document reads ([`limit_of`]).
+    #[test]
+    fn every_limit_of_the_tables_is_a_flag_of_serve() {
+        let command = ServeConfig::augment_args(clap::Command::new("serve"));
+        let limits = Limits::default();
+        for p in session_options().chain(CURIOSITY_PARAMS.iter()) {
+            if let Kind::Integer {
+                max: Max::Limit { flag, .. },
+                ..
+            } = p.kind
+            {
+                assert!(limit_of(&limits, flag).is_some(), "{flag} is not read");
+                let long = flag.trim_start_matches("--");
+                assert!(
+                    command.get_arguments().any(|a| a.get_long() == Some(long)),
+                    "{flag} is not a flag of serve"
+                );
+            }
+        }
     }
 }

@@ -5,7 +5,17 @@ use std::sync::OnceLock;
 
 use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
 
-use crate::config::LogFormat;
+use clap::ValueEnum;
+use serde::Serialize;
+
+/// Log output format.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, ValueEnum, Serialize)]
+pub enum LogFormat {
+    /// Human-readable lines.
+    Text,
+    /// One JSON object per line.
+    Json,
+}
 
 /// Installs the global tracing subscriber (stderr; `RUST_LOG` overrides `default_level`).
 pub fn init_logging(format: LogFormat, default_level: &str) {

@@ -163,32 +163,7 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
 
 #[cfg(test)]
 mod tests {
-    use clap::Args;
-
     use super::*;
-    use crate::config::ServeConfig;
-
-    /// Every server limit a table names is a flag of `mcapi serve` that
-    /// [`limit_of`] reads.
-    #[test]
-    fn every_limit_of_the_tables_is_a_flag_of_serve() {
-        let command = ServeConfig::augment_args(clap::Command::new("serve"));
-        let limits = Limits::default();
-        for p in session_options().chain(CURIOSITY_PARAMS.iter()) {
-            if let Kind::Integer {
-                max: Max::Limit { flag, .. },
-                ..
-            } = p.kind
-            {
-                assert!(limit_of(&limits, flag).is_some(), "{flag} is not read");
-                let long = flag.trim_start_matches("--");
-                assert!(
-                    command.get_arguments().any(|a| a.get_long() == Some(long)),
-                    "{flag} is not a flag of serve"
-                );
-            }
-        }
-    }
 
     #[test]
     fn schema_names_are_pascal_case() {
