@@ -9,8 +9,8 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Final, TypedDict
 
 if TYPE_CHECKING:
+    from ._inputs import CuriosityLike, StimulusRate, UpdateMode
     from ._normalise import FloatLike, FloatsLike, IntLike
-    from .types import CuriosityLike, StimulusRate, UpdateMode
 
 
 class AgentKwargs(TypedDict, total=False):

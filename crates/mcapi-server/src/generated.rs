@@ -161,8 +161,8 @@ from typing import TYPE_CHECKING, Final, TypedDict
 if TYPE_CHECKING:
 "#,
     );
+    let _ = writeln!(out, "    from ._inputs import {}", types.join(", "));
     let _ = writeln!(out, "    from ._normalise import {}", normalise.join(", "));
-    let _ = writeln!(out, "    from .types import {}", types.join(", "));
     out.push_str(
         r#"
 
