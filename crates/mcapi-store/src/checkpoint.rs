@@ -36,10 +36,11 @@ use crossbeam_channel::{Receiver, RecvTimeoutError};
 use redb::Database;
 
 use crate::db::{self, DbFailure};
+use crate::error::StoreError;
 use crate::retry::Retry;
 use crate::shared::Shared;
 use crate::wal;
-use crate::{StoreError, Write};
+use crate::write::Write;
 
 /// Longest a durable frame waits before it is applied to redb.
 pub const CHECKPOINT_INTERVAL: Duration = Duration::from_millis(500);

@@ -23,12 +23,10 @@ use std::time::Instant;
 
 use redb::{Database, Durability, ReadableTable, TableDefinition};
 
+use crate::error::StoreError;
+use crate::format::FORMAT_VERSION;
 use crate::wal::{self, Frame};
-use crate::{StoreError, Write};
-
-/// Version of the on-disk layout. Formats 2 and 3 are upgraded at open;
-/// a file of any other version is refused.
-pub const FORMAT_VERSION: u64 = 4;
+use crate::write::Write;
 
 /// The record-encoding byte given to records written under format 2.
 pub const RECORD_V2: u8 = 2;

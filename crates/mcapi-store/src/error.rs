@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use thiserror::Error;
 
-use crate::FORMAT_VERSION;
+use crate::format::FORMAT_VERSION;
 
 /// What can go wrong with the store.
 #[derive(Debug, Clone, Error)]

@@ -45,6 +45,7 @@
 mod checkpoint;
 mod db;
 mod error;
+mod format;
 mod retry;
 mod shared;
 mod store;
@@ -52,30 +53,12 @@ pub mod wal;
 mod write;
 mod writer;
 
-use std::time::Duration;
-
-pub use db::{CHUNK, FORMAT_VERSION, RECORD_V2};
+pub use db::{CHUNK, RECORD_V2};
 pub use error::StoreError;
-pub use store::{ExportedSession, Store, StoredSession};
-pub use wal::Durability;
+pub use format::FORMAT_VERSION;
+pub use store::{DEFAULT_CACHE_BYTES, ExportedSession, FILE_NAME, Store, StoredSession};
+pub use wal::{Durability, OS_SYNC_INTERVAL};
 pub use write::{Commit, Write};
-
-/// Name of the redb file inside the data directory.
-pub const FILE_NAME: &str = "mcapi.redb";
-
-/// Default ceiling of the database's page cache (`--store-cache-mib`):
-/// enough for the B-tree's interior pages of millions of sessions; the
-/// snapshots and logs themselves are read once per recovery or load.
-pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
-
-/// Under [`Durability::Os`], how long a frame may stay unsynced.
-pub const OS_SYNC_INTERVAL: Duration = Duration::from_millis(5);
-
-/// Most writes folded into one group.
-const MAX_GROUP: usize = 8192;
-
-/// The probe file's name in the data directory (written and removed).
-const PROBE_FILE: &str = "probe.tmp";
 
 #[cfg(test)]
 mod tests;

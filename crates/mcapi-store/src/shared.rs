@@ -10,7 +10,7 @@ use std::sync::atomic::{AtomicU32, AtomicU64};
 use parking_lot::{Mutex, RwLock};
 use redb::Database;
 
-use crate::StoreError;
+use crate::error::StoreError;
 
 /// What the writer and checkpointer threads share with the store's handle.
 #[derive(Default)]

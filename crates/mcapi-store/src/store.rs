@@ -14,12 +14,20 @@ use tokio::sync::oneshot;
 
 use crate::checkpoint::{Checkpointer, Frame, ToCheckpoint};
 use crate::db::{self, CHUNK, LOG, SESSIONS, SNAPSHOTS, log_key, split_entry};
+use crate::error::StoreError;
 use crate::retry::Retry;
 use crate::shared::Shared;
 use crate::wal::{self, Durability, Wal};
 use crate::write::{Commit, Pending, Write};
 use crate::writer::Writer;
-use crate::{DEFAULT_CACHE_BYTES, FILE_NAME, StoreError};
+
+/// Name of the redb file inside the data directory.
+pub const FILE_NAME: &str = "mcapi.redb";
+
+/// Default ceiling of the database's page cache (`--store-cache-mib`):
+/// enough for the B-tree's interior pages of millions of sessions; the
+/// snapshots and logs themselves are read once per recovery or load.
+pub const DEFAULT_CACHE_BYTES: usize = 64 << 20;
 
 /// A stored session as found at start.
 #[derive(Debug, Clone)]

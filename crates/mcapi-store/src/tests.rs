@@ -10,6 +10,8 @@ use redb::{Database, ReadableDatabase, ReadableTableMetadata};
 
 use super::db::{LOG, META};
 use super::*;
+use std::time::Duration;
+
 use crate::{checkpoint, wal};
 
 fn id(s: &str) -> Arc<str> {

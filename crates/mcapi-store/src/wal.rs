@@ -64,7 +64,11 @@ use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::thread::JoinHandle;
 
-use crate::{StoreError, Write};
+use crate::error::StoreError;
+use crate::write::Write;
+
+/// Under [`Durability::Os`], how long a frame may stay unsynced.
+pub const OS_SYNC_INTERVAL: std::time::Duration = std::time::Duration::from_millis(5);
 
 /// The log's directory inside the data directory.
 pub const WAL_DIR: &str = "wal";
@@ -102,7 +106,7 @@ pub enum Durability {
     Sync,
     /// After the frame reaches the kernel (`write`): survives a crash of
     /// the process (`kill -9`), not of the machine; the log is synced in
-    /// the background every [`OS_SYNC_INTERVAL`](crate::OS_SYNC_INTERVAL).
+    /// the background every [`OS_SYNC_INTERVAL`].
     Os,
 }
 

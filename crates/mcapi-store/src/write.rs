@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use tokio::sync::oneshot;
 
-use crate::StoreError;
+use crate::error::StoreError;
 
 /// One write.
 #[derive(Debug, Clone)]

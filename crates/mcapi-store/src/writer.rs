@@ -12,11 +12,17 @@ use crossbeam_channel::{Receiver, RecvTimeoutError, Sender};
 
 use crate::checkpoint::{self, Frame, ToCheckpoint};
 use crate::db;
+use crate::error::StoreError;
 use crate::retry::Retry;
 use crate::shared::Shared;
-use crate::wal::{AppendError, Durability, Wal};
+use crate::wal::{AppendError, Durability, OS_SYNC_INTERVAL, Wal};
 use crate::write::{Pending, Write};
-use crate::{MAX_GROUP, OS_SYNC_INTERVAL, PROBE_FILE, StoreError};
+
+/// Most writes folded into one group.
+const MAX_GROUP: usize = 8192;
+
+/// The probe file's name in the data directory (written and removed).
+const PROBE_FILE: &str = "probe.tmp";
 
 /// The writer thread: group commits to the log, and the log's recovery
 /// after a storage fault.

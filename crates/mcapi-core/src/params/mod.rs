@@ -3,6 +3,7 @@
 //! range, default and doc are declared once, in [`table`]; the check reads
 //! them from there. Defaults follow docs/algorithm.md §2-§6.
 
+mod curiosity;
 pub mod spec;
 pub mod table;
 
