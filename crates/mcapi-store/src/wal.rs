@@ -106,7 +106,7 @@ pub enum Durability {
     Sync,
     /// After the frame reaches the kernel (`write`): survives a crash of
     /// the process (`kill -9`), not of the machine; the log is synced in
-    /// the background every [`OS_SYNC_INTERVAL`].
+    /// the background every 5 ms (`OS_SYNC_INTERVAL`).
     Os,
 }
 
