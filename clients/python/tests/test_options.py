@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
+from _effective import effective_json, effective_message, of_kind, value_of_kind
 from conftest import Blocking
 
 from mcapi_client import (
@@ -38,7 +39,8 @@ def _names(cls: Any) -> tuple[str, ...]:
 
 
 def test_agent_kwargs_agent_options_and_agent_config_list_the_same_options() -> None:
-    assert len(set(AGENT_OPTIONS)) == len(AGENT_OPTIONS) == 11
+    assert len(set(AGENT_OPTIONS)) == len(AGENT_OPTIONS)
+    assert {"eta", "seed", "update_mode", "curiosity"} <= set(AGENT_OPTIONS)
     assert tuple(AgentKwargs.__annotations__) == AGENT_OPTIONS
     assert AgentKwargs.__required_keys__ == frozenset()
     assert _names(AgentOptions) == AGENT_OPTIONS
@@ -50,16 +52,31 @@ def test_curiosity_params_follow_the_core_defaults_order() -> None:
     assert CURIOSITY_PARAMS[0] == "max_centres" and CURIOSITY_PARAMS[-1] == "max_sources"
 
 
+def _every_option(**named: Any) -> dict[str, Any]:
+    """A value for every agent option (an "object" ``None``): each real a whole
+    number of its own, each integer one of its own, the rest the value of their
+    kind; ``named`` as given."""
+    values = {name: value_of_kind(name) for name in AGENT_OPTIONS}
+    values |= {name: i for i, name in enumerate(of_kind("real"))}
+    values |= {name: 100 + i for i, name in enumerate(of_kind("integer"))}
+    return values | named
+
+
 def test_agent_options_normalise_every_option() -> None:
-    opts = AgentOptions(
-        eta=1, gamma=0.5, priorities=(1, 0.5), stimulus_rate=1, optimistic_sd=0, ridge=1,
-        epsilon=0, seed=3, update_mode="async", history=8, curiosity=2,
+    given = _every_option(
+        eta=1, priorities=(1, 0.5), stimulus_rate=1, seed=3, update_mode="async", history=8, curiosity=2,
     )
-    assert dataclasses.astuple(opts)[:10] == (
-        1.0, 0.5, [1.0, 0.5], 1.0, 0.0, 1.0, 0.0, 3, "async", 8,
+    opts = AgentOptions(**given)
+    assert (opts.eta, opts.priorities, opts.stimulus_rate, opts.seed, opts.update_mode, opts.history) == (
+        1.0, [1.0, 0.5], 1.0, 3, "async", 8,
     )
     assert opts.curiosity == CuriosityConfig(2)
-    assert all(type(getattr(opts, n)) is float for n in ("eta", "stimulus_rate", "optimistic_sd"))
+    assert {name: getattr(opts, name) for name in of_kind("real") + of_kind("integer")} == {
+        name: given[name] for name in of_kind("real") + of_kind("integer")
+    }
+    assert all(type(getattr(opts, n)) is float for n in of_kind("real") + ["stimulus_rate"])
+    assert all(type(getattr(opts, n)) is int for n in of_kind("integer"))
+    assert all(type(x) is float for n in of_kind("per_stimulus") for x in getattr(opts, n))
     assert AgentOptions(stimulus_rate="sample_mean").stimulus_rate == "sample_mean"
     assert AgentOptions(**{name: None for name in AGENT_OPTIONS}) == AgentOptions()
     assert AgentOptions().to_json() == {}
@@ -115,15 +132,26 @@ def test_create_session_refuses_unknown_and_positional_options(unreachable: Any)
 
 
 def test_every_option_reaches_the_grpc_request() -> None:
-    opts = AgentOptions(
-        eta=0.02, gamma=0.5, priorities=[1.0, 0.5, 1.0], stimulus_rate=0.25, optimistic_sd=0.1,
-        ridge=1e-5, epsilon=0.1, seed=3, update_mode="async", history=8, curiosity=2,
+    given = _every_option(
+        eta=0.02, priorities=[1.0, 0.5, 1.0], stimulus_rate=0.25, seed=3, update_mode="async",
+        history=8, curiosity=2,
     )
-    cfg = _pb.create_request(models.model_json("hallway"), opts).agent
+    given |= {name: 1 / (i + 2) for i, name in enumerate(of_kind("real")) if name != "eta"}  # not whole
+    cfg = _pb.create_request(models.model_json("hallway"), AgentOptions(**given)).agent
+
+    def field(name: str) -> str:
+        if AGENT_KINDS[name] != "real_or_name":
+            return name
+        return f"{name}_rule" if isinstance(given[name], str) else f"{name}_constant"
+
     sent = {f.name for f, _ in cfg.ListFields()}
-    assert sent == set(AGENT_OPTIONS) - {"stimulus_rate"} | {"stimulus_rate_constant"}
-    assert (cfg.eta, cfg.gamma, cfg.optimistic_sd, cfg.ridge, cfg.epsilon) == (0.02, 0.5, 0.1, 1e-5, 0.1)
-    assert (cfg.seed, cfg.history, cfg.stimulus_rate_constant) == (3, 8, 0.25)
+    assert sent == {field(name) for name in AGENT_OPTIONS if given[name] is not None}
+    assert "stimulus_rate_constant" in sent and "curiosity" in sent
+    assert {name: getattr(cfg, name) for name in of_kind("real") + of_kind("integer")} == {
+        name: given[name] for name in of_kind("real") + of_kind("integer")
+    }
+    assert (cfg.eta, cfg.seed, cfg.history, cfg.stimulus_rate_constant) == (0.02, 3, 8, 0.25)
+    assert (list(cfg.priorities), cfg.update_mode) == ([1.0, 0.5, 1.0], _pb.pb.UPDATE_MODE_ASYNC)
     assert not _pb.create_request(models.model_json("hallway"), AgentOptions()).agent.ListFields()
 
 
@@ -149,32 +177,46 @@ def test_agent_config_fields_have_the_type_of_their_kind() -> None:
             assert f.type == _FIELD_TYPES[kind], f.name
 
 
-_EFFECTIVE_JSON: dict[str, Any] = {
-    "eta": 1, "gamma": 0.5, "priorities": [1, 0.5], "stimulus_rate": "sample_mean",
-    "optimistic_sd": 0, "ridge": 1e-6, "epsilon": 0, "seed": 7.0, "update_mode": "async",
-    "history": 256,
+# What each kind reads as from _EFFECTIVE_JSON (its "real_or_name" options are names).
+_TYPE_NAMES = {
+    "real": "float", "integer": "int", "per_stimulus": "list", "real_or_name": "str", "choice": "str",
+    "object": "NoneType",
 }
+
+# Every real a whole number of its own and every integer a whole float of its
+# own, so that each must be converted; the options named are those checked by name.
+_EFFECTIVE_JSON: dict[str, Any] = effective_json(**(
+    {name: i for i, name in enumerate(of_kind("real"))}
+    | {name: float(200 + i) for i, name in enumerate(of_kind("integer"))}
+    | {"eta": 1, "priorities": [1, 0.5], "stimulus_rate": "sample_mean", "seed": 7.0, "update_mode": "async"}
+))
 
 
 def test_the_json_reader_converts_each_option_by_its_kind() -> None:
     cfg = _json.agent_config(_EFFECTIVE_JSON)
-    assert cfg == AgentConfig(1.0, 0.5, [1.0, 0.5], "sample_mean", 0.0, 1e-6, 0.0, 7, "async", 256)
+    assert cfg == AgentConfig(**_EFFECTIVE_JSON)  # equal values, 1 == 1.0: the types are checked below
+    assert (cfg.eta, cfg.priorities, cfg.stimulus_rate, cfg.seed, cfg.update_mode, cfg.curiosity) == (
+        1.0, [1.0, 0.5], "sample_mean", 7, "async", None,
+    )
     assert [type(getattr(cfg, n)).__name__ for n in AGENT_OPTIONS] == [
-        "float", "float", "list", "str", "float", "float", "float", "int", "str", "int", "NoneType",
+        _TYPE_NAMES[AGENT_KINDS[n]] for n in AGENT_OPTIONS
     ]
+    assert all(type(x) is float for n in of_kind("per_stimulus") for x in getattr(cfg, n))
     rate = _json.agent_config({**_EFFECTIVE_JSON, "stimulus_rate": 1}).stimulus_rate
     assert rate == 1.0 and type(rate) is float
     with_channel = {**_EFFECTIVE_JSON, "curiosity": {"signal_dim": 2, "params": {"gain": 800}}}
     assert _json.agent_config(with_channel).curiosity == CuriosityConfig(2, {"gain": 800})
-    with pytest.raises(KeyError, match="ridge"):
-        _json.agent_config({k: v for k, v in _EFFECTIVE_JSON.items() if k != "ridge"})
+    for name in AGENT_OPTIONS:
+        if AGENT_KINDS[name] != "object":  # only an "object" may be left out
+            with pytest.raises(KeyError, match=f"^'{name}'$"):
+                _json.agent_config({k: v for k, v in _EFFECTIVE_JSON.items() if k != name})
 
 
 def test_the_grpc_reader_converts_each_option_by_its_kind() -> None:
     pb = _pb.pb
-    m = pb.EffectiveConfig(
-        eta=1, gamma=0.5, priorities=[1, 0.5], stimulus_rate_rule=pb.STIMULUS_RATE_RULE_SAMPLE_MEAN,
-        optimistic_sd=0, ridge=1e-6, epsilon=0, seed=7, update_mode=pb.UPDATE_MODE_ASYNC, history=256,
+    m = effective_message(
+        _EFFECTIVE_JSON, eta=1, priorities=[1, 0.5], stimulus_rate_rule=pb.STIMULUS_RATE_RULE_SAMPLE_MEAN,
+        seed=7, update_mode=pb.UPDATE_MODE_ASYNC,
     )
     cfg = _pb.agent_config(m)
     assert cfg == _json.agent_config(_EFFECTIVE_JSON)

@@ -12,6 +12,7 @@ from typing import Any
 
 import httpx
 import pytest
+from _effective import effective_json
 from conftest import Server
 
 from mcapi_client import (
@@ -41,9 +42,7 @@ def session_json(sid: str = SESSION) -> dict[str, Any]:
         "id": sid, "tick": 0, "drive": [1.0], "policy_version": 0, "state": None,
         "model": {"states": 2, "actions": ["a", "b"], "stimuli": ["x"], "pairs": 3, "transitions": 3,
                   "deterministic": True, "basis": {"kind": "indicator", "k": 0}, "features": 3},
-        "agent": {"eta": 0.01, "gamma": 0.95, "priorities": [1.0], "stimulus_rate": "sample_mean",
-                  "optimistic_sd": 0.3, "ridge": 1e-06, "epsilon": 0.0, "seed": 1,
-                  "update_mode": "lockstep", "history": 256},
+        "agent": effective_json(priorities=[1.0], seed=1),
         "stats": {"lstdq_error": 0.0, "lambda1_estimate": 0.0, "condition_1_holds": True,
                   "constant_stimuli": [], "factorisation_reuses": 0, "factorisations": 0},
     }
