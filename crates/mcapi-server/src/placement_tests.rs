@@ -146,13 +146,13 @@ async fn a_single_node_sends_no_replica_header_and_owns_every_shard() {
 
 #[test]
 fn grpc_refusals_carry_the_owner() {
-    let status = to_status(ServiceError::WrongReplica {
+    let status = to_status(ServiceError::WrongReplica(mcapi_shards::WrongReplica {
         id: "s0001.x".into(),
         shard: "s0001".into(),
         owner: "mcapi-2".into(),
         replica: "mcapi-0".into(),
         epoch: 4,
-    });
+    }));
     assert_eq!(status.code(), tonic::Code::Unavailable);
     assert_eq!(
         status
@@ -162,10 +162,10 @@ fn grpc_refusals_carry_the_owner() {
         Some(Some("mcapi-2"))
     );
     assert!(status.message().contains("epoch 4"), "{}", status.message());
-    let frozen = to_status(ServiceError::ShardFrozen {
+    let frozen = to_status(ServiceError::ShardFrozen(mcapi_shards::ShardFrozen {
         shard: "s0001".into(),
         retry_after_secs: 1,
-    });
+    }));
     assert_eq!(frozen.code(), tonic::Code::Unavailable);
     assert_eq!(
         frozen

@@ -27,39 +27,52 @@ use thiserror::Error;
 
 use crate::map::{ReplicaName, SHARDS, ShardMap, shard_key, shard_of_id};
 
+/// A session whose shard belongs to another replica: a router with a stale
+/// map sent the request here. Nothing was done; retrying through the
+/// router succeeds once it follows the map.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+#[error(
+    "session `{id}` is in shard {shard}, owned by replica `{owner}` (shard map epoch {epoch}), not by this replica `{replica}`; retry through the router"
+)]
+pub struct WrongReplica {
+    /// The session.
+    pub id: String,
+    /// Its shard's key (`s03a7`).
+    pub shard: String,
+    /// The replica that owns it.
+    pub owner: String,
+    /// This replica.
+    pub replica: String,
+    /// The epoch of this replica's map.
+    pub epoch: u64,
+}
+
+/// A session whose shard is being moved to another replica: nothing was
+/// done; retry after `retry_after_secs`.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+#[error(
+    "shard {shard} is being moved to another replica; nothing was done, retry in {retry_after_secs} s"
+)]
+pub struct ShardFrozen {
+    /// The shard's key.
+    pub shard: String,
+    /// Seconds to wait (`Retry-After`).
+    pub retry_after_secs: u64,
+}
+
 /// Why a request or a move step is refused here. The server turns each
-/// into its service error of the same name (and the same message).
+/// into its service error of the same name, carrying the same refusal.
 #[derive(Debug, Clone, PartialEq, Eq, Error)]
 pub enum PlacementError {
     /// No such session: its id has no shard, so no replica can hold it.
     #[error("session `{0}` not found")]
     NotFound(String),
     /// The session's shard belongs to another replica.
-    #[error(
-        "session `{id}` is in shard {shard}, owned by replica `{owner}` (shard map epoch {epoch}), not by this replica `{replica}`; retry through the router"
-    )]
-    WrongReplica {
-        /// The session.
-        id: String,
-        /// Its shard's key (`s03a7`).
-        shard: String,
-        /// The replica that owns it.
-        owner: String,
-        /// This replica.
-        replica: String,
-        /// The epoch of this replica's map.
-        epoch: u64,
-    },
+    #[error(transparent)]
+    WrongReplica(WrongReplica),
     /// The session's shard is being moved to another replica.
-    #[error(
-        "shard {shard} is being moved to another replica; nothing was done, retry in {retry_after_secs} s"
-    )]
-    ShardFrozen {
-        /// The shard's key.
-        shard: String,
-        /// Seconds to wait (`Retry-After`).
-        retry_after_secs: u64,
-    },
+    #[error(transparent)]
+    ShardFrozen(ShardFrozen),
     /// A move step that does not fit this replica's map (a stale mover).
     #[error("{0}")]
     MoveConflict(String),
@@ -280,21 +293,21 @@ impl Placement {
         };
         match inner.states[usize::from(shard)] {
             ShardState::Owned => Ok(()),
-            ShardState::Frozen => Err(PlacementError::ShardFrozen {
+            ShardState::Frozen => Err(PlacementError::ShardFrozen(ShardFrozen {
                 shard: shard_key(shard),
                 retry_after_secs: FROZEN_RETRY_AFTER_SECS,
-            }),
+            })),
             ShardState::Importing | ShardState::Foreign => {
                 let owner = inner.map.owner(shard);
                 // An importing shard's map owner may be this replica once
                 // the map flips; until the move ends its data is elsewhere.
-                Err(PlacementError::WrongReplica {
+                Err(PlacementError::WrongReplica(WrongReplica {
                     id: id.to_string(),
                     shard: shard_key(shard),
                     owner: owner.to_string(),
                     replica: self.replica.to_string(),
                     epoch: inner.map.epoch(),
-                })
+                }))
             }
         }
     }
@@ -340,12 +353,12 @@ mod tests {
         assert!(p.check(&own_id).is_ok());
         assert!(p.holds(&own_id));
         match p.check(&their_id) {
-            Err(PlacementError::WrongReplica {
+            Err(PlacementError::WrongReplica(WrongReplica {
                 owner,
                 replica,
                 epoch,
                 ..
-            }) => {
+            })) => {
                 assert_eq!(owner, "mcapi-1");
                 assert_eq!(replica, "mcapi-0");
                 assert_eq!(epoch, 1);
@@ -360,10 +373,10 @@ mod tests {
         p.set_state(mine[0], ShardState::Frozen);
         assert!(matches!(
             p.check(&own_id),
-            Err(PlacementError::ShardFrozen {
+            Err(PlacementError::ShardFrozen(ShardFrozen {
                 retry_after_secs: 1,
                 ..
-            })
+            }))
         ));
         assert!(p.holds(&own_id), "a frozen shard's sessions stay loaded");
     }

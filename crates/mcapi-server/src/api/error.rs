@@ -87,12 +87,8 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
         ),
         // RFC 9110 §15.5.20: not authoritative here, retry elsewhere; for
         // gRPC, UNAVAILABLE is the code a client may retry as is.
-        ServiceError::WrongReplica { .. } => {
-            (H::MISDIRECTED_REQUEST, G::Unavailable, "wrong_replica")
-        }
-        ServiceError::ShardFrozen { .. } => {
-            (H::SERVICE_UNAVAILABLE, G::Unavailable, "shard_moving")
-        }
+        ServiceError::WrongReplica(_) => (H::MISDIRECTED_REQUEST, G::Unavailable, "wrong_replica"),
+        ServiceError::ShardFrozen(_) => (H::SERVICE_UNAVAILABLE, G::Unavailable, "shard_moving"),
         ServiceError::Forbidden(_) => (H::FORBIDDEN, G::PermissionDenied, "forbidden"),
         ServiceError::MoveConflict(_) => (H::CONFLICT, G::FailedPrecondition, "move_conflict"),
     }
@@ -209,7 +205,7 @@ pub fn to_status(e: ServiceError) -> tonic::Status {
 pub fn step_error(e: ServiceError) -> mcapi_proto::StepError {
     let (http, code, stable) = classify(&e);
     let owner = match &e {
-        ServiceError::WrongReplica { owner, .. } => owner.clone(),
+        ServiceError::WrongReplica(w) => w.owner.clone(),
         _ => String::new(),
     };
     mcapi_proto::StepError {
@@ -228,10 +224,8 @@ pub const OWNER_HEADER: &str = "x-mcapi-owner";
 /// misdirected session's shard, the wait for a frozen one.
 fn cluster_headers(e: &ServiceError) -> Vec<(&'static str, String)> {
     match e {
-        ServiceError::WrongReplica { owner, .. } => vec![(OWNER_HEADER, owner.clone())],
-        ServiceError::ShardFrozen {
-            retry_after_secs, ..
-        } => vec![("retry-after", retry_after_secs.to_string())],
+        ServiceError::WrongReplica(w) => vec![(OWNER_HEADER, w.owner.clone())],
+        ServiceError::ShardFrozen(f) => vec![("retry-after", f.retry_after_secs.to_string())],
         _ => Vec::new(),
     }
 }

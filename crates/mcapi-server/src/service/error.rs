@@ -6,7 +6,7 @@ use std::path::PathBuf;
 use thiserror::Error;
 
 use mcapi_core::AlgoError;
-use mcapi_shards::PlacementError;
+use mcapi_shards::{PlacementError, ShardFrozen, WrongReplica};
 use mcapi_store::StoreError;
 
 /// Everything a service call can fail with.
@@ -64,34 +64,13 @@ pub enum ServiceError {
     #[error("{0}")]
     RequestTimeout(String),
     /// The session's shard belongs to another replica (docs/cluster.md): a
-    /// router with a stale map sent the request here. Nothing was done;
-    /// retrying through the router succeeds once it follows the map.
-    #[error(
-        "session `{id}` is in shard {shard}, owned by replica `{owner}` (shard map epoch {epoch}), not by this replica `{replica}`; retry through the router"
-    )]
-    WrongReplica {
-        /// The session.
-        id: String,
-        /// Its shard's key (`s03a7`).
-        shard: String,
-        /// The replica that owns it.
-        owner: String,
-        /// This replica.
-        replica: String,
-        /// The epoch of this replica's map.
-        epoch: u64,
-    },
-    /// The session's shard is being moved to another replica: nothing was
-    /// done; retry after `retry_after_secs`.
-    #[error(
-        "shard {shard} is being moved to another replica; nothing was done, retry in {retry_after_secs} s"
-    )]
-    ShardFrozen {
-        /// The shard's key.
-        shard: String,
-        /// Seconds to wait (`Retry-After`).
-        retry_after_secs: u64,
-    },
+    /// router with a stale map sent the request here.
+    #[error(transparent)]
+    WrongReplica(WrongReplica),
+    /// The session's shard is being moved to another replica
+    /// (docs/cluster.md).
+    #[error(transparent)]
+    ShardFrozen(ShardFrozen),
     /// An admin call (shard moves, docs/cluster.md) without the admin key,
     /// or to a server with no admin key configured.
     #[error("{0}")]
@@ -126,32 +105,14 @@ impl ServiceError {
     }
 }
 
-/// A replica's placement refuses with the service error of the same name
-/// (and the same message).
+/// A replica's placement refuses with the service error of the same name,
+/// carrying the same refusal.
 impl From<PlacementError> for ServiceError {
     fn from(e: PlacementError) -> Self {
         match e {
             PlacementError::NotFound(id) => Self::NotFound(id),
-            PlacementError::WrongReplica {
-                id,
-                shard,
-                owner,
-                replica,
-                epoch,
-            } => Self::WrongReplica {
-                id,
-                shard,
-                owner,
-                replica,
-                epoch,
-            },
-            PlacementError::ShardFrozen {
-                shard,
-                retry_after_secs,
-            } => Self::ShardFrozen {
-                shard,
-                retry_after_secs,
-            },
+            PlacementError::WrongReplica(w) => Self::WrongReplica(w),
+            PlacementError::ShardFrozen(f) => Self::ShardFrozen(f),
             PlacementError::MoveConflict(why) => Self::MoveConflict(why),
         }
     }
