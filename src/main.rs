@@ -129,7 +129,7 @@ fn main() -> ExitCode {
             experiment(args)
         }
         Command::Healthcheck(args) => healthcheck(&args),
-        Command::Cluster { command } => mcapi_cluster::cli::run(command),
+        Command::Cluster { command } => mcapi_cluster::cli::run(command, server::shutdown_signal),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

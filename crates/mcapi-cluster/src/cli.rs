@@ -126,12 +126,17 @@ pub struct HaproxyArgs {
     pub namespace: Option<String>,
 }
 
-/// Runs a `mcapi cluster` subcommand.
-pub fn run(cmd: ClusterCommand) -> Result<()> {
+/// Runs a `mcapi cluster` subcommand. `stop` makes the future that ends a
+/// supervised cluster (`cluster local`): the binary's signal handler.
+pub fn run<S, F>(cmd: ClusterCommand, stop: S) -> Result<()>
+where
+    S: FnOnce() -> F,
+    F: Future<Output = ()> + Send,
+{
     match cmd {
         ClusterCommand::Plan(args) => run_plan(&args),
         ClusterCommand::HaproxyConfig(args) => run_haproxy(&args),
-        ClusterCommand::Local(args) => crate::local::run(&args),
+        ClusterCommand::Local(args) => crate::local::run(&args, stop),
         ClusterCommand::Move(args) => run_move(&args),
         ClusterCommand::Rebalance(args) => run_rebalance(&args),
     }

@@ -8,8 +8,9 @@
 //!
 //! It works on the shard map of [`mcapi_shards`] and talks to the replicas
 //! only as any client would: through their admin HTTP API, and by running
-//! the `mcapi serve` binary. It does not depend on mcapi-server; its own
-//! signal handling ([`signal`]) and logging ([`logging`]) are small.
+//! the `mcapi serve` binary. It does not depend on mcapi-server; its logging
+//! ([`logging`]) is its own, and the signal that ends a supervised cluster
+//! is the binary's, given to [`cli::run`].
 
 pub mod cli;
 pub mod files;
@@ -18,4 +19,3 @@ pub mod local;
 pub mod logging;
 pub mod mover;
 pub mod probe;
-pub mod signal;

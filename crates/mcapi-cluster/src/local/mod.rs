@@ -102,14 +102,20 @@ pub struct LocalArgs {
     pub serve_args: Vec<String>,
 }
 
-/// Runs `mcapi cluster local` until SIGTERM or Ctrl-C.
-pub fn run(args: &LocalArgs) -> Result<()> {
+/// Runs `mcapi cluster local` until the future that `stop` makes resolves (the
+/// binary's SIGTERM or Ctrl-C). `stop` is called inside the cluster's
+/// runtime, before any replica starts, so that no early signal is lost.
+pub fn run<S, F>(args: &LocalArgs, stop: S) -> Result<()>
+where
+    S: FnOnce() -> F,
+    F: Future<Output = ()> + Send,
+{
     crate::logging::init_logging();
     let setup = prepare(args)?;
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()?;
-    runtime.block_on(supervise(setup))
+    runtime.block_on(async { supervise(setup, stop()).await })
 }
 
 #[cfg(test)]

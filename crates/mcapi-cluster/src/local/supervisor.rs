@@ -275,7 +275,7 @@ impl Cluster {
     }
 }
 
-pub(super) async fn supervise(setup: Setup) -> Result<()> {
+pub(super) async fn supervise(setup: Setup, signal: impl Future<Output = ()> + Send) -> Result<()> {
     let Setup {
         dir,
         map,
@@ -306,7 +306,6 @@ pub(super) async fn supervise(setup: Setup) -> Result<()> {
             processes: Vec::new(),
         },
     };
-    let signal = crate::signal::shutdown_signal();
     tokio::pin!(signal);
     let started = tokio::select! {
         r = async {
