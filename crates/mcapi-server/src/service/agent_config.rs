@@ -13,7 +13,7 @@
 use serde::{Deserialize, Serialize};
 
 use mcapi_core::params::AGENT_PARAMS;
-use mcapi_core::params::spec::{Default, Kind, Max, Param};
+use mcapi_core::params::spec::{Default as ParamDefault, Kind, Max, Param};
 use mcapi_core::{AgentParams, CuriosityParams, StimulusRate, ValidParams};
 
 /// How a session's reply relates to its policy update.
@@ -34,7 +34,7 @@ pub const DEFAULT_HISTORY: usize = 256;
 pub const UPDATE_MODE: Param = Param {
     name: "update_mode",
     kind: Kind::Choice(&["lockstep", "async"]),
-    default: Default::Name("lockstep"),
+    default: ParamDefault::Name("lockstep"),
     unit: "",
     doc: "`lockstep`: the reply follows exactly one policy update; `async`: the reply \
           comes at once and the tick loop updates behind it",
@@ -51,7 +51,7 @@ pub const HISTORY: Param = Param {
             hard: u64::MAX,
         },
     },
-    default: Default::Integer(DEFAULT_HISTORY as u64),
+    default: ParamDefault::Integer(DEFAULT_HISTORY as u64),
     unit: "ticks",
     doc: "recent ticks kept for /history",
     see: "",
@@ -61,7 +61,7 @@ pub const HISTORY: Param = Param {
 pub const CURIOSITY: Param = Param {
     name: "curiosity",
     kind: Kind::Object("CuriosityConfig"),
-    default: Default::Absent,
+    default: ParamDefault::Absent,
     unit: "",
     doc: "a curiosity channel: the server appends a stimulus dimension `curiosity`, last, \
           and computes it from the raw `signal` of observations",
