@@ -25,18 +25,6 @@ use mcapi_core::params::{CURIOSITY_PARAMS, Kind, Param};
 
 use crate::service::agent_config::session_options;
 
-/// PascalCase of a snake_case name (`update_mode` → `UpdateMode`).
-pub fn pascal(name: &str) -> String {
-    name.split('_')
-        .map(|w| {
-            let mut c = w.chars();
-            c.next()
-                .map(|f| f.to_uppercase().chain(c).collect::<String>())
-                .unwrap_or_default()
-        })
-        .collect()
-}
-
 /// The Markdown table of these parameters, as docs/sessions.md has it.
 pub fn markdown_table(params: &[&Param]) -> String {
     let mut out =
@@ -121,8 +109,8 @@ fn python_type(p: &Param) -> String {
         Kind::Real { .. } => "FloatLike".to_owned(),
         Kind::Integer { .. } => "IntLike".to_owned(),
         Kind::PerStimulus { .. } => "FloatsLike".to_owned(),
-        Kind::RealOrName { .. } => format!("{} | FloatLike", pascal(p.name)),
-        Kind::Choice(_) => pascal(p.name),
+        Kind::RealOrName { .. } => format!("{} | FloatLike", p.type_name()),
+        Kind::Choice(_) => p.type_name(),
         Kind::Object(schema) => format!("{}Like", schema.trim_end_matches("Config")),
     }
 }
@@ -347,7 +335,7 @@ mod tests {
                     Kind::Integer { .. } => "uint64".to_owned(),
                     Kind::PerStimulus { .. } => "repeated double".to_owned(),
                     Kind::RealOrName { .. } => "oneof".to_owned(),
-                    Kind::Choice(_) => pascal(p.name),
+                    Kind::Choice(_) => p.type_name(),
                     Kind::Object(schema) => schema.to_owned(),
                 };
                 let ty = fields

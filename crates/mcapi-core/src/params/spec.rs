@@ -210,6 +210,21 @@ impl Param {
         }
     }
 
+    /// The name of the parameter's value type, its name in PascalCase
+    /// (`stimulus_rate` → `StimulusRate`), as the OpenAPI document, the
+    /// proto and the Python client name a type of its own.
+    pub fn type_name(&self) -> String {
+        self.name
+            .split('_')
+            .map(|w| {
+                let mut c = w.chars();
+                c.next()
+                    .map(|f| f.to_uppercase().chain(c).collect::<String>())
+                    .unwrap_or_default()
+            })
+            .collect()
+    }
+
     /// The error naming this parameter.
     pub fn bad(&self, reason: impl Into<String>) -> AlgoError {
         AlgoError::InvalidParameter {
@@ -324,5 +339,10 @@ mod tests {
         assert_eq!(range(Bound::Excl(0.0), Bound::Excl(1.0)), "(0, 1)");
         assert_eq!(num(1e-8), "1e-8");
         assert_eq!(P.default_text(), "0.01");
+        let rate = Param {
+            name: "stimulus_rate",
+            ..P
+        };
+        assert_eq!(rate.type_name(), "StimulusRate");
     }
 }

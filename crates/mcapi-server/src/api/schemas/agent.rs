@@ -51,20 +51,6 @@ pub fn describe(p: &Param) -> String {
     format!("{}; default {}{unit}{limit}", p.doc, p.default_text())
 }
 
-/// The name of the schema of a [`Kind::RealOrName`] parameter: its name in
-/// PascalCase (`stimulus_rate` → `StimulusRate`).
-fn schema_name(p: &Param) -> String {
-    p.name
-        .split('_')
-        .map(|w| {
-            let mut c = w.chars();
-            c.next()
-                .map(|f| f.to_uppercase().chain(c).collect::<String>())
-                .unwrap_or_default()
-        })
-        .collect()
-}
-
 /// The schema of one parameter's value, `null` allowed when `nullable`.
 fn property(p: &Param, nullable: bool, limits: &Limits) -> RefOr<Schema> {
     let description = describe(p);
@@ -85,7 +71,7 @@ fn property(p: &Param, nullable: bool, limits: &Limits) -> RefOr<Schema> {
             &description,
         )
         .into(),
-        Kind::RealOrName { .. } => nullable_ref(&schema_name(p), &description),
+        Kind::RealOrName { .. } => nullable_ref(&p.type_name(), &description),
         Kind::Choice(names) => {
             let mut values: Vec<serde_json::Value> = names.iter().map(|&n| n.into()).collect();
             if nullable {
@@ -159,14 +145,4 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     ];
     out.extend(real_or_name(&table::STIMULUS_RATE).map(|s| ("StimulusRate", s)));
     out
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn schema_names_are_pascal_case() {
-        assert_eq!(schema_name(&table::STIMULUS_RATE), "StimulusRate");
-    }
 }
