@@ -9,6 +9,7 @@ use std::time::Duration;
 use serde_json::json;
 
 use super::session::Update;
+use super::test_support::{obs, rt};
 use super::*;
 
 fn manager(workers: usize) -> Arc<SessionManager> {
@@ -30,23 +31,6 @@ fn create(m: &SessionManager, mode: UpdateMode) -> String {
         },
     };
     m.create(Caller::Anyone, req).expect("create").id
-}
-
-fn obs(state: usize, stimulus: Option<Vec<f64>>) -> ObservationIn {
-    ObservationIn {
-        state,
-        stimulus,
-        action_taken: None,
-        signal: None,
-        signal_source: None,
-    }
-}
-
-fn rt() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .expect("runtime")
 }
 
 #[test]

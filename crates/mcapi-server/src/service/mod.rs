@@ -35,6 +35,8 @@ pub mod wire;
 
 #[cfg(test)]
 mod fault_tests;
+#[cfg(test)]
+mod test_support;
 
 pub use agent_config::{CuriosityConfig, EffectiveConfig, SessionConfig, UpdateMode};
 pub use auth::{ApiKeys, Caller};

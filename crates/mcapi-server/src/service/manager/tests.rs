@@ -9,7 +9,7 @@ use serde_json::json;
 
 use super::*;
 use crate::service::agent_config::SessionConfig;
-use crate::service::wire::ObservationIn;
+use crate::service::test_support::{obs, rt};
 
 fn manager() -> Arc<SessionManager> {
     Arc::new(SessionManager::new(Limits::default(), 1).expect("manager"))
@@ -23,23 +23,6 @@ fn hallway(seed: u64) -> CreateSession {
             ..SessionConfig::default()
         },
     }
-}
-
-fn obs(state: usize, stimulus: Option<Vec<f64>>) -> ObservationIn {
-    ObservationIn {
-        state,
-        stimulus,
-        action_taken: None,
-        signal: None,
-        signal_source: None,
-    }
-}
-
-fn rt() -> tokio::runtime::Runtime {
-    tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .expect("runtime")
 }
 
 const KEY_A: Caller = Caller::Key([1; 32]);
