@@ -104,6 +104,12 @@ pub enum AlgoError {
         field: &'static str,
     },
 
+    /// An observation of a continuous world is malformed (wrong dimension,
+    /// a non-finite coordinate, outside a box that refuses it); the message
+    /// says which.
+    #[error("{0}")]
+    InvalidObservation(String),
+
     /// A later observation lacks its stimulus.
     #[error("`stimulus` is required on every observation after the first")]
     MissingStimulus,

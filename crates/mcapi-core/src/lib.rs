@@ -16,6 +16,7 @@
 
 pub mod agent;
 pub mod basis;
+pub mod continuous;
 pub mod curiosity;
 pub mod curious_agent;
 pub mod drive;

@@ -43,6 +43,9 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
                 (H::BAD_REQUEST, G::InvalidArgument, "first_observation")
             }
             AlgoError::MissingStimulus => (H::BAD_REQUEST, G::InvalidArgument, "missing_stimulus"),
+            AlgoError::InvalidObservation(_) => {
+                (H::BAD_REQUEST, G::InvalidArgument, "invalid_observation")
+            }
             AlgoError::Numerical(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "numerical_failure"),
         },
         ServiceError::BadRequest(_) => (H::BAD_REQUEST, G::InvalidArgument, "bad_request"),

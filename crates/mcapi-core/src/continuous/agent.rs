@@ -1,0 +1,437 @@
+//! The MCA-PI agent of a continuous world (docs/algorithm.md §9): one
+//! tick of Algorithm 1 with observation vectors instead of state numbers.
+//!
+//! - line 5: Ξ(s_t, a_t) learns ξ(t+1) by recursive least squares
+//!   ([`super::stimulus`]);
+//! - lines 6-7, Eq. 3: D is the discrete agent's [`Drive`], unchanged;
+//! - the transition (s_t, a_t, s_{t+1}) goes into the sample store
+//!   ([`super::samples`]);
+//! - line 8: R = |Ξ Λ D| wherever the planner needs it;
+//! - line 9: one LSTDQ evaluation on the stored transitions and one greedy
+//!   improvement of their successor actions ([`super::planner`]);
+//! - line 10: a_{t+1} = argmax_a Q(s_{t+1}, a), where an unknown
+//!   (cell, action) pair is worth Q_opt = R + γ R_max / (1 − γ).
+
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::model::ContinuousModel;
+use super::planner::SamplePlanner;
+use super::samples::SampleStore;
+use super::space::Placement;
+use super::stimulus::{LinearStimulus, mean_sq_norm};
+use crate::drive::Drive;
+use crate::error::{AlgoError, MAX_STIMULUS, Result};
+use crate::params::ValidParams;
+
+/// The planner's ridge, as a fraction of one typical ‖v‖²: small enough
+/// to leave LSTDQ's solution as it is, large enough that A⁻¹ starts well
+/// conditioned for the rank-one updates.
+const PLANNER_RIDGE: f64 = 1e-2;
+
+/// Actions within this relative distance of the best Q are tied
+/// (docs/algorithm.md §2.6).
+const TIE: f64 = 1e-10;
+
+/// One observation of a continuous world.
+#[derive(Debug, Clone, Copy)]
+pub struct ContinuousObservation<'a> {
+    /// The observation vector, in the client's units.
+    pub observation: &'a [f64],
+    /// ξ(t+1); absent on the first observation.
+    pub stimulus: Option<&'a [f64]>,
+    /// The action the client took, if not the advised one.
+    pub action_taken: Option<usize>,
+}
+
+/// What one tick did.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ContinuousStep {
+    /// Ticks so far (observations with a stimulus).
+    pub tick: u64,
+    /// The next action.
+    pub action: usize,
+    /// |r| of Eq. 3 (0 on the first observation).
+    pub reward: f64,
+    /// max_a Q at the new observation.
+    pub value: f64,
+    /// Whether the observation was outside the box and clipped.
+    pub clipped: bool,
+}
+
+/// Counters of a continuous agent.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct ContinuousStats {
+    /// Observations clipped into the box.
+    pub clipped: u64,
+    /// Transitions stored now.
+    pub samples: usize,
+    /// (cell, action) slots visited.
+    pub slots: usize,
+    /// Rank-one updates of A⁻¹.
+    pub updates: u64,
+    /// Rebuilds of A⁻¹.
+    pub rebuilds: u64,
+}
+
+/// The agent.
+#[derive(Debug, Clone)]
+pub struct ContinuousAgent {
+    model: ContinuousModel,
+    params: ValidParams,
+    rng: ChaCha8Rng,
+    drive: Drive,
+    xi: LinearStimulus,
+    store: SampleStore,
+    planner: SamplePlanner,
+    /// Per stored transition: bit a set when (cell of s′, a) is known.
+    known_next: Vec<u64>,
+    /// The current normalised observation and its features.
+    s: Option<(Vec<f64>, Vec<f64>)>,
+    /// The action advised at `s`.
+    advised: Option<usize>,
+    tick: u64,
+    clipped: u64,
+    last_reward: f64,
+    /// Scratch: u_a = W_a Λ D, `actions × k`.
+    u: Vec<f64>,
+    scaled_drive: Vec<f64>,
+    targets: Vec<f64>,
+    r_max: f64,
+    s_scratch: Vec<f64>,
+}
+
+impl ContinuousAgent {
+    /// D₀, then the prior of Ξ, from ChaCha8(seed), in that order.
+    pub fn new(model: ContinuousModel, params: ValidParams) -> Self {
+        let mut rng = ChaCha8Rng::seed_from_u64(params.seed);
+        let (d, k, na, n) = (
+            model.dim(),
+            model.features.len(),
+            model.n_actions(),
+            model.n_stimuli(),
+        );
+        let drive = Drive::new(&params.priorities, params.eta, &mut rng);
+        let typical = mean_sq_norm(&model.features, d);
+        let xi = LinearStimulus::new(na, k, n, params.optimistic_sd, typical, &mut rng);
+        let sp = model.samples;
+        let store = SampleStore::new(
+            d,
+            sp.cells_per_dim,
+            sp.per_cell as usize,
+            sp.max as usize,
+            sp.known_after as u64,
+        );
+        let planner = SamplePlanner::new(k, na, params.gamma, PLANNER_RIDGE * typical);
+        Self {
+            params,
+            rng,
+            drive,
+            xi,
+            store,
+            planner,
+            known_next: Vec::new(),
+            s: None,
+            advised: None,
+            tick: 0,
+            clipped: 0,
+            last_reward: 0.0,
+            u: vec![0.0; na * k],
+            scaled_drive: vec![0.0; n],
+            targets: Vec::new(),
+            r_max: 0.0,
+            s_scratch: Vec::with_capacity(d),
+            model,
+        }
+    }
+
+    /// The model.
+    pub fn model(&self) -> &ContinuousModel {
+        &self.model
+    }
+
+    /// The drive.
+    pub fn drive(&self) -> &Drive {
+        &self.drive
+    }
+
+    /// Ticks so far.
+    pub fn tick(&self) -> u64 {
+        self.tick
+    }
+
+    /// Counters.
+    pub fn stats(&self) -> ContinuousStats {
+        ContinuousStats {
+            clipped: self.clipped,
+            samples: self.store.samples().len(),
+            slots: self.store.slots(),
+            updates: self.planner.updates,
+            rebuilds: self.planner.rebuilds,
+        }
+    }
+
+    /// Checks an observation without changing anything.
+    pub fn validate(&self, obs: &ContinuousObservation<'_>) -> Result<()> {
+        let mut s = Vec::new();
+        self.model.spec.observation_space.normalise_into(
+            obs.observation,
+            self.model.spec.out_of_bounds,
+            &mut s,
+        )?;
+        if self.s.is_none() {
+            if obs.stimulus.is_some() {
+                return Err(AlgoError::FirstObservation { field: "stimulus" });
+            }
+            if obs.action_taken.is_some() {
+                return Err(AlgoError::FirstObservation {
+                    field: "action_taken",
+                });
+            }
+            return Ok(());
+        }
+        let xi = obs.stimulus.ok_or(AlgoError::MissingStimulus)?;
+        let n = self.model.n_stimuli();
+        if xi.len() != n {
+            return Err(AlgoError::StimulusLength {
+                got: xi.len(),
+                expected: n,
+            });
+        }
+        if xi.iter().any(|x| !x.is_finite()) {
+            return Err(AlgoError::NonFinite { field: "stimulus" });
+        }
+        if let Some((index, &value)) = xi.iter().enumerate().find(|(_, x)| x.abs() > MAX_STIMULUS) {
+            return Err(AlgoError::StimulusTooLarge {
+                index,
+                value,
+                limit: MAX_STIMULUS,
+            });
+        }
+        if let Some(a) = obs.action_taken
+            && a >= self.model.n_actions()
+        {
+            return Err(AlgoError::ActionOutOfRange {
+                action: a,
+                actions: self.model.n_actions(),
+            });
+        }
+        Ok(())
+    }
+
+    /// One tick: observe (lines 5-7), plan (lines 8-9), act (line 10).
+    /// Nothing changes on error.
+    pub fn step(&mut self, obs: &ContinuousObservation<'_>) -> Result<ContinuousStep> {
+        self.validate(obs)?;
+        let mut s = std::mem::take(&mut self.s_scratch);
+        let placement = self.model.spec.observation_space.normalise_into(
+            obs.observation,
+            self.model.spec.out_of_bounds,
+            &mut s,
+        )?;
+        let clipped = placement == Placement::Clipped;
+        if clipped {
+            self.clipped += 1;
+        }
+        let mut v = vec![0.0; self.model.features.len()];
+        self.model.features.features_into(&s, &mut v);
+        let mut reward = 0.0;
+        if let (Some((prev_s, prev_v)), Some(xi)) = (self.s.take(), obs.stimulus) {
+            // `advised` is set whenever `s` is (act follows every observe).
+            let a = obs.action_taken.or(self.advised).unwrap_or(0);
+            self.xi.update(a, &prev_v, xi);
+            reward = self.drive.update(xi).abs();
+            debug_assert!((crate::drive::norm(self.drive.vector()) - 1.0).abs() < 1e-9);
+            self.tick += 1;
+            self.record(&prev_s, a, &s, &prev_v, &v);
+            self.plan(&v);
+        } else {
+            self.refresh_reward_weights(&v);
+        }
+        self.last_reward = reward;
+        let (action, value) = self.act(&s, &v);
+        self.s_scratch = Vec::with_capacity(s.len());
+        self.s = Some((s, v));
+        Ok(ContinuousStep {
+            tick: self.tick,
+            action,
+            reward,
+            value,
+            clipped,
+        })
+    }
+
+    /// Stores (s, a, s′) and gives the planner its term.
+    fn record(&mut self, s: &[f64], a: usize, s_next: &[f64], v: &[f64], v_next: &[f64]) {
+        let before = self.store.visits(s, a);
+        let inserted = self.store.insert(self.tick, s, a, s_next, v, v_next);
+        if let Some(old) = &inserted.replaced {
+            self.planner.remove(inserted.index, old);
+        }
+        // A pair that just became known: every stored successor in its cell learns it.
+        if before + 1 == self.model.samples.known_after as u64 {
+            let cell = self.store.cell(s);
+            for (i, sample) in self.store.samples().iter().enumerate() {
+                if i != inserted.index && self.store.cell(&sample.s_next) == cell {
+                    self.known_next[i] |= 1 << a;
+                }
+            }
+        }
+        let mask = (0..self.model.n_actions())
+            .filter(|&b| self.store.is_known(s_next, b))
+            .fold(0u64, |m, b| m | 1 << b);
+        if inserted.index == self.known_next.len() {
+            self.known_next.push(mask);
+        } else {
+            self.known_next[inserted.index] = mask;
+        }
+        let (pi, known) = self.greedy_successor(inserted.index);
+        let sample = &self.store.samples()[inserted.index];
+        self.planner.add(inserted.index, sample, pi, known);
+    }
+
+    /// u_a = W_a Λ D and R_max over the stored transitions and the current point.
+    fn refresh_reward_weights(&mut self, v_now: &[f64]) {
+        for ((s, d), l) in self
+            .scaled_drive
+            .iter_mut()
+            .zip(self.drive.vector())
+            .zip(self.drive.inv_rho())
+        {
+            *s = d * l;
+        }
+        self.xi.reward_weights_into(&self.scaled_drive, &mut self.u);
+        let mut r_max: f64 = 0.0;
+        for a in 0..self.model.n_actions() {
+            r_max = r_max.max(self.reward(v_now, a));
+        }
+        for sample in self.store.samples() {
+            r_max = r_max.max(self.reward(&sample.v, sample.a));
+        }
+        self.r_max = r_max;
+    }
+
+    /// R(s, a) = |v(s) · u_a| (line 8).
+    fn reward(&self, v: &[f64], a: usize) -> f64 {
+        let k = v.len();
+        v.iter()
+            .zip(&self.u[a * k..(a + 1) * k])
+            .map(|(v, u)| v * u)
+            .sum::<f64>()
+            .abs()
+    }
+
+    /// Q_opt(s, a) = R(s, a) + γ R_max / (1 − γ): an unknown pair.
+    fn q_opt(&self, v: &[f64], a: usize) -> f64 {
+        let g = self.params.gamma;
+        self.reward(v, a) + g * self.r_max / (1.0 - g)
+    }
+
+    /// The greedy action at transition i's successor, and whether that pair is known.
+    fn greedy_successor(&self, i: usize) -> (usize, bool) {
+        let sample = &self.store.samples()[i];
+        let mask = self.known_next[i];
+        let previous = self.planner.successor(i).map(|(pi, _)| pi);
+        let mut best = (f64::NEG_INFINITY, 0usize);
+        let mut qs = [0.0f64; super::model::MAX_ACTIONS];
+        for (a, q) in qs.iter_mut().enumerate().take(self.model.n_actions()) {
+            *q = if mask >> a & 1 == 1 {
+                self.planner.q(&sample.v_next, a)
+            } else {
+                self.q_opt(&sample.v_next, a)
+            };
+            if *q > best.0 {
+                best = (*q, a);
+            }
+        }
+        let tol = TIE * (1.0 + best.0.abs());
+        let pi = match previous {
+            Some(p) if qs[p] >= best.0 - tol => p,
+            _ => best.1,
+        };
+        (pi, mask >> pi & 1 == 1)
+    }
+
+    /// Line 8 and line 9: rewards of the stored transitions, one LSTDQ
+    /// evaluation, one greedy improvement of every successor action.
+    fn plan(&mut self, v_now: &[f64]) {
+        self.refresh_reward_weights(v_now);
+        let g = self.params.gamma;
+        self.targets.clear();
+        for (i, sample) in self.store.samples().iter().enumerate() {
+            let mut y = self.reward(&sample.v, sample.a);
+            if let Some((pi, false)) = self.planner.successor(i) {
+                y += g * self.q_opt(&sample.v_next, pi);
+            }
+            self.targets.push(y);
+        }
+        self.planner.maybe_rebuild(self.store.samples());
+        self.planner.evaluate(self.store.samples(), &self.targets);
+        for i in 0..self.store.samples().len() {
+            let (pi, known) = self.greedy_successor(i);
+            let sample = &self.store.samples()[i];
+            self.planner.set_successor(i, sample, pi, known);
+        }
+    }
+
+    /// Line 10: the greedy action at s (ties keep the previous action, else
+    /// a uniform draw among the tied), or with probability ε a uniform one.
+    fn act(&mut self, s: &[f64], v: &[f64]) -> (usize, f64) {
+        let na = self.model.n_actions();
+        let mut qs = [0.0f64; super::model::MAX_ACTIONS];
+        let mut best = f64::NEG_INFINITY;
+        for (a, q) in qs.iter_mut().enumerate().take(na) {
+            *q = if self.store.is_known(s, a) {
+                self.planner.q(v, a)
+            } else {
+                self.q_opt(v, a)
+            };
+            best = best.max(*q);
+        }
+        let tol = TIE * (1.0 + best.abs());
+        let tied = |a: &usize| qs[*a] >= best - tol;
+        let mut action = match self.advised.filter(tied) {
+            Some(p) => p,
+            None => {
+                let count = (0..na).filter(tied).count();
+                let pick = if count > 1 {
+                    self.rng.random_range(0..count)
+                } else {
+                    0
+                };
+                (0..na).filter(tied).nth(pick).unwrap_or(0)
+            }
+        };
+        if self.params.epsilon > 0.0 && self.rng.random::<f64>() < self.params.epsilon {
+            action = self.rng.random_range(0..na);
+        }
+        self.advised = Some(action);
+        (action, best)
+    }
+
+    /// V(x) = max_a Q(x, a) at any observation (unknown pairs optimistic).
+    pub fn value(&self, observation: &[f64]) -> Result<f64> {
+        let mut s = Vec::new();
+        self.model.spec.observation_space.normalise_into(
+            observation,
+            super::space::OutOfBounds::Clip,
+            &mut s,
+        )?;
+        let mut v = vec![0.0; self.model.features.len()];
+        self.model.features.features_into(&s, &mut v);
+        Ok((0..self.model.n_actions())
+            .map(|a| {
+                if self.store.is_known(&s, a) {
+                    self.planner.q(&v, a)
+                } else {
+                    self.q_opt(&v, a)
+                }
+            })
+            .fold(f64::NEG_INFINITY, f64::max))
+    }
+
+    /// The RNG (for tests of determinism).
+    pub fn rng_word_pos(&self) -> u128 {
+        self.rng.get_word_pos()
+    }
+}

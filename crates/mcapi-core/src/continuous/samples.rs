@@ -1,0 +1,225 @@
+//! The bounded sample store of a continuous world (docs/algorithm.md
+//! §9.4): the transitions (s, a, s′) the planner evaluates policies on,
+//! and the visit counts that say which (region, action) pairs are known.
+//!
+//! The box is cut into `cells_per_dim`^d cells (hashed when there are
+//! more than fit a u64 key exactly). Each (cell, action) slot keeps its
+//! visit count and at most `per_slot` transitions, the newest replacing
+//! the oldest; the whole store keeps at most `max_samples`, and a full
+//! store gives the slot of its oldest transition to the new one. So the
+//! store covers what the agent has seen evenly instead of holding the
+//! last N ticks, and its size is bounded whatever the agent does.
+//!
+//! A (cell, action) pair visited fewer than `known_after` times is
+//! unknown: the planner treats it optimistically, as the discrete learned
+//! model treats an unknown pair (docs/algorithm.md §8, R-max).
+
+use std::collections::HashMap;
+
+/// One stored transition, with its features cached.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Sample {
+    /// Normalised s.
+    pub s: Vec<f64>,
+    /// The action taken.
+    pub a: usize,
+    /// Normalised s′.
+    pub s_next: Vec<f64>,
+    /// v(s).
+    pub v: Vec<f64>,
+    /// v(s′).
+    pub v_next: Vec<f64>,
+    /// The slot it lives in.
+    slot: (u64, usize),
+    /// The tick it was stored at (the oldest goes first when full).
+    stored_at: u64,
+}
+
+#[derive(Debug, Clone, Default, PartialEq)]
+struct Slot {
+    visits: u64,
+    /// Indices into the store, oldest first.
+    samples: Vec<usize>,
+}
+
+/// What an insertion did: the index written, and the transition it
+/// replaced there, if any.
+#[derive(Debug)]
+pub struct Inserted {
+    /// Where the new transition is.
+    pub index: usize,
+    /// The transition that was at `index` before.
+    pub replaced: Option<Sample>,
+}
+
+/// The sample store and the visit counts.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SampleStore {
+    d: usize,
+    cells_per_dim: u32,
+    per_slot: usize,
+    max_samples: usize,
+    known_after: u64,
+    samples: Vec<Sample>,
+    slots: HashMap<(u64, usize), Slot>,
+}
+
+impl SampleStore {
+    /// An empty store.
+    pub fn new(
+        d: usize,
+        cells_per_dim: u32,
+        per_slot: usize,
+        max_samples: usize,
+        known_after: u64,
+    ) -> Self {
+        Self {
+            d,
+            cells_per_dim,
+            per_slot,
+            max_samples,
+            known_after,
+            samples: Vec::new(),
+            slots: HashMap::new(),
+        }
+    }
+
+    /// The cell key of a normalised point: exact mixed-radix coordinates
+    /// while they fit, an FNV-1a hash of them beyond.
+    pub fn cell(&self, s: &[f64]) -> u64 {
+        let c = self.cells_per_dim as u64;
+        let mut exact: Option<u64> = Some(0);
+        let mut hash: u64 = 0xcbf2_9ce4_8422_2325;
+        for &x in s.iter().take(self.d) {
+            let i = ((x * c as f64).floor() as u64).min(c - 1);
+            exact = exact
+                .and_then(|e| e.checked_mul(c))
+                .and_then(|e| e.checked_add(i));
+            hash = (hash ^ i).wrapping_mul(0x0000_0100_0000_01b3);
+        }
+        // Exact keys stay below c^d; hashed ones are marked by the top bit.
+        exact.filter(|e| e >> 63 == 0).unwrap_or(hash | 1 << 63)
+    }
+
+    /// Visits of (the cell of s, a).
+    pub fn visits(&self, s: &[f64], a: usize) -> u64 {
+        self.slots
+            .get(&(self.cell(s), a))
+            .map_or(0, |slot| slot.visits)
+    }
+
+    /// Whether (the cell of s, a) has been visited `known_after` times.
+    pub fn is_known(&self, s: &[f64], a: usize) -> bool {
+        self.visits(s, a) >= self.known_after
+    }
+
+    /// The stored transitions.
+    pub fn samples(&self) -> &[Sample] {
+        &self.samples
+    }
+
+    /// Number of (cell, action) slots visited.
+    pub fn slots(&self) -> usize {
+        self.slots.len()
+    }
+
+    /// Counts a visit of (s, a) and stores the transition to s′.
+    #[allow(clippy::too_many_arguments)]
+    pub fn insert(
+        &mut self,
+        tick: u64,
+        s: &[f64],
+        a: usize,
+        s_next: &[f64],
+        v: &[f64],
+        v_next: &[f64],
+    ) -> Inserted {
+        let key = (self.cell(s), a);
+        let sample = Sample {
+            s: s.to_vec(),
+            a,
+            s_next: s_next.to_vec(),
+            v: v.to_vec(),
+            v_next: v_next.to_vec(),
+            slot: key,
+            stored_at: tick,
+        };
+        let slot = self.slots.entry(key).or_default();
+        slot.visits += 1;
+        if slot.samples.len() >= self.per_slot {
+            // The slot is full: its oldest transition makes way.
+            let index = slot.samples.remove(0);
+            slot.samples.push(index);
+            let replaced = std::mem::replace(&mut self.samples[index], sample);
+            return Inserted {
+                index,
+                replaced: Some(replaced),
+            };
+        }
+        if self.samples.len() < self.max_samples {
+            let index = self.samples.len();
+            slot.samples.push(index);
+            self.samples.push(sample);
+            return Inserted {
+                index,
+                replaced: None,
+            };
+        }
+        // The store is full: the oldest transition anywhere makes way.
+        let index = (0..self.samples.len())
+            .min_by_key(|&i| (self.samples[i].stored_at, i))
+            .unwrap_or(0);
+        let old_key = self.samples[index].slot;
+        if let Some(old) = self.slots.get_mut(&old_key) {
+            old.samples.retain(|&i| i != index);
+        }
+        if let Some(slot) = self.slots.get_mut(&key) {
+            slot.samples.push(index);
+        }
+        let replaced = std::mem::replace(&mut self.samples[index], sample);
+        Inserted {
+            index,
+            replaced: Some(replaced),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_store_is_bounded_per_slot_and_in_total() {
+        let mut store = SampleStore::new(1, 10, 2, 5, 2);
+        let f = [1.0];
+        // Three visits of one slot: two kept, the first replaced.
+        for t in 0..3 {
+            let ins = store.insert(t, &[0.05], 0, &[0.06], &f, &f);
+            assert_eq!(ins.replaced.is_some(), t == 2);
+        }
+        assert_eq!(store.samples().len(), 2);
+        assert_eq!(store.visits(&[0.01], 0), 3);
+        assert!(
+            store.is_known(&[0.09], 0) && !store.is_known(&[0.09], 1) && !store.is_known(&[0.5], 0)
+        );
+        for t in 3..20 {
+            store.insert(t, &[(t as f64) / 20.0], 1, &[0.5], &f, &f);
+        }
+        assert_eq!(store.samples().len(), 5);
+        // Every stored sample is listed in exactly its slot.
+        let listed: usize = store.slots.values().map(|s| s.samples.len()).sum();
+        assert_eq!(listed, 5);
+    }
+
+    #[test]
+    fn cells_are_exact_until_they_overflow_then_hashed() {
+        let low = SampleStore::new(2, 10, 1, 10, 1);
+        assert_eq!(low.cell(&[0.0, 0.0]), 0);
+        assert_eq!(low.cell(&[0.15, 0.95]), 19);
+        assert_eq!(low.cell(&[1.0, 1.0]), 99);
+        let high = SampleStore::new(64, 16, 1, 10, 1);
+        let a = high.cell(&[0.5; 64]);
+        assert!(a >> 63 == 1);
+        assert_ne!(a, high.cell(&[0.4; 64]));
+    }
+}

@@ -1,0 +1,206 @@
+//! The stimulus function Ξ of a continuous world (docs/algorithm.md
+//! §9.3): a linear model of the stimulus in the state features of each
+//! action, Ξ(s, a) = W_aᵀ v(s) ∈ R^n, fitted online by recursive least
+//! squares. It replaces the discrete table of Algorithm 1, line 5.
+//!
+//! The discrete agent starts from Ξ ~ N(0, σ²) and a visited pair's row
+//! becomes the sample mean of what it delivered. Here the draw becomes a
+//! prior: W_a starts at a random M_a scaled so that Ξ(s, a) ~ N(0, σ²) at
+//! a typical point, and RLS computes the ridge regression towards M_a,
+//! W_a = (λI + Σ v vᵀ)⁻¹ (λ M_a + Σ v ξᵀ), with λ = E‖v‖² (one typical
+//! observation's worth of prior). Where the agent has not been, Ξ keeps
+//! its optimistic draw; where it has, Ξ follows what it received.
+//!
+//! One observation costs O(k² + k·n): one shared inverse per action.
+
+use rand::Rng;
+use rand_distr::{Distribution, Normal};
+
+use super::basis::FeatureMap;
+
+/// Ξ as per-action linear models.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LinearStimulus {
+    k: usize,
+    n: usize,
+    /// W_a, row-major `actions × k × n`.
+    w: Vec<f64>,
+    /// P_a = (λI + Σ v vᵀ)⁻¹, row-major `actions × k × k` (symmetric).
+    p: Vec<f64>,
+    /// Scratch: P v.
+    pv: Vec<f64>,
+    /// Scratch: the prediction errors.
+    err: Vec<f64>,
+}
+
+/// E‖v(s)‖² over a fixed low-discrepancy set of points of [0, 1]^d (the
+/// Kronecker sequence of the square roots of the first primes): the
+/// scale of a typical feature vector, for the prior.
+pub fn mean_sq_norm(map: &FeatureMap, d: usize) -> f64 {
+    const POINTS: usize = 64;
+    const PRIMES: [f64; 16] = [
+        2., 3., 5., 7., 11., 13., 17., 19., 23., 29., 31., 37., 41., 43., 47., 53.,
+    ];
+    let mut v = vec![0.0; map.len()];
+    let mut s = vec![0.0; d];
+    let mut total = 0.0;
+    for i in 0..POINTS {
+        for (j, x) in s.iter_mut().enumerate() {
+            let alpha = PRIMES[j % PRIMES.len()].sqrt() * (1 + j / PRIMES.len()) as f64;
+            *x = ((i as f64 + 0.5) * alpha).fract();
+        }
+        map.features_into(&s, &mut v);
+        total += v.iter().map(|x| x * x).sum::<f64>();
+    }
+    (total / POINTS as f64).max(f64::MIN_POSITIVE)
+}
+
+impl LinearStimulus {
+    /// W_a = M_a with entries N(0, sd² / E‖v‖²), drawn action by action,
+    /// feature by feature; P_a = I / E‖v‖².
+    pub fn new(
+        actions: usize,
+        k: usize,
+        n: usize,
+        sd: f64,
+        typical_sq_norm: f64,
+        rng: &mut impl Rng,
+    ) -> Self {
+        let entry_sd = sd / typical_sq_norm.sqrt();
+        let w = match Normal::new(0.0, entry_sd) {
+            Ok(normal) => (0..actions * k * n).map(|_| normal.sample(rng)).collect(),
+            Err(_) => vec![0.0; actions * k * n],
+        };
+        let mut p = vec![0.0; actions * k * k];
+        for a in 0..actions {
+            for j in 0..k {
+                p[a * k * k + j * k + j] = 1.0 / typical_sq_norm;
+            }
+        }
+        Self {
+            k,
+            n,
+            w,
+            p,
+            pv: vec![0.0; k],
+            err: vec![0.0; n],
+        }
+    }
+
+    /// Stimulus dimensions n.
+    pub fn dims(&self) -> usize {
+        self.n
+    }
+
+    /// One RLS step for action `a` at features `v` with target ξ.
+    pub fn update(&mut self, a: usize, v: &[f64], xi: &[f64]) {
+        let (k, n) = (self.k, self.n);
+        let p = &mut self.p[a * k * k..(a + 1) * k * k];
+        let w = &mut self.w[a * k * n..(a + 1) * k * n];
+        for (r, pv) in self.pv.iter_mut().enumerate() {
+            *pv = p[r * k..(r + 1) * k]
+                .iter()
+                .zip(v)
+                .map(|(p, v)| p * v)
+                .sum();
+        }
+        let denom = 1.0 + v.iter().zip(&self.pv).map(|(v, pv)| v * pv).sum::<f64>();
+        // Prediction errors ξ − W_aᵀ v, then W_a += (P v / denom) errᵀ.
+        let err = &mut self.err;
+        for (i, e) in err.iter_mut().enumerate() {
+            let pred: f64 = (0..k).map(|j| w[j * n + i] * v[j]).sum();
+            *e = xi[i] - pred;
+        }
+        for j in 0..k {
+            let g = self.pv[j] / denom;
+            if g != 0.0 {
+                for (wi, e) in w[j * n..(j + 1) * n].iter_mut().zip(err.iter()) {
+                    *wi += g * e;
+                }
+            }
+        }
+        // P −= (P v)(P v)ᵀ / denom.
+        for r in 0..k {
+            let gr = self.pv[r] / denom;
+            if gr != 0.0 {
+                for (pc, pvc) in p[r * k..(r + 1) * k].iter_mut().zip(&self.pv) {
+                    *pc -= gr * pvc;
+                }
+            }
+        }
+    }
+
+    /// Ξ(s, a) = W_aᵀ v into `out` (length n).
+    pub fn predict_into(&self, a: usize, v: &[f64], out: &mut [f64]) {
+        let (k, n) = (self.k, self.n);
+        let w = &self.w[a * k * n..(a + 1) * k * n];
+        out.iter_mut().for_each(|o| *o = 0.0);
+        for (j, &vj) in v.iter().enumerate().take(k) {
+            if vj != 0.0 {
+                for (o, wi) in out.iter_mut().zip(&w[j * n..(j + 1) * n]) {
+                    *o += wi * vj;
+                }
+            }
+        }
+    }
+
+    /// u_a = W_a Λ D for every action (`actions × k`), so that the reward
+    /// of Eq. 3 / line 8 at any (s, a) is R(s, a) = |v(s) · u_a|.
+    pub fn reward_weights_into(&self, scaled_drive: &[f64], u: &mut [f64]) {
+        debug_assert_eq!(u.len(), self.w.len() / self.n);
+        for (row, out) in self.w.chunks_exact(self.n).zip(u.iter_mut()) {
+            *out = row.iter().zip(scaled_drive).map(|(w, d)| w * d).sum();
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::continuous::basis::ContinuousBasisSpec;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn rls_learns_a_local_source_and_keeps_the_prior_elsewhere() {
+        let map = ContinuousBasisSpec::Rbf {
+            centres_per_dim: 20,
+            width: None,
+        }
+        .build(1, 2)
+        .expect("basis");
+        let k = map.len();
+        let norm = mean_sq_norm(&map, 1);
+        let mut rng = ChaCha8Rng::seed_from_u64(7);
+        let mut xi = LinearStimulus::new(2, k, 2, 0.3, norm, &mut rng);
+        let mut v = vec![0.0; k];
+        let mut out = [0.0; 2];
+        map.features_into(&[0.9], &mut v);
+        let mut far_before = [0.0; 2];
+        xi.predict_into(0, &v, &mut far_before);
+        // Food at x < 0.1 for action 0: ξ = [6, 0]; nothing elsewhere.
+        for i in 0..400 {
+            let x = (i % 40) as f64 / 80.0; // 0 .. 0.5
+            map.features_into(&[x], &mut v);
+            let target = if x < 0.1 { [6.0, 0.0] } else { [0.0, 0.0] };
+            xi.update(0, &v, &target);
+        }
+        map.features_into(&[0.02], &mut v);
+        xi.predict_into(0, &v, &mut out);
+        assert!(
+            (out[0] - 6.0).abs() < 1.0 && out[1].abs() < 0.5,
+            "near the source: {out:?}"
+        );
+        map.features_into(&[0.3], &mut v);
+        xi.predict_into(0, &v, &mut out);
+        assert!(out[0].abs() < 0.5, "visited, empty: {out:?}");
+        map.features_into(&[0.9], &mut v);
+        xi.predict_into(0, &v, &mut out);
+        for (a, b) in out.iter().zip(far_before) {
+            assert!(
+                (a - b).abs() < 0.1 * b.abs().max(0.05),
+                "unvisited keeps the prior: {out:?} vs {far_before:?}"
+            );
+        }
+    }
+}
