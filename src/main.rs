@@ -13,6 +13,7 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 
 use clap::{Args, Parser, Subcommand};
 use mcapi_cluster::cli::ClusterCommand;
+use mcapi_experiments::continuous::{self, ContinuousKind};
 use mcapi_experiments::curiosity;
 use mcapi_experiments::paper::{LearnedModelParams, ModelChoice, Optimism, Variant};
 use mcapi_experiments::run::results_table;
@@ -66,6 +67,10 @@ enum Which {
     ThreeRoom,
     /// Experiment 3: the curiosity room, EM+IM against EM-only.
     Curiosity,
+    /// Experiment 1 in continuous form: x in [0, 1], moves of 0.02 with noise.
+    ContinuousHallway,
+    /// Experiment 2 in continuous form: the three-room map in [0, 1]^2.
+    ContinuousThreeRoom,
 }
 
 #[derive(Debug, Args)]
@@ -146,6 +151,10 @@ fn experiment(args: ExperimentArgs) -> anyhow::Result<()> {
         Which::Hallway => ExperimentKind::Hallway,
         Which::ThreeRoom => ExperimentKind::ThreeRoom,
         Which::Curiosity => return curiosity_experiment(args),
+        Which::ContinuousHallway => return continuous_experiment(ContinuousKind::Hallway, args),
+        Which::ContinuousThreeRoom => {
+            return continuous_experiment(ContinuousKind::ThreeRoom, args);
+        }
     };
     let variant = Variant {
         model: args.model,
@@ -215,6 +224,46 @@ fn curiosity_experiment(args: ExperimentArgs) -> anyhow::Result<()> {
         started.elapsed().as_secs_f64()
     );
     print!("{}", curiosity::results_table(&output.summary));
+    println!(
+        "\nwrote {} files to {}",
+        output.files.len(),
+        opts.out.display()
+    );
+    Ok(())
+}
+
+/// `mcapi experiment continuous-hallway | continuous-three-room`
+/// (docs/algorithm.md §9.6).
+fn continuous_experiment(kind: ContinuousKind, args: ExperimentArgs) -> anyhow::Result<()> {
+    anyhow::ensure!(
+        args.model == ModelChoice::Known
+            && args.slip == 0.0
+            && args.known_after.is_none()
+            && args.optimism.is_none(),
+        "`--model`, `--slip`, `--known-after` and `--optimism` apply to the discrete hallway and three-room \
+         (a continuous agent always learns its transitions)"
+    );
+    let started = Instant::now();
+    let opts = RunOptions {
+        trials: args.trials,
+        steps: args.steps.unwrap_or(kind.default_steps()),
+        seed: args.seed,
+        out: args.out,
+        csv: !args.no_csv,
+        figures: !args.no_figures,
+        progress: !args.quiet && std::io::stderr().is_terminal(),
+    };
+    let output = continuous::run(kind, &opts)?;
+    println!(
+        "{}: {} trials x {} ticks, seed {}, basis {} ({:.2} s)\n",
+        kind.name(),
+        opts.trials,
+        opts.steps,
+        opts.seed,
+        serde_json::to_string(&output.summary.model.basis)?,
+        started.elapsed().as_secs_f64()
+    );
+    print!("{}", continuous::results_table(&output.summary));
     println!(
         "\nwrote {} files to {}",
         output.files.len(),

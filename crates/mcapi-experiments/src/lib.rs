@@ -9,6 +9,7 @@
 //! compared on common random numbers. Trials run in parallel (rayon) with a
 //! progress bar on stderr.
 
+pub mod continuous;
 pub mod curiosity;
 pub mod dominance;
 pub mod metrics;

@@ -8,7 +8,8 @@
 //! over the map at three instants, each when a different drive dominates.
 //! Curiosity room: Fig. 4(j) estimation error, 4(k) cumulative |r| EM+IM vs
 //! EM-only, 4(l) cumulative stimulus per dimension, 4(m) occupancy of the map
-//! per period between module freezes.
+//! per period between module freezes. The continuous experiments draw
+//! with the same charts (`continuous::figures`).
 
 use std::path::{Path, PathBuf};
 use std::sync::Once;
@@ -25,12 +26,12 @@ use super::curiosity::room::{CuriosityRecord, Room, STIMULI};
 use super::paper::{Experiment, ExperimentKind, Snapshot, TrialRecord};
 
 const FONT: &str = "sans-serif";
-const SIZE: (u32, u32) = (900, 520);
+pub(crate) const SIZE: (u32, u32) = (900, 520);
 /// Most points drawn per series; longer series are averaged in windows.
 const MAX_POINTS: usize = 1500;
 /// Ticks shown in the time-series panels of single runs.
 const WINDOW: usize = 1000;
-const PALETTE: [RGBColor; 5] = [
+pub(crate) const PALETTE: [RGBColor; 5] = [
     RGBColor(31, 119, 180),
     RGBColor(214, 39, 40),
     RGBColor(44, 160, 44),
@@ -50,7 +51,7 @@ fn register_font() {
 }
 
 /// One line, optionally with a shaded band (x, low, high).
-struct Series {
+pub(crate) struct Series {
     label: String,
     color: RGBColor,
     width: u32,
@@ -58,11 +59,11 @@ struct Series {
     band: Option<Vec<(f64, f64, f64)>>,
 }
 
-struct LineChart {
-    title: String,
-    x_label: String,
-    y_label: String,
-    series: Vec<Series>,
+pub(crate) struct LineChart {
+    pub(crate) title: String,
+    pub(crate) x_label: String,
+    pub(crate) y_label: String,
+    pub(crate) series: Vec<Series>,
 }
 
 /// Averages `ys` (values at ticks 1..) into at most MAX_POINTS points.
@@ -79,7 +80,7 @@ fn decimate(ys: &[f64]) -> Vec<(f64, f64)> {
         .collect()
 }
 
-fn cumsum(xs: impl Iterator<Item = f64>) -> Vec<f64> {
+pub(crate) fn cumsum(xs: impl Iterator<Item = f64>) -> Vec<f64> {
     xs.scan(0.0, |acc, x| {
         *acc += x;
         Some(*acc)
@@ -106,7 +107,7 @@ fn mean_sd(series: &[Vec<f64>]) -> (Vec<f64>, Vec<f64>) {
     (mean, sd)
 }
 
-fn mean_band(label: &str, color: RGBColor, series: &[Vec<f64>]) -> Series {
+pub(crate) fn mean_band(label: &str, color: RGBColor, series: &[Vec<f64>]) -> Series {
     let (mean, sd) = mean_sd(series);
     let lo: Vec<f64> = mean.iter().zip(&sd).map(|(m, s)| m - s).collect();
     let hi: Vec<f64> = mean.iter().zip(&sd).map(|(m, s)| m + s).collect();
@@ -124,7 +125,7 @@ fn mean_band(label: &str, color: RGBColor, series: &[Vec<f64>]) -> Series {
     }
 }
 
-fn line(label: impl Into<String>, color: RGBColor, width: u32, ys: &[f64]) -> Series {
+pub(crate) fn line(label: impl Into<String>, color: RGBColor, width: u32, ys: &[f64]) -> Series {
     Series {
         label: label.into(),
         color,
@@ -135,7 +136,7 @@ fn line(label: impl Into<String>, color: RGBColor, width: u32, ys: &[f64]) -> Se
 }
 
 /// Something drawable on any plotters backend.
-trait Figure {
+pub(crate) trait Figure {
     fn title(&self) -> &str;
     fn draw<DB: DrawingBackend>(
         &self,
@@ -144,7 +145,12 @@ trait Figure {
 }
 
 /// Draws `fig` to `<out>/<stem>.png` and `<out>/<stem>.svg`.
-fn save(fig: &impl Figure, out: &Path, stem: &str, size: (u32, u32)) -> Result<Vec<PathBuf>> {
+pub(crate) fn save(
+    fig: &impl Figure,
+    out: &Path,
+    stem: &str,
+    size: (u32, u32),
+) -> Result<Vec<PathBuf>> {
     register_font();
     let png = out.join(format!("{stem}.png"));
     let svg = out.join(format!("{stem}.svg"));

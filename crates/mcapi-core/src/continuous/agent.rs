@@ -19,7 +19,7 @@ use super::model::ContinuousModel;
 use super::planner::SamplePlanner;
 use super::samples::SampleStore;
 use super::space::Placement;
-use super::stimulus::{LinearStimulus, mean_sq_norm};
+use super::stimulus::{LinearStimulus, PROBES, mean_sq_norm, probe_features};
 use crate::drive::Drive;
 use crate::error::{AlgoError, MAX_STIMULUS, Result};
 use crate::params::ValidParams;
@@ -98,6 +98,8 @@ pub struct ContinuousAgent {
     scaled_drive: Vec<f64>,
     targets: Vec<f64>,
     r_max: f64,
+    /// v at the probe points (`PROBES × k`).
+    probes: Vec<f64>,
     s_scratch: Vec<f64>,
 }
 
@@ -140,6 +142,7 @@ impl ContinuousAgent {
             scaled_drive: vec![0.0; n],
             targets: Vec::new(),
             r_max: 0.0,
+            probes: probe_features(&model.features, d),
             s_scratch: Vec::with_capacity(d),
             model,
         }
@@ -290,7 +293,10 @@ impl ContinuousAgent {
         self.planner.add(inserted.index, sample, pi, known);
     }
 
-    /// u_a = W_a Λ D and R_max over the stored transitions and the current point.
+    /// u_a = W_a Λ D, and R_max: the best reward the agent can name, over
+    /// every action at the current point, the stored transitions' successors
+    /// and the probe points (where Ξ may still hold its optimistic prior),
+    /// and the stored transitions themselves.
     fn refresh_reward_weights(&mut self, v_now: &[f64]) {
         for ((s, d), l) in self
             .scaled_drive
@@ -305,8 +311,17 @@ impl ContinuousAgent {
         for a in 0..self.model.n_actions() {
             r_max = r_max.max(self.reward(v_now, a));
         }
+        let k = v_now.len();
+        for v in self.probes.chunks_exact(k).take(PROBES) {
+            for a in 0..self.model.n_actions() {
+                r_max = r_max.max(self.reward(v, a));
+            }
+        }
         for sample in self.store.samples() {
             r_max = r_max.max(self.reward(&sample.v, sample.a));
+            for a in 0..self.model.n_actions() {
+                r_max = r_max.max(self.reward(&sample.v_next, a));
+            }
         }
         self.r_max = r_max;
     }
@@ -409,8 +424,9 @@ impl ContinuousAgent {
         (action, best)
     }
 
-    /// V(x) = max_a Q(x, a) at any observation (unknown pairs optimistic).
-    pub fn value(&self, observation: &[f64]) -> Result<f64> {
+    /// Q(x, a) for every action at any observation (clipped into the box;
+    /// unknown pairs optimistic, as the agent acts on them).
+    pub fn q_values(&self, observation: &[f64]) -> Result<Vec<f64>> {
         let mut s = Vec::new();
         self.model.spec.observation_space.normalise_into(
             observation,
@@ -427,7 +443,33 @@ impl ContinuousAgent {
                     self.q_opt(&v, a)
                 }
             })
+            .collect())
+    }
+
+    /// V(x) = max_a Q(x, a) at any observation.
+    pub fn value(&self, observation: &[f64]) -> Result<f64> {
+        Ok(self
+            .q_values(observation)?
+            .into_iter()
             .fold(f64::NEG_INFINITY, f64::max))
+    }
+
+    /// R_max of the last plan: the best reward the agent can name.
+    pub fn r_max(&self) -> f64 {
+        self.r_max
+    }
+
+    /// Which actions are known at an observation.
+    pub fn known_actions(&self, observation: &[f64]) -> Result<Vec<bool>> {
+        let mut s = Vec::new();
+        self.model.spec.observation_space.normalise_into(
+            observation,
+            super::space::OutOfBounds::Clip,
+            &mut s,
+        )?;
+        Ok((0..self.model.n_actions())
+            .map(|a| self.store.is_known(&s, a))
+            .collect())
     }
 
     /// The RNG (for tests of determinism).

@@ -6,10 +6,16 @@
 //! With φ(s, a) = e_a ⊗ v(s) and the greedy successor action π_i of each
 //! stored transition i,
 //!
-//!   A = λI + Σ_i u_i v_iᵀ,  u_i = φ(s_i, a_i),
+//!   A = λI + Σ_i ω_i u_i v_iᵀ,  u_i = φ(s_i, a_i),
 //!   v_i = u_i − γ φ(s′_i, π_i)   (or u_i alone if (s′_i, π_i) is unknown),
-//!   b = Σ_i u_i y_i,  y_i = R(s_i, a_i) (+ γ Q_opt(s′_i, π_i) if unknown),
+//!   b = Σ_i ω_i u_i y_i,  y_i = R(s_i, a_i) (+ γ Q_opt(s′_i, π_i) if unknown),
 //!   w = A⁻¹ b.
+//!
+//! ω_i is the number of visits transition i stands for
+//! ([`Sample::weight`]), so the store is weighed as the whole history would
+//! be: a pair tried a thousand times (a robot pushing into a wall) counts
+//! a thousand times, and generalisation from its neighbours cannot hide
+//! that it leads nowhere.
 //!
 //! An unknown successor pair leads to the absorbing optimistic state of
 //! the discrete learned model: Q_opt(s, a) = R(s, a) + γ R_max / (1 − γ).
@@ -119,7 +125,7 @@ impl SamplePlanner {
     }
 
     /// A ← A + sign · u vᵀ with u = e_a ⊗ f and v = Σ terms, by
-    /// Sherman–Morrison; marks A stale instead when the pivot is tiny.
+    /// Sherman–Morrison (`sign` also carries the transition's weight); marks A stale instead when the pivot is tiny.
     fn rank_one(&mut self, sign: f64, a: usize, f: &[f64], terms: &[Term<'_>]) {
         if self.stale {
             return;
@@ -146,7 +152,7 @@ impl SamplePlanner {
             }
         }
         let pivot = 1.0 + vx;
-        if !(pivot.abs() >= MIN_PIVOT) {
+        if pivot.is_nan() || pivot.abs() < MIN_PIVOT {
             self.stale = true;
             return;
         }
@@ -165,7 +171,7 @@ impl SamplePlanner {
     pub fn remove(&mut self, i: usize, old: &Sample) {
         let (pi, known) = self.succ[i];
         let (terms, len) = self.terms(old, pi, known);
-        self.rank_one(-1.0, old.a, &old.v, &terms[..len]);
+        self.rank_one(-old.weight, old.a, &old.v, &terms[..len]);
     }
 
     /// Adds transition i (already in `samples`) with successor action π.
@@ -176,7 +182,7 @@ impl SamplePlanner {
             self.succ[i] = (pi, known);
         }
         let (terms, len) = self.terms(sample, pi, known);
-        self.rank_one(1.0, sample.a, &sample.v, &terms[..len]);
+        self.rank_one(sample.weight, sample.a, &sample.v, &terms[..len]);
     }
 
     /// Changes transition i's successor action (line 9's improvement at s′_i).
@@ -198,7 +204,7 @@ impl SamplePlanner {
             len += 1;
         }
         if len > 0 {
-            self.rank_one(1.0, sample.a, &sample.v, &terms[..len]);
+            self.rank_one(sample.weight, sample.a, &sample.v, &terms[..len]);
         }
     }
 
@@ -217,6 +223,7 @@ impl SamplePlanner {
         for (sample, &(pi, known)) in samples.iter().zip(&self.succ) {
             let (terms, len) = self.terms(sample, pi, known);
             for (j, &fj) in sample.v.iter().enumerate() {
+                let fj = fj * sample.weight;
                 if fj == 0.0 {
                     continue;
                 }
@@ -255,6 +262,7 @@ impl SamplePlanner {
         let (k, n) = (self.k, self.k * self.actions);
         self.b.iter_mut().for_each(|b| *b = 0.0);
         for (sample, &y) in samples.iter().zip(targets) {
+            let y = y * sample.weight;
             let block = &mut self.b[sample.a * k..(sample.a + 1) * k];
             for (b, f) in block.iter_mut().zip(&sample.v) {
                 *b += f * y;

@@ -5,7 +5,7 @@
 //! The box is cut into `cells_per_dim`^d cells (hashed when there are
 //! more than fit a u64 key exactly). Each (cell, action) slot keeps its
 //! visit count and at most `per_slot` transitions, the newest replacing
-//! the oldest; the whole store keeps at most `max_samples`, and a full
+//! the oldest and standing for its visits too; the whole store keeps at most `max_samples`, and a full
 //! store gives the slot of its oldest transition to the new one. So the
 //! store covers what the agent has seen evenly instead of holding the
 //! last N ticks, and its size is bounded whatever the agent does.
@@ -33,6 +33,10 @@ pub struct Sample {
     slot: (u64, usize),
     /// The tick it was stored at (the oldest goes first when full).
     stored_at: u64,
+    /// The visits it stands for: 1, plus the weight of the transition it
+    /// replaced in a full slot. A slot's weights sum to its visits, so the
+    /// planner weighs the store as it would the whole history.
+    pub weight: f64,
 }
 
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -143,13 +147,16 @@ impl SampleStore {
             v_next: v_next.to_vec(),
             slot: key,
             stored_at: tick,
+            weight: 1.0,
         };
+        let mut sample = sample;
         let slot = self.slots.entry(key).or_default();
         slot.visits += 1;
         if slot.samples.len() >= self.per_slot {
-            // The slot is full: its oldest transition makes way.
+            // The slot is full: its oldest transition makes way, and its weight passes on.
             let index = slot.samples.remove(0);
             slot.samples.push(index);
+            sample.weight += self.samples[index].weight;
             let replaced = std::mem::replace(&mut self.samples[index], sample);
             return Inserted {
                 index,

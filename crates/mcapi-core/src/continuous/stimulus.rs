@@ -33,26 +33,36 @@ pub struct LinearStimulus {
     err: Vec<f64>,
 }
 
-/// E‖v(s)‖² over a fixed low-discrepancy set of points of [0, 1]^d (the
-/// Kronecker sequence of the square roots of the first primes): the
-/// scale of a typical feature vector, for the prior.
+/// E‖v(s)‖² over the probe points ([`probe_features`]): the scale of a
+/// typical feature vector, for the prior.
 pub fn mean_sq_norm(map: &FeatureMap, d: usize) -> f64 {
-    const POINTS: usize = 64;
+    let probes = probe_features(map, d);
+    let total: f64 = probes.iter().map(|x| x * x).sum();
+    (total / PROBES as f64).max(f64::MIN_POSITIVE)
+}
+
+/// Number of probe points.
+pub const PROBES: usize = 64;
+
+/// v at [`PROBES`] fixed points of [0, 1]^d spread evenly (the Kronecker
+/// sequence of the square roots of the first primes), row-major
+/// `PROBES × k`: where the prior's scale is measured, and where the
+/// planner looks for the best reward the agent can name.
+pub fn probe_features(map: &FeatureMap, d: usize) -> Vec<f64> {
     const PRIMES: [f64; 16] = [
         2., 3., 5., 7., 11., 13., 17., 19., 23., 29., 31., 37., 41., 43., 47., 53.,
     ];
-    let mut v = vec![0.0; map.len()];
+    let k = map.len();
+    let mut out = vec![0.0; PROBES * k];
     let mut s = vec![0.0; d];
-    let mut total = 0.0;
-    for i in 0..POINTS {
+    for (i, v) in out.chunks_exact_mut(k).enumerate() {
         for (j, x) in s.iter_mut().enumerate() {
             let alpha = PRIMES[j % PRIMES.len()].sqrt() * (1 + j / PRIMES.len()) as f64;
             *x = ((i as f64 + 0.5) * alpha).fract();
         }
-        map.features_into(&s, &mut v);
-        total += v.iter().map(|x| x * x).sum::<f64>();
+        map.features_into(&s, v);
     }
-    (total / POINTS as f64).max(f64::MIN_POSITIVE)
+    out
 }
 
 impl LinearStimulus {

@@ -19,14 +19,13 @@ pub struct Fourier {
 /// The number of terms Σ_{j ≤ m} C(d, j) nʲ, or None beyond
 /// [`MAX_STATE_FEATURES`].
 pub fn count(d: usize, order: u32, coupling: u32) -> Option<usize> {
-    let mut total = 0usize;
+    let mut total = 1usize; // the constant term
     let mut binom = 1usize; // C(d, j)
     let mut power = 1usize; // order^j
-    for j in 0..=(coupling as usize).min(d) {
-        if j > 0 {
-            binom = binom.checked_mul(d + 1 - j)? / j;
-            power = power.checked_mul(order as usize)?;
-        }
+    for j in 1..=(coupling as usize).min(d) {
+        // C(d, j) = C(d, j − 1) (d + 1 − j) / j, exact at every step.
+        binom = binom.checked_mul(d + 1 - j)? / j;
+        power = power.checked_mul(order as usize)?;
         total = total.checked_add(binom.checked_mul(power)?)?;
         if total > MAX_STATE_FEATURES {
             return None;

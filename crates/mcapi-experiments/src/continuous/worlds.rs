@@ -1,0 +1,231 @@
+//! The paper's two worlds in continuous form (docs/algorithm.md §9.6):
+//! a point that moves by small noisy steps, and sources that are regions
+//! of the box.
+//!
+//! - **Continuous hallway:** x ∈ [0, 1]; left, right, stay move by 0.02
+//!   with Gaussian noise σ = 0.005, clipped to the box; food where
+//!   x < 0.04, rest where x > 0.96.
+//! - **Continuous three-room:** the three-room map scaled into [0, 1]²
+//!   (each map cell is 1/26 wide and 1/11 tall; wall cells are solid, so
+//!   their edges are the walls' segments and the gaps in them the doors);
+//!   west, east, north, south move by 0.02 with noise σ = 0.005, and a move
+//!   into a wall leaves the robot where it was; the sources a, b, c are
+//!   discs of radius 0.04 around their cells' centres.
+//!
+//! A source delivers 6 + N(0, 2) on its own dimension, as the discrete
+//! worlds do (docs/algorithm.md §6).
+
+use rand::{Rng, RngExt};
+use rand_distr::{Distribution, Normal};
+
+use mcapi_core::model::THREE_ROOM_MAP;
+
+/// A move's length.
+pub const STEP: f64 = 0.02;
+/// σ of a move's Gaussian noise, per coordinate.
+pub const STEP_NOISE: f64 = 0.005;
+/// The hallway's food region is x < this, its rest region x > 1 − this.
+pub const HALLWAY_SOURCE: f64 = 0.04;
+/// Radius of a three-room source disc.
+pub const DISC_RADIUS: f64 = 0.04;
+/// A source's stimulus on its own dimension, before noise.
+pub const SOURCE_STIMULUS: f64 = 6.0;
+/// σ of a source's noise.
+pub const SOURCE_NOISE_SD: f64 = 2.0;
+
+/// A continuous world.
+#[derive(Debug, Clone)]
+pub enum World {
+    /// The hallway.
+    Hallway,
+    /// The three-room maze.
+    ThreeRoom(Maze),
+}
+
+/// The three-room map as solid cells and source discs.
+#[derive(Debug, Clone)]
+pub struct Maze {
+    rows: usize,
+    cols: usize,
+    wall: Vec<bool>,
+    /// Centres of the sources a, b, c.
+    pub sources: Vec<[f64; 2]>,
+}
+
+impl Maze {
+    /// The map of Experiment 2.
+    pub fn three_room() -> Self {
+        let lines: Vec<&str> = THREE_ROOM_MAP
+            .lines()
+            .filter(|l| !l.trim().is_empty())
+            .collect();
+        let rows = lines.len();
+        let cols = lines.iter().map(|l| l.len()).max().unwrap_or(0);
+        let mut wall = vec![true; rows * cols];
+        let mut found = Vec::new();
+        for (r, line) in lines.iter().enumerate() {
+            for (c, ch) in line.chars().enumerate() {
+                wall[r * cols + c] = ch == '#';
+                if ch.is_ascii_lowercase() {
+                    found.push((
+                        ch,
+                        [
+                            (c as f64 + 0.5) / cols as f64,
+                            (r as f64 + 0.5) / rows as f64,
+                        ],
+                    ));
+                }
+            }
+        }
+        found.sort_by_key(|(ch, _)| *ch);
+        Self {
+            rows,
+            cols,
+            wall,
+            sources: found.into_iter().map(|(_, p)| p).collect(),
+        }
+    }
+
+    /// Whether (x, y) lies in a wall cell (or outside the map).
+    pub fn blocked(&self, p: [f64; 2]) -> bool {
+        let c = (p[0] * self.cols as f64).floor();
+        let r = (p[1] * self.rows as f64).floor();
+        if c < 0.0 || r < 0.0 || c >= self.cols as f64 || r >= self.rows as f64 {
+            return true;
+        }
+        self.wall[r as usize * self.cols + c as usize]
+    }
+
+    /// A uniformly random free point.
+    pub fn random_free(&self, rng: &mut impl Rng) -> [f64; 2] {
+        loop {
+            let p = [rng.random::<f64>(), rng.random::<f64>()];
+            if !self.blocked(p) {
+                return p;
+            }
+        }
+    }
+}
+
+impl World {
+    /// The continuous hallway.
+    pub fn hallway() -> Self {
+        Self::Hallway
+    }
+
+    /// The continuous three-room maze.
+    pub fn three_room() -> Self {
+        Self::ThreeRoom(Maze::three_room())
+    }
+
+    /// Observation dimension.
+    pub fn dim(&self) -> usize {
+        match self {
+            Self::Hallway => 1,
+            Self::ThreeRoom(_) => 2,
+        }
+    }
+
+    /// Action names.
+    pub fn actions(&self) -> Vec<String> {
+        let names: &[&str] = match self {
+            Self::Hallway => &["left", "right", "stay"],
+            Self::ThreeRoom(_) => &["west", "east", "north", "south"],
+        };
+        names.iter().map(|s| s.to_string()).collect()
+    }
+
+    /// Stimulus names.
+    pub fn stimuli(&self) -> Vec<String> {
+        let names: &[&str] = match self {
+            Self::Hallway => &["food", "rest"],
+            Self::ThreeRoom(_) => &["a", "b", "c"],
+        };
+        names.iter().map(|s| s.to_string()).collect()
+    }
+
+    /// A uniformly random start point.
+    pub fn start(&self, rng: &mut impl Rng) -> Vec<f64> {
+        match self {
+            Self::Hallway => vec![rng.random::<f64>()],
+            Self::ThreeRoom(maze) => maze.random_free(rng).to_vec(),
+        }
+    }
+
+    /// The point after action `a` from `x`.
+    pub fn step(&self, x: &[f64], a: usize, rng: &mut impl Rng) -> Vec<f64> {
+        let noise = Normal::new(0.0, STEP_NOISE).unwrap_or_else(|_| unreachable!("σ > 0"));
+        match self {
+            Self::Hallway => {
+                let dx = [-STEP, STEP, 0.0][a.min(2)];
+                vec![(x[0] + dx + noise.sample(rng)).clamp(0.0, 1.0)]
+            }
+            Self::ThreeRoom(maze) => {
+                let (dx, dy) = [(-STEP, 0.0), (STEP, 0.0), (0.0, -STEP), (0.0, STEP)][a.min(3)];
+                let next = [x[0] + dx + noise.sample(rng), x[1] + dy + noise.sample(rng)];
+                if maze.blocked(next) {
+                    x.to_vec()
+                } else {
+                    next.to_vec()
+                }
+            }
+        }
+    }
+
+    /// Which source, if any, the point is in.
+    pub fn source_at(&self, x: &[f64]) -> Option<usize> {
+        match self {
+            Self::Hallway if x[0] < HALLWAY_SOURCE => Some(0),
+            Self::Hallway if x[0] > 1.0 - HALLWAY_SOURCE => Some(1),
+            Self::Hallway => None,
+            Self::ThreeRoom(maze) => maze.sources.iter().position(|c| {
+                let (dx, dy) = (x[0] - c[0], x[1] - c[1]);
+                dx * dx + dy * dy <= DISC_RADIUS * DISC_RADIUS
+            }),
+        }
+    }
+
+    /// ξ at a point: 6 + N(0, 2) on its source's dimension, 0 elsewhere.
+    pub fn stimulus(&self, x: &[f64], rng: &mut impl Rng) -> Vec<f64> {
+        let n = self.stimuli().len();
+        let mut xi = vec![0.0; n];
+        if let Some(i) = self.source_at(x) {
+            let noise = Normal::new(0.0, SOURCE_NOISE_SD).unwrap_or_else(|_| unreachable!("σ > 0"));
+            xi[i] = SOURCE_STIMULUS + noise.sample(rng);
+        }
+        xi
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::SeedableRng;
+    use rand_chacha::ChaCha8Rng;
+
+    #[test]
+    fn the_maze_has_three_sources_in_free_space_and_solid_walls() {
+        let maze = Maze::three_room();
+        assert_eq!(maze.sources.len(), 3);
+        for s in &maze.sources {
+            assert!(!maze.blocked(*s));
+        }
+        assert!(maze.blocked([0.0, 0.0]) && maze.blocked([0.5, 0.99]));
+        // The wall between rooms 1 and 2 (column 8) outside its door (row 3).
+        assert!(maze.blocked([8.5 / 26.0, 5.5 / 11.0]));
+        assert!(!maze.blocked([8.5 / 26.0, 3.5 / 11.0]));
+    }
+
+    #[test]
+    fn moves_stay_in_free_space() {
+        let world = World::three_room();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut x = world.start(&mut rng);
+        for t in 0..5000 {
+            x = world.step(&x, t % 4, &mut rng);
+            if let World::ThreeRoom(maze) = &world {
+                assert!(!maze.blocked([x[0], x[1]]));
+            }
+        }
+    }
+}
