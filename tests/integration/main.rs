@@ -10,6 +10,7 @@ mod common;
 
 mod cluster;
 mod connections;
+mod continuous_experiments;
 mod crash;
 mod curious_sessions;
 mod dashboard;

@@ -1,0 +1,161 @@
+//! The cost of one lockstep tick of the continuous agent (docs/algorithm.md
+//! §9.5): Ξ's RLS step, D, the transition stored, R over the stored
+//! transitions, one LSTDQ evaluation, one greedy improvement of every
+//! stored successor, the next action.
+//!
+//! Each iteration is a real tick of an agent living in its world, after
+//! a warm-up long enough to fill the sample store:
+//! - `hallway_d1`: the continuous hallway, default basis (64 RBFs × 3 actions);
+//! - `three_room_d2`: the continuous three-room, default basis (8 × 8 RBFs × 4 actions);
+//! - `box_d8`: a point in [0, 1]^8 moved along each axis by 8 actions pairs,
+//!   one source in a corner; default basis (Fourier, pairs coupled).
+//!
+//! Run: `cargo bench --bench continuous`.
+
+use std::hint::black_box;
+
+use criterion::{Criterion, criterion_group, criterion_main};
+use mcapi_core::AgentParams;
+use mcapi_core::continuous::{
+    ContinuousAgent, ContinuousObservation, ContinuousSpec, ObservationSpace,
+};
+use mcapi_experiments::continuous::{World, spec_of};
+use rand::{RngExt, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+
+const WARM_UP_TICKS: usize = 3000;
+
+/// A world to step: the experiments' worlds or the 8-dimensional box.
+enum Bench {
+    World(World),
+    Box8,
+}
+
+impl Bench {
+    fn spec(&self) -> ContinuousSpec {
+        match self {
+            Self::World(w) => spec_of(w),
+            Self::Box8 => ContinuousSpec {
+                observation_space: ObservationSpace {
+                    low: vec![0.0; 8],
+                    high: vec![1.0; 8],
+                },
+                actions: (0..16).map(|i| format!("a{i}")).collect(),
+                stimuli: vec!["corner".into(), "centre".into()],
+                basis: None,
+                out_of_bounds: Default::default(),
+                samples: Default::default(),
+            },
+        }
+    }
+
+    fn start(&self, rng: &mut ChaCha8Rng) -> Vec<f64> {
+        match self {
+            Self::World(w) => w.start(rng),
+            Self::Box8 => (0..8).map(|_| rng.random::<f64>()).collect(),
+        }
+    }
+
+    fn step(&self, x: &[f64], a: usize, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<f64>) {
+        match self {
+            Self::World(w) => {
+                let next = w.step(x, a, rng);
+                let xi = w.stimulus(&next, rng);
+                (next, xi)
+            }
+            Self::Box8 => {
+                let noise = Normal::new(0.0, 0.005).expect("σ > 0");
+                let mut next = x.to_vec();
+                let sign = if a % 2 == 0 { -1.0 } else { 1.0 };
+                next[a / 2] += sign * 0.05;
+                for v in next.iter_mut() {
+                    *v = (*v + noise.sample(rng)).clamp(0.0, 1.0);
+                }
+                let corner = next.iter().all(|v| *v < 0.2);
+                let centre = next.iter().all(|v| (v - 0.5).abs() < 0.2);
+                (
+                    next,
+                    vec![
+                        if corner { 6.0 } else { 0.0 },
+                        if centre { 6.0 } else { 0.0 },
+                    ],
+                )
+            }
+        }
+    }
+}
+
+struct Running {
+    bench: Bench,
+    agent: ContinuousAgent,
+    rng: ChaCha8Rng,
+    x: Vec<f64>,
+    action: usize,
+}
+
+impl Running {
+    fn new(bench: Bench) -> Self {
+        let spec = bench.spec();
+        let n = spec.stimuli.len();
+        let params = AgentParams {
+            seed: Some(7),
+            ..Default::default()
+        }
+        .check(n, 7)
+        .expect("params");
+        let mut agent = ContinuousAgent::new(spec.build().expect("model"), params);
+        let mut rng = ChaCha8Rng::seed_from_u64(11);
+        let x = bench.start(&mut rng);
+        let action = agent
+            .step(&ContinuousObservation {
+                observation: &x,
+                stimulus: None,
+                action_taken: None,
+            })
+            .expect("first step")
+            .action;
+        let mut run = Self {
+            bench,
+            agent,
+            rng,
+            x,
+            action,
+        };
+        for _ in 0..WARM_UP_TICKS {
+            run.tick();
+        }
+        run
+    }
+
+    fn tick(&mut self) -> usize {
+        let (x, xi) = self.bench.step(&self.x, self.action, &mut self.rng);
+        self.x = x;
+        let step = self
+            .agent
+            .step(&ContinuousObservation {
+                observation: &self.x,
+                stimulus: Some(&xi),
+                action_taken: None,
+            })
+            .expect("tick");
+        self.action = step.action;
+        step.action
+    }
+}
+
+fn bench_continuous(c: &mut Criterion) {
+    let mut group = c.benchmark_group("continuous");
+    for (name, bench) in [
+        ("hallway_d1", Bench::World(World::hallway())),
+        ("three_room_d2", Bench::World(World::three_room())),
+        ("box_d8", Bench::Box8),
+    ] {
+        let mut run = Running::new(bench);
+        group.bench_function(name, |b| b.iter(|| black_box(run.tick())));
+    }
+    group.finish();
+}
+
+criterion_group!(benches, bench_continuous);
+criterion_main!(benches);
