@@ -477,3 +477,163 @@ impl ContinuousAgent {
         self.rng.get_word_pos()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::AgentParams;
+    use crate::continuous::{ContinuousSpec, ObservationSpace, OutOfBounds};
+
+    fn spec(out_of_bounds: OutOfBounds) -> ContinuousSpec {
+        ContinuousSpec {
+            observation_space: ObservationSpace {
+                low: vec![-1.0, 0.0],
+                high: vec![1.0, 10.0],
+            },
+            actions: vec!["a".into(), "b".into(), "c".into()],
+            stimuli: vec!["food".into(), "rest".into()],
+            basis: None,
+            out_of_bounds,
+            samples: Default::default(),
+        }
+    }
+
+    fn agent(seed: u64, rule: OutOfBounds) -> ContinuousAgent {
+        let params = AgentParams {
+            seed: Some(seed),
+            ..Default::default()
+        }
+        .check(2, seed)
+        .expect("params");
+        ContinuousAgent::new(spec(rule).build().expect("model"), params)
+    }
+
+    /// A deterministic little world: the action moves the point, food at one corner.
+    fn drive(agent: &mut ContinuousAgent, ticks: usize) -> Vec<(usize, u64, u64)> {
+        let mut x = vec![0.0, 5.0];
+        let mut out = Vec::new();
+        let first = agent.step(&ContinuousObservation {
+            observation: &x,
+            stimulus: None,
+            action_taken: None,
+        });
+        let mut a = first.expect("first").action;
+        for t in 0..ticks {
+            x[0] =
+                (x[0] + [-0.1, 0.1, 0.0][a] + 0.01 * ((t * 7 % 5) as f64 - 2.0)).clamp(-1.2, 1.2);
+            x[1] = (x[1] + 0.3 * ((t % 3) as f64 - 1.0)).clamp(0.0, 10.0);
+            let xi = [
+                if x[0] < -0.8 { 6.0 } else { 0.0 },
+                if x[0] > 0.8 { 6.0 } else { 0.0 },
+            ];
+            let step = agent
+                .step(&ContinuousObservation {
+                    observation: &x,
+                    stimulus: Some(&xi),
+                    action_taken: None,
+                })
+                .expect("step");
+            assert!(step.value.is_finite() && step.reward.is_finite());
+            let d = agent.drive().vector();
+            assert!(
+                (d.iter().map(|v| v * v).sum::<f64>().sqrt() - 1.0).abs() < 1e-9,
+                "|D| = 1"
+            );
+            out.push((step.action, step.value.to_bits(), step.reward.to_bits()));
+            a = step.action;
+        }
+        out
+    }
+
+    #[test]
+    fn the_same_seed_gives_the_same_bits_and_another_seed_does_not() {
+        let (mut a, mut b, mut c) = (
+            agent(3, OutOfBounds::Clip),
+            agent(3, OutOfBounds::Clip),
+            agent(4, OutOfBounds::Clip),
+        );
+        let (ra, rb, rc) = (drive(&mut a, 700), drive(&mut b, 700), drive(&mut c, 700));
+        assert_eq!(ra, rb);
+        assert_ne!(ra, rc);
+        // Past a rebuild of A⁻¹ (every 256 ticks) and with observations clipped (x beyond ±1).
+        assert!(a.stats().rebuilds >= 2, "{:?}", a.stats());
+        assert!(a.stats().clipped > 0, "{:?}", a.stats());
+    }
+
+    #[test]
+    fn bad_observations_are_refused_and_change_nothing() {
+        let mut agent = agent(1, OutOfBounds::Refuse);
+        let obs = |x: &'static [f64], xi: Option<&'static [f64]>, a: Option<usize>| {
+            ContinuousObservation {
+                observation: x,
+                stimulus: xi,
+                action_taken: a,
+            }
+        };
+        assert!(
+            agent
+                .step(&obs(&[0.0, 5.0], Some(&[0.0, 0.0]), None))
+                .is_err(),
+            "a stimulus on the first observation"
+        );
+        agent.step(&obs(&[0.0, 5.0], None, None)).expect("first");
+        let before = agent.drive().clone();
+        let absurd: [ContinuousObservation<'static>; 8] = [
+            obs(&[0.0], Some(&[0.0, 0.0]), None),
+            obs(&[0.0, 5.0, 1.0], Some(&[0.0, 0.0]), None),
+            obs(&[f64::NAN, 5.0], Some(&[0.0, 0.0]), None),
+            obs(&[0.0, f64::INFINITY], Some(&[0.0, 0.0]), None),
+            obs(&[2.0, 5.0], Some(&[0.0, 0.0]), None),
+            obs(&[0.0, 5.0], Some(&[1e300, 0.0]), None),
+            obs(&[0.0, 5.0], Some(&[0.0]), None),
+            obs(&[0.0, 5.0], Some(&[0.0, 0.0]), Some(usize::MAX)),
+        ];
+        for o in &absurd {
+            assert!(agent.step(o).is_err(), "{o:?} was accepted");
+        }
+        assert!(
+            agent.step(&obs(&[0.0, 5.0], None, None)).is_err(),
+            "a later observation without stimulus"
+        );
+        assert_eq!(agent.drive(), &before);
+        assert_eq!(agent.tick(), 0);
+        agent
+            .step(&obs(&[0.5, 5.0], Some(&[1.0, 0.0]), Some(2)))
+            .expect("a good one after them");
+        assert_eq!(agent.tick(), 1);
+    }
+
+    #[test]
+    fn absurd_sample_parameters_are_refused() {
+        for samples in [
+            crate::continuous::SampleParams {
+                max: Some(u32::MAX),
+                ..Default::default()
+            },
+            crate::continuous::SampleParams {
+                per_cell: Some(0),
+                ..Default::default()
+            },
+            crate::continuous::SampleParams {
+                cells_per_dim: Some(u32::MAX),
+                ..Default::default()
+            },
+            crate::continuous::SampleParams {
+                known_after: Some(u32::MAX),
+                ..Default::default()
+            },
+        ] {
+            let mut s = spec(OutOfBounds::Clip);
+            s.samples = samples;
+            assert!(s.build().is_err(), "{:?}", s.samples);
+        }
+        let mut s = spec(OutOfBounds::Clip);
+        s.actions = (0..65).map(|i| format!("a{i}")).collect();
+        assert!(s.build().is_err(), "65 actions");
+        s.actions = vec!["x".into(), "x".into()];
+        assert!(s.build().is_err(), "duplicate actions");
+        let mut s = spec(OutOfBounds::Clip);
+        s.stimuli.clear();
+        assert!(s.build().is_err(), "no stimuli");
+    }
+}
