@@ -115,11 +115,12 @@ python-test: build python-venv ## the Python client tests against the debug bina
 contract: build ## schemathesis against a live debug server (the REST contract)
 	bash tools/contract.sh
 
-# The generative fuzzer (tests/fuzz/) for longer than `unit` runs it:
-# FUZZ_CASES cases per test (unit: 5000). A failure prints its FUZZ_SEED.
+# The generative fuzzer (crates/mcapi-server/tests/fuzz/) for longer than
+# `unit` runs it: FUZZ_CASES cases per test (unit: 5000). A failure prints
+# its FUZZ_SEED.
 FUZZ_CASES ?= 20000
 fuzz: ## the generative fuzzer for longer (FUZZ_CASES, default 20000)
-	PROPTEST_CASES=$(FUZZ_CASES) $(CARGO) test --locked --test fuzz -- --nocapture
+	PROPTEST_CASES=$(FUZZ_CASES) $(CARGO) test --locked -p mcapi-server --test fuzz -- --nocapture
 
 # The dashboard in headless Chromium (tests/e2e): drives a session against
 # the debug binary, checks that the charts and the heatmap render and

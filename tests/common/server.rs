@@ -1,5 +1,7 @@
 //! Starting the real `mcapi serve` binary as a child process, waiting for
-//! it to be ready, and killing or stopping it.
+//! it to be ready, and killing or stopping it. Here and not in
+//! mcapi-testkit: it names the binary with `env!("CARGO_BIN_EXE_mcapi")`,
+//! which Cargo sets only for the root package's tests.
 
 use std::ffi::OsString;
 use std::path::{Path, PathBuf};
@@ -7,10 +9,9 @@ use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
 
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_testkit::ports::free_ports;
+use mcapi_testkit::process::terminate;
 use tonic::transport::Channel;
-
-use super::ports::free_ports;
-use super::process::terminate;
 
 /// How to start `mcapi serve`.
 #[derive(Debug, Clone, Default)]

@@ -4,7 +4,8 @@
 //! rises; absurd learned models are refused with a precise 4xx; and a
 //! learned session driven over each transport survives `kill -9` bit-equal
 //! to a core replay of exactly its acknowledged observations (the approach
-//! of `tests/integration/crash.rs`, with its helpers in `tests/common`).
+//! of `tests/integration/crash.rs`, with its helpers in `tests/common` and
+//! mcapi-testkit).
 
 use crate::common;
 

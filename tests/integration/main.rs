@@ -1,9 +1,11 @@
-//! The server's integration tests, in one test binary: one link of the
-//! whole server instead of one per file, which is most of what a cold
-//! `make test` spends compiling. Each module is one subject (`cargo test
-//! --test integration crash::` runs one). `tests/fuzz/` and
-//! `tests/grpc_model.rs` stay binaries of their own: they measure their
-//! own process's resident memory, which other tests would disturb here.
+//! The `mcapi` binary's integration tests, in one test binary: the tests
+//! that start `mcapi serve`, `mcapi experiment` or `mcapi cluster` as child
+//! processes (crashes, restarts, the cluster, connections, the CLI), and
+//! the modules that do so for some of their tests. One link of the whole
+//! server instead of one per file, which is most of what a cold `make test`
+//! spends compiling. Each module is one subject (`cargo test --test
+//! integration crash::` runs one). The tests of the server library in
+//! process live with it, in `crates/mcapi-server/tests/`.
 
 #[path = "../common/mod.rs"]
 mod common;
@@ -15,14 +17,8 @@ mod crash;
 mod curious_sessions;
 mod dashboard;
 mod durability;
-mod eviction;
 mod experiments;
 mod full_disk;
-mod grpc;
 mod hostile;
 mod learned;
-mod openapi;
-mod parity;
-mod rest;
 mod serve;
-mod shard_move;

@@ -7,7 +7,9 @@
 //! - every workspace crate depends only on the workspace crates its row of
 //!   [`ALLOWED`] names, so arrows only point down a layer and no crate
 //!   reaches one above it (mcapi-cluster never reaches mcapi-server,
-//!   mcapi-store and mcapi-shards reach no other mcapi crate).
+//!   mcapi-store and mcapi-shards reach no other mcapi crate);
+//! - the tests' helpers ([`DEV_ONLY`]: mcapi-testkit) are only ever a
+//!   dev-dependency, never a normal or build one, and are not published.
 
 use std::collections::{HashMap, HashSet};
 use std::process::Command;
@@ -21,7 +23,7 @@ const FORBIDDEN: [&str; 10] = [
 
 /// Each workspace crate and the workspace crates it may depend on directly
 /// (normal dependencies). A new crate needs a row here.
-const ALLOWED: [(&str, &[&str]); 9] = [
+const ALLOWED: [(&str, &[&str]); 10] = [
     // The binary: CLI wiring only.
     (
         "mcapi",
@@ -34,12 +36,19 @@ const ALLOWED: [(&str, &[&str]); 9] = [
         &["mcapi-core", "mcapi-proto", "mcapi-shards", "mcapi-store"],
     ),
     ("mcapi-experiments", &["mcapi-core"]),
+    // The tests' helpers (a dev-dependency only: DEV_ONLY).
+    ("mcapi-testkit", &["mcapi-core", "mcapi-server"]),
     // The leaves.
     ("mcapi-core", &[]),
     ("mcapi-proto", &[]),
     ("mcapi-shards", &[]),
     ("mcapi-store", &[]),
 ];
+
+/// Workspace crates that only tests may use: every edge to them is a
+/// dev-dependency (a normal or build one would ship test helpers in a
+/// binary), and they are not published.
+const DEV_ONLY: [&str; 1] = ["mcapi-testkit"];
 
 /// The resolved graph, as `cargo metadata` prints it (`--locked`: the lock
 /// file's versions). Offline first; a fresh machine's cache lacks the
@@ -204,5 +213,63 @@ fn the_tool_the_store_and_the_shard_map_reach_no_crate_above_them() {
             .collect();
         reached.sort();
         assert!(reached.is_empty(), "{name} reaches {reached:?}");
+    }
+}
+
+#[test]
+fn the_tests_helpers_are_only_ever_a_dev_dependency() {
+    let meta = metadata();
+    let names: HashMap<&str, &str> = meta["packages"]
+        .as_array()
+        .expect("packages")
+        .iter()
+        .map(|p| {
+            (
+                p["id"].as_str().expect("id"),
+                p["name"].as_str().expect("name"),
+            )
+        })
+        .collect();
+    let mut wrong = Vec::new();
+    let mut dev_users = HashSet::new();
+    for node in meta["resolve"]["nodes"].as_array().expect("resolve.nodes") {
+        let user = names[node["id"].as_str().expect("node id")];
+        for dep in node["deps"].as_array().expect("deps") {
+            let name = names[dep["pkg"].as_str().expect("pkg")];
+            if !DEV_ONLY.contains(&name) {
+                continue;
+            }
+            for kind in dep["dep_kinds"].as_array().expect("dep_kinds") {
+                match kind["kind"].as_str() {
+                    Some("dev") => {
+                        dev_users.insert(format!("{user} -> {name}"));
+                    }
+                    other => wrong.push(format!("{user} -> {name} ({other:?})")),
+                }
+            }
+        }
+    }
+    assert!(
+        wrong.is_empty(),
+        "test helpers as a normal (None) or build dependency: {wrong:?}"
+    );
+    // The walk saw the edges it checks: the server's tests and the
+    // binary's use the helpers.
+    for user in ["mcapi-server", "mcapi"] {
+        assert!(
+            dev_users.contains(&format!("{user} -> mcapi-testkit")),
+            "{user} dev-depends on mcapi-testkit: {dev_users:?}"
+        );
+    }
+    for package in meta["packages"].as_array().expect("packages") {
+        let name = package["name"].as_str().expect("name");
+        if DEV_ONLY.contains(&name) {
+            // `publish = false` reads as an empty list of registries.
+            assert_eq!(
+                package["publish"],
+                serde_json::json!([]),
+                "{name} has `publish = false`"
+            );
+        }
     }
 }

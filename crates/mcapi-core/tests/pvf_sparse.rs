@@ -199,7 +199,8 @@ fn doorless_rooms(rooms: usize, room: &str) -> String {
 fn more_doorless_rooms_than_the_block_is_wide_are_solved_from_their_null_space() {
     // 267 rooms of three cells (801 states, the sparse path): eigenvalue 0
     // repeats 267 times, far beyond the block of 45 the plain iteration
-    // carries, which stalls there (found by tests/fuzz/ through the API).
+    // carries, which stalls there (found by crates/mcapi-server/tests/fuzz/
+    // through the API).
     let model = grid_model(&doorless_rooms(267, "a.b"));
     let graph = StateGraph::of(&model);
     assert_eq!(graph.states(), 801);

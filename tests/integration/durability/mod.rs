@@ -19,18 +19,14 @@
 //!   call; another key's session is 404 / NOT_FOUND on every call,
 //!   indistinguishable from a missing one, and is never listed; health,
 //!   readiness and metrics need no key; keys are never logged or echoed;
-//! - `--store memory` with keys from `MCAPI_API_KEYS` touches no disk;
-//! - a failed commit rolls the session back to its durable state, a retry
-//!   applies exactly once, and the store still recovers (no hole in the
-//!   log);
-//! - a delete whose commit fails removes nothing (the session is served as
-//!   before) and its retry deletes it, restarts included;
-//! - a lockstep observation whose policy update fails is applied and
-//!   logged: memory and log agree, live and after a crash.
+//! - `--store memory` with keys from `MCAPI_API_KEYS` touches no disk.
 //!
-//! One module per concern: [`restart`], [`damaged_store`], [`api_keys`],
-//! [`storage_failures`]; the driven session ([`Sim`]) and the reads of a
-//! session and of a store file they share are here.
+//! One module per concern: [`restart`], [`damaged_store`], [`api_keys`];
+//! the driven session ([`Sim`]) and the reads of a session and of a store
+//! file they share are here. The session manager's handling of a failed
+//! commit, a failed delete and a failed plan needs no binary: it is tested
+//! in process with mcapi-server
+//! (`crates/mcapi-server/tests/api/storage_failures.rs`).
 // These tests still send the deprecated `model_json` (accepted for one
 // more release, docs/grpc.md).
 #![allow(deprecated)]
@@ -55,7 +51,6 @@ use tonic::transport::Channel;
 mod api_keys;
 mod damaged_store;
 mod restart;
-mod storage_failures;
 
 const KEY_A: &str = "durability-key-alpha-0123456789";
 const KEY_B: &str = "durability-key-bravo-9876543210";

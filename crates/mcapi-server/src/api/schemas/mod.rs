@@ -14,10 +14,10 @@
 //! - the error responses every operation may answer and the API-key
 //!   security scheme ([`responses`]).
 //!
-//! Checked three ways: `tests/integration/openapi.rs` (each bound equals
-//! the limit it describes; documented examples are accepted and near
-//! misses refused), schemathesis against the live server (`make contract`)
-//! and the fuzzer (`tests/fuzz/`).
+//! Checked three ways: this crate's `tests/api/openapi.rs` (each bound
+//! equals the limit it describes; documented examples are accepted and
+//! near misses refused), schemathesis against the live server (`make
+//! contract`) and the fuzzer (this crate's `tests/fuzz/`).
 
 pub mod agent;
 mod builders;

@@ -3,10 +3,8 @@
 //! commit fails keeps the session, a lockstep observation whose plan fails is
 //! logged.
 
-use crate::common;
-
-use common::{assert_bits_eq, core_agent, params, stimulus};
 use mcapi_core::Observation;
+use mcapi_testkit::{assert_bits_eq, core_agent, params, stimulus};
 use serde_json::json;
 
 /// A failed commit rolls the session back to its durable state (the

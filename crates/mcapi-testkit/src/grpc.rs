@@ -6,7 +6,7 @@ use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use tonic::transport::Channel;
 
-use super::hallway::ACTIONS;
+use crate::hallway::ACTIONS;
 
 /// A gRPC request with an optional API key and the session metadata.
 pub fn grpc_request<T>(message: T, key: Option<&str>, session: Option<&str>) -> tonic::Request<T> {

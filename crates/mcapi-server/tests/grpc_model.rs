@@ -7,18 +7,18 @@
 //! - an invalid typed model gets the gRPC status and `x-mcapi-error-code`
 //!   of the equivalent REST JSON, absurd counts without absurd allocation;
 //! - `model` and `model_json` both set, or neither, is INVALID_ARGUMENT.
+//!
+//! A test binary of its own: it measures its own process's peak resident
+//! memory (the absurd counts), which other tests would disturb.
 
 use std::time::{Duration, Instant};
 
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_testkit::start_in_process as start;
 use serde_json::{Value, json};
 use tonic::Code;
 use tonic::transport::Channel;
-
-mod common;
-
-use common::start_in_process as start;
 
 async fn grpc_client(running: &mcapi_server::server::Running) -> AgentsClient<Channel> {
     AgentsClient::connect(format!("http://{}", running.grpc_addr))

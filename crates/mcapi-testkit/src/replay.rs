@@ -7,9 +7,9 @@ use std::sync::Arc;
 use mcapi_core::model::hallway;
 use mcapi_core::{Agent, AgentParams, Basis, Observation, PlanningModel};
 
-use super::floats::assert_bits_eq;
-use super::hallway::Obs;
-use super::reply::Reply;
+use crate::floats::assert_bits_eq;
+use crate::hallway::Obs;
+use crate::reply::Reply;
 
 /// The agent parameters a session with this seed and ε has.
 pub fn params(seed: u64, epsilon: Option<f64>) -> AgentParams {

@@ -6,10 +6,10 @@ use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use serde_json::Value;
 use tonic::transport::Channel;
 
-use super::floats::floats;
-use super::grpc::grpc_request;
-use super::hallway::{ACTIONS, Obs};
-use super::rest::rest;
+use crate::floats::floats;
+use crate::grpc::grpc_request;
+use crate::hallway::{ACTIONS, Obs};
+use crate::rest::rest;
 
 /// What a reply said (the parts a replay can check).
 #[derive(Debug, Clone, PartialEq)]

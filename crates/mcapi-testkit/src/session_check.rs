@@ -4,11 +4,11 @@
 use mcapi_core::{Agent, AgentParams};
 use serde_json::Value;
 
-use super::floats::{assert_bits_eq, floats};
-use super::hallway::Obs;
-use super::replay::{Expected, replay};
-use super::reply::Reply;
-use super::rest::{rest, rest_get};
+use crate::floats::{assert_bits_eq, floats};
+use crate::hallway::Obs;
+use crate::replay::{Expected, replay};
+use crate::reply::Reply;
+use crate::rest::{rest, rest_get};
 
 /// Checks a session's GET body, its Ξ table (`values?include=xi`) and its
 /// history against a replayed core agent, bit for bit.

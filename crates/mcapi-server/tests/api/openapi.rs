@@ -3,9 +3,9 @@
 //! `POST /v1/sessions`, every bound the server enforces is in the schema
 //! with the value of the limit it describes, and the body forms are
 //! `oneOf`s. The server side of each bound (the contract's other half) is
-//! exercised by schemathesis (`make contract`) and `tests/fuzz/`; here,
-//! three bodies the schema once let through are sent through the real
-//! router.
+//! exercised by schemathesis (`make contract`) and the fuzzer
+//! (`crates/mcapi-server/tests/fuzz/`); here, three bodies the schema once
+//! let through are sent through the real router.
 
 use std::sync::Arc;
 

@@ -7,9 +7,8 @@
 
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_testkit::start_in_process;
 use serde_json::{Value, json};
-
-use crate::common;
 
 const SEED: u64 = 2024;
 
@@ -25,7 +24,7 @@ fn stimulus(state: usize) -> Vec<f64> {
 async fn rest_and_grpc_give_identical_trajectories() {
     // On the durable store: parity must hold with group commit in the path.
     let data = tempfile::tempdir().expect("data dir");
-    let running = common::start_in_process(data.path()).await;
+    let running = start_in_process(data.path()).await;
     let base = format!("http://{}", running.http_addr);
     let http = reqwest::Client::new();
     let mut grpc = AgentsClient::connect(format!("http://{}", running.grpc_addr))

@@ -11,18 +11,16 @@
 //!   an evicted session can be deleted;
 //! - the memory store never evicts.
 
-use crate::common;
-
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::Duration;
 
-use common::{assert_bits_eq, stimulus};
 use mcapi_server::service::{
     Caller, CreateSession, Limits, ManagerOptions, ObservationIn, SessionConfig, SessionManager,
     StepOut, ValueSelection,
 };
 use mcapi_store::Store;
+use mcapi_testkit::{assert_bits_eq, stimulus};
 use serde_json::{Value, json};
 
 /// The four kinds of session driven: (model, agent).

@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use serde_json::{Value, json};
 
-use super::hallway::ACTIONS;
+use crate::hallway::ACTIONS;
 
 /// A fresh HTTP client (no connections pooled from an earlier server).
 pub fn http_client() -> reqwest::Client {

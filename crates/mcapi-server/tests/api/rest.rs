@@ -768,8 +768,8 @@ async fn a_hundred_by_hundred_grid_with_thirty_pvfs_is_served_and_absurd_ones_ar
             .contains("between 1 and the number of states (3)"),
         "{err}"
     );
-    // 267 rooms of three cells and no doors (801 states, found by
-    // tests/fuzz/): eigenvalue 0 repeats 267 times, beyond the sparse
+    // 267 rooms of three cells and no doors (801 states, found by this
+    // crate's fuzzer): eigenvalue 0 repeats 267 times, beyond the sparse
     // solver's block, which its second stage solves from the null space.
     let rooms: Vec<&str> = std::iter::repeat_n(["#####", "#a.b#"], 267)
         .flatten()

@@ -1,0 +1,19 @@
+//! mcapi-server's integration tests, in one test binary: the library in
+//! this process (the REST router, the gRPC service, the session manager over
+//! a real store, the full server of `server::start`), no `mcapi` binary. One
+//! link of the whole server instead of one per file, which is most of what a
+//! cold `make test` spends compiling. Each module is one subject (`cargo
+//! test -p mcapi-server --test api rest::` runs one). `tests/fuzz/` and
+//! `tests/grpc_model.rs` beside this folder stay binaries of their own: they
+//! measure their own process's resident memory, which other tests would
+//! disturb here. The tests that run the `mcapi` binary are the root
+//! package's (`tests/integration/` at the workspace root); the helpers both
+//! share are the mcapi-testkit crate.
+
+mod eviction;
+mod grpc;
+mod openapi;
+mod parity;
+mod rest;
+mod shard_move;
+mod storage_failures;
