@@ -12,7 +12,8 @@
 //!
 //! Read in the order of Algorithm 1: [`model`] (the environment), [`basis`]
 //! (features), [`stimulus`] (Ξ and R, line 5 and line 8), [`drive`] (D,
-//! Eqs. 1-3), [`lstdq`] (line 9) and [`agent`] (the loop).
+//! Eqs. 1-3), [`lstdq`] (line 9) and [`agent`] (the loop). [`continuous`]
+//! is the same loop on observation vectors instead of state numbers.
 
 pub mod agent;
 pub mod basis;
