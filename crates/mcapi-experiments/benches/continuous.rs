@@ -24,7 +24,9 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
-const WARM_UP_TICKS: usize = 3000;
+/// Ticks before measuring; few when `cargo test --all-targets` runs the
+/// bench once as a test (a debug build), so `make test` stays quick.
+const WARM_UP_TICKS: usize = if cfg!(debug_assertions) { 100 } else { 3000 };
 
 /// A world to step: the experiments' worlds or the 8-dimensional box.
 enum Bench {
