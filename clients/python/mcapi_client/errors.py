@@ -101,7 +101,9 @@ class InvalidParameter(BadRequest):
 class InvalidObservation(BadRequest):
     """An observation was refused: unknown state or action, an unavailable
     action, a stimulus of the wrong length, too large or not finite, or a
-    stimulus missing on (or sent with) a session's first observation."""
+    stimulus missing on (or sent with) a session's first observation, or an
+    observation vector of the wrong dimension, not finite, or outside a space
+    that refuses such observations (``invalid_observation``)."""
 
 
 class Unauthenticated(McapiError):
@@ -205,6 +207,7 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "stimulus_too_large": (InvalidObservation, 400),
     "first_observation": (InvalidObservation, 400),
     "missing_stimulus": (InvalidObservation, 400),
+    "invalid_observation": (InvalidObservation, 400),
     "unauthenticated": (Unauthenticated, 401),
     "forbidden": (Forbidden, 403),
     "move_conflict": (MoveConflict, 409),
