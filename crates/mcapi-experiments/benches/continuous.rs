@@ -7,8 +7,9 @@
 //! a warm-up long enough to fill the sample store:
 //! - `hallway_d1`: the continuous hallway, default basis (64 RBFs × 3 actions);
 //! - `three_room_d2`: the continuous three-room, default basis (8 × 8 RBFs × 4 actions);
-//! - `box_d8`: a point in [0, 1]^8 moved along each axis by 8 actions pairs,
-//!   one source in a corner; default basis (Fourier, pairs coupled).
+//! - `box_d8`: a point in [0, 1]^8 moved by 16 actions (each axis, either
+//!   way), sources in a corner and at the centre; default basis (for 16
+//!   actions: Fourier of order 2, uncoupled, 17 features a block).
 //!
 //! Run: `cargo bench --bench continuous`.
 
