@@ -16,7 +16,7 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 
 use super::drive::Drive;
-use super::error::{AlgoError, MAX_STIMULUS, Result};
+use super::error::{AlgoError, Result, check_stimulus};
 use super::learned::{LearnedModel, TransitionCounts, ValidLearnedParams};
 use super::lstdq::{PlanOutcome, Planner, PlannerStats, PlanningModel};
 use super::params::ValidParams;
@@ -274,22 +274,7 @@ impl Agent {
             return Ok(None);
         };
         let xi = obs.stimulus.ok_or(AlgoError::MissingStimulus)?;
-        if xi.len() != model.n_stimuli() {
-            return Err(AlgoError::StimulusLength {
-                got: xi.len(),
-                expected: model.n_stimuli(),
-            });
-        }
-        if xi.iter().any(|x| !x.is_finite()) {
-            return Err(AlgoError::NonFinite { field: "stimulus" });
-        }
-        if let Some((index, &value)) = xi.iter().enumerate().find(|(_, x)| x.abs() > MAX_STIMULUS) {
-            return Err(AlgoError::StimulusTooLarge {
-                index,
-                value,
-                limit: MAX_STIMULUS,
-            });
-        }
+        check_stimulus(xi, model.n_stimuli())?;
         let pair = match obs.action_taken {
             None => self.advised,
             Some(a) if a >= model.n_actions() => {

@@ -125,5 +125,27 @@ pub enum AlgoError {
 /// norm, the second moment, Q and its differences) comfortably finite.
 pub const MAX_STIMULUS: f64 = 1e12;
 
+/// Checks a stimulus vector sent with an observation: `expected`
+/// components, each finite and within ±[`MAX_STIMULUS`].
+pub fn check_stimulus(xi: &[f64], expected: usize) -> Result<()> {
+    if xi.len() != expected {
+        return Err(AlgoError::StimulusLength {
+            got: xi.len(),
+            expected,
+        });
+    }
+    if xi.iter().any(|x| !x.is_finite()) {
+        return Err(AlgoError::NonFinite { field: "stimulus" });
+    }
+    if let Some((index, &value)) = xi.iter().enumerate().find(|(_, x)| x.abs() > MAX_STIMULUS) {
+        return Err(AlgoError::StimulusTooLarge {
+            index,
+            value,
+            limit: MAX_STIMULUS,
+        });
+    }
+    Ok(())
+}
+
 /// Shorthand for results of the core.
 pub type Result<T, E = AlgoError> = std::result::Result<T, E>;

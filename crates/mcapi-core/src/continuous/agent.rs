@@ -21,7 +21,7 @@ use super::samples::SampleStore;
 use super::space::Placement;
 use super::stimulus::{LinearStimulus, PROBES, mean_sq_norm, probe_features};
 use crate::drive::Drive;
-use crate::error::{AlgoError, MAX_STIMULUS, Result};
+use crate::error::{AlgoError, Result, check_stimulus};
 use crate::params::ValidParams;
 
 /// The planner's ridge, as a fraction of one typical ‖v‖²: small enough
@@ -92,7 +92,6 @@ pub struct ContinuousAgent {
     advised: Option<usize>,
     tick: u64,
     clipped: u64,
-    last_reward: f64,
     /// Scratch: u_a = W_a Λ D, `actions × k`.
     u: Vec<f64>,
     scaled_drive: Vec<f64>,
@@ -100,7 +99,6 @@ pub struct ContinuousAgent {
     r_max: f64,
     /// v at the probe points (`PROBES × k`).
     probes: Vec<f64>,
-    s_scratch: Vec<f64>,
 }
 
 impl ContinuousAgent {
@@ -137,13 +135,11 @@ impl ContinuousAgent {
             advised: None,
             tick: 0,
             clipped: 0,
-            last_reward: 0.0,
             u: vec![0.0; na * k],
             scaled_drive: vec![0.0; n],
             targets: Vec::new(),
             r_max: 0.0,
             probes: probe_features(&model.features, d),
-            s_scratch: Vec::with_capacity(d),
             model,
         }
     }
@@ -176,8 +172,13 @@ impl ContinuousAgent {
 
     /// Checks an observation without changing anything.
     pub fn validate(&self, obs: &ContinuousObservation<'_>) -> Result<()> {
-        let mut s = Vec::new();
-        self.model.spec.observation_space.normalise_into(
+        self.check(obs).map(drop)
+    }
+
+    /// [`Self::validate`], returning the normalised point and where it fell.
+    fn check(&self, obs: &ContinuousObservation<'_>) -> Result<(Vec<f64>, Placement)> {
+        let mut s = Vec::with_capacity(self.model.dim());
+        let placement = self.model.spec.observation_space.normalise_into(
             obs.observation,
             self.model.spec.out_of_bounds,
             &mut s,
@@ -191,26 +192,10 @@ impl ContinuousAgent {
                     field: "action_taken",
                 });
             }
-            return Ok(());
+            return Ok((s, placement));
         }
         let xi = obs.stimulus.ok_or(AlgoError::MissingStimulus)?;
-        let n = self.model.n_stimuli();
-        if xi.len() != n {
-            return Err(AlgoError::StimulusLength {
-                got: xi.len(),
-                expected: n,
-            });
-        }
-        if xi.iter().any(|x| !x.is_finite()) {
-            return Err(AlgoError::NonFinite { field: "stimulus" });
-        }
-        if let Some((index, &value)) = xi.iter().enumerate().find(|(_, x)| x.abs() > MAX_STIMULUS) {
-            return Err(AlgoError::StimulusTooLarge {
-                index,
-                value,
-                limit: MAX_STIMULUS,
-            });
-        }
+        check_stimulus(xi, self.model.n_stimuli())?;
         if let Some(a) = obs.action_taken
             && a >= self.model.n_actions()
         {
@@ -219,19 +204,13 @@ impl ContinuousAgent {
                 actions: self.model.n_actions(),
             });
         }
-        Ok(())
+        Ok((s, placement))
     }
 
     /// One tick: observe (lines 5-7), plan (lines 8-9), act (line 10).
     /// Nothing changes on error.
     pub fn step(&mut self, obs: &ContinuousObservation<'_>) -> Result<ContinuousStep> {
-        self.validate(obs)?;
-        let mut s = std::mem::take(&mut self.s_scratch);
-        let placement = self.model.spec.observation_space.normalise_into(
-            obs.observation,
-            self.model.spec.out_of_bounds,
-            &mut s,
-        )?;
+        let (s, placement) = self.check(obs)?;
         let clipped = placement == Placement::Clipped;
         if clipped {
             self.clipped += 1;
@@ -251,9 +230,7 @@ impl ContinuousAgent {
         } else {
             self.refresh_reward_weights(&v);
         }
-        self.last_reward = reward;
         let (action, value) = self.act(&s, &v);
-        self.s_scratch = Vec::with_capacity(s.len());
         self.s = Some((s, v));
         Ok(ContinuousStep {
             tick: self.tick,
@@ -293,10 +270,11 @@ impl ContinuousAgent {
         self.planner.add(inserted.index, sample, pi, known);
     }
 
-    /// u_a = W_a Λ D, and R_max: the best reward the agent can name, over
-    /// every action at the current point, the stored transitions' successors
-    /// and the probe points (where Ξ may still hold its optimistic prior),
-    /// and the stored transitions themselves.
+    /// u_a = W_a Λ D; R(s_i, a_i) of every stored transition into
+    /// `targets`; and R_max: the best reward the agent can name, over the
+    /// stored transitions, every action at the current point, at their
+    /// successors and at the probe points (where Ξ may still hold its
+    /// optimistic prior).
     fn refresh_reward_weights(&mut self, v_now: &[f64]) {
         for ((s, d), l) in self
             .scaled_drive
@@ -317,8 +295,11 @@ impl ContinuousAgent {
                 r_max = r_max.max(self.reward(v, a));
             }
         }
+        self.targets.clear();
         for sample in self.store.samples() {
-            r_max = r_max.max(self.reward(&sample.v, sample.a));
+            let r = self.reward(&sample.v, sample.a);
+            self.targets.push(r);
+            r_max = r_max.max(r);
             for a in 0..self.model.n_actions() {
                 r_max = r_max.max(self.reward(&sample.v_next, a));
             }
@@ -334,6 +315,16 @@ impl ContinuousAgent {
             .map(|(v, u)| v * u)
             .sum::<f64>()
             .abs()
+    }
+
+    /// Q(s, a) as the agent acts on it: v(s) · w_a for a known pair, Q_opt
+    /// for an unknown one.
+    fn q_at(&self, s: &[f64], v: &[f64], a: usize) -> f64 {
+        if self.store.is_known(s, a) {
+            self.planner.q(v, a)
+        } else {
+            self.q_opt(v, a)
+        }
     }
 
     /// Q_opt(s, a) = R(s, a) + γ R_max / (1 − γ): an unknown pair.
@@ -372,13 +363,10 @@ impl ContinuousAgent {
     fn plan(&mut self, v_now: &[f64]) {
         self.refresh_reward_weights(v_now);
         let g = self.params.gamma;
-        self.targets.clear();
         for (i, sample) in self.store.samples().iter().enumerate() {
-            let mut y = self.reward(&sample.v, sample.a);
             if let Some((pi, false)) = self.planner.successor(i) {
-                y += g * self.q_opt(&sample.v_next, pi);
+                self.targets[i] += g * self.q_opt(&sample.v_next, pi);
             }
-            self.targets.push(y);
         }
         self.planner.maybe_rebuild(self.store.samples());
         self.planner.evaluate(self.store.samples(), &self.targets);
@@ -396,11 +384,7 @@ impl ContinuousAgent {
         let mut qs = [0.0f64; super::model::MAX_ACTIONS];
         let mut best = f64::NEG_INFINITY;
         for (a, q) in qs.iter_mut().enumerate().take(na) {
-            *q = if self.store.is_known(s, a) {
-                self.planner.q(v, a)
-            } else {
-                self.q_opt(v, a)
-            };
+            *q = self.q_at(s, v, a);
             best = best.max(*q);
         }
         let tol = TIE * (1.0 + best.abs());
@@ -427,7 +411,7 @@ impl ContinuousAgent {
     /// Q(x, a) for every action at any observation (clipped into the box;
     /// unknown pairs optimistic, as the agent acts on them).
     pub fn q_values(&self, observation: &[f64]) -> Result<Vec<f64>> {
-        let mut s = Vec::new();
+        let mut s = Vec::with_capacity(self.model.dim());
         self.model.spec.observation_space.normalise_into(
             observation,
             super::space::OutOfBounds::Clip,
@@ -436,13 +420,7 @@ impl ContinuousAgent {
         let mut v = vec![0.0; self.model.features.len()];
         self.model.features.features_into(&s, &mut v);
         Ok((0..self.model.n_actions())
-            .map(|a| {
-                if self.store.is_known(&s, a) {
-                    self.planner.q(&v, a)
-                } else {
-                    self.q_opt(&v, a)
-                }
-            })
+            .map(|a| self.q_at(&s, &v, a))
             .collect())
     }
 
@@ -452,29 +430,6 @@ impl ContinuousAgent {
             .q_values(observation)?
             .into_iter()
             .fold(f64::NEG_INFINITY, f64::max))
-    }
-
-    /// R_max of the last plan: the best reward the agent can name.
-    pub fn r_max(&self) -> f64 {
-        self.r_max
-    }
-
-    /// Which actions are known at an observation.
-    pub fn known_actions(&self, observation: &[f64]) -> Result<Vec<bool>> {
-        let mut s = Vec::new();
-        self.model.spec.observation_space.normalise_into(
-            observation,
-            super::space::OutOfBounds::Clip,
-            &mut s,
-        )?;
-        Ok((0..self.model.n_actions())
-            .map(|a| self.store.is_known(&s, a))
-            .collect())
-    }
-
-    /// The RNG (for tests of determinism).
-    pub fn rng_word_pos(&self) -> u128 {
-        self.rng.get_word_pos()
     }
 }
 
@@ -538,6 +493,12 @@ mod tests {
             assert!(
                 (d.iter().map(|v| v * v).sum::<f64>().sqrt() - 1.0).abs() < 1e-9,
                 "|D| = 1"
+            );
+            let value = agent.value(&x).expect("value");
+            assert_eq!(
+                value.to_bits(),
+                step.value.to_bits(),
+                "V at the observation is the step's"
             );
             out.push((step.action, step.value.to_bits(), step.reward.to_bits()));
             a = step.action;
