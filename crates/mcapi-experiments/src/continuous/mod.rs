@@ -26,7 +26,7 @@ use mcapi_core::continuous::{
 };
 use mcapi_core::{AgentParams, Drive};
 
-use super::metrics::Stat;
+use super::metrics::{Stat, summarise};
 use super::paper::{Experiment, ExperimentKind, trial_seeds};
 use super::run::{RunOptions, run_trials, trial_csv};
 pub use worlds::World;
@@ -57,12 +57,13 @@ impl ContinuousKind {
         }
     }
 
-    /// γ, η as in the discrete experiment.
+    /// γ, η of the discrete experiment of the same layout.
     pub fn gamma_eta(self) -> (f64, f64) {
-        match self {
-            Self::Hallway => (0.95, 0.01),
-            Self::ThreeRoom => (0.85, 0.01),
-        }
+        let exp = Experiment::new(match self {
+            Self::Hallway => ExperimentKind::Hallway,
+            Self::ThreeRoom => ExperimentKind::ThreeRoom,
+        });
+        (exp.gamma, exp.eta)
     }
 
     /// Default ticks per trial.
@@ -389,7 +390,7 @@ fn discrete_reference(opts: &RunOptions) -> anyhow::Result<BTreeMap<String, Stat
         "cumulative_abs_reward",
         "all_sources_found",
     ];
-    Ok(crate::metrics::summarise(&per_trial)
+    Ok(summarise(&per_trial)
         .into_iter()
         .filter(|(k, _)| keep.contains(&k.as_str()))
         .collect())
@@ -435,20 +436,6 @@ fn write_csv(
     w.flush()
         .with_context(|| format!("writing {}", path.display()))?;
     Ok(())
-}
-
-fn summarise(per_trial: &[BTreeMap<String, f64>]) -> BTreeMap<String, Stat> {
-    let mut out = BTreeMap::new();
-    if let Some(first) = per_trial.first() {
-        for key in first.keys() {
-            let values: Vec<f64> = per_trial
-                .iter()
-                .filter_map(|m| m.get(key).copied())
-                .collect();
-            out.insert(key.clone(), Stat::of(&values));
-        }
-    }
-    out
 }
 
 /// The printed table of a summary.

@@ -18,7 +18,9 @@
 use rand::{Rng, RngExt};
 use rand_distr::{Distribution, Normal};
 
-use mcapi_core::model::THREE_ROOM_MAP;
+use mcapi_core::model::{GridMap, three_room};
+
+pub use crate::paper::{SOURCE_NOISE_SD, SOURCE_STIMULUS};
 
 /// A move's length.
 pub const STEP: f64 = 0.02;
@@ -28,10 +30,6 @@ pub const STEP_NOISE: f64 = 0.005;
 pub const HALLWAY_SOURCE: f64 = 0.04;
 /// Radius of a three-room source disc.
 pub const DISC_RADIUS: f64 = 0.04;
-/// A source's stimulus on its own dimension, before noise.
-pub const SOURCE_STIMULUS: f64 = 6.0;
-/// σ of a source's noise.
-pub const SOURCE_NOISE_SD: f64 = 2.0;
 
 /// A continuous world.
 #[derive(Debug, Clone)]
@@ -45,55 +43,39 @@ pub enum World {
 /// The three-room map as solid cells and source discs.
 #[derive(Debug, Clone)]
 pub struct Maze {
-    rows: usize,
-    cols: usize,
-    wall: Vec<bool>,
-    /// Centres of the sources a, b, c.
+    map: GridMap,
+    /// Centres of the sources a, b, c, in stimulus order.
     pub sources: Vec<[f64; 2]>,
 }
 
 impl Maze {
-    /// The map of Experiment 2.
+    /// The map of Experiment 2 (the discrete preset's map and sources).
     pub fn three_room() -> Self {
-        let lines: Vec<&str> = THREE_ROOM_MAP
-            .lines()
-            .filter(|l| !l.trim().is_empty())
-            .collect();
-        let rows = lines.len();
-        let cols = lines.iter().map(|l| l.len()).max().unwrap_or(0);
-        let mut wall = vec![true; rows * cols];
-        let mut found = Vec::new();
-        for (r, line) in lines.iter().enumerate() {
-            for (c, ch) in line.chars().enumerate() {
-                wall[r * cols + c] = ch == '#';
-                if ch.is_ascii_lowercase() {
-                    found.push((
-                        ch,
-                        [
-                            (c as f64 + 0.5) / cols as f64,
-                            (r as f64 + 0.5) / rows as f64,
-                        ],
-                    ));
-                }
-            }
-        }
-        found.sort_by_key(|(ch, _)| *ch);
-        Self {
-            rows,
-            cols,
-            wall,
-            sources: found.into_iter().map(|(_, p)| p).collect(),
-        }
+        let preset = three_room();
+        let map = preset
+            .grid
+            .unwrap_or_else(|| unreachable!("the three-room preset has a map"));
+        let mut sources = preset.sources;
+        sources.sort_by_key(|s| s.dim);
+        let centre = |state: usize| {
+            let (r, c) = map.cell_of(state);
+            [
+                (c as f64 + 0.5) / map.cols() as f64,
+                (r as f64 + 0.5) / map.rows() as f64,
+            ]
+        };
+        let sources = sources.iter().map(|s| centre(s.state)).collect();
+        Self { map, sources }
     }
 
     /// Whether (x, y) lies in a wall cell (or outside the map).
     pub fn blocked(&self, p: [f64; 2]) -> bool {
-        let c = (p[0] * self.cols as f64).floor();
-        let r = (p[1] * self.rows as f64).floor();
-        if c < 0.0 || r < 0.0 || c >= self.cols as f64 || r >= self.rows as f64 {
+        let c = (p[0] * self.map.cols() as f64).floor();
+        let r = (p[1] * self.map.rows() as f64).floor();
+        if c < 0.0 || r < 0.0 {
             return true;
         }
-        self.wall[r as usize * self.cols + c as usize]
+        self.map.state_at(r as usize, c as usize).is_none()
     }
 
     /// A uniformly random free point.
