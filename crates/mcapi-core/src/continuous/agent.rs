@@ -59,6 +59,17 @@ pub struct ContinuousStep {
     pub clipped: bool,
 }
 
+/// What [`ContinuousAgent::observe`] did.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ContinuousObserved {
+    /// Ticks so far.
+    pub tick: u64,
+    /// |r| of Eq. 3 (0 on the first observation).
+    pub reward: f64,
+    /// Whether the observation was outside the box and clipped.
+    pub clipped: bool,
+}
+
 /// Counters of a continuous agent.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct ContinuousStats {
@@ -92,6 +103,10 @@ pub struct ContinuousAgent {
     advised: Option<usize>,
     tick: u64,
     clipped: u64,
+    /// An observation came since the last plan.
+    needs_plan: bool,
+    /// Plans so far.
+    policy_version: u64,
     /// Scratch: u_a = W_a Λ D, `actions × k`.
     u: Vec<f64>,
     scaled_drive: Vec<f64>,
@@ -135,6 +150,8 @@ impl ContinuousAgent {
             advised: None,
             tick: 0,
             clipped: 0,
+            needs_plan: false,
+            policy_version: 0,
             u: vec![0.0; na * k],
             scaled_drive: vec![0.0; n],
             targets: Vec::new(),
@@ -210,6 +227,24 @@ impl ContinuousAgent {
     /// One tick: observe (lines 5-7), plan (lines 8-9), act (line 10).
     /// Nothing changes on error.
     pub fn step(&mut self, obs: &ContinuousObservation<'_>) -> Result<ContinuousStep> {
+        let observed = self.observe(obs)?;
+        self.plan();
+        let (action, value) = self.act_now();
+        Ok(ContinuousStep {
+            tick: observed.tick,
+            action,
+            reward: observed.reward,
+            value,
+            clipped: observed.clipped,
+        })
+    }
+
+    /// Algorithm 1 lines 5-7: Ξ learns ξ(t+1), D moves (Eq. 3), and the
+    /// transition (s_t, a_t, s_{t+1}) is stored; no plan, no action.
+    /// Nothing changes on error. [`Self::plan`] then [`Self::act`] finish
+    /// the tick, as [`Self::step`] does; a server in async mode may plan
+    /// later, after several observations.
+    pub fn observe(&mut self, obs: &ContinuousObservation<'_>) -> Result<ContinuousObserved> {
         let (s, placement) = self.check(obs)?;
         let clipped = placement == Placement::Clipped;
         if clipped {
@@ -226,21 +261,59 @@ impl ContinuousAgent {
             debug_assert!((crate::drive::norm(self.drive.vector()) - 1.0).abs() < 1e-9);
             self.tick += 1;
             self.record(&prev_s, a, &s, &prev_v, &v);
-            self.plan(&v);
+            self.needs_plan = true;
         } else {
             self.refresh_reward_weights(&v);
         }
-        let (action, value) = self.act(&s, &v);
         self.s = Some((s, v));
-        Ok(ContinuousStep {
+        Ok(ContinuousObserved {
             tick: self.tick,
-            action,
             reward,
-            value,
             clipped,
         })
     }
 
+    /// Whether an observation was taken since the last [`Self::plan`].
+    pub fn needs_plan(&self) -> bool {
+        self.needs_plan
+    }
+
+    /// Lines 8-9, once, if an observation came since the last plan.
+    pub fn plan(&mut self) {
+        if !self.needs_plan {
+            return;
+        }
+        if let Some((s, v)) = self.s.take() {
+            self.plan_at(&v);
+            self.s = Some((s, v));
+        }
+        self.needs_plan = false;
+        self.policy_version += 1;
+    }
+
+    /// Line 10 at the current observation: the next action and
+    /// max_a Q there; `None` before the first observation.
+    pub fn act(&mut self) -> Option<(usize, f64)> {
+        let (s, v) = self.s.take()?;
+        let out = self.act_at(&s, &v);
+        self.s = Some((s, v));
+        Some(out)
+    }
+
+    fn act_now(&mut self) -> (usize, f64) {
+        // `observe` succeeded, so `s` is set.
+        self.act().unwrap_or((0, 0.0))
+    }
+
+    /// Policy updates so far.
+    pub fn policy_version(&self) -> u64 {
+        self.policy_version
+    }
+
+    /// The action advised at the current observation, if any.
+    pub fn advised_action(&self) -> Option<usize> {
+        self.advised
+    }
     /// Stores (s, a, s′) and gives the planner its term.
     fn record(&mut self, s: &[f64], a: usize, s_next: &[f64], v: &[f64], v_next: &[f64]) {
         let before = self.store.visits(s, a);
@@ -360,7 +433,7 @@ impl ContinuousAgent {
 
     /// Line 8 and line 9: rewards of the stored transitions, one LSTDQ
     /// evaluation, one greedy improvement of every successor action.
-    fn plan(&mut self, v_now: &[f64]) {
+    fn plan_at(&mut self, v_now: &[f64]) {
         self.refresh_reward_weights(v_now);
         let g = self.params.gamma;
         for (i, sample) in self.store.samples().iter().enumerate() {
@@ -379,7 +452,7 @@ impl ContinuousAgent {
 
     /// Line 10: the greedy action at s (ties keep the previous action, else
     /// a uniform draw among the tied), or with probability ε a uniform one.
-    fn act(&mut self, s: &[f64], v: &[f64]) -> (usize, f64) {
+    fn act_at(&mut self, s: &[f64], v: &[f64]) -> (usize, f64) {
         let na = self.model.n_actions();
         let mut qs = [0.0f64; super::model::MAX_ACTIONS];
         let mut best = f64::NEG_INFINITY;
@@ -519,6 +592,60 @@ mod tests {
         // Past a rebuild of A⁻¹ (every 256 ticks) and with observations clipped (x beyond ±1).
         assert!(a.stats().rebuilds >= 2, "{:?}", a.stats());
         assert!(a.stats().clipped > 0, "{:?}", a.stats());
+    }
+
+    /// `step` is `observe`, `plan`, `act`: an agent driven through the
+    /// three calls gives the same bits; planning only every third
+    /// observation (a server's async mode) is deterministic too.
+    #[test]
+    fn step_is_observe_plan_act() {
+        let mut whole = agent(5, OutOfBounds::Clip);
+        let expected = drive(&mut whole, 300);
+        let run = |every: usize| {
+            let mut a = agent(5, OutOfBounds::Clip);
+            let mut x = vec![0.0, 5.0];
+            a.observe(&ContinuousObservation {
+                observation: &x,
+                stimulus: None,
+                action_taken: None,
+            })
+            .expect("first");
+            assert!(!a.needs_plan());
+            let (mut act, _) = a.act().expect("an action");
+            let mut out = Vec::new();
+            for t in 0..300 {
+                x[0] = (x[0] + [-0.1, 0.1, 0.0][act] + 0.01 * ((t * 7 % 5) as f64 - 2.0))
+                    .clamp(-1.2, 1.2);
+                x[1] = (x[1] + 0.3 * ((t % 3) as f64 - 1.0)).clamp(0.0, 10.0);
+                let xi = [
+                    if x[0] < -0.8 { 6.0 } else { 0.0 },
+                    if x[0] > 0.8 { 6.0 } else { 0.0 },
+                ];
+                let o = a
+                    .observe(&ContinuousObservation {
+                        observation: &x,
+                        stimulus: Some(&xi),
+                        action_taken: None,
+                    })
+                    .expect("observe");
+                assert!(a.needs_plan());
+                if t % every == 0 {
+                    a.plan();
+                    assert!(!a.needs_plan());
+                }
+                let (next, value) = a.act().expect("an action");
+                out.push((next, value.to_bits(), o.reward.to_bits()));
+                act = next;
+            }
+            (out, a.policy_version())
+        };
+        let (lockstep, version) = run(1);
+        assert_eq!(lockstep, expected);
+        assert_eq!(version, 300);
+        let (sparse, version) = run(3);
+        assert_eq!(version, 100);
+        assert_eq!(sparse, run(3).0, "deterministic");
+        assert_ne!(sparse, expected, "planning less often is another run");
     }
 
     #[test]

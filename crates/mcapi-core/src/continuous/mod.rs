@@ -16,7 +16,9 @@ pub mod samples;
 pub mod space;
 pub mod stimulus;
 
-pub use agent::{ContinuousAgent, ContinuousObservation, ContinuousStats, ContinuousStep};
+pub use agent::{
+    ContinuousAgent, ContinuousObservation, ContinuousObserved, ContinuousStats, ContinuousStep,
+};
 pub use basis::{ContinuousBasisSpec, FeatureMap};
 pub use model::{ContinuousModel, ContinuousSpec, SampleParams, ValidSampleParams};
 pub use space::{ObservationSpace, OutOfBounds};
