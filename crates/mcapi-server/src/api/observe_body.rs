@@ -137,7 +137,8 @@ fn no<E: de::Error>() -> E {
 /// The fields of one observation as they arrive, each at most once.
 #[derive(Default)]
 struct Fields {
-    state: Option<usize>,
+    state: Option<Option<usize>>,
+    observation: Option<Option<Vec<f64>>>,
     stimulus: Option<Option<Vec<f64>>>,
     action_taken: Option<Option<ActionRef>>,
     signal: Option<Option<Vec<f64>>>,
@@ -147,6 +148,7 @@ struct Fields {
 impl Fields {
     fn is_empty(&self) -> bool {
         self.state.is_none()
+            && self.observation.is_none()
             && self.stimulus.is_none()
             && self.action_taken.is_none()
             && self.signal.is_none()
@@ -165,7 +167,11 @@ impl Fields {
             }
         }
         match key {
-            "state" => once(&mut self.state, map.next_value_seed(Index)?)?,
+            "state" => once(&mut self.state, map.next_value_seed(Nullable(Index))?)?,
+            "observation" => once(
+                &mut self.observation,
+                map.next_value_seed(Nullable(Numbers))?,
+            )?,
             "stimulus" => once(&mut self.stimulus, map.next_value_seed(Nullable(Numbers))?)?,
             "action_taken" => once(
                 &mut self.action_taken,
@@ -185,7 +191,8 @@ impl Fields {
 
     fn finish<E: de::Error>(self) -> Result<ObservationIn, E> {
         Ok(ObservationIn {
-            state: self.state.ok_or_else(no)?,
+            state: self.state.flatten(),
+            observation: self.observation.flatten(),
             stimulus: self.stimulus.flatten(),
             action_taken: self.action_taken.flatten(),
             signal: self.signal.flatten(),
@@ -473,7 +480,8 @@ mod tests {
         assert_eq!(
             one(json!({"state": 3, "stimulus": [1, 0.5, -0.0], "action_taken": "left"})),
             ObserveBody::One(ObservationIn {
-                state: 3,
+                state: Some(3),
+                observation: None,
                 stimulus: Some(vec![1.0, 0.5, 0.0]),
                 action_taken: Some(ActionRef::Name("left".into())),
                 signal: None,
@@ -486,14 +494,16 @@ mod tests {
             ),
             ObserveBody::Batch(vec![
                 ObservationIn {
-                    state: 1,
+                    state: Some(1),
+                    observation: None,
                     stimulus: None,
                     action_taken: None,
                     signal: None,
                     signal_source: None,
                 },
                 ObservationIn {
-                    state: 2,
+                    state: Some(2),
+                    observation: None,
                     stimulus: None,
                     action_taken: Some(ActionRef::Index(1)),
                     signal: Some(vec![1.0]),
@@ -502,6 +512,28 @@ mod tests {
             ])
         );
         assert_eq!(one(json!({"observations": []})), ObserveBody::Batch(vec![]));
+        // A continuous world's observation; neither `state` nor
+        // `observation` is the service's to refuse, with the session's
+        // model at hand.
+        assert_eq!(
+            one(json!({"observation": [0.25, -0.0, 1e3], "stimulus": [0]})),
+            ObserveBody::One(ObservationIn {
+                state: None,
+                observation: Some(vec![0.25, 0.0, 1000.0]),
+                stimulus: Some(vec![0.0]),
+                action_taken: None,
+                signal: None,
+                signal_source: None,
+            })
+        );
+        assert!(matches!(
+            one(json!({})),
+            ObserveBody::One(ObservationIn {
+                state: None,
+                observation: None,
+                ..
+            })
+        ));
     }
 
     #[test]
@@ -533,7 +565,6 @@ mod tests {
                 br#"{"observations": null}"#,
                 "malformed observation: invalid type: null",
             ),
-            (br#"{}"#, "malformed observation: missing field `state`"),
             (b"", "malformed JSON body"),
         ] {
             assert!(fast(body).is_none(), "{}", String::from_utf8_lossy(body));
@@ -549,7 +580,7 @@ mod tests {
         assert!(fast(br#"{"state": 1, "state": 2}"#).is_none());
         assert!(matches!(
             parse(br#"{"state": 1, "state": 2}"#),
-            Ok(ObserveBody::One(ObservationIn { state: 2, .. }))
+            Ok(ObserveBody::One(ObservationIn { state: Some(2), .. }))
         ));
         assert!(fast(br#"{"st\u0061te": 4}"#).is_none());
         assert!(matches!(
@@ -590,6 +621,7 @@ mod tests {
     fn key() -> impl Strategy<Value = String> {
         prop_oneof![
             Just("state"),
+            Just("observation"),
             Just("stimulus"),
             Just("action_taken"),
             Just("signal"),

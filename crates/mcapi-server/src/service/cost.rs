@@ -100,6 +100,9 @@ fn estimate_with(
     config: &EffectiveConfig,
     learned_cap: Option<usize>,
 ) -> SessionCost {
+    if let Some(spec) = &model.continuous {
+        return continuous(model, spec, config);
+    }
     let states = model.states as u64;
     let actions = model.actions.len() as u64;
     let pairs = model.pairs as u64;
@@ -189,9 +192,64 @@ fn estimate_with(
     }
 }
 
+/// The cost of a continuous world's session (docs/algorithm.md §9), its
+/// sample store counted full: Ξ's recursive least squares (a k × k inverse
+/// per action), the planner's (k|A|)² inverse, the samples with their
+/// features, the probe points and the history ring. A tick evaluates R at
+/// every sample's pair and successor, solves w = A⁻¹b and re-chooses every
+/// successor action; each changed successor is a rank-one update of A⁻¹,
+/// priced at half the samples changing (what the three-room bench measures
+/// early on, when the policy moves most), and a rebuild every
+/// `REBUILD_EVERY` ticks is spread over them.
+fn continuous(
+    model: &ModelSummary,
+    spec: &mcapi_core::continuous::ContinuousSpec,
+    config: &EffectiveConfig,
+) -> SessionCost {
+    use mcapi_core::continuous::planner::REBUILD_EVERY;
+    use mcapi_core::continuous::stimulus::PROBES;
+    let k = model.basis.k as u64;
+    let na = model.actions.len() as u64;
+    let n = model.stimuli.len() as u64;
+    let d = spec.observation_space.dim() as u64;
+    let samples = u64::from(spec.samples.max.unwrap_or(mcapi_core::continuous::model::MAX_SAMPLES));
+    let f = k * na;
+    let names: u64 = model
+        .actions
+        .iter()
+        .chain(&model.stimuli)
+        .map(|s| s.len() as u64 + 24)
+        .sum();
+    let mut bytes = names + mul(mul(na, mul(k, k) + mul(k, n)), 8);
+    bytes += mul(mul(f, f), 8) + mul(f, 24);
+    bytes += mul(samples, mul(2 * d + 2 * k + 8, 8));
+    bytes += mul(mul(PROBES as u64, k), 8) + mul(mul(k, d), 16);
+    let history = config.history as u64;
+    bytes += mul(history, RING_TICK_BYTES + mul(2 * n + 1 + d, 8));
+    let (kf, naf, sf, ff) = (k as f64, na as f64, samples as f64, f as f64);
+    let mut ops = 4.0 * sf * naf * kf + sf * kf + ff * ff;
+    ops += (sf / 2.0) * 2.0 * ff * ff;
+    ops += (ff * ff * ff + sf * ff * ff) / REBUILD_EVERY as f64;
+    SessionCost {
+        bytes: bytes.saturating_add(FIXED_BYTES),
+        tick_us: us(ops),
+    }
+}
+
 /// Estimated CPU time of one observation without its policy update (what
 /// an async-mode observation costs the request), in microseconds.
 pub fn observe_us(model: &ModelSummary, config: &EffectiveConfig) -> u64 {
+    if let Some(spec) = &model.continuous {
+        // Ξ's update, the new sample's rank-one term, the known marks.
+        let (k, na) = (model.basis.k as f64, model.actions.len() as f64);
+        let d = spec.observation_space.dim() as f64;
+        let samples = f64::from(
+            spec.samples
+                .max
+                .unwrap_or(mcapi_core::continuous::model::MAX_SAMPLES),
+        );
+        return us(3.0 * k * k + 2.0 * (k * na) * (k * na) + samples * d);
+    }
     let n = model.stimuli.len() as f64;
     let mut ops = model.pairs as f64 * n + 16.0 * n;
     if let Some(c) = &config.curiosity {

@@ -10,10 +10,18 @@
 //! curiosity channel and the tick exactly, whatever the policy did in
 //! between; the policy is recomputed once at the end.
 //!
+//! A continuous world's session (docs/algorithm.md §9) logs the f64
+//! observation vector instead of a state, and whether the tick loop ran a
+//! policy update since the previous entry (async mode): its agent is
+//! rebuilt by replaying every entry, plans included, and the advised action
+//! of each entry must come out again, bit for bit.
+//!
 //! Snapshots and log entries are postcard, a format without field names, so
-//! each record begins with a byte naming its encoding: [`RECORD_V3`] for
-//! what this version writes, [`RECORD_V2`] for records written under store
-//! format 2 (which the store tags when it upgrades the file). Both decode.
+//! each record begins with a byte naming its encoding: [`RECORD_V4`] for
+//! what this version writes, [`RECORD_V3`] for the log entries before
+//! continuous worlds (snapshots are the same in both), [`RECORD_V2`] for
+//! records written under store format 2 (which the store tags when it
+//! upgrades the file). All three decode.
 
 use serde::{Deserialize, Serialize};
 
@@ -25,6 +33,9 @@ use super::error::{DecodeError, DecodeFault, ServiceError};
 use super::wire::TickCuriosity;
 
 /// The encoding byte of the records this version writes.
+pub const RECORD_V4: u8 = 4;
+
+/// The encoding byte of records written before continuous worlds.
 pub const RECORD_V3: u8 = 3;
 
 /// The creation record of a session (JSON: written once, read at start).
@@ -41,8 +52,13 @@ pub struct SessionRecord {
 /// One observation as logged.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LogEntry {
-    /// The state observed.
+    /// The state observed (0 for a continuous world).
     pub state: u32,
+    /// A continuous world's observation, as the agent took it.
+    pub observation: Option<Vec<f64>>,
+    /// A continuous world's session in async mode: the tick loop ran a
+    /// policy update between the previous entry and this one.
+    pub planned_before: bool,
     /// The stimulus as the client sent it (for a curious session the
     /// extrinsic part; absent on a session's first observation).
     pub stimulus: Option<Vec<f64>>,
@@ -56,6 +72,18 @@ pub struct LogEntry {
     pub policy_version: u64,
     /// The raw curiosity signal and its source, if the observation had one.
     pub signal: Option<(u32, Vec<f64>)>,
+}
+
+/// A log entry as [`RECORD_V3`] wrote it (no observation).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct LogEntryV3 {
+    state: u32,
+    stimulus: Option<Vec<f64>>,
+    taken: Option<u32>,
+    advised: u32,
+    lstdq_error: f64,
+    policy_version: u64,
+    signal: Option<(u32, Vec<f64>)>,
 }
 
 /// A log entry as format 2 wrote it (no signal).
@@ -139,15 +167,15 @@ struct TickRecordV2 {
     lstdq_error: f64,
 }
 
-/// Encodes a log entry or snapshot: [`RECORD_V3`], then postcard.
+/// Encodes a log entry or snapshot: [`RECORD_V4`], then postcard.
 pub fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
-    postcard::to_extend(value, vec![RECORD_V3])
+    postcard::to_extend(value, vec![RECORD_V4])
         .map_err(|e| ServiceError::Internal(format!("encoding a record: {e}")))
 }
 
 fn split<'a>(bytes: &'a [u8], what: &str) -> Result<(u8, &'a [u8]), DecodeError> {
     let fault = match bytes.split_first() {
-        Some((&v, rest)) if v == RECORD_V2 || v == RECORD_V3 => return Ok((v, rest)),
+        Some((&v, rest)) if (RECORD_V2..=RECORD_V4).contains(&v) => return Ok((v, rest)),
         Some((&v, _)) => DecodeFault::Version(v),
         None => DecodeFault::Empty,
     };
@@ -171,12 +199,28 @@ pub fn decode_entry(bytes: &[u8], what: &str) -> Result<LogEntry, DecodeError> {
             let e: LogEntryV2 = postcard_decode(rest, what)?;
             Ok(LogEntry {
                 state: e.state,
+                observation: None,
+                planned_before: false,
                 stimulus: e.stimulus,
                 taken: e.taken,
                 advised: e.advised,
                 lstdq_error: e.lstdq_error,
                 policy_version: e.policy_version,
                 signal: None,
+            })
+        }
+        (RECORD_V3, rest) => {
+            let e: LogEntryV3 = postcard_decode(rest, what)?;
+            Ok(LogEntry {
+                state: e.state,
+                observation: None,
+                planned_before: false,
+                stimulus: e.stimulus,
+                taken: e.taken,
+                advised: e.advised,
+                lstdq_error: e.lstdq_error,
+                policy_version: e.policy_version,
+                signal: e.signal,
             })
         }
         (_, rest) => postcard_decode(rest, what),
@@ -218,6 +262,8 @@ mod tests {
     fn entry(signal: Option<(u32, Vec<f64>)>) -> LogEntry {
         LogEntry {
             state: 7,
+            observation: None,
+            planned_before: false,
             stimulus: Some(vec![0.1 + 0.2, -1e-300, 6.0]),
             taken: Some(2),
             advised: 1,
@@ -231,11 +277,46 @@ mod tests {
     fn log_entries_round_trip_exactly() {
         for e in [entry(None), entry(Some((1, vec![0.5, -2.0])))] {
             let bytes = encode(&e).expect("encode");
-            assert_eq!(bytes[0], RECORD_V3);
+            assert_eq!(bytes[0], RECORD_V4);
             assert_eq!(decode_entry(&bytes, "entry").expect("decode"), e);
             assert!(decode_entry(&bytes[..bytes.len() - 3], "entry").is_err());
         }
         assert!(encode(&entry(None)).expect("encode").len() < 48);
+        // A continuous world's entry keeps its f64 observation bit for bit.
+        let continuous = LogEntry {
+            state: 0,
+            observation: Some(vec![0.1 + 0.2, -0.0, f64::MIN_POSITIVE, 1e308]),
+            planned_before: true,
+            ..entry(None)
+        };
+        let back = decode_entry(&encode(&continuous).expect("encode"), "entry").expect("decode");
+        let bits = |e: &LogEntry| {
+            e.observation
+                .iter()
+                .flatten()
+                .map(|x| x.to_bits())
+                .collect::<Vec<_>>()
+        };
+        assert_eq!(bits(&back), bits(&continuous));
+        assert_eq!(back, continuous);
+    }
+
+    #[test]
+    fn entries_before_continuous_worlds_decode() {
+        let old = LogEntryV3 {
+            state: 7,
+            stimulus: Some(vec![0.1 + 0.2, -1e-300, 6.0]),
+            taken: Some(2),
+            advised: 1,
+            lstdq_error: 0.25,
+            policy_version: 9,
+            signal: Some((1, vec![0.5])),
+        };
+        let bytes = postcard::to_extend(&old, vec![RECORD_V3]).expect("encode");
+        assert_eq!(
+            decode_entry(&bytes, "entry").expect("decode"),
+            entry(Some((1, vec![0.5])))
+        );
     }
 
     #[test]

@@ -23,7 +23,17 @@ pub struct RingTick {
     values: Box<[f64]>,
     /// Components of D in `values`, and [`KNOWN_FLAG`].
     drive_len: u32,
-    curiosity: Option<Box<TickCuriosity>>,
+    /// What only some sessions have, boxed so the others pay one pointer.
+    extra: Option<Box<Extra>>,
+}
+
+/// The part of a tick only some sessions have.
+#[derive(Debug, Clone, PartialEq)]
+enum Extra {
+    /// A curious session's channel.
+    Curiosity(TickCuriosity),
+    /// A continuous world's observation.
+    Observation(Box<[f64]>),
 }
 
 /// Set in `RingTick::drive_len` when the last of `values` is the known
@@ -74,8 +84,15 @@ impl RingTick {
                 .chain(known_fraction)
                 .collect(),
             drive_len: (index32(drive.len()) & !KNOWN_FLAG) | flag,
-            curiosity: curiosity.map(Box::new),
+            extra: curiosity.map(|c| Box::new(Extra::Curiosity(c))),
         }
+    }
+
+    /// This tick with a continuous world's observation (such a session
+    /// has no curiosity channel).
+    pub fn with_observation(mut self, observation: &[f64]) -> Self {
+        self.extra = Some(Box::new(Extra::Observation(observation.into())));
+        self
     }
 
     /// The known fraction of a learned model after this tick.
@@ -117,8 +134,15 @@ impl RingTick {
             reward: self.reward,
             lstdq_error: self.lstdq_error,
             stimulus: (!stimulus.is_empty()).then(|| stimulus.to_vec()),
-            curiosity: self.curiosity.as_deref().copied(),
+            curiosity: match self.extra.as_deref() {
+                Some(Extra::Curiosity(c)) => Some(*c),
+                Some(Extra::Observation(_)) | None => None,
+            },
             known_fraction,
+            observation: match self.extra.as_deref() {
+                Some(Extra::Observation(x)) => Some(x.to_vec()),
+                Some(Extra::Curiosity(_)) | None => None,
+            },
         }
     }
 }
@@ -153,6 +177,9 @@ impl From<&RingTick> for TickRecord {
             curiosity,
             // Kept aside by a learned snapshot (`LearnedRecord`).
             known_fraction: _,
+            // A continuous world's session takes no snapshot: its log is
+            // replayed whole.
+            observation: _,
         } = t.entry();
         Self {
             tick,
@@ -244,6 +271,14 @@ mod tests {
         let back = RingTick::from(&TickRecord::from(&learned));
         assert_eq!(back.known_fraction(), None, "a TickRecord does not keep it");
         assert_eq!(back.with_known_fraction(Some(0.375)), learned);
+        // A continuous world's observation shares the curiosity box.
+        let continuous = RingTick::new(4, 0, 1, &[0.6, 0.8], Some(&[1.0, 0.0]), None, 0.5, 0.0, None, None)
+            .with_observation(&[0.25, -3.0]);
+        assert!(std::mem::size_of::<RingTick>() <= 64);
+        let e = continuous.entry();
+        assert_eq!(e.observation, Some(vec![0.25, -3.0]));
+        assert_eq!(e.curiosity, None);
+        assert_eq!(curious.entry().observation, None);
     }
 
     #[test]

@@ -1,7 +1,10 @@
-//! The learner of a session: the core's MCA-PI agent, or the curious agent
-//! with its curiosity channel, behind one interface.
+//! The learner of a session: the core's MCA-PI agent, the curious agent
+//! with its curiosity channel, or the agent of a continuous world, behind
+//! one interface.
 
-use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation, PlanOutcome};
+use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation};
+use mcapi_core::drive::Drive;
+use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation};
 
 use super::durable::{LearnedRecord, LearnerSnapshot};
 use super::error::ServiceError;
@@ -18,6 +21,8 @@ pub enum Learner {
     Plain(Agent),
     /// An agent with a curiosity channel (docs/algorithm.md §7).
     Curious(Box<CuriousAgent>),
+    /// The agent of a continuous world (docs/algorithm.md §9).
+    Continuous(Box<ContinuousAgent>),
 }
 
 /// What [`Learner::observe`] did.
@@ -34,20 +39,106 @@ pub struct LearnerObserved {
 }
 
 impl Learner {
-    /// The MCA-PI agent.
-    pub fn agent(&self) -> &Agent {
+    /// The MCA-PI agent of a model with numbered states; `None` for a
+    /// continuous world.
+    pub fn agent(&self) -> Option<&Agent> {
         match self {
-            Self::Plain(a) => a,
-            Self::Curious(c) => c.agent(),
+            Self::Plain(a) => Some(a),
+            Self::Curious(c) => Some(c.agent()),
+            Self::Continuous(_) => None,
         }
     }
 
     /// The curious agent, if this is one.
     pub fn curious(&self) -> Option<&CuriousAgent> {
         match self {
-            Self::Plain(_) => None,
             Self::Curious(c) => Some(c),
+            Self::Plain(_) | Self::Continuous(_) => None,
         }
+    }
+
+    /// The continuous agent, if this is one.
+    pub fn continuous(&self) -> Option<&ContinuousAgent> {
+        match self {
+            Self::Continuous(c) => Some(c),
+            Self::Plain(_) | Self::Curious(_) => None,
+        }
+    }
+
+    /// Ticks so far.
+    pub fn tick(&self) -> u64 {
+        match self.agent() {
+            Some(a) => a.tick(),
+            None => self.continuous().map_or(0, ContinuousAgent::tick),
+        }
+    }
+
+    /// The drive D.
+    pub fn drive(&self) -> &Drive {
+        match self {
+            Self::Plain(a) => a.drive(),
+            Self::Curious(c) => c.agent().drive(),
+            Self::Continuous(c) => c.drive(),
+        }
+    }
+
+    /// Policy updates applied.
+    pub fn policy_version(&self) -> u64 {
+        match self {
+            Self::Plain(a) => a.policy_version(),
+            Self::Curious(c) => c.agent().policy_version(),
+            Self::Continuous(c) => c.policy_version(),
+        }
+    }
+
+    /// The action advised at the current state or observation.
+    pub fn advised_action(&self) -> Option<usize> {
+        match self {
+            Self::Plain(a) => a.advised_action(),
+            Self::Curious(c) => c.agent().advised_action(),
+            Self::Continuous(c) => c.advised_action(),
+        }
+    }
+
+    /// ‖Q_t − Q_{t+1}‖ of the last policy update (0 for a continuous
+    /// world, whose planner keeps no table to compare).
+    pub fn lstdq_error(&self) -> f64 {
+        self.agent().map_or(0.0, |a| a.last_plan().lstdq_error)
+    }
+
+    /// The action names.
+    pub fn actions(&self) -> &[String] {
+        match self {
+            Self::Plain(a) => a.planning_model().model().actions(),
+            Self::Curious(c) => c.agent().planning_model().model().actions(),
+            Self::Continuous(c) => &c.model().spec.actions,
+        }
+    }
+
+    /// The known fraction of a learned model (docs/algorithm.md §8).
+    pub fn known_fraction(&self) -> Option<f64> {
+        self.agent()?.learned().map(|l| l.known_fraction())
+    }
+
+    /// Lines 5-7 of a continuous world's tick (docs/algorithm.md §9); no
+    /// plan, no action.
+    pub fn observe_continuous(
+        &mut self,
+        obs: &ContinuousObservation<'_>,
+    ) -> Result<LearnerObserved, ServiceError> {
+        let Self::Continuous(agent) = self else {
+            return Err(ServiceError::field(
+                "observation",
+                "this session's model has numbered states: send `state`",
+            ));
+        };
+        let out = agent.observe(obs)?;
+        Ok(LearnerObserved {
+            tick: out.tick,
+            reward: out.reward,
+            xi_cur: None,
+            curiosity: None,
+        })
     }
 
     /// Algorithm 1 lines 5-7 (and §7 steps 1-4 with a channel); no plan.
@@ -57,6 +148,10 @@ impl Learner {
         signal: Option<(usize, &[f64])>,
     ) -> Result<LearnerObserved, ServiceError> {
         match self {
+            Self::Continuous(_) => Err(ServiceError::field(
+                "state",
+                "this session's model is continuous: send `observation`, a vector, instead of `state`",
+            )),
             Self::Plain(agent) => {
                 if signal.is_some() {
                     return Err(ServiceError::field(
@@ -103,7 +198,9 @@ impl Learner {
         obs: &Observation<'_>,
         cap: usize,
     ) -> Result<(), ServiceError> {
-        let agent = self.agent();
+        let Some(agent) = self.agent() else {
+            return Ok(());
+        };
         let Some(learned) = agent.learned() else {
             return Ok(());
         };
@@ -127,21 +224,30 @@ impl Learner {
 
     /// True when a snapshot of this learner restores to one that continues
     /// bit for bit as it would ([`Agent::restores_exactly`]; a curiosity
-    /// channel's snapshot holds all of its state).
+    /// channel's snapshot holds all of its state). A continuous world's
+    /// agent takes no snapshot: it is rebuilt by replaying its whole log.
     pub fn restores_exactly(&self) -> bool {
-        self.agent().restores_exactly()
+        self.agent().is_some_and(Agent::restores_exactly)
     }
 
     /// True when R changed since the last policy update.
     pub fn needs_plan(&self) -> bool {
-        self.agent().needs_plan()
+        match self {
+            Self::Continuous(c) => c.needs_plan(),
+            Self::Plain(a) => a.needs_plan(),
+            Self::Curious(c) => c.agent().needs_plan(),
+        }
     }
 
-    /// One LSTDQ policy update (Algorithm 1, lines 8-9).
-    pub fn plan(&mut self) -> Result<PlanOutcome, AlgoError> {
+    /// One policy update (Algorithm 1, lines 8-9).
+    pub fn plan(&mut self) -> Result<(), AlgoError> {
         match self {
-            Self::Plain(a) => a.plan(),
-            Self::Curious(c) => c.plan(),
+            Self::Plain(a) => a.plan().map(drop),
+            Self::Curious(c) => c.plan().map(drop),
+            Self::Continuous(c) => {
+                c.plan();
+                Ok(())
+            }
         }
     }
 
@@ -150,14 +256,23 @@ impl Learner {
         match self {
             Self::Plain(a) => a.act(),
             Self::Curious(c) => c.act(),
+            Self::Continuous(c) => c.act().map(|(a, _)| a),
         }
     }
 
-    /// Records the action a logged reply advised (replay).
+    /// Records the action a logged reply advised (replay). A continuous
+    /// world's agent chooses it again ([`Self::act`]): it must be the same.
     pub fn set_advised_action(&mut self, action: usize) -> Result<(), AlgoError> {
         match self {
             Self::Plain(a) => a.set_advised_action(action),
             Self::Curious(c) => c.set_advised_action(action),
+            Self::Continuous(c) => match c.act() {
+                Some((a, _)) if a == action => Ok(()),
+                other => Err(AlgoError::InvalidSnapshot(format!(
+                    "the replayed agent advises {:?}, the log says {action}",
+                    other.map(|(a, _)| a)
+                ))),
+            },
         }
     }
 
@@ -166,13 +281,16 @@ impl Learner {
         match self {
             Self::Plain(a) => a.resume_policy_version(version),
             Self::Curious(c) => c.resume_policy_version(version),
+            // Replayed plan by plan, its counter is the live one.
+            Self::Continuous(_) => {}
         }
     }
 
     /// The resumable state (with the learned counts for an agent that
-    /// learns its transitions, docs/algorithm.md §8).
-    pub fn snapshot(&self) -> LearnerSnapshot {
-        match self {
+    /// learns its transitions, docs/algorithm.md §8); `None` for a
+    /// continuous world's agent, which is rebuilt from its log.
+    pub fn snapshot(&self) -> Option<LearnerSnapshot> {
+        Some(match self {
             Self::Plain(a) => match a.learned_snapshot() {
                 // The history's known fractions are the session's to add.
                 Some(agent) => LearnerSnapshot::Learned(Box::new(LearnedRecord {
@@ -182,6 +300,7 @@ impl Learner {
                 None => LearnerSnapshot::Plain(a.snapshot()),
             },
             Self::Curious(c) => LearnerSnapshot::Curious(Box::new(c.snapshot())),
-        }
+            Self::Continuous(_) => return None,
+        })
     }
 }

@@ -15,11 +15,12 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
+use mcapi_core::continuous::ContinuousObservation;
 use mcapi_core::{Agent, CuriousAgent};
 use mcapi_shards::Placement;
 use mcapi_store::{StoreError, StoredSession};
 
-use super::agent_config::SessionConfig;
+use super::agent_config::{EffectiveConfig, SessionConfig, UpdateMode};
 use super::durable::{self, LearnerSnapshot, LogEntry};
 use super::error::{RecordError, RecoveryError, ServiceError, StorageError};
 use super::history::{RingTick, push_tick};
@@ -194,7 +195,7 @@ pub(super) fn rebuild(
         }
         let entry = durable::decode_entry(bytes, &format!("log entry {seq}"))
             .map_err(|e| LogRead::Record(e.into()))?;
-        replay(&mut learner, &mut history, config.history, &entry).map_err(|e| {
+        replay(&mut learner, &mut history, &config, &entry).map_err(|e| {
             LogRead::Record(RecordError::Replay {
                 seq,
                 source: Box::new(e),
@@ -209,12 +210,18 @@ pub(super) fn rebuild(
         Err(LogRead::Record(why)) => return Err(bad(why)),
         Err(LogRead::Store(e)) => return Err(RecoveryError::Store(e)),
     }
-    if learner.needs_plan()
-        && let Err(e) = learner.plan()
-    {
-        // As live after the same failed update: the session keeps its
-        // last policy and plans again at its next observation.
-        tracing::warn!(session = %id, error = %e, "the recovered session's policy update failed; it keeps its last policy");
+    let mut planned_since_log = false;
+    if learner.needs_plan() {
+        match learner.plan() {
+            // A continuous world's next entry records this update, so a
+            // later replay makes it too.
+            Ok(()) => planned_since_log = learner.continuous().is_some(),
+            // As live after the same failed update: the session keeps its
+            // last policy and plans again at its next observation.
+            Err(e) => {
+                tracing::warn!(session = %id, error = %e, "the recovered session's policy update failed; it keeps its last policy");
+            }
+        }
     }
     let since_snapshot = next_seq - after.map_or(0, |s| s + 1);
     let session = Session::resume(
@@ -230,6 +237,7 @@ pub(super) fn rebuild(
             since_snapshot,
             pristine: true,
             last_observed_ns: 0,
+            planned_since_log,
         },
     );
     Ok((Arc::new(session), replayed))
@@ -262,13 +270,48 @@ pub(super) fn load(
 
 /// Applies one logged observation to a recovering learner and its history
 /// ring: Ξ, visits, D, the curiosity channel and the tick change exactly as
-/// they did live.
+/// they did live. A continuous world's agent (docs/algorithm.md §9) also
+/// plans where it did live (after each observation in lockstep, where the
+/// entry says the tick loop did in async mode) and chooses its action
+/// again, which must be the logged one.
 pub fn replay(
     learner: &mut Learner,
     history: &mut VecDeque<RingTick>,
-    history_cap: usize,
+    config: &EffectiveConfig,
     entry: &LogEntry,
 ) -> Result<(), ServiceError> {
+    let history_cap = config.history;
+    if let Some(x) = &entry.observation {
+        if entry.planned_before {
+            learner.plan()?;
+        }
+        let out = learner.observe_continuous(&ContinuousObservation {
+            observation: x,
+            stimulus: entry.stimulus.as_deref(),
+            action_taken: entry.taken.map(|a| a as usize),
+        })?;
+        if config.update_mode == UpdateMode::Lockstep && learner.needs_plan() {
+            learner.plan()?;
+        }
+        learner.set_advised_action(entry.advised as usize)?;
+        if entry.stimulus.is_some() {
+            let tick = RingTick::new(
+                out.tick,
+                0,
+                entry.advised as usize,
+                learner.drive().vector(),
+                entry.stimulus.as_deref(),
+                None,
+                out.reward,
+                entry.lstdq_error,
+                None,
+                None,
+            )
+            .with_observation(x);
+            push_tick(history, history_cap, tick);
+        }
+        return Ok(());
+    }
     let obs = mcapi_core::Observation {
         state: entry.state as usize,
         stimulus: entry.stimulus.as_deref(),
@@ -285,13 +328,13 @@ pub fn replay(
             out.tick,
             obs.state,
             entry.advised as usize,
-            learner.agent().drive().vector(),
+            learner.drive().vector(),
             entry.stimulus.as_deref(),
             out.xi_cur,
             out.reward,
             entry.lstdq_error,
             out.curiosity,
-            learner.agent().learned().map(|l| l.known_fraction()),
+            learner.known_fraction(),
         );
         push_tick(history, history_cap, tick);
     }
@@ -302,9 +345,14 @@ pub fn replay(
 /// A recovered learner: `base` (built from the session record) resumed from
 /// a snapshot of the same kind.
 fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError> {
-    let ctx = Arc::clone(base.agent().planning_model());
-    let params = base.agent().params().clone();
-    let learned = base.agent().learned().map(|l| l.params());
+    let Some(agent) = base.agent() else {
+        return Err(RecordError::Mismatch(
+            "it has a snapshot, its record a continuous world (which takes none)",
+        ));
+    };
+    let ctx = Arc::clone(agent.planning_model());
+    let params = agent.params().clone();
+    let learned = agent.learned().map(|l| l.params());
     match (snap, base.curious()) {
         (LearnerSnapshot::Plain(_), None) if learned.is_some() => Err(RecordError::Mismatch(
             "its snapshot has no learned transitions, its record learns them",

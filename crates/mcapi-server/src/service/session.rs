@@ -8,6 +8,7 @@ use std::time::Instant;
 
 use parking_lot::Mutex;
 
+use mcapi_core::continuous::ContinuousObservation;
 use mcapi_core::spec::ActionRef;
 use mcapi_core::{AlgoError, Observation};
 use mcapi_store::{Commit, Store, Write};
@@ -39,6 +40,10 @@ pub struct SessionState {
     /// For a model whose transitions the agent learns: the most (pair,
     /// successor) entries it may store (`LearnedSummary::max_transitions`).
     learned_cap: Option<usize>,
+    /// A continuous world's session: the tick loop ran a policy update
+    /// since the last logged observation (the next entry says so, so a
+    /// replay plans where the live session did).
+    planned_since_log: bool,
 }
 
 /// Where a session's observations are made durable.
@@ -181,6 +186,7 @@ impl Session {
                 deleting: false,
                 fail_plans: 0,
                 learned_cap,
+                planned_since_log: resumed.planned_since_log,
             }),
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
@@ -427,7 +433,7 @@ impl Session {
             return None;
         }
         match st.snapshot_write(&self.id) {
-            Ok(w) => Some(d.store.submit(vec![w])),
+            Ok(w) => Some(d.store.submit(vec![w?])),
             Err(e) => {
                 tracing::error!(session = %self.id, error = %e, "snapshot not written");
                 None
@@ -444,7 +450,11 @@ impl Session {
         }
         self.pristine.store(false, Ordering::Release);
         let started = Instant::now();
-        self.guarded(&mut st, Update::Plan, |st| Ok(st.learner.plan()?))?;
+        self.guarded(&mut st, Update::Plan, |st| {
+            st.learner.plan()?;
+            st.planned_since_log = true;
+            Ok(())
+        })?;
         drop(st);
         self.record_plan_cost(started, 1);
         Ok(true)
@@ -493,6 +503,7 @@ impl Session {
         }
         match st.snapshot_write(&self.id) {
             Ok(w) => {
+                let w = w?;
                 self.pristine.store(true, Ordering::Release);
                 Some(Some(d.store.submit(vec![w])))
             }
@@ -523,7 +534,7 @@ impl Session {
         Some(Evicted {
             owner: self.owner,
             cost,
-            tick: st.learner.agent().tick(),
+            tick: st.learner.tick(),
             states: self.model.states,
             mode: self.mode,
             last_observed_ns: self.last_observed_ns.load(Ordering::Relaxed),
@@ -565,11 +576,18 @@ pub struct Resumed {
     pub seq: u64,
     /// Log entries since the last snapshot.
     pub since_snapshot: u64,
+    /// A continuous world's session: a policy update ran after the last
+    /// logged observation ([`SessionState`]'s flag of the same name).
+    pub planned_since_log: bool,
 }
 
 impl SessionState {
-    fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
-        let mut learner = self.learner.snapshot();
+    /// A snapshot of the session; `None` for a continuous world's, which
+    /// takes none (its log is replayed whole).
+    fn snapshot_write(&mut self, id: &str) -> Result<Option<Write>, ServiceError> {
+        let Some(mut learner) = self.learner.snapshot() else {
+            return Ok(None);
+        };
         if let LearnerSnapshot::Learned(l) = &mut learner {
             l.history_known = self.history.iter().map(RingTick::known_fraction).collect();
         }
@@ -578,11 +596,11 @@ impl SessionState {
             history: self.history.iter().map(TickRecord::from).collect(),
         };
         self.since_snapshot = 0;
-        Ok(Write::Snapshot {
+        Ok(Some(Write::Snapshot {
             id: Arc::from(id),
             seq: self.seq.saturating_sub(1),
             snapshot: encode(&record)?,
-        })
+        }))
     }
 
     /// Queues log entries (and a snapshot when one is due) for commit.
@@ -603,7 +621,7 @@ impl SessionState {
         }
         if self.since_snapshot >= d.snapshot_every {
             match self.snapshot_write(&id) {
-                Ok(w) => writes.push(w),
+                Ok(w) => writes.extend(w),
                 Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
             }
         }
@@ -620,7 +638,8 @@ impl SessionState {
     ) -> Result<(), ServiceError> {
         for (i, obs) in batch.iter().enumerate() {
             // The action whose pair this observation updates, resolved now.
-            let advised_before = self.learner.agent().advised_action();
+            let advised_before = self.learner.advised_action();
+            let planned_before = std::mem::take(&mut self.planned_since_log);
             match self.apply(obs, plan, history_cap) {
                 Ok(Applied {
                     step,
@@ -629,7 +648,9 @@ impl SessionState {
                 }) => {
                     if let Some(log) = log.as_deref_mut() {
                         log.push(LogEntry {
-                            state: obs.state as u32,
+                            state: obs.state.unwrap_or(0) as u32,
+                            observation: obs.observation.clone(),
+                            planned_before,
                             stimulus: obs.stimulus.clone(),
                             taken: obs
                                 .stimulus
@@ -637,7 +658,7 @@ impl SessionState {
                                 .and(taken.or(advised_before))
                                 .map(|a| a as u32),
                             advised: step.action_index as u32,
-                            lstdq_error: self.learner.agent().last_plan().lstdq_error,
+                            lstdq_error: self.learner.lstdq_error(),
                             policy_version: step.policy_version,
                             signal: obs
                                 .signal
@@ -653,8 +674,12 @@ impl SessionState {
                     }
                     out.push(step);
                 }
-                Err(e) if batch.len() == 1 => return Err(e),
+                Err(e) if batch.len() == 1 => {
+                    self.planned_since_log |= planned_before;
+                    return Err(e);
+                }
                 Err(e) => {
+                    self.planned_since_log |= planned_before;
                     return Err(match e {
                         ServiceError::Algo(AlgoError::Numerical(_)) | ServiceError::Internal(_) => {
                             e
@@ -678,24 +703,20 @@ impl SessionState {
         plan: bool,
         history_cap: usize,
     ) -> Result<Applied, ServiceError> {
-        let model = self.learner.agent().planning_model().model();
+        let actions = self.learner.actions();
         let action_taken = match &obs.action_taken {
             None => None,
             Some(ActionRef::Index(a)) => Some(*a),
             Some(ActionRef::Name(name)) => Some(
-                model
-                    .actions()
-                    .iter()
-                    .position(|a| a == name)
-                    .ok_or_else(|| {
-                        ServiceError::field(
-                            "action_taken",
-                            format!(
-                                "unknown action `{name}` (actions: {})",
-                                model.actions().join(", ")
-                            ),
-                        )
-                    })?,
+                actions.iter().position(|a| a == name).ok_or_else(|| {
+                    ServiceError::field(
+                        "action_taken",
+                        format!(
+                            "unknown action `{name}` (actions: {})",
+                            actions.join(", ")
+                        ),
+                    )
+                })?,
             ),
         };
         if obs.signal_source.is_some() && obs.signal.is_none() {
@@ -704,19 +725,58 @@ impl SessionState {
                 "is given without a `signal`",
             ));
         }
-        let observation = Observation {
-            state: obs.state,
-            stimulus: obs.stimulus.as_deref(),
-            action_taken,
+        let observed = match (obs.state, obs.observation.as_deref()) {
+            (Some(state), None) => {
+                let observation = Observation {
+                    state,
+                    stimulus: obs.stimulus.as_deref(),
+                    action_taken,
+                };
+                let signal = obs
+                    .signal
+                    .as_deref()
+                    .map(|x| (obs.signal_source.unwrap_or(0), x));
+                if let Some(cap) = self.learned_cap {
+                    self.learner.check_learned_room(&observation, cap)?;
+                }
+                self.learner.observe(&observation, signal)?
+            }
+            (None, Some(x)) => {
+                if obs.signal.is_some() {
+                    return Err(ServiceError::field(
+                        "signal",
+                        "this session has no curiosity channel (a continuous world takes none)",
+                    ));
+                }
+                self.learner.observe_continuous(&ContinuousObservation {
+                    observation: x,
+                    stimulus: obs.stimulus.as_deref(),
+                    action_taken,
+                })?
+            }
+            (Some(_), Some(_)) => {
+                return Err(ServiceError::field(
+                    "observation",
+                    "give `state` (a model with numbered states) or `observation` (a continuous world), not both",
+                ));
+            }
+            (None, None) => {
+                let (field, what) = match self.learner.continuous() {
+                    Some(c) => (
+                        "observation",
+                        format!(
+                            "is missing: this session's model is continuous, so each observation carries `observation`, a vector of {} numbers",
+                            c.model().dim()
+                        ),
+                    ),
+                    None => (
+                        "state",
+                        "is missing: each observation carries the `state` the agent is in".to_owned(),
+                    ),
+                };
+                return Err(ServiceError::field(field, what));
+            }
         };
-        let signal = obs
-            .signal
-            .as_deref()
-            .map(|x| (obs.signal_source.unwrap_or(0), x));
-        if let Some(cap) = self.learned_cap {
-            self.learner.check_learned_room(&observation, cap)?;
-        }
-        let observed = self.learner.observe(&observation, signal)?;
         // Algorithm 1 lines 8-10, as `Agent::step`: act even if planning
         // failed, so the agent stays consistent.
         let planned = (plan && self.learner.needs_plan()).then(|| {
@@ -733,31 +793,35 @@ impl SessionState {
             .act()
             .ok_or_else(|| ServiceError::Internal("no state after an observation".into()))?;
         let plan_failed = planned.and_then(Result::err);
-        let agent = self.learner.agent();
-        let drive = agent.drive().vector().to_vec();
+        let learner = &self.learner;
+        let drive = learner.drive().vector().to_vec();
         if obs.stimulus.is_some() {
             let tick = RingTick::new(
                 observed.tick,
-                obs.state,
+                obs.state.unwrap_or(0),
                 action,
                 &drive,
                 obs.stimulus.as_deref(),
                 observed.xi_cur,
                 observed.reward,
-                agent.last_plan().lstdq_error,
+                learner.lstdq_error(),
                 observed.curiosity,
-                agent.learned().map(|l| l.known_fraction()),
+                learner.known_fraction(),
             );
+            let tick = match &obs.observation {
+                Some(x) => tick.with_observation(x),
+                None => tick,
+            };
             push_tick(&mut self.history, history_cap, tick);
         }
         Ok(Applied {
             step: StepOut {
                 tick: observed.tick,
-                action: agent.planning_model().model().actions()[action].clone(),
+                action: learner.actions()[action].clone(),
                 action_index: action,
                 drive,
                 reward: observed.reward,
-                policy_version: agent.policy_version(),
+                policy_version: learner.policy_version(),
                 curiosity: observed.curiosity,
             },
             taken: action_taken,

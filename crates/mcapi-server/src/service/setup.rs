@@ -10,6 +10,7 @@ use std::time::{SystemTime, UNIX_EPOCH};
 
 use parking_lot::Mutex;
 
+use mcapi_core::continuous::{ContinuousAgent, ContinuousBasisSpec, ContinuousModel};
 use mcapi_core::{Agent, AlgoError, Basis, CuriousAgent, PlanningModel};
 
 use super::agent_config::{EffectiveConfig, SessionConfig};
@@ -98,6 +99,34 @@ fn summary_of(
         features: ctx.n_features(),
         layout,
         learned,
+        continuous: None,
+    }
+}
+
+/// The summary of a continuous world as built (docs/algorithm.md §9).
+fn continuous_summary(model: &ContinuousModel) -> ModelSummary {
+    let (kind, k) = match model.spec.basis {
+        Some(ContinuousBasisSpec::Fourier { .. }) => ("fourier", model.features.len()),
+        Some(ContinuousBasisSpec::Rbf { .. }) => ("rbf", model.features.len()),
+        Some(ContinuousBasisSpec::Tiles { .. }) => ("tiles", model.features.len()),
+        // `build` fills the effective basis in.
+        None => ("default", model.features.len()),
+    };
+    ModelSummary {
+        states: 0,
+        actions: model.spec.actions.clone(),
+        stimuli: model.spec.stimuli.clone(),
+        pairs: 0,
+        transitions: 0,
+        deterministic: false,
+        basis: BasisSummary {
+            kind: kind.into(),
+            k,
+        },
+        features: k * model.n_actions(),
+        layout: None,
+        learned: None,
+        continuous: Some(model.spec.clone()),
     }
 }
 
@@ -199,6 +228,20 @@ impl Setup {
         limits: &Limits,
     ) -> Result<(Learner, Arc<ModelSummary>, EffectiveConfig), ServiceError> {
         limits.check_config(agent)?;
+        if let Some(spec) = input.continuous() {
+            if agent.curiosity.is_some() {
+                return Err(ServiceError::field(
+                    "agent.curiosity",
+                    "a curiosity channel needs a model with numbered states; this model is continuous",
+                ));
+            }
+            let model = ModelInput::build_continuous(spec)?;
+            let params = agent.params().check(model.n_stimuli(), self.fresh_u64())?;
+            let config = agent.effective(&params);
+            let summary = Arc::new(continuous_summary(&model));
+            let learner = Learner::Continuous(Box::new(ContinuousAgent::new(model, params)));
+            return Ok((learner, summary, config));
+        }
         if agent.curiosity.is_some() && input.learning().is_some() {
             return Err(ServiceError::field(
                 "agent.curiosity",

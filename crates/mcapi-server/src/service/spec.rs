@@ -10,6 +10,7 @@ use serde_json::Value;
 
 use mcapi_core::model::{GridMap, grid_preset, hallway, three_room};
 use mcapi_core::spec::ModelSpec;
+use mcapi_core::continuous::{ContinuousModel, ContinuousSpec};
 use mcapi_core::{BasisSpec, EnvModel, LearnedParams, ValidLearnedParams};
 
 use super::agent_config::CURIOSITY_DIMENSION;
@@ -47,6 +48,9 @@ pub enum ModelInput {
     /// A full model with `"transitions": "learn"`: states, actions and
     /// stimuli only; the agent learns P (docs/algorithm.md §8).
     Learned(Box<LearnedSpec>),
+    /// A continuous observation space (docs/algorithm.md §9): observations
+    /// are vectors, and transitions are always learned.
+    Continuous(Box<ContinuousSpec>),
 }
 
 /// A full model whose transitions the agent learns (`"transitions":
@@ -138,7 +142,15 @@ impl ModelInput {
         let Some(obj) = value.as_object() else {
             return Err(ServiceError::field("model", "must be a JSON object"));
         };
-        if obj.contains_key("preset") {
+        if obj.contains_key("observation_space") {
+            if obj.contains_key("transitions") || obj.contains_key("next") {
+                return Err(ServiceError::field(
+                    "model.transitions",
+                    "a continuous model's transitions are always learned from what the session observes; no table can be posted",
+                ));
+            }
+            Ok(Self::Continuous(Box::new(from_value(value)?)))
+        } else if obj.contains_key("preset") {
             let f: PresetForm = from_value(value)?;
             Ok(Self::Preset {
                 name: f.preset,
@@ -202,6 +214,7 @@ impl ModelInput {
             }),
             Self::Spec(spec) => serde_json::to_string(spec),
             Self::Learned(spec) => serde_json::to_string(&spec.form()),
+            Self::Continuous(spec) => serde_json::to_string(spec),
         };
         text.map_err(|e| ServiceError::Internal(format!("encoding a model: {e}")))
     }
@@ -224,6 +237,10 @@ impl ModelInput {
             Self::Learned(spec) => format!(
                 "learned:{}",
                 serde_json::to_string(&spec.form()).unwrap_or_default()
+            ),
+            Self::Continuous(spec) => format!(
+                "continuous:{}",
+                serde_json::to_string(spec).unwrap_or_default()
             ),
         };
         sha2::Sha256::digest(text.as_bytes())
@@ -288,6 +305,12 @@ impl ModelInput {
                     ));
                 }
                 (spec.structure()?, spec.basis.clone())
+            }
+            // Built by `build_continuous`: it has no states to enumerate.
+            Self::Continuous(_) => {
+                return Err(ServiceError::Internal(
+                    "a continuous model has no planning model of states".into(),
+                ));
             }
         };
         let model = if curious {
@@ -390,7 +413,9 @@ impl ModelInput {
                 GridMap::from_text(mcapi_core::model::THREE_ROOM_MAP).ok()?
             }
             Self::Grid { lines, .. } => GridMap::parse(lines).ok()?,
-            Self::Preset { .. } | Self::Spec(_) | Self::Learned(_) => return None,
+            Self::Preset { .. } | Self::Spec(_) | Self::Learned(_) | Self::Continuous(_) => {
+                return None;
+            }
         };
         Some(GridLayout::of(&grid))
     }
@@ -401,8 +426,22 @@ impl ModelInput {
         match self {
             Self::Grid { learn, .. } => *learn,
             Self::Learned(spec) => Some(spec.learning),
-            Self::Preset { .. } | Self::Spec(_) => None,
+            Self::Preset { .. } | Self::Spec(_) | Self::Continuous(_) => None,
         }
+    }
+
+    /// The continuous spec, if this is one.
+    pub fn continuous(&self) -> Option<&ContinuousSpec> {
+        match self {
+            Self::Continuous(spec) => Some(spec),
+            Self::Preset { .. } | Self::Grid { .. } | Self::Spec(_) | Self::Learned(_) => None,
+        }
+    }
+
+    /// Checks and builds a continuous model (its sizes first, then its
+    /// basis), naming the field at fault.
+    pub fn build_continuous(spec: &ContinuousSpec) -> Result<ContinuousModel, ServiceError> {
+        spec.build().map_err(|e| ServiceError::algo_at("model", e))
     }
 }
 

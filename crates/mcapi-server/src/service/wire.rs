@@ -8,6 +8,7 @@ use serde_json::Value;
 
 use mcapi_core::model::GridMap;
 use mcapi_core::spec::ActionRef;
+use mcapi_core::continuous::ContinuousSpec;
 use mcapi_core::{BasisSpec, CuriousAgent};
 
 use super::agent_config::{EffectiveConfig, SessionConfig, UpdateMode};
@@ -82,6 +83,13 @@ pub struct ModelSummary {
     /// not what the agent learned.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub learned: Option<LearnedSummary>,
+    /// For a continuous model (docs/sessions.md, "Continuous worlds"): the
+    /// model as built, its effective basis and sample store filled in;
+    /// `states`, `pairs` and `transitions` are then 0 and `features` is
+    /// k × |A|.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    #[schema(value_type = Option<Object>)]
+    pub continuous: Option<ContinuousSpec>,
 }
 
 /// How a session learns its transition model (docs/algorithm.md §8).
@@ -154,8 +162,13 @@ impl GridLayout {
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ObservationIn {
-    /// The state the agent is in now.
-    pub state: usize,
+    /// The state the agent is in now (a model with numbered states).
+    #[serde(default)]
+    pub state: Option<usize>,
+    /// The observation vector (a continuous model): one finite number per
+    /// dimension of its space.
+    #[serde(default)]
+    pub observation: Option<Vec<f64>>,
     /// The stimulus received on arrival; omitted on the first observation.
     #[serde(default)]
     pub stimulus: Option<Vec<f64>>,
@@ -234,6 +247,10 @@ pub struct HistoryEntry {
     /// absent for a session with posted transitions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub known_fraction: Option<f64>,
+    /// For a continuous session: the observation of this tick (`state` is
+    /// then 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub observation: Option<Vec<f64>>,
 }
 
 /// A session as `get` returns it.
@@ -331,6 +348,36 @@ pub struct SessionStats {
     pub factorisation_reuses: u64,
     /// Full factorisations of A.
     pub factorisations: u64,
+    /// For a continuous session: its sample store and clipping.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub continuous: Option<ContinuousStatsOut>,
+}
+
+/// The counters of a continuous session.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ContinuousStatsOut {
+    /// Observations outside the box, clipped into it.
+    pub clipped: u64,
+    /// Transitions in the sample store now.
+    pub samples: usize,
+    /// (cell, action) slots visited.
+    pub slots: usize,
+    /// Rank-one updates of the planner's inverse.
+    pub updates: u64,
+    /// Rebuilds of the planner's inverse.
+    pub rebuilds: u64,
+}
+
+impl From<mcapi_core::continuous::ContinuousStats> for ContinuousStatsOut {
+    fn from(s: mcapi_core::continuous::ContinuousStats) -> Self {
+        Self {
+            clipped: s.clipped,
+            samples: s.samples,
+            slots: s.slots,
+            updates: s.updates,
+            rebuilds: s.rebuilds,
+        }
+    }
 }
 
 /// One line of `list`.
@@ -391,6 +438,11 @@ pub struct Values {
     /// absent for a session with posted transitions.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub known_fraction: Option<f64>,
+    /// For a continuous session: the observations the tables are indexed
+    /// by (a grid over the box for d ≤ 2, else the observations of the
+    /// history ring), `v[i]` and `q[i]` being at `points[i]`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub points: Option<Vec<Vec<f64>>>,
 }
 
 /// The estimated cost of one session.

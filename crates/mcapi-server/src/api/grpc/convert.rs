@@ -18,7 +18,10 @@ use std::collections::BTreeMap;
 
 use crate::service::ModelInput;
 use crate::service::spec::{LearnedSpec, learned_params};
-use crate::service::wire::LearnedSummary;
+use crate::service::wire::{ContinuousStatsOut, LearnedSummary};
+use mcapi_core::continuous::{
+    ContinuousBasisSpec, ContinuousSpec, ObservationSpace, OutOfBounds, SampleParams,
+};
 use mcapi_core::params::StimulusRateName;
 use mcapi_core::spec::{ActionRef, ModelSpec, TransitionSpec};
 use mcapi_core::{BasisSpec, LearnedParams, Optimism, StimulusRate};
@@ -96,7 +99,7 @@ pub fn model_input(m: pb::Model) -> Result<ModelInput, ServiceError> {
     match form {
         None => Err(ServiceError::field(
             "model",
-            "has no form: set one of `preset`, `grid` or `full`",
+            "has no form: set one of `preset`, `grid`, `full` or `continuous`",
         )),
         Some(Form::Preset(pb::PresetModel { name, basis })) => Ok(ModelInput::Preset {
             name,
@@ -134,6 +137,7 @@ pub fn model_input(m: pb::Model) -> Result<ModelInput, ServiceError> {
             },
         }),
         Some(Form::Full(full)) => model_spec(full),
+        Some(Form::Continuous(c)) => continuous_spec(c),
     }
 }
 
@@ -400,6 +404,7 @@ pub fn observation(
         action_taken,
         signal,
         signal_source,
+        observation,
     } = obs;
     let id = session_id(id, default_id)?;
     let action_taken = match action_taken {
@@ -413,7 +418,13 @@ pub fn observation(
     Ok((
         id,
         ObservationIn {
-            state: to_usize("state", state)?,
+            // proto3 cannot tell state 0 from none: with an observation
+            // vector, 0 is none, and any other state is refused with both.
+            state: match (state, observation.is_empty()) {
+                (0, false) => None,
+                (s, _) => Some(to_usize("state", s)?),
+            },
+            observation: (!observation.is_empty()).then_some(observation),
             stimulus,
             action_taken,
             // proto3 cannot tell an empty list from an absent one; a signal
@@ -550,6 +561,7 @@ fn model_summary(m: ModelSummary) -> pb::ModelSummary {
         features,
         layout,
         learned,
+        continuous,
     } = m;
     pb::ModelSummary {
         states: states as u64,
@@ -572,7 +584,138 @@ fn model_summary(m: ModelSummary) -> pb::ModelSummary {
                 max_transitions: max_transitions as u64,
             },
         ),
+        continuous: continuous.map(continuous_model_pb),
     }
+}
+
+/// A continuous model as the typed API shows it.
+fn continuous_model_pb(spec: ContinuousSpec) -> pb::ContinuousModel {
+    let ContinuousSpec {
+        observation_space: ObservationSpace { low, high },
+        actions,
+        stimuli,
+        basis,
+        out_of_bounds,
+        samples,
+    } = spec;
+    use pb::continuous_basis::Kind;
+    pb::ContinuousModel {
+        low,
+        high,
+        actions,
+        stimuli,
+        basis: basis.map(|b| pb::ContinuousBasis {
+            kind: Some(match b {
+                ContinuousBasisSpec::Fourier {
+                    order,
+                    max_coupling,
+                } => Kind::Fourier(pb::FourierBasis {
+                    order,
+                    max_coupling,
+                }),
+                ContinuousBasisSpec::Rbf {
+                    centres_per_dim,
+                    width,
+                } => Kind::Rbf(pb::RbfBasis {
+                    centres_per_dim,
+                    width,
+                }),
+                ContinuousBasisSpec::Tiles {
+                    tilings,
+                    tiles_per_dim,
+                    table,
+                } => Kind::Tiles(pb::TileBasis {
+                    tilings,
+                    tiles_per_dim,
+                    table,
+                }),
+            }),
+        }),
+        out_of_bounds: match out_of_bounds {
+            OutOfBounds::Clip => pb::OutOfBounds::Clip,
+            OutOfBounds::Refuse => pb::OutOfBounds::Refuse,
+        }
+        .into(),
+        samples: Some(pb::SampleParams {
+            cells_per_dim: samples.cells_per_dim,
+            per_cell: samples.per_cell,
+            max: samples.max,
+            known_after: samples.known_after,
+        }),
+    }
+}
+
+/// The typed continuous model as the service's [`ContinuousSpec`]; its
+/// sizes are checked by [`ContinuousSpec::build`], as the REST JSON's.
+fn continuous_spec(m: pb::ContinuousModel) -> Result<ModelInput, ServiceError> {
+    use pb::continuous_basis::Kind;
+    let pb::ContinuousModel {
+        low,
+        high,
+        actions,
+        stimuli,
+        basis,
+        out_of_bounds,
+        samples,
+    } = m;
+    let basis = match basis {
+        None => None,
+        Some(pb::ContinuousBasis { kind: None }) => {
+            return Err(ServiceError::field(
+                "model.basis",
+                "has no kind: set one of `fourier`, `rbf` or `tiles`",
+            ));
+        }
+        Some(pb::ContinuousBasis { kind: Some(k) }) => Some(match k {
+            Kind::Fourier(pb::FourierBasis {
+                order,
+                max_coupling,
+            }) => ContinuousBasisSpec::Fourier {
+                order,
+                max_coupling,
+            },
+            Kind::Rbf(pb::RbfBasis {
+                centres_per_dim,
+                width,
+            }) => ContinuousBasisSpec::Rbf {
+                centres_per_dim,
+                width,
+            },
+            Kind::Tiles(pb::TileBasis {
+                tilings,
+                tiles_per_dim,
+                table,
+            }) => ContinuousBasisSpec::Tiles {
+                tilings,
+                tiles_per_dim,
+                table,
+            },
+        }),
+    };
+    let out_of_bounds = match pb::OutOfBounds::try_from(out_of_bounds) {
+        Ok(pb::OutOfBounds::Unspecified | pb::OutOfBounds::Clip) => OutOfBounds::Clip,
+        Ok(pb::OutOfBounds::Refuse) => OutOfBounds::Refuse,
+        Err(_) => {
+            return Err(ServiceError::field(
+                "model.out_of_bounds",
+                format!("unknown value {out_of_bounds} (1: clip, 2: refuse)"),
+            ));
+        }
+    };
+    let samples = samples.map_or_else(SampleParams::default, |s| SampleParams {
+        cells_per_dim: s.cells_per_dim,
+        per_cell: s.per_cell,
+        max: s.max,
+        known_after: s.known_after,
+    });
+    Ok(ModelInput::Continuous(Box::new(ContinuousSpec {
+        observation_space: ObservationSpace { low, high },
+        actions,
+        stimuli,
+        basis,
+        out_of_bounds,
+        samples,
+    })))
 }
 
 fn grid_layout(l: GridLayout) -> pb::GridLayout {
@@ -698,6 +841,7 @@ fn stats(s: SessionStats) -> pb::SessionStats {
         constant_stimuli,
         factorisation_reuses,
         factorisations,
+        continuous,
     } = s;
     pb::SessionStats {
         lstdq_error,
@@ -706,6 +850,21 @@ fn stats(s: SessionStats) -> pb::SessionStats {
         constant_stimuli: constant_stimuli.into_iter().map(|d| d as u64).collect(),
         factorisation_reuses,
         factorisations,
+        continuous: continuous.map(
+            |ContinuousStatsOut {
+                 clipped,
+                 samples,
+                 slots,
+                 updates,
+                 rebuilds,
+             }| pb::ContinuousStats {
+                clipped,
+                samples: samples as u64,
+                slots: slots as u64,
+                updates,
+                rebuilds,
+            },
+        ),
     }
 }
 
@@ -804,6 +963,7 @@ pub fn history(entries: Vec<HistoryEntry>) -> pb::History {
                      stimulus,
                      curiosity,
                      known_fraction,
+                     observation,
                  }| pb::HistoryEntry {
                     tick,
                     state: state as u64,
@@ -814,6 +974,7 @@ pub fn history(entries: Vec<HistoryEntry>) -> pb::History {
                     stimulus: stimulus.map(|values| pb::Stimulus { values }),
                     curiosity: curiosity.map(tick_curiosity),
                     known_fraction,
+                    observation: observation.unwrap_or_default(),
                 },
             )
             .collect(),
@@ -853,6 +1014,7 @@ pub fn values(v: Values) -> pb::Values {
         xi,
         curiosity,
         known_fraction,
+        points,
     } = v;
     pb::Values {
         tick,
@@ -872,6 +1034,11 @@ pub fn values(v: Values) -> pb::Values {
         }),
         curiosity: curiosity.map(curiosity_info),
         known_fraction,
+        points: points
+            .unwrap_or_default()
+            .into_iter()
+            .map(|x| pb::Point { x })
+            .collect(),
     }
 }
 

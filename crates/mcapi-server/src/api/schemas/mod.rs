@@ -21,6 +21,7 @@
 
 pub mod agent;
 mod builders;
+mod continuous;
 mod model;
 mod observe;
 mod responses;
@@ -67,6 +68,7 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     .examples([json!({"model": {"preset": "hallway"}, "agent": {"seed": 7}})]);
     let mut out = vec![("CreateSession", create.into())];
     out.extend(model::schemas(limits));
+    out.extend(continuous::schemas(limits));
     out.extend(agent::schemas(limits));
     out.extend(observe::schemas(limits));
     out

@@ -359,11 +359,12 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         .item(reference("FullModelTransitions"))
         .item(reference("GridModelLearned"))
         .item(reference("FullModelLearned"))
+        .item(reference("ContinuousModel"))
         .description(Some(
             "The environment model, in one of its forms: a preset, a grid map, or a full \
              model with deterministic `next` or stochastic `transitions`; or a grid map or \
              full model whose transitions the agent learns (`\"learn\": true`, \
-             `\"transitions\": \"learn\"`).",
+             `\"transitions\": \"learn\"`); or a continuous world (`observation_space`).",
         ));
 
     vec![

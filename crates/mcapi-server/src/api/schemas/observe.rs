@@ -12,6 +12,7 @@ use utoipa::{PartialSchema, ToSchema};
 use super::builders::{Bound, U64_MAX, array, closed, integer, nullable_ref, number, reference};
 use super::request_schemas;
 use crate::service::Limits;
+use mcapi_core::continuous::space::MAX_DIM;
 use mcapi_core::curiosity::{MAX_SIGNAL_DIM, MAX_SOURCES_LIMIT};
 use mcapi_core::error::MAX_STIMULUS;
 
@@ -30,7 +31,8 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         )
     };
     let observation = closed(
-        "One observation: the state the agent is in and, from the second observation on, \
+        "One observation: the state the agent is in (or, for a continuous model, its \
+         observation vector; exactly one of the two) and, from the second observation on, \
          the stimulus it received on arrival.",
     )
     .property(
@@ -39,7 +41,24 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             0,
             max_state,
             false,
-            "the state the agent is in now (below the model's `states`)",
+            "the state the agent is in now (below the model's `states`); not for a \
+             continuous model",
+        ),
+    )
+    .property(
+        "observation",
+        array(
+            number(
+                Bound::None,
+                Bound::None,
+                false,
+                "a coordinate (finite)",
+            ),
+            1,
+            MAX_DIM,
+            false,
+            "the observation vector of a continuous model, one coordinate per dimension \
+             of its `observation_space`",
         ),
     )
     .property(
@@ -80,8 +99,10 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             "the signal's source, below the channel's `max_sources` (limit); default 0",
         ),
     )
-    .required("state")
-    .examples([json!({"state": 26, "stimulus": [0.0, 0.0]})]);
+    .examples([
+        json!({"state": 26, "stimulus": [0.0, 0.0]}),
+        json!({"observation": [0.31, 0.72], "stimulus": [0.0, 1.0]}),
+    ]);
     let batch = closed("A batch of observations, applied in order.")
         .property(
             "observations",

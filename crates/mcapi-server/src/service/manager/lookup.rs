@@ -180,7 +180,7 @@ impl SessionManager {
             .map(|(id, entry)| match entry {
                 Entry::Resident(s) => SessionSummary {
                     id,
-                    tick: s.state.lock().learner.agent().tick(),
+                    tick: s.state.lock().learner.tick(),
                     states: s.model.states,
                     update_mode: s.mode,
                     idle_ms: s.idle().map(ms),

@@ -371,7 +371,31 @@ fn not_failed(session: SessionRef) -> Result<SessionRef, ServiceError> {
 
 fn info_of(session: &Session) -> SessionInfo {
     let st = session.state.lock();
-    let agent = st.learner.agent();
+    if let Some(c) = st.learner.continuous() {
+        return SessionInfo {
+            id: session.id.clone(),
+            tick: c.tick(),
+            drive: c.drive().vector().to_vec(),
+            policy_version: c.policy_version(),
+            state: None,
+            model: ModelSummary::clone(&session.model),
+            agent: session.config.clone(),
+            stats: SessionStats {
+                lstdq_error: 0.0,
+                lambda1_estimate: c.drive().lambda1_estimate(),
+                condition_1_holds: c.drive().condition_holds(),
+                constant_stimuli: Vec::new(),
+                factorisation_reuses: 0,
+                factorisations: 0,
+                continuous: Some(c.stats().into()),
+            },
+            cost: cost::estimate(&session.model, &session.config),
+            curiosity: None,
+        };
+    }
+    let Some(agent) = st.learner.agent() else {
+        unreachable!("a learner is discrete or continuous");
+    };
     let stats = agent.planner().stats();
     SessionInfo {
         id: session.id.clone(),
@@ -388,6 +412,7 @@ fn info_of(session: &Session) -> SessionInfo {
             constant_stimuli: agent.stimulus().constant_columns(),
             factorisation_reuses: stats.reuses,
             factorisations: stats.factorisations,
+            continuous: None,
         },
         cost: cost::estimate(&session.model, &session.config),
         curiosity: st.learner.curious().map(CuriosityInfo::of),
