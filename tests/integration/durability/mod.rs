@@ -49,6 +49,7 @@ use serde_json::{Value, json};
 use tonic::transport::Channel;
 
 mod api_keys;
+mod continuous;
 mod damaged_store;
 mod restart;
 

@@ -585,7 +585,7 @@ mod tests {
         assert!(fast(br#"{"st\u0061te": 4}"#).is_none());
         assert!(matches!(
             parse(br#"{"st\u0061te": 4}"#),
-            Ok(ObserveBody::One(ObservationIn { state: 4, .. }))
+            Ok(ObserveBody::One(ObservationIn { state: Some(4), .. }))
         ));
     }
 

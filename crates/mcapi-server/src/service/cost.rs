@@ -212,7 +212,11 @@ fn continuous(
     let na = model.actions.len() as u64;
     let n = model.stimuli.len() as u64;
     let d = spec.observation_space.dim() as u64;
-    let samples = u64::from(spec.samples.max.unwrap_or(mcapi_core::continuous::model::MAX_SAMPLES));
+    let samples = u64::from(
+        spec.samples
+            .max
+            .unwrap_or(mcapi_core::continuous::model::MAX_SAMPLES),
+    );
     let f = k * na;
     let names: u64 = model
         .actions
@@ -317,6 +321,7 @@ mod tests {
                 k: 0,
             },
             features: states * actions,
+            continuous: None,
             layout: None,
             learned: None,
         }

@@ -272,8 +272,19 @@ mod tests {
         assert_eq!(back.known_fraction(), None, "a TickRecord does not keep it");
         assert_eq!(back.with_known_fraction(Some(0.375)), learned);
         // A continuous world's observation shares the curiosity box.
-        let continuous = RingTick::new(4, 0, 1, &[0.6, 0.8], Some(&[1.0, 0.0]), None, 0.5, 0.0, None, None)
-            .with_observation(&[0.25, -3.0]);
+        let continuous = RingTick::new(
+            4,
+            0,
+            1,
+            &[0.6, 0.8],
+            Some(&[1.0, 0.0]),
+            None,
+            0.5,
+            0.0,
+            None,
+            None,
+        )
+        .with_observation(&[0.25, -3.0]);
         assert!(std::mem::size_of::<RingTick>() <= 64);
         let e = continuous.entry();
         assert_eq!(e.observation, Some(vec![0.25, -3.0]));

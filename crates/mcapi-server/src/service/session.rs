@@ -707,17 +707,14 @@ impl SessionState {
         let action_taken = match &obs.action_taken {
             None => None,
             Some(ActionRef::Index(a)) => Some(*a),
-            Some(ActionRef::Name(name)) => Some(
-                actions.iter().position(|a| a == name).ok_or_else(|| {
+            Some(ActionRef::Name(name)) => {
+                Some(actions.iter().position(|a| a == name).ok_or_else(|| {
                     ServiceError::field(
                         "action_taken",
-                        format!(
-                            "unknown action `{name}` (actions: {})",
-                            actions.join(", ")
-                        ),
+                        format!("unknown action `{name}` (actions: {})", actions.join(", ")),
                     )
-                })?,
-            ),
+                })?)
+            }
         };
         if obs.signal_source.is_some() && obs.signal.is_none() {
             return Err(ServiceError::field(
@@ -771,7 +768,8 @@ impl SessionState {
                     ),
                     None => (
                         "state",
-                        "is missing: each observation carries the `state` the agent is in".to_owned(),
+                        "is missing: each observation carries the `state` the agent is in"
+                            .to_owned(),
                     ),
                 };
                 return Err(ServiceError::field(field, what));

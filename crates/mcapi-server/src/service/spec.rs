@@ -8,9 +8,9 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use mcapi_core::continuous::{ContinuousModel, ContinuousSpec};
 use mcapi_core::model::{GridMap, grid_preset, hallway, three_room};
 use mcapi_core::spec::ModelSpec;
-use mcapi_core::continuous::{ContinuousModel, ContinuousSpec};
 use mcapi_core::{BasisSpec, EnvModel, LearnedParams, ValidLearnedParams};
 
 use super::agent_config::CURIOSITY_DIMENSION;

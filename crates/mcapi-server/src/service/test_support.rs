@@ -6,7 +6,8 @@ use super::wire::ObservationIn;
 /// One observation of `state`, with `stimulus` (none on the first).
 pub(super) fn obs(state: usize, stimulus: Option<Vec<f64>>) -> ObservationIn {
     ObservationIn {
-        state,
+        state: Some(state),
+        observation: None,
         stimulus,
         action_taken: None,
         signal: None,

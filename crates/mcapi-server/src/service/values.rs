@@ -73,7 +73,9 @@ impl ValueSelection {
         let sel = self;
         let m = model;
         if let Some(spec) = &m.continuous {
-            if sel.r || sel.xi {
+            // `all` is every table the session has.
+            let all = sel.v && sel.q && sel.policy && sel.r && sel.xi;
+            if (sel.r || sel.xi) && !all {
                 return Err(ServiceError::field(
                     "include",
                     "a continuous world has no table of R or Ξ to return; ask for v, q and policy, given at `points`",
@@ -142,7 +144,11 @@ fn continuous_points(space: &ObservationSpace, history: Vec<HistoryEntry>) -> Ve
     }
 }
 
-fn continuous_tables(agent: &ContinuousAgent, sel: ValueSelection, history: Vec<HistoryEntry>) -> Values {
+fn continuous_tables(
+    agent: &ContinuousAgent,
+    sel: ValueSelection,
+    history: Vec<HistoryEntry>,
+) -> Values {
     let mut points = Vec::new();
     let mut qs = Vec::new();
     for x in continuous_points(&agent.model().spec.observation_space, history) {
@@ -154,9 +160,10 @@ fn continuous_tables(agent: &ContinuousAgent, sel: ValueSelection, history: Vec<
     }
     let actions = &agent.model().spec.actions;
     let best = |q: &[f64]| {
-        q.iter()
-            .enumerate()
-            .fold((0, f64::NEG_INFINITY), |b, (a, &v)| if v > b.1 { (a, v) } else { b })
+        q.iter().enumerate().fold(
+            (0, f64::NEG_INFINITY),
+            |b, (a, &v)| if v > b.1 { (a, v) } else { b },
+        )
     };
     Values {
         tick: agent.tick(),
@@ -165,9 +172,11 @@ fn continuous_tables(agent: &ContinuousAgent, sel: ValueSelection, history: Vec<
         policy: sel
             .policy
             .then(|| qs.iter().map(|q| actions[best(q).0].clone()).collect()),
-        q: sel
-            .q
-            .then(|| qs.iter().map(|q| q.iter().copied().map(Some).collect()).collect()),
+        q: sel.q.then(|| {
+            qs.iter()
+                .map(|q| q.iter().copied().map(Some).collect())
+                .collect()
+        }),
         points: Some(points),
         ..Values::default()
     }

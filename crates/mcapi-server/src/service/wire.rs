@@ -6,9 +6,9 @@
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use mcapi_core::continuous::ContinuousSpec;
 use mcapi_core::model::GridMap;
 use mcapi_core::spec::ActionRef;
-use mcapi_core::continuous::ContinuousSpec;
 use mcapi_core::{BasisSpec, CuriousAgent};
 
 use super::agent_config::{EffectiveConfig, SessionConfig, UpdateMode};

@@ -90,7 +90,8 @@ fn step_state(s: usize, a: usize) -> usize {
 
 fn observation(state: usize, first: bool) -> ObservationIn {
     ObservationIn {
-        state,
+        state: Some(state),
+        observation: None,
         stimulus: (!first).then(|| stimulus(state).to_vec()),
         action_taken: None,
         signal: None,

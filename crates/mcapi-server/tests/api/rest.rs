@@ -430,8 +430,18 @@ async fn session_limit_pagination_and_delete() {
     let a = server.manager.session(&ids[1]).expect("a");
     let b = server.manager.session(&ids[2]).expect("b");
     assert!(Arc::ptr_eq(
-        a.state.lock().learner.agent().planning_model(),
-        b.state.lock().learner.agent().planning_model()
+        a.state
+            .lock()
+            .learner
+            .agent()
+            .expect("discrete")
+            .planning_model(),
+        b.state
+            .lock()
+            .learner
+            .agent()
+            .expect("discrete")
+            .planning_model()
     ));
 }
 

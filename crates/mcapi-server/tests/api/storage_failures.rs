@@ -34,7 +34,8 @@ fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
         manager
     };
     let obs = |state: usize, first: bool| ObservationIn {
-        state,
+        state: Some(state),
+        observation: None,
         stimulus: (!first).then(|| stimulus(state).to_vec()),
         action_taken: None,
         signal: None,
@@ -133,7 +134,8 @@ fn hallway_session(manager: &mcapi_server::service::SessionManager, seed: u64) -
 
 fn observation(state: usize, first: bool) -> mcapi_server::service::ObservationIn {
     mcapi_server::service::ObservationIn {
-        state,
+        state: Some(state),
+        observation: None,
         stimulus: (!first).then(|| stimulus(state).to_vec()),
         action_taken: None,
         signal: None,

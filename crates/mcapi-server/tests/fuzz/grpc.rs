@@ -262,6 +262,11 @@ fn grpc_observe_bodies(ids: Vec<String>) -> impl Strategy<Value = Vec<u8>> {
                     1 => prop::collection::vec(any::<f64>(), 0..3),
                 ],
                 prop::option::of(any::<u32>()),
+                prop_oneof![
+                    2 => Just(Vec::new()),
+                    2 => prop::collection::vec(-0.5f64..1.5, 2..=2),
+                    1 => prop::collection::vec(any::<f64>(), 0..80),
+                ],
             ),
             0..6,
         ),
@@ -273,7 +278,7 @@ fn grpc_observe_bodies(ids: Vec<String>) -> impl Strategy<Value = Vec<u8>> {
                 observations: obs
                     .into_iter()
                     .map(
-                        |(state, stimulus, action, signal, source)| pb::Observation {
+                        |(state, stimulus, action, signal, source, observation)| pb::Observation {
                             session_id: if foreign {
                                 "s0000.x".into()
                             } else {
@@ -284,6 +289,7 @@ fn grpc_observe_bodies(ids: Vec<String>) -> impl Strategy<Value = Vec<u8>> {
                             action_taken: action.map(pb::observation::ActionTaken::ActionIndex),
                             signal,
                             signal_source: source,
+                            observation,
                         },
                     )
                     .collect(),

@@ -49,6 +49,23 @@ const KEYS: &[&str] = &[
     "signal",
     "signal_source",
     "observations",
+    "observation",
+    "observation_space",
+    "low",
+    "high",
+    "out_of_bounds",
+    "samples",
+    "order",
+    "max_coupling",
+    "centres_per_dim",
+    "width",
+    "tilings",
+    "tiles_per_dim",
+    "table",
+    "cells_per_dim",
+    "per_cell",
+    "max",
+    "known_after",
 ];
 
 const WORDS: &[&str] = &[
@@ -76,6 +93,11 @@ const WORDS: &[&str] = &[
     "#####",
     "#a.b#",
     "null",
+    "fourier",
+    "rbf",
+    "tiles",
+    "clip",
+    "refuse",
 ];
 
 pub(crate) fn absurd_number() -> impl Strategy<Value = Value> {
@@ -301,6 +323,19 @@ pub(crate) fn create_bases() -> Vec<Value> {
         json!({"model": {"preset": "hallway"},
                "agent": {"curiosity": {"signal_dim": 2,
                          "params": {"gain": 800, "dt": 0.08, "tau": 20, "lag": 20, "max_centres": 3}}}}),
+        json!({"model": {"observation_space": {"low": [0, 0], "high": [1, 1]},
+               "actions": ["n", "s", "e", "w"], "stimuli": ["food", "rest"],
+               "basis": {"kind": "fourier", "order": 3, "max_coupling": 2},
+               "out_of_bounds": "refuse", "samples": {"max": 64, "per_cell": 1}},
+               "agent": {"seed": 5}}),
+        json!({"model": {"observation_space": {"low": [-1, 0, 0], "high": [1, 10, 1]},
+               "actions": ["a", "b"], "stimuli": ["x"],
+               "basis": {"kind": "tiles", "tilings": 4, "tiles_per_dim": 6, "table": 512}},
+               "agent": {"update_mode": "async"}}),
+        json!({"model": {"observation_space": {"low": [0], "high": [1]},
+               "actions": ["l", "r"], "stimuli": ["x", "y"],
+               "basis": {"kind": "rbf", "centres_per_dim": 10, "width": 0.5},
+               "samples": {"cells_per_dim": 20, "known_after": 2}}}),
     ]
 }
 
@@ -313,6 +348,10 @@ pub(crate) fn observe_bases() -> Vec<Value> {
         json!({"observations": [{"state": 1, "stimulus": [0, 0]}, {"state": 0, "stimulus": [0, 0]}]}),
         json!({"state": 1, "stimulus": [0, 0], "signal": [1.0, 1.0], "signal_source": 0}),
         json!({"state": 0, "stimulus": [1]}),
+        json!({"observation": [0.5, 0.25]}),
+        json!({"observation": [0.5, 0.25], "stimulus": [0, 1], "action_taken": "e"}),
+        json!({"observations": [{"observation": [0.1, 0.9], "stimulus": [1, 0]},
+                                {"observation": [1.5, -3], "stimulus": [0, 0]}]}),
     ]
 }
 

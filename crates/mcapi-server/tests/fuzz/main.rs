@@ -143,6 +143,14 @@ fn env() -> &'static Env {
                 1,
                 0,
             ),
+            (
+                json!({"model": {"observation_space": {"low": [0, 0], "high": [1, 1]},
+                    "actions": ["n", "s", "e", "w"], "stimuli": ["food", "rest"],
+                    "samples": {"max": 256}},
+                    "agent": {"seed": 6}}),
+                2,
+                0,
+            ),
         ] {
             let (status, info) = rt.block_on(rest_call(&rest, "POST", "/v1/sessions", body.to_string().into_bytes()));
             assert_eq!(status, 201, "{info}");
@@ -159,7 +167,11 @@ fn env() -> &'static Env {
                 .connect_timeout(Duration::from_secs(5))
                 .connect_lazy();
             let mut ids = Vec::new();
-            for model in [r#"{"preset": "hallway"}"#, r#"{"preset": "three_room"}"#] {
+            for model in [
+                r#"{"preset": "hallway"}"#,
+                r#"{"preset": "three_room"}"#,
+                r#"{"observation_space": {"low": [0, 0], "high": [1, 1]}, "actions": ["n", "s", "e", "w"], "stimuli": ["food", "rest"], "samples": {"max": 256}}"#,
+            ] {
                 let req = pb::CreateSessionRequest {
                     model_json: model.into(),
                     model: None,

@@ -90,10 +90,21 @@ fn fuzz_create(body: Vec<u8>) -> Result<(), TestCaseError> {
             .map_or(0, Vec::len)
             .saturating_sub(usize::from(curious));
         let uri = format!("/v1/sessions/{id}/observations");
-        for obs in [
-            json!({"state": 0}),
-            json!({"state": states.saturating_sub(1), "stimulus": vec![1.5; stimuli]}),
-        ] {
+        // A continuous world's session takes vectors in its box.
+        let dim = info["model"]["continuous"]["observation_space"]["low"]
+            .as_array()
+            .map(Vec::len);
+        let firsts = match dim {
+            Some(d) => [
+                json!({"observation": vec![0.0; d]}),
+                json!({"observation": vec![0.5; d], "stimulus": vec![1.5; stimuli]}),
+            ],
+            None => [
+                json!({"state": 0}),
+                json!({"state": states.saturating_sub(1), "stimulus": vec![1.5; stimuli]}),
+            ],
+        };
+        for obs in firsts {
             let bytes = obs.to_string().into_bytes();
             let (status, reply) = e.rt.block_on(rest_call(&e.rest, "POST", &uri, bytes));
             if known_numerical_failure(&body, status, &reply) {
@@ -167,7 +178,7 @@ fn rest_observe_survives_arbitrary_bodies() {
     let _serial = one_at_a_time();
     let started = Instant::now();
     let mut runner = runner(DEFAULT_CASES);
-    let result = runner.run(&(0usize..4, body(observe_bases())), |(s, b)| {
+    let result = runner.run(&(0usize..5, body(observe_bases())), |(s, b)| {
         fuzz_observe(s, b)
     });
     eprintln!(

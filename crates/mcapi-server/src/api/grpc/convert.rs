@@ -1066,6 +1066,7 @@ mod tests {
                 action_taken: None,
                 signal: vec![],
                 signal_source: None,
+                observation: vec![],
             },
             None,
         )
@@ -1080,6 +1081,7 @@ mod tests {
                 action_taken: Some(pb::observation::ActionTaken::ActionName("left".into())),
                 signal: vec![0.5, 1.0],
                 signal_source: Some(1),
+                observation: vec![],
             },
             None,
         )

@@ -34,7 +34,10 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         )
     };
     let space = closed("The box observations live in: `low[i] < high[i]` in every dimension.")
-        .property("low", corner("the lower corner, one coordinate per dimension"))
+        .property(
+            "low",
+            corner("the lower corner, one coordinate per dimension"),
+        )
         .property("high", corner("the upper corner, as long as `low`"))
         .required("low")
         .required("high");

@@ -48,12 +48,7 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     .property(
         "observation",
         array(
-            number(
-                Bound::None,
-                Bound::None,
-                false,
-                "a coordinate (finite)",
-            ),
+            number(Bound::None, Bound::None, false, "a coordinate (finite)"),
             1,
             MAX_DIM,
             false,
