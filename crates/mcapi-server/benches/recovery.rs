@@ -88,7 +88,8 @@ fn main() -> anyhow::Result<()> {
                             let mut batch = Vec::with_capacity(n);
                             for _ in 0..n {
                                 batch.push(ObservationIn {
-                                    state,
+                                    state: Some(state),
+                                    observation: None,
                                     stimulus: (!first).then(|| hallway_stimulus(state)),
                                     action_taken: None,
                                     signal: None,
