@@ -184,6 +184,25 @@ fn bounds_are_the_limits_of_the_server() {
         obs["properties"]["signal"]["maxItems"],
         mcapi_core::curiosity::MAX_SIGNAL_DIM
     );
+    // A continuous world's bounds are the core's.
+    assert_eq!(
+        obs["properties"]["observation"]["maxItems"],
+        mcapi_core::continuous::space::MAX_DIM
+    );
+    let continuous = schema(&d, "ContinuousModel");
+    assert_eq!(continuous["properties"]["stimuli"]["maxItems"], 7);
+    assert_eq!(
+        continuous["properties"]["actions"]["maxItems"],
+        mcapi_core::continuous::model::MAX_ACTIONS
+    );
+    assert_eq!(
+        schema(&d, "SampleParams")["properties"]["max"]["maximum"],
+        mcapi_core::continuous::model::MAX_SAMPLES
+    );
+    assert_eq!(
+        schema(&d, "ContinuousBasis")["oneOf"][0]["properties"]["order"]["maximum"],
+        mcapi_core::continuous::basis::MAX_ORDER
+    );
     let create = schema(&d, "CreateSession");
     assert!(
         create["description"]
@@ -235,7 +254,8 @@ fn every_body_form_is_a_closed_one_of_branch() {
             "#/components/schemas/FullModelNext",
             "#/components/schemas/FullModelTransitions",
             "#/components/schemas/GridModelLearned",
-            "#/components/schemas/FullModelLearned"
+            "#/components/schemas/FullModelLearned",
+            "#/components/schemas/ContinuousModel"
         ]
     );
     // Each branch is closed and requires its distinguishing key, so `{}` is
@@ -247,6 +267,7 @@ fn every_body_form_is_a_closed_one_of_branch() {
         ("FullModelTransitions", "transitions"),
         ("GridModelLearned", "learn"),
         ("FullModelLearned", "transitions"),
+        ("ContinuousModel", "observation_space"),
     ] {
         let s = schema(&d, name);
         assert_eq!(s["additionalProperties"], false, "{name}");
