@@ -232,6 +232,68 @@ async function mainServer(browser) {
   }
 }
 
+/**
+ * A continuous world: a point in the unit square, food in a disc at
+ * (0.2, 0.2), rest in one at (0.8, 0.8); the page draws V over the square,
+ * the path and where stimuli came. Saves docs/dashboard-continuous.png.
+ */
+async function continuousServer(browser) {
+  const server = await startServer();
+  const { base } = server;
+  try {
+    const info = await call(base, "POST", "/v1/sessions", {
+      model: {
+        observation_space: { low: [0, 0], high: [1, 1] },
+        actions: ["north", "south", "east", "west"],
+        stimuli: ["food", "rest"],
+      },
+      agent: { seed: 3, history: 1000 },
+    });
+    check(info.model.continuous && info.model.states === 0, "a continuous model has no states");
+    const route = `/v1/sessions/${info.id}/observations`;
+    let x = [0.5, 0.5];
+    let step = await call(base, "POST", route, { observation: x });
+    const moves = { north: [0, 0.04], south: [0, -0.04], east: [0.04, 0], west: [-0.04, 0] };
+    // Rests come where food was scarce: a source here, the other later.
+    for (let t = 0; t < 400; t++) {
+      const m = moves[step.action];
+      x = [Math.min(1, Math.max(0, x[0] + m[0])), Math.min(1, Math.max(0, x[1] + m[1]))];
+      const near = (c) => Math.hypot(x[0] - c[0], x[1] - c[1]) < 0.2;
+      step = await call(base, "POST", route, { observation: x, stimulus: [near([0.2, 0.2]) ? 6 : 0, near([0.8, 0.8]) ? 6 : 0] });
+    }
+    const page = await browser.newPage({ viewport: { width: 1440, height: 1000 }, deviceScaleFactor: 1 });
+    const errors = [];
+    page.on("pageerror", (e) => errors.push(String(e)));
+    page.on("console", (m) => { if (m.type() === "error") errors.push(m.text()); });
+    await page.goto(base + "/#" + info.id);
+    await page.waitForFunction(() => Number(document.getElementById("heatmap").dataset.draws) > 0, null, { timeout: 15000 });
+    await page.waitForFunction(() => Number(document.getElementById("heatmap").dataset.path) > 100, null, { timeout: 15000 });
+    const drawn = await page.evaluate(() => {
+      const canvas = document.getElementById("heatmap");
+      const img = canvas.getContext("2d").getImageData(0, 0, canvas.width, canvas.height).data;
+      const colours = new Set();
+      for (let i = 0; i < img.length; i += 4 * 7) colours.add(img[i] << 16 | img[i + 1] << 8 | img[i + 2]);
+      return {
+        colours: colours.size,
+        found: Number(canvas.dataset.found),
+        state: document.getElementById("fact-state").textContent,
+        caption: document.getElementById("values-caption").textContent,
+      };
+    });
+    console.log("continuous:", JSON.stringify(drawn));
+    check(drawn.colours > 20, "V over the square has colour");
+    check(drawn.found > 0, "where stimuli came is drawn");
+    check(drawn.state.startsWith("("), "the agent's observation is shown: " + drawn.state);
+    check(drawn.caption.includes("observation space"), "the caption says what is drawn");
+    check(await page.locator("#chart-values").isHidden(), "no bars for a continuous world");
+    check(errors.length === 0, "no page errors: " + errors.join("; "));
+    await page.screenshot({ path: SCREENSHOT.replace(/\.png$/, "-continuous.png"), fullPage: true });
+    await page.close();
+  } finally {
+    server.child.kill();
+  }
+}
+
 async function keyedServer(browser) {
   const server = await startServer(["--api-key", KEY]);
   const { base } = server;
@@ -271,6 +333,7 @@ async function keyedServer(browser) {
 const browser = await chromium.launch({ executablePath: CHROMIUM, args: ["--no-sandbox"] });
 try {
   await mainServer(browser);
+  await continuousServer(browser);
   await keyedServer(browser);
   console.log("e2e: dashboard OK");
 } finally {

@@ -8,6 +8,8 @@
 (() => {
   const KEY_STORE = "mcapi.apiKey";
   const WINDOW = 1000; // ticks kept in the line charts
+  const TRAJECTORY = 500; // observations drawn of a continuous world's path
+  const FOUND = 400; // stimulus arrivals drawn
   const LIST_EVERY_MS = 2000;
   const RETRY_MS = 2000;
   const PALETTE = ["#2563eb", "#dc2626", "#16a34a", "#9333ea", "#ea580c", "#0891b2", "#ca8a04", "#db2777"];
@@ -90,7 +92,9 @@
   function describeModel(m) {
     const parts = [];
     if (m.layout) parts.push("grid " + m.layout.rows + "×" + m.layout.cols);
-    parts.push(m.states + " states", m.actions.length + " actions");
+    if (m.continuous) parts.push("continuous, d = " + m.continuous.observation_space.low.length);
+    else parts.push(m.states + " states");
+    parts.push(m.actions.length + " actions");
     parts.push("stimuli " + m.stimuli.join(", "));
     parts.push(m.basis.kind === "indicator" ? "indicator basis" : m.basis.kind + " basis (k = " + m.basis.k + ")");
     return parts.join(" · ");
@@ -298,6 +302,8 @@
       modules: null,
       lastTick: null,
       state: null,
+      traj: [],
+      found: [],
       sawStimulus: false,
       values: null,
       dirty: false,
@@ -344,6 +350,16 @@
     if (view.lastTick !== null && e.tick <= view.lastTick) return; // resent after a reconnect
     view.lastTick = e.tick;
     view.state = e.state;
+    if (Array.isArray(e.observation)) {
+      // A continuous world: the trajectory, and where a stimulus came.
+      view.state = e.observation;
+      view.traj.push(e.observation);
+      if (view.traj.length > TRAJECTORY) view.traj.splice(0, view.traj.length - TRAJECTORY);
+      (e.stimulus || []).forEach((x, d) => {
+        if (Number(x) > 0) view.found.push({ at: e.observation, dim: d });
+      });
+      if (view.found.length > FOUND) view.found.splice(0, view.found.length - FOUND);
+    }
     view.x.push(e.tick);
     const n = view.info ? view.info.model.stimuli.length : e.drive.length;
     for (let d = 0; d < n; d++) view.drive[d].push(e.drive[d] ?? null);
@@ -415,12 +431,17 @@
         axes: [{ label: "tick" }, { label: "ξ_cur" }, { scale: "eps", side: 1, label: "ε", grid: { show: false } }],
       });
     }
-    const grid = !!m.layout;
+    const grid = !!m.layout || !!m.continuous;
     $("heatmap").hidden = !grid;
     $("chart-values").hidden = grid;
-    $("values-caption").textContent = grid
-      ? "V over the map, greedy policy (arrows; dots stay) and the agent (red ring)"
-      : "V per state (bars) and the agent (red dot)";
+    const dim = m.continuous ? m.continuous.observation_space.low.length : 0;
+    $("values-caption").textContent = m.continuous
+      ? (dim <= 2
+        ? "V over the observation space, the recent path, where stimuli came (dots by stimulus) and the agent (red ring)"
+        : "The first two of " + dim + " coordinates: V at recent observations, where stimuli came and the agent (red ring)")
+      : grid
+        ? "V over the map, greedy policy (arrows; dots stay) and the agent (red ring)"
+        : "V per state (bars) and the agent (red dot)";
     if (!grid) {
       view.charts.values = lineChart(view, $("chart-values"), [
         { label: "V", stroke: "#2563eb", fill: "rgba(37,99,235,0.35)", paths: uPlot.paths.bars({ size: [0.8, 24] }) },
@@ -442,7 +463,8 @@
     if (!view.info) return;
     const names = view.info.model.stimuli;
     $("fact-tick").textContent = view.lastTick === null ? String(view.info.tick) : String(view.lastTick);
-    $("fact-state").textContent = view.state === null ? "–" : String(view.state);
+    $("fact-state").textContent = view.state === null ? "–"
+      : Array.isArray(view.state) ? "(" + view.state.map(fmt).join(", ") + ")" : String(view.state);
     const last = view.drive.map((d) => d[d.length - 1]);
     if (last.length && last[0] !== undefined) {
       let best = 0;
@@ -465,7 +487,8 @@
       $(id).dataset.lastTick = view.x.length ? String(view.x[view.x.length - 1]) : "";
     }
     if (view.values && view.values.v) {
-      if (view.info.model.layout) drawHeatmap(view);
+      if (view.info.model.continuous) drawContinuous(view);
+      else if (view.info.model.layout) drawHeatmap(view);
       else drawBars(view);
     }
   }
@@ -572,6 +595,106 @@
     canvas.dataset.version = String(view.values.policy_version);
     canvas.dataset.draws = String(Number(canvas.dataset.draws || 0) + 1);
     canvas.dataset.state = view.state === null ? "" : String(view.state);
+  }
+
+  /**
+   * A continuous world on the heatmap canvas. d = 1 and d = 2: V on the
+   * server's grid of points (a strip for d = 1); above, the first two
+   * coordinates, V as dots at the recent observations the server evaluated.
+   * Over it the recent path, a dot per stimulus arrival (the stimulus's
+   * colour) and the agent.
+   */
+  function drawContinuous(view) {
+    const canvas = $("heatmap");
+    const space = view.info.model.continuous.observation_space;
+    const d = space.low.length;
+    const points = view.values.points || [];
+    const v = view.values.v;
+    const width = Math.min(Math.max(300, $("heatmap-box").clientWidth), 560);
+    const plotH = d === 1 ? 60 : width;
+    const barH = 26;
+    const w = width, h = plotH + barH + 8;
+    const dpr = window.devicePixelRatio || 1;
+    if (canvas.width !== Math.round(w * dpr) || canvas.height !== Math.round(h * dpr)) {
+      canvas.width = Math.round(w * dpr);
+      canvas.height = Math.round(h * dpr);
+      canvas.style.width = w + "px";
+      canvas.style.height = h + "px";
+    }
+    const ctx = canvas.getContext("2d");
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.clearRect(0, 0, w, h);
+    ctx.fillStyle = "#2b3440";
+    ctx.fillRect(0, 0, w, plotH);
+    // Screen position of an observation (y grows upwards).
+    const px = (x) => ((x[0] - space.low[0]) / (space.high[0] - space.low[0])) * w;
+    const py = (x) => d === 1 ? plotH / 2 : plotH - ((x[1] - space.low[1]) / (space.high[1] - space.low[1])) * plotH;
+    const finite = v.filter(Number.isFinite);
+    const lo = finite.length ? Math.min(...finite) : 0;
+    const hi = finite.length ? Math.max(...finite) : 1;
+    const span = hi - lo || 1;
+    const n = Math.min(points.length, v.length);
+    if (d <= 2) {
+      // The grid: cells centred on its points.
+      const side = d === 1 ? n : Math.round(Math.sqrt(n));
+      const cw = w / Math.max(1, side - 1), ch = d === 1 ? plotH : plotH / Math.max(1, side - 1);
+      for (let i = 0; i < n; i++) {
+        ctx.fillStyle = Number.isFinite(v[i]) ? colour((v[i] - lo) / span) : "#999";
+        ctx.fillRect(px(points[i]) - cw / 2, py(points[i]) - ch / 2, cw + 1, ch + 1);
+      }
+    } else {
+      for (let i = 0; i < n; i++) {
+        ctx.fillStyle = Number.isFinite(v[i]) ? colour((v[i] - lo) / span) : "#999";
+        ctx.beginPath();
+        ctx.arc(px(points[i]), py(points[i]), 4, 0, 2 * Math.PI);
+        ctx.fill();
+      }
+    }
+    // The recent path.
+    if (view.traj.length > 1) {
+      ctx.strokeStyle = "rgba(255,255,255,0.55)";
+      ctx.lineWidth = 1;
+      ctx.beginPath();
+      ctx.moveTo(px(view.traj[0]), py(view.traj[0]));
+      for (const x of view.traj.slice(1)) ctx.lineTo(px(x), py(x));
+      ctx.stroke();
+    }
+    // Where stimuli came: the sources found.
+    for (const { at, dim } of view.found) {
+      ctx.fillStyle = PALETTE[dim % PALETTE.length];
+      ctx.strokeStyle = "#ffffff";
+      ctx.lineWidth = 1;
+      ctx.beginPath();
+      ctx.arc(px(at), py(at), 3.5, 0, 2 * Math.PI);
+      ctx.fill();
+      ctx.stroke();
+    }
+    // The agent.
+    if (Array.isArray(view.state)) {
+      ctx.strokeStyle = "#ef4444";
+      ctx.lineWidth = 3;
+      ctx.beginPath();
+      ctx.arc(px(view.state), py(view.state), 8, 0, 2 * Math.PI);
+      ctx.stroke();
+    }
+    // Colour bar.
+    const y0 = plotH + 8;
+    const barW = Math.min(w, 320);
+    for (let i = 0; i < barW; i++) {
+      ctx.fillStyle = colour(i / (barW - 1));
+      ctx.fillRect(i, y0, 1, 10);
+    }
+    ctx.fillStyle = "#1c2430";
+    ctx.font = "12px system-ui, sans-serif";
+    ctx.textBaseline = "top";
+    ctx.textAlign = "left";
+    ctx.fillText("V " + fmt(lo), 0, y0 + 12);
+    ctx.textAlign = "right";
+    ctx.fillText(fmt(hi), barW, y0 + 12);
+    canvas.dataset.version = String(view.values.policy_version);
+    canvas.dataset.draws = String(Number(canvas.dataset.draws || 0) + 1);
+    canvas.dataset.found = String(view.found.length);
+    canvas.dataset.path = String(view.traj.length);
   }
 
   // ------------------------------------------------------------ start

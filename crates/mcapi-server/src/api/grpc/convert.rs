@@ -690,6 +690,12 @@ fn continuous_spec(m: pb::ContinuousModel) -> Result<ModelInput, ServiceError> {
                 tiles_per_dim,
                 table,
             },
+            Kind::Pvf(_) => {
+                return Err(ServiceError::field(
+                    "model.basis.pvf",
+                    "this server has no pvf basis for continuous worlds; use fourier, rbf or tiles",
+                ));
+            }
         }),
     };
     let out_of_bounds = match pb::OutOfBounds::try_from(out_of_bounds) {
