@@ -91,6 +91,43 @@ async fn hostile_requests_get_precise_refusals_and_the_server_stays_up() {
         "limit_exceeded",
     )
     .await;
+    // Continuous worlds: every size bounded before anything is built.
+    let square = |extra: Value| {
+        let mut m = json!({"observation_space": {"low": [0, 0], "high": [1, 1]},
+                           "actions": ["a"], "stimuli": ["x"]});
+        for (k, v) in extra.as_object().into_iter().flatten() {
+            m[k] = v.clone();
+        }
+        json!({"model": m})
+    };
+    for (name, extra, status, code) in [
+        (
+            "continuous fourier order 10^12",
+            json!({"basis": {"kind": "fourier", "order": 1_000_000_000_000u64}}),
+            400,
+            "bad_request",
+        ),
+        (
+            "continuous sample store of 10^9",
+            json!({"samples": {"max": 1_000_000_000u64}}),
+            400,
+            "invalid_parameter",
+        ),
+        (
+            "continuous space of 10^5 dimensions",
+            json!({"observation_space": {"low": vec![0; 100_000], "high": vec![1; 100_000]}}),
+            400,
+            "bad_request",
+        ),
+        (
+            "continuous 2025 features over 16384 samples (gigabytes)",
+            json!({"basis": {"kind": "fourier", "order": 44}, "samples": {"max": 16384}}),
+            413,
+            "limit_exceeded",
+        ),
+    ] {
+        b.create(name, square(extra), status, code).await;
+    }
     b.create(
         "curiosity signal_dim 10^12",
         hallway(json!({"curiosity": {"signal_dim": 1_000_000_000_000u64}})),
