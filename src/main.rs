@@ -312,9 +312,24 @@ const BLOCKING_KEEP_ALIVE: std::time::Duration = std::time::Duration::from_secs(
 fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
     telemetry::init_logging(cfg.log_format, "info");
     cfg.validate().map_err(anyhow::Error::msg)?;
-    // The JSON form leaves the API keys out; they are never logged.
+    // A short summary for people; the whole configuration at debug, and in
+    // the JSON log format (for machines) at info. The JSON form leaves the
+    // keys out; they are never logged.
     let shown = serde_json::to_string(&cfg).unwrap_or_default();
-    tracing::info!(config = %shown, api_keys = cfg.api_keys.len(), "starting");
+    let store = match cfg.store {
+        mcapi_server::config::StoreKind::Redb => format!("durable, in {}", cfg.data_dir.display()),
+        mcapi_server::config::StoreKind::Memory => "in memory (nothing kept across restarts)".into(),
+    };
+    let keys = match cfg.api_keys.len() {
+        0 => "off".to_owned(),
+        n => format!("on ({n})"),
+    };
+    if cfg.log_format == telemetry::LogFormat::Json {
+        tracing::info!(http = %cfg.http, grpc = %cfg.grpc, store = %store, api_keys = %keys, config = %shown, "starting");
+    } else {
+        tracing::info!(http = %cfg.http, grpc = %cfg.grpc, store = %store, api_keys = %keys, "starting");
+        tracing::debug!(config = %shown, "configuration");
+    }
     #[cfg(feature = "mimalloc")]
     purge::start()?;
     let runtime = tokio::runtime::Builder::new_multi_thread()

@@ -27,25 +27,25 @@ pub enum StoreKind {
 #[derive(Debug, Clone, Args, Serialize)]
 pub struct ServeConfig {
     /// REST listen address.
-    #[arg(long, env = "MCAPI_HTTP", default_value = "127.0.0.1:8080")]
+    #[arg(help_heading = "Network", long, env = "MCAPI_HTTP", default_value = "127.0.0.1:8080")]
     pub http: SocketAddr,
     /// gRPC listen address.
-    #[arg(long, env = "MCAPI_GRPC", default_value = "127.0.0.1:50051")]
+    #[arg(help_heading = "Network", long, env = "MCAPI_GRPC", default_value = "127.0.0.1:50051")]
     pub grpc: SocketAddr,
     /// Data directory of the embedded store (created if missing).
-    #[arg(long, env = "MCAPI_DATA_DIR", default_value = "./data")]
+    #[arg(help_heading = "Storage", long, env = "MCAPI_DATA_DIR", default_value = "./mcapi-data")]
     pub data_dir: PathBuf,
     /// Session store: `redb` (durable, in --data-dir) or `memory`.
-    #[arg(long, env = "MCAPI_STORE", value_enum, default_value = "redb")]
+    #[arg(help_heading = "Storage", long, env = "MCAPI_STORE", value_enum, default_value = "redb")]
     pub store: StoreKind,
     /// When an observation is acknowledged: `sync` after its log frame is
     /// on disk (fdatasync; survives a power cut), `os` after it reaches the
     /// kernel (survives kill -9 of the process, not a power cut; synced in
     /// the background every 5 ms).
-    #[arg(long, env = "MCAPI_DURABILITY", value_enum, default_value = "sync")]
+    #[arg(help_heading = "Storage", long, env = "MCAPI_DURABILITY", value_enum, default_value = "sync")]
     pub durability: mcapi_store::Durability,
     /// Ceiling of the durable store's page cache, in MiB (1 to 65536).
-    #[arg(long, env = "MCAPI_STORE_CACHE_MIB", default_value_t = (mcapi_store::DEFAULT_CACHE_BYTES >> 20) as u64)]
+    #[arg(help_heading = "Storage", long, env = "MCAPI_STORE_CACHE_MIB", default_value_t = (mcapi_store::DEFAULT_CACHE_BYTES >> 20) as u64)]
     pub store_cache_mib: u64,
     /// With the durable store: a session inactive (no observation) for
     /// this many seconds leaves memory, after a snapshot, and is loaded
@@ -53,16 +53,18 @@ pub struct ServeConfig {
     /// sessions whose planner cannot be restored exactly (a PVF or learned
     /// model once it has observed) stay in memory. 0 keeps every session
     /// in memory. At most 2592000 (30 days). Refused with `--store memory`.
-    #[arg(long, env = "MCAPI_EVICT_IDLE_SECS")]
+    /// [default: 300 with the durable store]
+    #[arg(help_heading = "Storage", long, env = "MCAPI_EVICT_IDLE_SECS")]
     pub evict_idle_secs: Option<u64>,
     /// Logged observations between two snapshots of a session (the log
     /// before a snapshot is trimmed).
-    #[arg(long, env = "MCAPI_SNAPSHOT_EVERY", default_value_t = crate::service::DEFAULT_SNAPSHOT_EVERY)]
+    #[arg(help_heading = "Storage", long, env = "MCAPI_SNAPSHOT_EVERY", default_value_t = crate::service::DEFAULT_SNAPSHOT_EVERY)]
     pub snapshot_every: u64,
     /// API key clients must send as `Authorization: Bearer <key>`; repeat
     /// for several keys (env: comma-separated). Each key sees only the
     /// sessions it created. Without keys, no authentication.
     #[arg(
+        help_heading = "Access",
         long = "api-key",
         env = "MCAPI_API_KEYS",
         value_delimiter = ',',
@@ -71,134 +73,134 @@ pub struct ServeConfig {
     #[serde(skip)]
     pub api_keys: Vec<String>,
     /// Tick-loop worker threads (default: number of cores).
-    #[arg(long, env = "MCAPI_WORKERS")]
+    #[arg(help_heading = "Runtime", long, env = "MCAPI_WORKERS")]
     pub workers: Option<usize>,
     /// Policy updates measured to cost at most this many microseconds run
     /// on the requesting task instead of the tick pool (0: always the pool).
-    #[arg(long, env = "MCAPI_INLINE_PLAN_US", default_value_t = 20)]
+    #[arg(help_heading = "Runtime", long, env = "MCAPI_INLINE_PLAN_US", default_value_t = 20)]
     pub inline_plan_us: u64,
     /// Log format.
-    #[arg(long, env = "MCAPI_LOG_FORMAT", value_enum, default_value = "text")]
+    #[arg(help_heading = "Runtime", long, env = "MCAPI_LOG_FORMAT", value_enum, default_value = "text")]
     pub log_format: LogFormat,
     /// Maximum number of sessions.
-    #[arg(long, env = "MCAPI_MAX_SESSIONS", default_value_t = Limits::default().max_sessions)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_SESSIONS", default_value_t = Limits::default().max_sessions)]
     pub max_sessions: usize,
     /// Maximum states x actions of a model.
-    #[arg(long, env = "MCAPI_MAX_PAIRS", default_value_t = Limits::default().max_pairs)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_PAIRS", default_value_t = Limits::default().max_pairs)]
     pub max_pairs: usize,
     /// Maximum transitions of a model.
-    #[arg(long, env = "MCAPI_MAX_TRANSITIONS", default_value_t = Limits::default().max_transitions)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_TRANSITIONS", default_value_t = Limits::default().max_transitions)]
     pub max_transitions: usize,
     /// Maximum features of a basis (k x actions).
-    #[arg(long, env = "MCAPI_MAX_FEATURES", default_value_t = Limits::default().max_features)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_FEATURES", default_value_t = Limits::default().max_features)]
     pub max_features: usize,
     /// Maximum stimulus dimensions.
-    #[arg(long, env = "MCAPI_MAX_STIMULI", default_value_t = Limits::default().max_stimuli)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_STIMULI", default_value_t = Limits::default().max_stimuli)]
     pub max_stimuli: usize,
     /// Maximum request body in bytes.
-    #[arg(long, env = "MCAPI_MAX_BODY_BYTES", default_value_t = Limits::default().max_body_bytes)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_BODY_BYTES", default_value_t = Limits::default().max_body_bytes)]
     pub max_body_bytes: usize,
     /// Maximum observations in one batch.
-    #[arg(long, env = "MCAPI_MAX_BATCH", default_value_t = Limits::default().max_batch)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_BATCH", default_value_t = Limits::default().max_batch)]
     pub max_batch: usize,
     /// Buffered messages per gRPC stream.
-    #[arg(long, env = "MCAPI_STREAM_BUFFER", default_value_t = Limits::default().stream_buffer)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_STREAM_BUFFER", default_value_t = Limits::default().stream_buffer)]
     pub stream_buffer: usize,
     /// Maximum history ticks a session keeps (`agent.history`).
-    #[arg(long, env = "MCAPI_MAX_HISTORY", default_value_t = Limits::default().max_history)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_HISTORY", default_value_t = Limits::default().max_history)]
     pub max_history: usize,
     /// Maximum states of a model with a proto_value basis (its
     /// eigendecomposition is O(|S|³): the default keeps one build under a
     /// second on one core).
-    #[arg(long, env = "MCAPI_MAX_PVF_STATES", default_value_t = Limits::default().max_pvf_states)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_PVF_STATES", default_value_t = Limits::default().max_pvf_states)]
     pub max_pvf_states: usize,
     /// Maximum bytes of a name (action, stimulus, state, preset, grid mark).
-    #[arg(long, env = "MCAPI_MAX_NAME_BYTES", default_value_t = Limits::default().max_name_bytes)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_NAME_BYTES", default_value_t = Limits::default().max_name_bytes)]
     pub max_name_bytes: usize,
     /// Maximum curiosity `tau` and `lag`.
-    #[arg(long, env = "MCAPI_MAX_CURIOSITY_WINDOW", default_value_t = Limits::default().max_curiosity_window)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_CURIOSITY_WINDOW", default_value_t = Limits::default().max_curiosity_window)]
     pub max_curiosity_window: usize,
     /// Maximum curiosity `max_centres`.
-    #[arg(long, env = "MCAPI_MAX_ROC_CENTRES", default_value_t = Limits::default().max_roc_centres)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_ROC_CENTRES", default_value_t = Limits::default().max_roc_centres)]
     pub max_roc_centres: usize,
     /// Maximum curiosity `max_sources`.
-    #[arg(long, env = "MCAPI_MAX_SIGNAL_SOURCES", default_value_t = Limits::default().max_signal_sources)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_SIGNAL_SOURCES", default_value_t = Limits::default().max_signal_sources)]
     pub max_signal_sources: usize,
     /// Maximum estimated memory of one session, in bytes.
-    #[arg(long, env = "MCAPI_MAX_SESSION_BYTES", default_value_t = Limits::default().max_session_bytes)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_SESSION_BYTES", default_value_t = Limits::default().max_session_bytes)]
     pub max_session_bytes: u64,
     /// Maximum estimated CPU time of one observation, in microseconds.
-    #[arg(long, env = "MCAPI_MAX_TICK_US", default_value_t = Limits::default().max_tick_us)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_TICK_US", default_value_t = Limits::default().max_tick_us)]
     pub max_tick_us: u64,
     /// Maximum estimated CPU time of one batch of observations, in ms.
-    #[arg(long, env = "MCAPI_MAX_BATCH_MS", default_value_t = Limits::default().max_batch_ms)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_BATCH_MS", default_value_t = Limits::default().max_batch_ms)]
     pub max_batch_ms: u64,
     /// Sessions one API key (without keys: all clients) may hold.
-    #[arg(long, env = "MCAPI_MAX_KEY_SESSIONS", default_value_t = Limits::default().max_key_sessions)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_KEY_SESSIONS", default_value_t = Limits::default().max_key_sessions)]
     pub max_key_sessions: usize,
     /// Estimated bytes of all sessions of one API key (without keys: of all
     /// sessions).
-    #[arg(long, env = "MCAPI_MAX_KEY_BYTES", default_value_t = Limits::default().max_key_bytes)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_KEY_BYTES", default_value_t = Limits::default().max_key_bytes)]
     pub max_key_bytes: u64,
     /// Maximum bytes of one response of value tables.
-    #[arg(long, env = "MCAPI_MAX_RESPONSE_BYTES", default_value_t = Limits::default().max_response_bytes)]
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_RESPONSE_BYTES", default_value_t = Limits::default().max_response_bytes)]
     pub max_response_bytes: usize,
 
     // Connection limits
     /// Open connections per port (REST and gRPC each); further clients wait
     /// in the listen backlog until one closes.
-    #[arg(long, env = "MCAPI_MAX_CONNECTIONS", default_value_t = ConnLimits::default().max_connections)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_MAX_CONNECTIONS", default_value_t = ConnLimits::default().max_connections)]
     pub max_connections: usize,
     /// A client must send a complete request head within this many ms of
     /// connecting or of its previous response (REST; also the idle limit of
     /// a kept-alive connection), and the HTTP/2 preface within it (gRPC).
-    #[arg(long, env = "MCAPI_HEADER_READ_TIMEOUT_MS", default_value_t = ConnLimits::default().header_read_timeout_ms)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_HEADER_READ_TIMEOUT_MS", default_value_t = ConnLimits::default().header_read_timeout_ms)]
     pub header_read_timeout_ms: u64,
     /// A request (body read included; not an open event or gRPC stream)
     /// must be answered within this many ms, or it gets 503 / DEADLINE_EXCEEDED
     /// `request_timeout`; a REST response write blocked this long (the
     /// client stopped reading) closes the connection.
-    #[arg(long, env = "MCAPI_REQUEST_TIMEOUT_MS", default_value_t = ConnLimits::default().request_timeout_ms)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_REQUEST_TIMEOUT_MS", default_value_t = ConnLimits::default().request_timeout_ms)]
     pub request_timeout_ms: u64,
     /// Concurrent event streams (REST `/events`) plus gRPC `Watch` streams
     /// per API key (per client IP address without keys); beyond it 429
     /// `too_many_streams` / RESOURCE_EXHAUSTED.
-    #[arg(long, env = "MCAPI_MAX_STREAMS_PER_KEY", default_value_t = ConnLimits::default().max_streams_per_key)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_MAX_STREAMS_PER_KEY", default_value_t = ConnLimits::default().max_streams_per_key)]
     pub max_streams_per_key: usize,
     /// Concurrent HTTP/2 streams (calls) per gRPC connection.
-    #[arg(long, env = "MCAPI_HTTP2_MAX_STREAMS", default_value_t = ConnLimits::default().http2_max_streams)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_HTTP2_MAX_STREAMS", default_value_t = ConnLimits::default().http2_max_streams)]
     pub http2_max_streams: u32,
     /// HTTP/2 keep-alive: a gRPC connection is pinged after this many ms
     /// without traffic, and closed if the ping is not answered within
     /// --http2-keepalive-timeout-ms.
-    #[arg(long, env = "MCAPI_HTTP2_KEEPALIVE_MS", default_value_t = ConnLimits::default().http2_keepalive_ms)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_HTTP2_KEEPALIVE_MS", default_value_t = ConnLimits::default().http2_keepalive_ms)]
     pub http2_keepalive_ms: u64,
     /// See --http2-keepalive-ms.
-    #[arg(long, env = "MCAPI_HTTP2_KEEPALIVE_TIMEOUT_MS", default_value_t = ConnLimits::default().http2_keepalive_timeout_ms)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_HTTP2_KEEPALIVE_TIMEOUT_MS", default_value_t = ConnLimits::default().http2_keepalive_timeout_ms)]
     pub http2_keepalive_timeout_ms: u64,
     /// TCP keep-alive probes start after this many seconds of silence on a
     /// connection (both ports), so dead peers are noticed.
-    #[arg(long, env = "MCAPI_TCP_KEEPALIVE_SECS", default_value_t = ConnLimits::default().tcp_keepalive_secs)]
+    #[arg(help_heading = "Connections", long, env = "MCAPI_TCP_KEEPALIVE_SECS", default_value_t = ConnLimits::default().tcp_keepalive_secs)]
     pub tcp_keepalive_secs: u64,
 
     // Cluster (docs/cluster.md)
     /// Shard map file (`mcapi cluster plan`): run as one replica of a
     /// cluster, serving only the shards the map gives --replica. Needs
     /// --replica; without both, a single node owning every shard.
-    #[arg(long, env = "MCAPI_SHARD_MAP", requires = "replica")]
+    #[arg(help_heading = "Cluster", long, env = "MCAPI_SHARD_MAP", requires = "replica")]
     pub shard_map: Option<PathBuf>,
     /// This replica's name in the shard map (e.g. `mcapi-0`). Needs --shard-map.
-    #[arg(long, env = "MCAPI_REPLICA", requires = "shard_map")]
+    #[arg(help_heading = "Cluster", long, env = "MCAPI_REPLICA", requires = "shard_map")]
     pub replica: Option<String>,
     /// Start as a replica the shard map does not name yet, owning nothing
     /// until shards move to it (`mcapi cluster rebalance` does so).
-    #[arg(long, env = "MCAPI_JOINING", requires = "replica")]
+    #[arg(help_heading = "Cluster", long, env = "MCAPI_JOINING", requires = "replica")]
     #[serde(skip)]
     pub joining: bool,
     /// The key of the admin calls that move shards (`/admin/shards/...`,
     /// docs/cluster.md), sent as `Authorization: Bearer <key>`; at least 16
     /// characters. Without it the admin calls answer 403.
-    #[arg(long, env = "MCAPI_ADMIN_KEY", hide_env_values = true)]
+    #[arg(help_heading = "Cluster", long, env = "MCAPI_ADMIN_KEY", hide_env_values = true)]
     #[serde(skip)]
     pub admin_key: Option<String>,
 }
