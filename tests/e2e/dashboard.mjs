@@ -167,6 +167,9 @@ async function mainServer(browser) {
     const row = page.locator(`#sessions tbody tr[data-id="${maze.id}"]`);
     await row.waitFor({ timeout: 15000 });
     check(await page.locator("#sessions tbody tr").count() === 2, "both sessions listed");
+    // The page opens on the most recently active session: the maze.
+    await page.waitForFunction((id) => document.getElementById("view-title").textContent === id, maze.id, { timeout: 15000 });
+    check(await page.locator("#key-button").isHidden(), "no key button on a server without keys");
     await row.click();
 
     // Charts: three uPlot line charts with data; the heatmap drawn.
@@ -241,6 +244,13 @@ async function continuousServer(browser) {
   const server = await startServer();
   const { base } = server;
   try {
+    // An empty server: the page says how to create a session, and shows it
+    // once one exists.
+    const empty = await browser.newPage({ viewport: { width: 1200, height: 800 } });
+    await empty.goto(base + "/");
+    await empty.locator("#sessions-empty").waitFor({ state: "visible", timeout: 15000 });
+    const hint = await empty.locator("#empty-create").textContent();
+    check(hint.startsWith("curl -s -X POST " + base + "/v1/sessions"), "the empty page shows a curl line: " + hint);
     const info = await call(base, "POST", "/v1/sessions", {
       model: {
         observation_space: { low: [0, 0], high: [1, 1] },
@@ -261,6 +271,8 @@ async function continuousServer(browser) {
       const near = (c) => Math.hypot(x[0] - c[0], x[1] - c[1]) < 0.2;
       step = await call(base, "POST", route, { observation: x, stimulus: [near([0.2, 0.2]) ? 6 : 0, near([0.8, 0.8]) ? 6 : 0] });
     }
+    await empty.waitForFunction((id) => document.getElementById("view-title").textContent === id, info.id, { timeout: 15000 });
+    await empty.close();
     const page = await browser.newPage({ viewport: { width: 1440, height: 1000 }, deviceScaleFactor: 1 });
     const errors = [];
     page.on("pageerror", (e) => errors.push(String(e)));

@@ -61,9 +61,12 @@
   // The dialog is asked for automatically once; after a Cancel only the
   // header button opens it.
   async function onUnauthorized(message) {
+    // This server has keys: the button to enter one is shown from now on.
+    $("key-button").hidden = false;
+    const hadKey = sessionStorage.getItem(KEY_STORE) !== null;
     sessionStorage.removeItem(KEY_STORE);
     if (keyDeclined) return false;
-    return askKey(message);
+    return askKey(hadKey ? "That key was not accepted by this server; enter another." : message);
   }
 
   async function getJson(path) {
@@ -121,6 +124,9 @@
 
   const known = new Map(); // id -> { model }
   let selectedId = null;
+  // Until the user picks a session (or one is named in the URL), the page
+  // follows the most recently active one.
+  let picked = false;
 
   async function refreshList() {
     let page;
@@ -146,6 +152,11 @@
       ? "the first " + page.sessions.length + " sessions"
       : page.sessions.length + (page.sessions.length === 1 ? " session" : " sessions");
     renderList(page);
+    if (!picked && page.sessions.length) {
+      const idle = (s) => (s.idle_ms == null ? Infinity : s.idle_ms);
+      const recent = page.sessions.reduce((a, b) => (idle(b) < idle(a) ? b : a));
+      if (recent.id !== selectedId) select(recent.id);
+    }
   }
 
   function renderList(page) {
@@ -169,11 +180,13 @@
         tr.appendChild(td);
       }
       tr.lastChild.title = "the session's last observation (the server's clock)";
-      tr.addEventListener("click", () => select(s.id));
+      tr.addEventListener("click", () => { picked = true; select(s.id); });
       return tr;
     });
     body.replaceChildren(...rows);
     $("sessions-empty").hidden = page.sessions.length > 0;
+    $("empty-create").textContent = "curl -s -X POST " + location.origin +
+      "/v1/sessions -H 'content-type: application/json' -d '{\"model\": {\"preset\": \"hallway\"}}'";
   }
 
   async function listLoop() {
@@ -713,6 +726,9 @@
     });
     listLoop();
     const hash = decodeURIComponent(location.hash.slice(1));
-    if (hash) select(hash);
+    if (hash) {
+      picked = true;
+      select(hash);
+    }
   });
 })();
