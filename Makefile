@@ -6,9 +6,9 @@ CARGO ?= cargo
 
 .PHONY: help check generate test lint-docker check-links fmt-check clippy unit build release bench bench-server figures peers clean \
 	python-venv python-lint python-test e2e contract fuzz checks container-base container-test container-bench \
-	k8s-validate k8s-configmap
+	k8s-validate k8s-configmap readme-test
 
-CHECKS := lint-docker k8s-validate check-links fmt-check clippy unit contract python-lint python-test e2e
+CHECKS := lint-docker k8s-validate check-links fmt-check clippy unit contract python-lint python-test e2e readme-test
 
 help: ## lists the targets
 	@grep -E '^[a-z0-9-]+:.*## ' $(MAKEFILE_LIST) | sed -E 's/^([a-z0-9-]+):.*## (.*)/  \1|\2/' \
@@ -121,6 +121,13 @@ contract: build ## schemathesis against a live debug server (the REST contract)
 FUZZ_CASES ?= 20000
 fuzz: ## the generative fuzzer for longer (FUZZ_CASES, default 20000)
 	PROPTEST_CASES=$(FUZZ_CASES) $(CARGO) test --locked -p mcapi-server --test fuzz -- --nocapture
+
+# The README's commands as pasted, in order, in one fresh shell against the
+# debug binary (tools/readme_test.py): a failing command or an output other
+# than the one the README shows fails it. Ports 8080 and 50051 must be free;
+# the Python quickstart creates .venv/ (git-ignored) from the network.
+readme-test: build ## every command of the README, as pasted
+	MCAPI_BIN=$(MCAPI_BIN) python3 tools/readme_test.py
 
 # The dashboard in headless Chromium (tests/e2e): drives a session against
 # the debug binary, checks that the charts and the heatmap render and

@@ -1,5 +1,5 @@
-//! The crash test of durable sessions (README, "Durable sessions and API
-//! keys"), on the real binary: several sessions are
+//! The crash test of durable sessions (docs/sessions.md, "Durability and
+//! recovery"), on the real binary: several sessions are
 //! driven concurrently over REST (lockstep, async, batches) and gRPC
 //! (`Interact` streams), the server is `kill -9`ed at a random moment while
 //! requests are in flight, and restarted on the same data directory on

@@ -1,4 +1,4 @@
-//! Recovery time of the durable store (README, "Durable sessions and API keys"): 10,000 hallway sessions,
+//! Recovery time of the durable store (docs/sessions.md, "Durability and recovery"): 10,000 hallway sessions,
 //! each with 1,000 logged observations and no snapshot after its first
 //! tick, as a crash would leave them; then the time `SessionManager::recover`
 //! takes to load, replay and re-plan all of them.

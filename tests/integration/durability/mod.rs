@@ -1,5 +1,5 @@
-//! Durability and access control on the real binary (README, "Durable
-//! sessions and API keys"; docs/operations.md, "API keys" and "The store"):
+//! Durability and access control on the real binary (docs/operations.md,
+//! "API keys" and "The store"; docs/sessions.md, "Durability and recovery"):
 //! - a clean restart (SIGTERM) keeps every session exactly (Ξ, D, Q,
 //!   policy, statistics, history) and the shutdown snapshot trims the log
 //!   (nothing replayed); lockstep sessions then go on exactly as a core

@@ -1,7 +1,7 @@
 //! Size limits of the server: every request beyond one is refused with a
 //! clear error before any large allocation. Every count, length and index a
 //! client sends is checked here, against a field of [`Limits`] that a flag
-//! of `mcapi serve` can raise (README, "Limits and quotas").
+//! of `mcapi serve` can raise (docs/limits.md).
 
 use std::collections::BTreeMap;
 

@@ -49,7 +49,7 @@ use rest::rest_call;
 // ------------------------------------------------------------------ setup
 
 /// Found by this fuzzer and not in the contract's area (reported with the
-/// REST contract's work, README "The contract"): numbers the core accepts
+/// REST contract's work, docs/rest.md, "The contract"): numbers the core accepts
 /// but cannot compute with. The session is created, then its first policy
 /// update fails and the client gets
 /// `500 numerical_failure` ("internal error"), an error of its own input
