@@ -27,18 +27,29 @@ use crate::continuous::stimulus::{LinearStimulus, mean_sq_norm, probe_features};
 impl ContinuousAgent {
     /// Rebuilds the basis if its graph says so (a PVF basis only).
     pub(super) fn maybe_rebuild_basis(&mut self) {
-        let Some(graph) = &mut self.graph else {
-            return;
-        };
-        if !graph.due(self.tick) {
-            return;
+        if self.graph.as_ref().is_some_and(|g| g.due(self.tick)) {
+            self.rebuild_basis();
         }
+    }
+
+    /// Rebuilds a PVF basis now, off its schedule, and tells whether it
+    /// did: for benchmarks of the rebuild alone (a session never calls it;
+    /// its rebuilds come from the schedule only).
+    #[doc(hidden)]
+    pub fn force_basis_rebuild(&mut self) -> bool {
+        self.rebuild_basis()
+    }
+
+    fn rebuild_basis(&mut self) -> bool {
+        let Some(graph) = &mut self.graph else {
+            return false;
+        };
         let FeatureMap::Pvf(old) = &self.model.features else {
-            return;
+            return false;
         };
         // A failed eigensolve keeps the old basis until the graph grows again.
         let Ok(built) = graph.build(old, self.tick) else {
-            return;
+            return false;
         };
         let stream = graph.builds;
         let d = self.model.dim();
@@ -62,5 +73,6 @@ impl ContinuousAgent {
         if let Some((s, v)) = &mut self.s {
             map.features_into(s, v);
         }
+        true
     }
 }
