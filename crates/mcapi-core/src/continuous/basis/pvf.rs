@@ -228,7 +228,7 @@ impl Pvf {
     /// Floating-point operations of one evaluation.
     pub fn eval_cost(&self) -> usize {
         let n = self.nodes();
-        let deg = if n == 0 { 0 } else { self.idx.len() / n };
+        let deg = self.idx.len().checked_div(n).unwrap_or(0);
         n * self.d * 3 + (deg + 1) * (2 * self.k + 3 * self.d + 20)
     }
 }
