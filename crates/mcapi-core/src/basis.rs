@@ -237,8 +237,10 @@ pub struct StateGraph {
     /// Row s is `idx[ptr[s]..ptr[s + 1]]`.
     ptr: Vec<usize>,
     idx: Vec<u32>,
-    /// N_st = 1/√(d_s d_t).
+    /// N_st = W_st/√(d_s d_t).
     val: Vec<f64>,
+    /// d_s = Σ_t W_st.
+    deg: Vec<f64>,
 }
 
 impl StateGraph {
@@ -267,18 +269,48 @@ impl StateGraph {
         for s in 0..n {
             ptr[s + 1] += ptr[s];
         }
-        let inv_sqrt_deg: Vec<f64> = (0..n)
-            .map(|s| {
-                let d = (ptr[s + 1] - ptr[s]) as f64;
-                if d > 0.0 { 1.0 / d.sqrt() } else { 0.0 }
-            })
+        let weighted: Vec<(u32, u32, f64)> = edges.into_iter().map(|(s, t)| (s, t, 1.0)).collect();
+        Self::from_sorted(n, &weighted, ptr)
+    }
+
+    /// A weighted graph on `n` nodes: `edges` lists (s, t, W_st > 0) with
+    /// s ≠ t, both directions, sorted by (s, t) and without duplicates
+    /// (the caller's contract; checked in debug builds).
+    pub fn weighted(n: usize, edges: &[(u32, u32, f64)]) -> Self {
+        debug_assert!(
+            edges
+                .windows(2)
+                .all(|e| (e[0].0, e[0].1) < (e[1].0, e[1].1))
+        );
+        debug_assert!(
+            edges
+                .iter()
+                .all(|e| e.0 != e.1 && e.2 > 0.0 && (e.1 as usize) < n)
+        );
+        let mut ptr = vec![0usize; n + 1];
+        for &(s, _, _) in edges {
+            ptr[s as usize + 1] += 1;
+        }
+        for s in 0..n {
+            ptr[s + 1] += ptr[s];
+        }
+        Self::from_sorted(n, edges, ptr)
+    }
+
+    fn from_sorted(n: usize, edges: &[(u32, u32, f64)], ptr: Vec<usize>) -> Self {
+        let deg: Vec<f64> = (0..n)
+            .map(|s| edges[ptr[s]..ptr[s + 1]].iter().map(|e| e.2).sum())
+            .collect();
+        let inv_sqrt_deg: Vec<f64> = deg
+            .iter()
+            .map(|&d| if d > 0.0 { 1.0 / d.sqrt() } else { 0.0 })
             .collect();
         let val = edges
             .iter()
-            .map(|&(s, t)| inv_sqrt_deg[s as usize] * inv_sqrt_deg[t as usize])
+            .map(|&(s, t, w)| inv_sqrt_deg[s as usize] * w * inv_sqrt_deg[t as usize])
             .collect();
-        let idx = edges.into_iter().map(|(_, t)| t).collect();
-        Self { ptr, idx, val }
+        let idx = edges.iter().map(|e| e.1).collect();
+        Self { ptr, idx, val, deg }
     }
 
     /// Number of states.
@@ -286,8 +318,9 @@ impl StateGraph {
         self.ptr.len() - 1
     }
 
-    fn degree(&self, s: usize) -> usize {
-        self.ptr[s + 1] - self.ptr[s]
+    /// The (weighted) degree d_s.
+    fn degree(&self, s: usize) -> f64 {
+        self.deg[s]
     }
 
     /// The null space of L, component by component (depth-first, states of
@@ -299,7 +332,7 @@ impl StateGraph {
         let mut count = 0;
         let (mut stack, mut members) = (Vec::new(), Vec::new());
         for start in 0..n {
-            if comp[start] != usize::MAX || self.degree(start) == 0 {
+            if comp[start] != usize::MAX || self.degree(start) == 0.0 {
                 continue;
             }
             members.clear();
@@ -315,13 +348,9 @@ impl StateGraph {
                 }
             }
             members.sort_unstable();
-            let norm = members
-                .iter()
-                .map(|&s| self.degree(s) as f64)
-                .sum::<f64>()
-                .sqrt();
+            let norm = members.iter().map(|&s| self.degree(s)).sum::<f64>().sqrt();
             for &s in &members {
-                weight[s] = (self.degree(s) as f64).sqrt() / norm;
+                weight[s] = self.degree(s).sqrt() / norm;
             }
             count += 1;
         }

@@ -7,6 +7,8 @@
 //! a warm-up long enough to fill the sample store:
 //! - `hallway_d1`: the continuous hallway, default basis (64 RBFs × 3 actions);
 //! - `three_room_d2`: the continuous three-room, default basis (8 × 8 RBFs × 4 actions);
+//! - `three_room_d2_pvf`: the same on 75 PVFs × 4 actions (the basis is
+//!   rebuilt as its graph grows; `rebuild` below times one rebuild alone);
 //! - `box_d8`: a point in [0, 1]^8 moved by 16 actions (each axis, either
 //!   way), sources in a corner and at the centre; default basis (for 16
 //!   actions: Fourier of order 2, uncoupled, 17 features a block).
@@ -18,7 +20,7 @@ use std::hint::black_box;
 use criterion::{Criterion, criterion_group, criterion_main};
 use mcapi_core::AgentParams;
 use mcapi_core::continuous::{
-    ContinuousAgent, ContinuousObservation, ContinuousSpec, ObservationSpace,
+    ContinuousAgent, ContinuousBasisSpec, ContinuousObservation, ContinuousSpec, ObservationSpace,
 };
 use mcapi_experiments::continuous::{World, spec_of};
 use rand::{RngExt, SeedableRng};
@@ -32,6 +34,8 @@ const WARM_UP_TICKS: usize = if cfg!(debug_assertions) { 100 } else { 3000 };
 /// A world to step: the experiments' worlds or the 8-dimensional box.
 enum Bench {
     World(World),
+    /// A world on a basis other than its default.
+    WorldOn(World, ContinuousBasisSpec),
     Box8,
 }
 
@@ -39,6 +43,10 @@ impl Bench {
     fn spec(&self) -> ContinuousSpec {
         match self {
             Self::World(w) => spec_of(w),
+            Self::WorldOn(w, basis) => ContinuousSpec {
+                basis: Some(basis.clone()),
+                ..spec_of(w)
+            },
             Self::Box8 => ContinuousSpec {
                 observation_space: ObservationSpace {
                     low: vec![0.0; 8],
@@ -55,14 +63,14 @@ impl Bench {
 
     fn start(&self, rng: &mut ChaCha8Rng) -> Vec<f64> {
         match self {
-            Self::World(w) => w.start(rng),
+            Self::World(w) | Self::WorldOn(w, _) => w.start(rng),
             Self::Box8 => (0..8).map(|_| rng.random::<f64>()).collect(),
         }
     }
 
     fn step(&self, x: &[f64], a: usize, rng: &mut ChaCha8Rng) -> (Vec<f64>, Vec<f64>) {
         match self {
-            Self::World(w) => {
+            Self::World(w) | Self::WorldOn(w, _) => {
                 let next = w.step(x, a, rng);
                 let xi = w.stimulus(&next, rng);
                 (next, xi)
@@ -152,12 +160,35 @@ fn bench_continuous(c: &mut Criterion) {
     for (name, bench) in [
         ("hallway_d1", Bench::World(World::hallway())),
         ("three_room_d2", Bench::World(World::three_room())),
+        (
+            "three_room_d2_pvf",
+            Bench::WorldOn(World::three_room(), pvf()),
+        ),
         ("box_d8", Bench::Box8),
     ] {
         let mut run = Running::new(bench);
         group.bench_function(name, |b| b.iter(|| black_box(run.tick())));
     }
+    // One basis rebuild alone: a copy of the warmed-up agent whose graph
+    // has just grown is planned once, against a copy that is not due.
+    let run = Running::new(Bench::WorldOn(World::three_room(), pvf()));
+    group.bench_function("three_room_d2_pvf_rebuild", |b| {
+        b.iter_batched(
+            || run.agent.clone(),
+            |mut agent| black_box(agent.force_basis_rebuild()),
+            criterion::BatchSize::LargeInput,
+        )
+    });
     group.finish();
+}
+
+/// 75 PVFs × 4 actions: 300 state-action features, as the default aims at.
+fn pvf() -> ContinuousBasisSpec {
+    ContinuousBasisSpec::Pvf {
+        k: 75,
+        nodes: None,
+        neighbours: None,
+    }
 }
 
 criterion_group!(benches, bench_continuous);

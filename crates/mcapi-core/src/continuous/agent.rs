@@ -15,6 +15,9 @@
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+mod rebuild;
+
+use super::basis::{FeatureMap, PvfGraph};
 use super::model::ContinuousModel;
 use super::planner::SamplePlanner;
 use super::samples::SampleStore;
@@ -83,6 +86,9 @@ pub struct ContinuousStats {
     pub updates: u64,
     /// Rebuilds of A⁻¹.
     pub rebuilds: u64,
+    /// Builds of the basis (a PVF basis is rebuilt as its graph grows; 0
+    /// for the others).
+    pub basis_builds: u64,
 }
 
 /// The agent.
@@ -114,6 +120,8 @@ pub struct ContinuousAgent {
     r_max: f64,
     /// v at the probe points (`PROBES × k`).
     probes: Vec<f64>,
+    /// The graph of a PVF basis, grown by every observation.
+    graph: Option<PvfGraph>,
 }
 
 impl ContinuousAgent {
@@ -157,6 +165,10 @@ impl ContinuousAgent {
             targets: Vec::new(),
             r_max: 0.0,
             probes: probe_features(&model.features, d),
+            graph: match &model.features {
+                FeatureMap::Pvf(p) => Some(PvfGraph::new(p)),
+                _ => None,
+            },
             model,
         }
     }
@@ -184,6 +196,7 @@ impl ContinuousAgent {
             slots: self.store.slots(),
             updates: self.planner.updates,
             rebuilds: self.planner.rebuilds,
+            basis_builds: self.graph.as_ref().map_or(0, |g| g.builds),
         }
     }
 
@@ -250,6 +263,9 @@ impl ContinuousAgent {
         if clipped {
             self.clipped += 1;
         }
+        if let Some(graph) = &mut self.graph {
+            graph.observe(&s, self.s.is_some());
+        }
         let mut v = vec![0.0; self.model.features.len()];
         self.model.features.features_into(&s, &mut v);
         let mut reward = 0.0;
@@ -260,7 +276,7 @@ impl ContinuousAgent {
             reward = self.drive.update(xi).abs();
             debug_assert!((crate::drive::norm(self.drive.vector()) - 1.0).abs() < 1e-9);
             self.tick += 1;
-            self.record(&prev_s, a, &s, &prev_v, &v);
+            self.record(&prev_s, a, &s, &prev_v, &v, xi);
             self.needs_plan = true;
         } else {
             self.refresh_reward_weights(&v);
@@ -283,6 +299,7 @@ impl ContinuousAgent {
         if !self.needs_plan {
             return;
         }
+        self.maybe_rebuild_basis();
         if let Some((s, v)) = self.s.take() {
             self.plan_at(&v);
             self.s = Some((s, v));
@@ -315,9 +332,17 @@ impl ContinuousAgent {
         self.advised
     }
     /// Stores (s, a, s′) and gives the planner its term.
-    fn record(&mut self, s: &[f64], a: usize, s_next: &[f64], v: &[f64], v_next: &[f64]) {
+    fn record(
+        &mut self,
+        s: &[f64],
+        a: usize,
+        s_next: &[f64],
+        v: &[f64],
+        v_next: &[f64],
+        xi: &[f64],
+    ) {
         let before = self.store.visits(s, a);
-        let inserted = self.store.insert(self.tick, s, a, s_next, v, v_next);
+        let inserted = self.store.insert(self.tick, s, a, s_next, v, v_next, xi);
         if let Some(old) = &inserted.replaced {
             self.planner.remove(inserted.index, old);
         }
@@ -527,13 +552,28 @@ mod tests {
     }
 
     fn agent(seed: u64, rule: OutOfBounds) -> ContinuousAgent {
+        agent_on(seed, spec(rule))
+    }
+
+    fn agent_on(seed: u64, spec: ContinuousSpec) -> ContinuousAgent {
         let params = AgentParams {
             seed: Some(seed),
             ..Default::default()
         }
         .check(2, seed)
         .expect("params");
-        ContinuousAgent::new(spec(rule).build().expect("model"), params)
+        ContinuousAgent::new(spec.build().expect("model"), params)
+    }
+
+    /// An agent on a PVF basis small enough to be rebuilt often.
+    fn pvf_agent(seed: u64) -> ContinuousAgent {
+        let mut s = spec(OutOfBounds::Clip);
+        s.basis = Some(crate::continuous::ContinuousBasisSpec::Pvf {
+            k: 12,
+            nodes: Some(2048),
+            neighbours: None,
+        });
+        agent_on(seed, s)
     }
 
     /// A deterministic little world: the action moves the point, food at one corner.
@@ -594,15 +634,52 @@ mod tests {
         assert!(a.stats().clipped > 0, "{:?}", a.stats());
     }
 
+    /// A PVF basis is rebuilt as its graph grows; the rebuilds happen at
+    /// the same ticks with the same bits for the same seed.
+    #[test]
+    fn a_pvf_basis_gives_the_same_bits_for_the_same_seed_across_rebuilds() {
+        let (mut a, mut b, mut c) = (pvf_agent(3), pvf_agent(3), pvf_agent(4));
+        let (ra, rb, rc) = (drive(&mut a, 700), drive(&mut b, 700), drive(&mut c, 700));
+        assert_eq!(ra, rb);
+        assert_ne!(ra, rc);
+        let g = a.graph.as_ref().expect("graph");
+        assert!(
+            a.stats().basis_builds >= 2,
+            "{:?} {} nodes {} edges",
+            a.stats(),
+            g.nodes(),
+            g.edges()
+        );
+        assert_eq!(a.stats(), b.stats());
+        let FeatureMap::Pvf(p) = &a.model().features else {
+            panic!("a PVF basis");
+        };
+        assert!(p.nodes() >= 8, "{} nodes", p.nodes());
+        assert_eq!(
+            a.value(&[0.3, 4.0]).expect("v").to_bits(),
+            b.value(&[0.3, 4.0]).expect("v").to_bits()
+        );
+    }
+
     /// `step` is `observe`, `plan`, `act`: an agent driven through the
     /// three calls gives the same bits; planning only every third
     /// observation (a server's async mode) is deterministic too.
     #[test]
     fn step_is_observe_plan_act() {
-        let mut whole = agent(5, OutOfBounds::Clip);
+        step_is_observe_plan_act_on(|seed| agent(seed, OutOfBounds::Clip));
+    }
+
+    /// The same with a PVF basis, rebuilt along the way.
+    #[test]
+    fn step_is_observe_plan_act_with_a_pvf_basis() {
+        step_is_observe_plan_act_on(pvf_agent);
+    }
+
+    fn step_is_observe_plan_act_on(make: impl Fn(u64) -> ContinuousAgent) {
+        let mut whole = make(5);
         let expected = drive(&mut whole, 300);
         let run = |every: usize| {
-            let mut a = agent(5, OutOfBounds::Clip);
+            let mut a = make(5);
             let mut x = vec![0.0, 5.0];
             a.observe(&ContinuousObservation {
                 observation: &x,

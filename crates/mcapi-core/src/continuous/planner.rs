@@ -208,6 +208,14 @@ impl SamplePlanner {
         }
     }
 
+    /// The basis changed: the ridge is `ridge` from now on, and A must be
+    /// rebuilt from the samples' new features before the next evaluation;
+    /// the successor policy π is kept.
+    pub fn rebase(&mut self, ridge: f64) {
+        self.ridge = ridge;
+        self.stale = true;
+    }
+
     /// Rebuilds A from the samples and inverts it, when stale or due.
     /// Returns whether it rebuilt.
     pub fn maybe_rebuild(&mut self, samples: &[Sample]) -> bool {
@@ -298,7 +306,15 @@ mod tests {
         for t in 0..20u64 {
             let x = (t as f64 * 0.37).fract();
             let x2 = (x + 0.1).min(1.0);
-            let ins = store.insert(t, &[x], (t % 2) as usize, &[x2], &feats(x), &feats(x2));
+            let ins = store.insert(
+                t,
+                &[x],
+                (t % 2) as usize,
+                &[x2],
+                &feats(x),
+                &feats(x2),
+                &[0.0],
+            );
             if let Some(old) = &ins.replaced {
                 planner.remove(ins.index, old);
             }

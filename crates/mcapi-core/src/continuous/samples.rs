@@ -29,6 +29,9 @@ pub struct Sample {
     pub v: Vec<f64>,
     /// v(s′).
     pub v_next: Vec<f64>,
+    /// The mean stimulus ξ of the visits it stands for (what Ξ is refitted
+    /// to when the basis is rebuilt).
+    pub xi: Vec<f64>,
     /// The slot it lives in.
     slot: (u64, usize),
     /// The tick it was stored at (the oldest goes first when full).
@@ -122,6 +125,15 @@ impl SampleStore {
         &self.samples
     }
 
+    /// Recomputes v and v′ of every stored transition with `features`
+    /// (after the basis was rebuilt).
+    pub fn refeature(&mut self, mut features: impl FnMut(&[f64], &mut [f64])) {
+        for sample in &mut self.samples {
+            features(&sample.s, &mut sample.v);
+            features(&sample.s_next, &mut sample.v_next);
+        }
+    }
+
     /// Number of (cell, action) slots visited.
     pub fn slots(&self) -> usize {
         self.slots.len()
@@ -137,6 +149,7 @@ impl SampleStore {
         s_next: &[f64],
         v: &[f64],
         v_next: &[f64],
+        xi: &[f64],
     ) -> Inserted {
         let key = (self.cell(s), a);
         let sample = Sample {
@@ -145,6 +158,7 @@ impl SampleStore {
             s_next: s_next.to_vec(),
             v: v.to_vec(),
             v_next: v_next.to_vec(),
+            xi: xi.to_vec(),
             slot: key,
             stored_at: tick,
             weight: 1.0,
@@ -156,7 +170,11 @@ impl SampleStore {
             // The slot is full: its oldest transition makes way, and its weight passes on.
             let index = slot.samples.remove(0);
             slot.samples.push(index);
-            sample.weight += self.samples[index].weight;
+            let old = &self.samples[index];
+            sample.weight += old.weight;
+            for (x, o) in sample.xi.iter_mut().zip(&old.xi) {
+                *x += (o - *x) * (old.weight / sample.weight);
+            }
             let replaced = std::mem::replace(&mut self.samples[index], sample);
             return Inserted {
                 index,
@@ -201,16 +219,19 @@ mod tests {
         let f = [1.0];
         // Three visits of one slot: two kept, the first replaced.
         for t in 0..3 {
-            let ins = store.insert(t, &[0.05], 0, &[0.06], &f, &f);
+            let ins = store.insert(t, &[0.05], 0, &[0.06], &f, &f, &[t as f64]);
             assert_eq!(ins.replaced.is_some(), t == 2);
         }
         assert_eq!(store.samples().len(), 2);
+        // The third replaced the first and stands for both: ξ is their mean.
+        assert_eq!(store.samples()[0].weight, 2.0);
+        assert!((store.samples()[0].xi[0] - 1.0).abs() < 1e-12);
         assert_eq!(store.visits(&[0.01], 0), 3);
         assert!(
             store.is_known(&[0.09], 0) && !store.is_known(&[0.09], 1) && !store.is_known(&[0.5], 0)
         );
         for t in 3..20 {
-            store.insert(t, &[(t as f64) / 20.0], 1, &[0.5], &f, &f);
+            store.insert(t, &[(t as f64) / 20.0], 1, &[0.5], &f, &f, &f);
         }
         assert_eq!(store.samples().len(), 5);
         // Every stored sample is listed in exactly its slot.

@@ -13,10 +13,12 @@
 //!
 //! One observation costs O(k² + k·n): one shared inverse per action.
 
+use nalgebra::DMatrix;
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
 
 use super::basis::FeatureMap;
+use super::samples::Sample;
 
 /// Ξ as per-action linear models.
 #[derive(Debug, Clone, PartialEq)]
@@ -95,6 +97,81 @@ impl LinearStimulus {
             pv: vec![0.0; k],
             err: vec![0.0; n],
         }
+    }
+
+    /// Ξ fitted afresh on another basis (docs/algorithm.md §9.2, a PVF
+    /// rebuild): a new prior M_a drawn as [`Self::new`] draws it, then the
+    /// ridge regression towards it over the stored transitions, each
+    /// standing for its weight ω in visits with its mean stimulus:
+    /// P_a = (λI + Σ ω v vᵀ)⁻¹, W_a = P_a (λ M_a + Σ ω v ξᵀ). What RLS
+    /// would hold had it seen the stored transitions' visits on this basis.
+    /// O(N k² + |A| k³).
+    pub fn fitted(
+        actions: usize,
+        k: usize,
+        n: usize,
+        sd: f64,
+        typical_sq_norm: f64,
+        rng: &mut impl Rng,
+        samples: &[Sample],
+    ) -> Self {
+        let mut xi = Self::new(actions, k, n, sd, typical_sq_norm, rng);
+        let lambda = typical_sq_norm;
+        for a in 0..actions {
+            let mine = || samples.iter().filter(|s| s.a == a);
+            if mine().next().is_none() {
+                continue;
+            }
+            let mut g = vec![0.0; k * k];
+            for j in 0..k {
+                g[j * k + j] = lambda;
+            }
+            let w = &mut xi.w[a * k * n..(a + 1) * k * n];
+            let mut rhs: Vec<f64> = w.iter().map(|m| lambda * m).collect();
+            for s in mine() {
+                for (r, &vr) in s.v.iter().enumerate() {
+                    let c = s.weight * vr;
+                    if c == 0.0 {
+                        continue;
+                    }
+                    for (gc, vc) in g[r * k..(r + 1) * k].iter_mut().zip(&s.v) {
+                        *gc += c * vc;
+                    }
+                    for (h, x) in rhs[r * n..(r + 1) * n].iter_mut().zip(&s.xi) {
+                        *h += c * x;
+                    }
+                }
+            }
+            let g = DMatrix::from_row_slice(k, k, &g);
+            let Some(p) = g
+                .clone()
+                .cholesky()
+                .map(|c| c.inverse())
+                .or_else(|| g.try_inverse())
+            else {
+                continue;
+            };
+            let p_block = &mut xi.p[a * k * k..(a + 1) * k * k];
+            for r in 0..k {
+                for c in 0..k {
+                    p_block[r * k + c] = p[(r, c)];
+                }
+            }
+            // W_a = P_a · rhs, in a fixed order.
+            for r in 0..k {
+                let out = &mut w[r * n..(r + 1) * n];
+                out.iter_mut().for_each(|o| *o = 0.0);
+                for c in 0..k {
+                    let m = p_block[r * k + c];
+                    if m != 0.0 {
+                        for (o, h) in out.iter_mut().zip(&rhs[c * n..(c + 1) * n]) {
+                            *o += m * h;
+                        }
+                    }
+                }
+            }
+        }
+        xi
     }
 
     /// Stimulus dimensions n.

@@ -22,7 +22,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use mcapi_core::continuous::{
-    ContinuousAgent, ContinuousObservation, ContinuousSpec, ObservationSpace,
+    ContinuousAgent, ContinuousBasisSpec, ContinuousObservation, ContinuousSpec, ObservationSpace,
 };
 use mcapi_core::{AgentParams, Drive};
 
@@ -279,12 +279,26 @@ pub struct ContinuousOutput {
 /// trials in parallel (and the discrete reference for the three-room),
 /// writes `summary.json`, the per-trial CSV series and the figures.
 pub fn run(kind: ContinuousKind, opts: &RunOptions) -> anyhow::Result<ContinuousOutput> {
+    run_with_basis(kind, opts, None)
+}
+
+/// [`run`] with the agent on `basis` (the world's default when `None`).
+pub fn run_with_basis(
+    kind: ContinuousKind,
+    opts: &RunOptions,
+    basis: Option<ContinuousBasisSpec>,
+) -> anyhow::Result<ContinuousOutput> {
     anyhow::ensure!(opts.trials > 0, "--trials must be at least 1");
     anyhow::ensure!(opts.steps > 0, "--steps must be at least 1");
     std::fs::create_dir_all(&opts.out)
         .with_context(|| format!("creating {}", opts.out.display()))?;
     let world = kind.world();
-    let spec = spec_of(&world).build()?.spec;
+    let spec = ContinuousSpec {
+        basis,
+        ..spec_of(&world)
+    }
+    .build()?
+    .spec;
     let names = ["mca_pi", "random_walk"];
     let grouped = run_trials(opts, kind.name(), &names, |c, t| {
         let driver = if c == 0 {

@@ -7,13 +7,18 @@
 //!   (Konidaris, Osentoski & Thomas, AAAI 2011);
 //! - [`rbf`]: normalised Gaussians on a grid of centres;
 //! - [`tiles`]: tile coding, hashed into a bounded table (Sutton & Barto
-//!   §9.5.4).
+//!   §9.5.4);
+//! - [`pvf`]: proto-value functions of the graph of observed transitions,
+//!   extended by Nyström (Mahadevan & Maggioni, JMLR 2007), rebuilt as the
+//!   graph grows ([`pvf_graph`]).
 //!
 //! Every size is bounded before anything is allocated: a spec's feature
 //! count is computed in closed form and checked against
 //! [`MAX_STATE_FEATURES`] first.
 
 pub mod fourier;
+pub mod pvf;
+pub mod pvf_graph;
 pub mod rbf;
 pub mod tiles;
 
@@ -22,6 +27,8 @@ use serde::{Deserialize, Serialize};
 use crate::error::{AlgoError, Result};
 
 pub use fourier::Fourier;
+pub use pvf::Pvf;
+pub use pvf_graph::PvfGraph;
 pub use rbf::Rbf;
 pub use tiles::Tiles;
 
@@ -43,6 +50,17 @@ pub const MAX_CENTRES_PER_DIM: u32 = 64;
 pub const MAX_TILINGS: u32 = 64;
 /// Largest number of tiles per dimension of one tiling.
 pub const MAX_TILES_PER_DIM: u32 = 1024;
+/// Largest number of PVFs k (Ξ's refit at a rebuild costs O(|A| k³)).
+pub const MAX_PVF_K: u32 = 256;
+/// Largest node set of a PVF graph (an eigenproblem of this size at a
+/// rebuild, and O(nodes · d) per feature evaluation).
+pub const MAX_PVF_NODES: u32 = 2048;
+/// Default node set of a PVF graph.
+pub const DEFAULT_PVF_NODES: u32 = 800;
+/// Largest number of edges per PVF graph node.
+pub const MAX_PVF_NEIGHBOURS: u32 = 64;
+/// Default edges per PVF graph node.
+pub const DEFAULT_PVF_NEIGHBOURS: u32 = 16;
 
 /// A basis as a client names it (`{"kind": "fourier", "order": 5}`).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -77,6 +95,21 @@ pub enum ContinuousBasisSpec {
         /// Size of the hashed table.
         #[serde(default, skip_serializing_if = "Option::is_none")]
         table: Option<u32>,
+    },
+    /// The `k` smoothest proto-value functions of a graph over at most
+    /// `nodes` subsampled observations (default [`DEFAULT_PVF_NODES`]),
+    /// joined where the agent was seen to move, each node with at most
+    /// `neighbours` edges (default [`DEFAULT_PVF_NEIGHBOURS`]); extended
+    /// to any point by Nyström and rebuilt as the graph grows.
+    Pvf {
+        /// Number of PVFs (features per action).
+        k: u32,
+        /// Most graph nodes.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        nodes: Option<u32>,
+        /// Most edges per node.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        neighbours: Option<u32>,
     },
 }
 
@@ -210,6 +243,37 @@ impl ContinuousBasisSpec {
                     exact == Some(size),
                 ))
             }
+            Self::Pvf {
+                k,
+                nodes,
+                neighbours,
+            } => {
+                let nodes = nodes.unwrap_or(DEFAULT_PVF_NODES);
+                if !(2..=MAX_PVF_NODES).contains(&nodes) {
+                    return Err(bad(format!(
+                        "pvf `nodes` {nodes} is not in 2..={MAX_PVF_NODES}"
+                    )));
+                }
+                let most = MAX_PVF_K.min(nodes);
+                if !(1..=most).contains(&k) {
+                    return Err(bad(format!(
+                        "pvf `k` {k} is not in 1..={most} (at most {MAX_PVF_K} and at most `nodes`)"
+                    )));
+                }
+                let neighbours = neighbours.unwrap_or(DEFAULT_PVF_NEIGHBOURS);
+                if !(1..=MAX_PVF_NEIGHBOURS).contains(&neighbours) {
+                    return Err(bad(format!(
+                        "pvf `neighbours` {neighbours} is not in 1..={MAX_PVF_NEIGHBOURS}"
+                    )));
+                }
+                check_pairs(k as usize, actions)?;
+                FeatureMap::Pvf(Pvf::empty(
+                    d,
+                    k as usize,
+                    nodes as usize,
+                    neighbours as usize,
+                ))
+            }
         };
         Ok(map)
     }
@@ -224,6 +288,8 @@ pub enum FeatureMap {
     Rbf(Rbf),
     /// Tile coding.
     Tiles(Tiles),
+    /// Proto-value functions of the observed graph.
+    Pvf(Pvf),
 }
 
 impl FeatureMap {
@@ -233,6 +299,7 @@ impl FeatureMap {
             Self::Fourier(b) => b.len(),
             Self::Rbf(b) => b.len(),
             Self::Tiles(b) => b.len(),
+            Self::Pvf(b) => b.len(),
         }
     }
 
@@ -248,6 +315,7 @@ impl FeatureMap {
             Self::Fourier(b) => b.features_into(s, out),
             Self::Rbf(b) => b.features_into(s, out),
             Self::Tiles(b) => b.features_into(s, out),
+            Self::Pvf(b) => b.features_into(s, out),
         }
         debug_assert!(out.iter().all(|v| v.is_finite()));
     }
@@ -258,6 +326,7 @@ impl FeatureMap {
             Self::Fourier(b) => b.len() * (b.dim() + 8),
             Self::Rbf(b) => b.len() * 2 + b.dim() * b.centres() * 16,
             Self::Tiles(b) => b.len() + b.tilings() * b.dim() * 4,
+            Self::Pvf(b) => b.eval_cost(),
         }
     }
 }
@@ -334,6 +403,11 @@ mod tests {
                 tiles_per_dim: 10,
                 table: Some(64),
             },
+            ContinuousBasisSpec::Pvf {
+                k: 20,
+                nodes: None,
+                neighbours: None,
+            },
         ];
         for spec in &specs {
             let map = spec.build(2, 3).expect("a valid basis");
@@ -391,10 +465,64 @@ mod tests {
                 tiles_per_dim: 4,
                 table: Some(u32::MAX),
             },
+            ContinuousBasisSpec::Pvf {
+                k: u32::MAX,
+                nodes: None,
+                neighbours: None,
+            },
+            ContinuousBasisSpec::Pvf {
+                k: 0,
+                nodes: None,
+                neighbours: None,
+            },
+            ContinuousBasisSpec::Pvf {
+                k: 10,
+                nodes: Some(u32::MAX),
+                neighbours: None,
+            },
+            ContinuousBasisSpec::Pvf {
+                k: 10,
+                nodes: Some(5),
+                neighbours: None,
+            },
+            ContinuousBasisSpec::Pvf {
+                k: 10,
+                nodes: Some(0),
+                neighbours: None,
+            },
+            ContinuousBasisSpec::Pvf {
+                k: 10,
+                nodes: None,
+                neighbours: Some(0),
+            },
+            ContinuousBasisSpec::Pvf {
+                k: 10,
+                nodes: None,
+                neighbours: Some(u32::MAX),
+            },
         ];
         for spec in &absurd {
             assert!(spec.build(8, 4).is_err(), "{spec:?} was accepted");
         }
+        // 200 PVFs × 16 actions exceed the state-action bound.
+        let pvf = ContinuousBasisSpec::Pvf {
+            k: 200,
+            nodes: None,
+            neighbours: None,
+        };
+        let e = pvf.build(2, 16).expect_err("too many pairs");
+        assert!(e.to_string().contains("exceeds 2048"), "{e}");
+        let e = ContinuousBasisSpec::Pvf {
+            k: 300,
+            nodes: None,
+            neighbours: None,
+        }
+        .build(2, 1)
+        .expect_err("k above its bound");
+        assert!(
+            e.to_string().contains("pvf `k` 300 is not in 1..=256"),
+            "{e}"
+        );
         // A 64-dimensional Fourier basis of order 1 with full coupling has 2^64 terms.
         assert!(
             ContinuousBasisSpec::Fourier {
