@@ -27,22 +27,49 @@ pub enum StoreKind {
 #[derive(Debug, Clone, Args, Serialize)]
 pub struct ServeConfig {
     /// REST listen address.
-    #[arg(help_heading = "Network", long, env = "MCAPI_HTTP", default_value = "127.0.0.1:8080")]
+    #[arg(
+        help_heading = "Network",
+        long,
+        env = "MCAPI_HTTP",
+        default_value = "127.0.0.1:8080"
+    )]
     pub http: SocketAddr,
     /// gRPC listen address.
-    #[arg(help_heading = "Network", long, env = "MCAPI_GRPC", default_value = "127.0.0.1:50051")]
+    #[arg(
+        help_heading = "Network",
+        long,
+        env = "MCAPI_GRPC",
+        default_value = "127.0.0.1:50051"
+    )]
     pub grpc: SocketAddr,
     /// Data directory of the embedded store (created if missing).
-    #[arg(help_heading = "Storage", long, env = "MCAPI_DATA_DIR", default_value = "./mcapi-data")]
+    #[arg(
+        help_heading = "Storage",
+        long,
+        env = "MCAPI_DATA_DIR",
+        default_value = "./mcapi-data"
+    )]
     pub data_dir: PathBuf,
     /// Session store: `redb` (durable, in --data-dir) or `memory`.
-    #[arg(help_heading = "Storage", long, env = "MCAPI_STORE", value_enum, default_value = "redb")]
+    #[arg(
+        help_heading = "Storage",
+        long,
+        env = "MCAPI_STORE",
+        value_enum,
+        default_value = "redb"
+    )]
     pub store: StoreKind,
     /// When an observation is acknowledged: `sync` after its log frame is
     /// on disk (fdatasync; survives a power cut), `os` after it reaches the
     /// kernel (survives kill -9 of the process, not a power cut; synced in
     /// the background every 5 ms).
-    #[arg(help_heading = "Storage", long, env = "MCAPI_DURABILITY", value_enum, default_value = "sync")]
+    #[arg(
+        help_heading = "Storage",
+        long,
+        env = "MCAPI_DURABILITY",
+        value_enum,
+        default_value = "sync"
+    )]
     pub durability: mcapi_store::Durability,
     /// Ceiling of the durable store's page cache, in MiB (1 to 65536).
     #[arg(help_heading = "Storage", long, env = "MCAPI_STORE_CACHE_MIB", default_value_t = (mcapi_store::DEFAULT_CACHE_BYTES >> 20) as u64)]
@@ -77,10 +104,21 @@ pub struct ServeConfig {
     pub workers: Option<usize>,
     /// Policy updates measured to cost at most this many microseconds run
     /// on the requesting task instead of the tick pool (0: always the pool).
-    #[arg(help_heading = "Runtime", long, env = "MCAPI_INLINE_PLAN_US", default_value_t = 20)]
+    #[arg(
+        help_heading = "Runtime",
+        long,
+        env = "MCAPI_INLINE_PLAN_US",
+        default_value_t = 20
+    )]
     pub inline_plan_us: u64,
     /// Log format.
-    #[arg(help_heading = "Runtime", long, env = "MCAPI_LOG_FORMAT", value_enum, default_value = "text")]
+    #[arg(
+        help_heading = "Runtime",
+        long,
+        env = "MCAPI_LOG_FORMAT",
+        value_enum,
+        default_value = "text"
+    )]
     pub log_format: LogFormat,
     /// Maximum number of sessions.
     #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_SESSIONS", default_value_t = Limits::default().max_sessions)]
@@ -187,20 +225,40 @@ pub struct ServeConfig {
     /// Shard map file (`mcapi cluster plan`): run as one replica of a
     /// cluster, serving only the shards the map gives --replica. Needs
     /// --replica; without both, a single node owning every shard.
-    #[arg(help_heading = "Cluster", long, env = "MCAPI_SHARD_MAP", requires = "replica")]
+    #[arg(
+        help_heading = "Cluster",
+        long,
+        env = "MCAPI_SHARD_MAP",
+        requires = "replica"
+    )]
     pub shard_map: Option<PathBuf>,
     /// This replica's name in the shard map (e.g. `mcapi-0`). Needs --shard-map.
-    #[arg(help_heading = "Cluster", long, env = "MCAPI_REPLICA", requires = "shard_map")]
+    #[arg(
+        help_heading = "Cluster",
+        long,
+        env = "MCAPI_REPLICA",
+        requires = "shard_map"
+    )]
     pub replica: Option<String>,
     /// Start as a replica the shard map does not name yet, owning nothing
     /// until shards move to it (`mcapi cluster rebalance` does so).
-    #[arg(help_heading = "Cluster", long, env = "MCAPI_JOINING", requires = "replica")]
+    #[arg(
+        help_heading = "Cluster",
+        long,
+        env = "MCAPI_JOINING",
+        requires = "replica"
+    )]
     #[serde(skip)]
     pub joining: bool,
     /// The key of the admin calls that move shards (`/admin/shards/...`,
     /// docs/cluster.md), sent as `Authorization: Bearer <key>`; at least 16
     /// characters. Without it the admin calls answer 403.
-    #[arg(help_heading = "Cluster", long, env = "MCAPI_ADMIN_KEY", hide_env_values = true)]
+    #[arg(
+        help_heading = "Cluster",
+        long,
+        env = "MCAPI_ADMIN_KEY",
+        hide_env_values = true
+    )]
     #[serde(skip)]
     pub admin_key: Option<String>,
 }

@@ -88,6 +88,8 @@ struct Driven {
     sent: Vec<(Vec<f64>, Option<Vec<f64>>)>,
     replies: Vec<Step>,
     grpc: bool,
+    /// The model it was created with.
+    model: Value,
 }
 
 impl Driven {
@@ -148,7 +150,7 @@ impl Driven {
 
     /// The replies a core agent gives to the same observations.
     fn core_replies(&self, seed: u64) -> Vec<Step> {
-        let spec: ContinuousSpec = serde_json::from_value(model()).expect("spec");
+        let spec: ContinuousSpec = serde_json::from_value(self.model.clone()).expect("spec");
         let params = common::params(seed, None).check(2, seed).expect("params");
         let mut agent = ContinuousAgent::new(spec.build().expect("model"), params);
         self.sent
@@ -195,7 +197,7 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
     let base = server.base();
     let mut grpc = server.grpc_client().await;
 
-    let rest_create = |seed: u64, mode: &'static str| {
+    let rest_create = |seed: u64, mode: &'static str, model: Value| {
         let client = client.clone();
         let base = base.clone();
         async move {
@@ -204,17 +206,21 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
                 Method::POST,
                 &format!("{base}/v1/sessions"),
                 None,
-                Some(&json!({"model": model(), "agent": {"seed": seed, "update_mode": mode}})),
+                Some(&json!({"model": model, "agent": {"seed": seed, "update_mode": mode}})),
             )
             .await;
             assert_eq!(status, 201, "{info}");
             assert_eq!(
-                info["model"]["continuous"]["basis"]["kind"], "fourier",
+                info["model"]["continuous"]["basis"]["kind"], model["basis"]["kind"],
                 "{info}"
             );
             info["id"].as_str().expect("id").to_string()
         }
     };
+    // The paper's own basis carried to continuous spaces, rebuilt as its
+    // graph grows: before the kill and after it.
+    let mut pvf_model = model();
+    pvf_model["basis"] = json!({"kind": "pvf", "k": 16, "nodes": 200, "neighbours": 8});
     // The typed gRPC form of the same model.
     let typed = pb::Model {
         form: Some(pb::model::Form::Continuous(pb::ContinuousModel {
@@ -257,18 +263,28 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
     assert_eq!(summary.samples.and_then(|s| s.max), Some(512));
 
     let mut lockstep = Driven {
-        id: rest_create(31, "lockstep").await,
+        id: rest_create(31, "lockstep", model()).await,
         world: Point::new(1),
         sent: Vec::new(),
         replies: Vec::new(),
         grpc: false,
+        model: model(),
     };
     let mut async_ = Driven {
-        id: rest_create(32, "async").await,
+        id: rest_create(32, "async", model()).await,
         world: Point::new(2),
         sent: Vec::new(),
         replies: Vec::new(),
         grpc: false,
+        model: model(),
+    };
+    let mut pvf = Driven {
+        id: rest_create(34, "lockstep", pvf_model.clone()).await,
+        world: Point::new(4),
+        sent: Vec::new(),
+        replies: Vec::new(),
+        grpc: false,
+        model: pvf_model,
     };
     let mut typed = Driven {
         id: info.id,
@@ -276,10 +292,22 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
         sent: Vec::new(),
         replies: Vec::new(),
         grpc: true,
+        model: model(),
     };
-    for d in [&mut lockstep, &mut async_, &mut typed] {
+    for d in [&mut lockstep, &mut async_, &mut typed, &mut pvf] {
         d.ticks(&client, &base, &mut grpc, 300).await;
     }
+    let builds = |info: &Value| info["stats"]["continuous"]["basis_builds"].as_u64();
+    let (_, info) = rest(
+        &client,
+        Method::GET,
+        &format!("{base}/v1/sessions/{}", pvf.id),
+        None,
+        None,
+    )
+    .await;
+    let builds_before = builds(&info).expect("basis_builds");
+    eprintln!("pvf basis builds before the kill: {builds_before}");
     // The async session's queued updates land, then its tables are read.
     settled(&client, &base, None, &async_.id).await;
     let before = values(&client, &base, &async_.id).await;
@@ -320,12 +348,27 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
         &common::floats(&before["v"]),
         "V at every grid point",
     );
-    for d in [&mut lockstep, &mut async_, &mut typed] {
-        d.ticks(&client, &base, &mut grpc, 100).await;
+    for d in [&mut lockstep, &mut async_, &mut typed, &mut pvf] {
+        d.ticks(&client, &base, &mut grpc, 200).await;
     }
-    for (d, seed) in [(&lockstep, 31), (&typed, 33)] {
+    let (_, info) = rest(
+        &client,
+        Method::GET,
+        &format!("{base}/v1/sessions/{}", pvf.id),
+        None,
+        None,
+    )
+    .await;
+    let builds_after = builds(&info).expect("basis_builds");
+    eprintln!("pvf basis builds after: {builds_after}");
+    assert!(
+        builds_before >= 2,
+        "the pvf basis was rebuilt before the kill: {builds_before}"
+    );
+    assert!(builds_after > builds_before, "and after it: {builds_after}");
+    for (d, seed) in [(&lockstep, 31), (&typed, 33), (&pvf, 34)] {
         let want = d.core_replies(seed);
-        assert_eq!(want.len(), 400);
+        assert_eq!(want.len(), 500);
         for (i, (got, want)) in d.replies.iter().zip(&want).enumerate() {
             assert_eq!(got, want, "reply {i} of {} (kill -9 after 300)", d.id);
         }

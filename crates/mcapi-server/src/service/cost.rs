@@ -234,6 +234,19 @@ fn continuous(
     let mut ops = 4.0 * sf * naf * kf + sf * kf + ff * ff;
     ops += (sf / 2.0) * 2.0 * ff * ff;
     ops += (ff * ff * ff + sf * ff * ff) / REBUILD_EVERY as f64;
+    if let Some(mcapi_core::continuous::ContinuousBasisSpec::Pvf {
+        nodes, neighbours, ..
+    }) = &spec.basis
+    {
+        // The graph and its eigenvectors; a rebuild (at most every 50
+        // ticks) re-features every sample and refits Ξ, spread over them.
+        use mcapi_core::continuous::basis::{DEFAULT_PVF_NEIGHBOURS, DEFAULT_PVF_NODES};
+        let m = u64::from(nodes.unwrap_or(DEFAULT_PVF_NODES));
+        let g = u64::from(neighbours.unwrap_or(DEFAULT_PVF_NEIGHBOURS));
+        bytes += mul(m, mul(d + k + 2 * g, 8));
+        let (mf, gf) = (m as f64, g as f64);
+        ops += sf * gf * kf * naf + (mf * mf * kf + sf * kf * kf * naf) / 50.0;
+    }
     SessionCost {
         bytes: bytes.saturating_add(FIXED_BYTES),
         tick_us: us(ops),

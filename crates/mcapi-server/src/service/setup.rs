@@ -109,6 +109,7 @@ fn continuous_summary(model: &ContinuousModel) -> ModelSummary {
         Some(ContinuousBasisSpec::Fourier { .. }) => ("fourier", model.features.len()),
         Some(ContinuousBasisSpec::Rbf { .. }) => ("rbf", model.features.len()),
         Some(ContinuousBasisSpec::Tiles { .. }) => ("tiles", model.features.len()),
+        Some(ContinuousBasisSpec::Pvf { .. }) => ("pvf", model.features.len()),
         // `build` fills the effective basis in.
         None => ("default", model.features.len()),
     };

@@ -366,6 +366,8 @@ pub struct ContinuousStatsOut {
     pub updates: u64,
     /// Rebuilds of the planner's inverse.
     pub rebuilds: u64,
+    /// Builds of a `pvf` basis (0 for the other bases).
+    pub basis_builds: u64,
 }
 
 impl From<mcapi_core::continuous::ContinuousStats> for ContinuousStatsOut {
@@ -376,6 +378,7 @@ impl From<mcapi_core::continuous::ContinuousStats> for ContinuousStatsOut {
             slots: s.slots,
             updates: s.updates,
             rebuilds: s.rebuilds,
+            basis_builds: s.basis_builds,
         }
     }
 }

@@ -246,6 +246,26 @@ async fn absurd_continuous_models_and_observations_are_refused_precisely() {
             "table",
         ),
         (
+            square(json!({"basis": {"kind": "pvf", "k": 4_000_000_000u64}})),
+            400,
+            "pvf `k`",
+        ),
+        (
+            square(json!({"basis": {"kind": "pvf", "k": 8, "nodes": 4_000_000_000u64}})),
+            400,
+            "pvf `nodes`",
+        ),
+        (
+            square(json!({"basis": {"kind": "pvf", "k": 8, "neighbours": 100_000}})),
+            400,
+            "pvf `neighbours`",
+        ),
+        (
+            square(json!({"basis": {"kind": "pvf", "k": 64, "nodes": 10}})),
+            400,
+            "pvf `k`",
+        ),
+        (
             square(json!({"basis": {"kind": "proto_value", "k": 5}})),
             400,
             "unknown variant",

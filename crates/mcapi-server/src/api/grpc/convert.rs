@@ -629,6 +629,15 @@ fn continuous_model_pb(spec: ContinuousSpec) -> pb::ContinuousModel {
                     tiles_per_dim,
                     table,
                 }),
+                ContinuousBasisSpec::Pvf {
+                    k,
+                    nodes,
+                    neighbours,
+                } => Kind::Pvf(pb::NystromPvfBasis {
+                    k,
+                    nodes,
+                    neighbours,
+                }),
             }),
         }),
         out_of_bounds: match out_of_bounds {
@@ -690,12 +699,15 @@ fn continuous_spec(m: pb::ContinuousModel) -> Result<ModelInput, ServiceError> {
                 tiles_per_dim,
                 table,
             },
-            Kind::Pvf(_) => {
-                return Err(ServiceError::field(
-                    "model.basis.pvf",
-                    "this server has no pvf basis for continuous worlds; use fourier, rbf or tiles",
-                ));
-            }
+            Kind::Pvf(pb::NystromPvfBasis {
+                k,
+                nodes,
+                neighbours,
+            }) => ContinuousBasisSpec::Pvf {
+                k,
+                nodes,
+                neighbours,
+            },
         }),
     };
     let out_of_bounds = match pb::OutOfBounds::try_from(out_of_bounds) {
@@ -863,12 +875,14 @@ fn stats(s: SessionStats) -> pb::SessionStats {
                  slots,
                  updates,
                  rebuilds,
+                 basis_builds,
              }| pb::ContinuousStats {
                 clipped,
                 samples: samples as u64,
                 slots: slots as u64,
                 updates,
                 rebuilds,
+                basis_builds,
             },
         ),
     }

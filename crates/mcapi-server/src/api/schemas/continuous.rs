@@ -9,7 +9,8 @@ use utoipa::openapi::schema::{OneOfBuilder, Schema, Type};
 use super::builders::{Bound, array, closed, integer, non_blank_name, number, reference, typed};
 use crate::service::Limits;
 use mcapi_core::continuous::basis::{
-    MAX_CENTRES_PER_DIM, MAX_ORDER, MAX_STATE_FEATURES, MAX_TILES_PER_DIM, MAX_TILINGS,
+    MAX_CENTRES_PER_DIM, MAX_ORDER, MAX_PVF_K, MAX_PVF_NEIGHBOURS, MAX_PVF_NODES,
+    MAX_STATE_FEATURES, MAX_TILES_PER_DIM, MAX_TILINGS,
 };
 use mcapi_core::continuous::model::{
     MAX_ACTIONS, MAX_CELLS_PER_DIM, MAX_KNOWN_AFTER, MAX_PER_CELL, MAX_SAMPLES,
@@ -115,10 +116,46 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     .required("kind")
     .required("tilings")
     .required("tiles_per_dim");
+    let pvf = closed(
+        "Proto-value functions of a graph over the observations seen so far (its nodes \
+         a subsample, its edges the observed transitions), extended to any observation by \
+         the Nyström formula and rebuilt as coverage grows (docs/algorithm.md §9.2).",
+    )
+    .property("kind", kind("pvf"))
+    .property(
+        "k",
+        integer(
+            1,
+            u64::from(MAX_PVF_K),
+            false,
+            "eigenvectors, the features per action (at most `nodes`)",
+        ),
+    )
+    .property(
+        "nodes",
+        integer(
+            2,
+            u64::from(MAX_PVF_NODES),
+            true,
+            "most graph nodes (default 800)",
+        ),
+    )
+    .property(
+        "neighbours",
+        integer(
+            1,
+            u64::from(MAX_PVF_NEIGHBOURS),
+            true,
+            "most neighbours of a node (default 16)",
+        ),
+    )
+    .required("kind")
+    .required("k");
     let basis = OneOfBuilder::new()
         .item(fourier)
         .item(rbf)
         .item(tiles)
+        .item(pvf)
         .description(Some(
             "The basis over the space (default: by dimension, shown in the session's \
              summary). At most 4096 features per action and 2048 over all actions.",
