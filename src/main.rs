@@ -318,7 +318,9 @@ fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
     let shown = serde_json::to_string(&cfg).unwrap_or_default();
     let store = match cfg.store {
         mcapi_server::config::StoreKind::Redb => format!("durable, in {}", cfg.data_dir.display()),
-        mcapi_server::config::StoreKind::Memory => "in memory (nothing kept across restarts)".into(),
+        mcapi_server::config::StoreKind::Memory => {
+            "in memory (nothing kept across restarts)".into()
+        }
     };
     let keys = match cfg.api_keys.len() {
         0 => "off".to_owned(),
