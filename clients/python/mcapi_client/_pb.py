@@ -408,7 +408,11 @@ def observation_message(obs: Observation, session_id: str = "") -> pb.Observatio
     (``non_finite_number``). A negative or too large state, action index or
     signal source is refused here as ``bad_request``, as over REST.
     """
-    msg = pb.Observation(session_id=session_id, state=_unsigned(obs.state, "state", 64))
+    if obs.observation is not None:
+        # A continuous world: the vector, and `state` left 0.
+        msg = pb.Observation(session_id=session_id, observation=obs.observation)
+    else:
+        msg = pb.Observation(session_id=session_id, state=_unsigned(obs.state or 0, "state", 64))
     if obs.stimulus is not None:
         msg.stimulus.values.extend(obs.stimulus)
         msg.stimulus.SetInParent()  # an empty stimulus is still sent as given

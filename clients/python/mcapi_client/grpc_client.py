@@ -141,16 +141,17 @@ class _Stream(_Closing):
 
     def _message(
         self,
-        state: IntLike,
+        state: IntLike | None,
         stimulus: FloatsLike | None,
         action_taken: ActionRef | None,
         signal: FloatsLike | None,
         signal_source: IntLike | None,
+        observation: FloatsLike | None = None,
     ) -> pb.Observation:
         if self._half_closed:
             raise RuntimeError("this interaction no longer accepts observations")
         return _pb.observation_message(
-            Observation(state, stimulus, action_taken, signal, signal_source)
+            Observation(state, stimulus, action_taken, signal, signal_source, observation=observation)
         )
 
     def _expect_reply(self) -> None:
@@ -192,17 +193,18 @@ class Interaction(_Stream):
 
     def send(
         self,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        observation: FloatsLike | None = None,
     ) -> None:
         """Queues one observation without waiting for its step.
 
         Args:
-            state: The state the agent is in now.
+            state: The state the agent is in now (numbered states).
             stimulus: What it received on arriving there; leave out on the
                 session's first observation.
             action_taken: The action actually taken, by name or index, if not
@@ -210,8 +212,12 @@ class Interaction(_Stream):
             signal: A raw signal sample, for a session with a curiosity
                 channel (``stimulus`` is then the extrinsic part only).
             signal_source: The signal's source (server default 0).
+            observation: A continuous world's observation vector, instead
+                of ``state``.
         """
-        self._outbox.put(self._message(state, stimulus, action_taken, signal, signal_source))
+        self._outbox.put(
+            self._message(state, stimulus, action_taken, signal, signal_source, observation)
+        )
         self._sent += 1
 
     def recv(self) -> Step:
@@ -228,16 +234,24 @@ class Interaction(_Stream):
 
     def step(
         self,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        observation: FloatsLike | None = None,
     ) -> Step:
         """Sends one observation and returns its step (the next action);
         arguments as :meth:`send`."""
-        self.send(state, stimulus, action_taken, signal=signal, signal_source=signal_source)
+        self.send(
+            state,
+            stimulus,
+            action_taken,
+            signal=signal,
+            signal_source=signal_source,
+            observation=observation,
+        )
         return self.recv()
 
     def __iter__(self) -> Interaction:
@@ -471,12 +485,13 @@ class GrpcClient:
     def observe(
         self,
         session_id: str,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        observation: FloatsLike | None = None,
     ) -> Step:
         """Reports one observation (unary ``Observe``) and returns the next
         action; arguments as :meth:`mcapi_client.Client.observe`.
@@ -484,7 +499,9 @@ class GrpcClient:
         For a loop of many observations, :meth:`interact` saves a round of
         call set-up per tick.
         """
-        obs = Observation(state, stimulus, action_taken, signal, signal_source)
+        obs = Observation(
+            state, stimulus, action_taken, signal, signal_source, observation=observation
+        )
         return drive(self._protocol.observe(session_id, obs), self._send)
 
     def observe_batch(
@@ -560,16 +577,19 @@ class AsyncInteraction(_Stream):
 
     def send(
         self,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        observation: FloatsLike | None = None,
     ) -> None:
         """Queues one observation without waiting for its step (not awaited);
         arguments as :meth:`Interaction.send`."""
-        self._outbox.put_nowait(self._message(state, stimulus, action_taken, signal, signal_source))
+        self._outbox.put_nowait(
+            self._message(state, stimulus, action_taken, signal, signal_source, observation)
+        )
         self._sent += 1
 
     async def recv(self) -> Step:
@@ -586,16 +606,24 @@ class AsyncInteraction(_Stream):
 
     async def step(
         self,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        observation: FloatsLike | None = None,
     ) -> Step:
         """Sends one observation and returns its step (the next action);
         arguments as :meth:`Interaction.send`."""
-        self.send(state, stimulus, action_taken, signal=signal, signal_source=signal_source)
+        self.send(
+            state,
+            stimulus,
+            action_taken,
+            signal=signal,
+            signal_source=signal_source,
+            observation=observation,
+        )
         return await self.recv()
 
     def __aiter__(self) -> AsyncInteraction:
@@ -817,15 +845,18 @@ class AsyncGrpcClient:
     async def observe(
         self,
         session_id: str,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        observation: FloatsLike | None = None,
     ) -> Step:
         """Reports one observation (unary ``Observe``); see :meth:`GrpcClient.observe`."""
-        obs = Observation(state, stimulus, action_taken, signal, signal_source)
+        obs = Observation(
+            state, stimulus, action_taken, signal, signal_source, observation=observation
+        )
         return await adrive(self._protocol.observe(session_id, obs), self._send)
 
     async def observe_batch(

@@ -38,9 +38,16 @@ import math
 import random
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, Literal, SupportsIndex, Union
+from typing import Any, Literal, SupportsIndex, Union, overload
 
 from ._normalise import as_float, as_int, is_int_like, plain
+from .continuous import (
+    ContinuousEnvironment,
+    ContinuousModel,
+    ContinuousStep,
+    StimulusOf,
+    box_bounds,
+)
 
 __all__ = [
     "PROBABILITY_TOLERANCE",
@@ -61,6 +68,9 @@ __all__ = [
     "MoStep",
     "MoEnvironment",
     "from_mo_gymnasium",
+    "ContinuousModel",
+    "ContinuousStep",
+    "ContinuousEnvironment",
 ]
 
 PROBABILITY_TOLERANCE = 1e-9
@@ -636,6 +646,7 @@ _GYM_ACTIONS: dict[str, tuple[str, ...]] = {
 }
 
 
+@overload
 def from_gymnasium(
     env: Any,
     sources: Mapping[str, StatesLike],
@@ -644,8 +655,50 @@ def from_gymnasium(
     actions: Sequence[str] | None = None,
     on_terminated: Literal["restart", "keep"] = "restart",
     basis: Mapping[str, Any] | None = None,
-) -> Model:
-    """A model from a Gymnasium toy-text environment's transition table.
+) -> Model: ...
+
+
+@overload
+def from_gymnasium(
+    env: Any,
+    sources: None = None,
+    *,
+    stimuli: Sequence[str] | None = None,
+    actions: Sequence[str] | None = None,
+    basis: Mapping[str, Any] | None = None,
+    bounds: Sequence[tuple[float, float]] | None = None,
+    stimulus_of: StimulusOf | None = None,
+    out_of_bounds: Literal["clip", "refuse"] = "clip",
+    samples: Mapping[str, int] | None = None,
+) -> ContinuousEnvironment: ...
+
+
+def from_gymnasium(
+    env: Any,
+    sources: Mapping[str, StatesLike] | None = None,
+    *,
+    stimuli: Sequence[str] | None = None,
+    actions: Sequence[str] | None = None,
+    on_terminated: Literal["restart", "keep"] = "restart",
+    basis: Mapping[str, Any] | None = None,
+    bounds: Sequence[tuple[float, float]] | None = None,
+    stimulus_of: StimulusOf | None = None,
+    out_of_bounds: Literal["clip", "refuse"] = "clip",
+    samples: Mapping[str, int] | None = None,
+) -> Model | ContinuousEnvironment:
+    """A model from a Gymnasium environment.
+
+    **Without** ``sources``: an environment with a ``Box`` observation space
+    and ``Discrete`` actions becomes a continuous world
+    (:class:`~mcapi_client.continuous.ContinuousEnvironment`): its box is the
+    model's observation space (``bounds`` gives a finite (low, high) per
+    component where the space is unbounded), and each step's stimulus is
+    ``stimulus_of(observation, reward, info)``, by default one stimulus,
+    the positive part of the reward (named ``stimuli[0]``, default
+    ``"reward"``). The session learns the transitions.
+
+    **With** ``sources``, the model is read from a toy-text environment's
+    transition table:
 
     Reads ``env.unwrapped.P`` (``P[s][a] = [(p, next, reward, terminated), ...]``),
     so stochastic environments stay stochastic (FrozenLake with
@@ -672,10 +725,29 @@ def from_gymnasium(
         on_terminated: ``"restart"`` or ``"keep"``, see above.
         basis: Optional basis for the server.
 
+        bounds: Without ``sources``: a finite (low, high) per observation component.
+        stimulus_of: Without ``sources``: the stimulus of a step.
+        out_of_bounds: Without ``sources``: ``"clip"`` or ``"refuse"``.
+        samples: Without ``sources``: the sample store's parameters.
+
     Raises:
         ValueError: The environment has no transition table, or it does not
-            sum to 1, or a restart needs an initial-state distribution it lacks.
+            sum to 1, or a restart needs an initial-state distribution it lacks;
+            without ``sources``, an unbounded box without ``bounds``.
+        TypeError: Without ``sources``, a space that is not a ``Box`` or
+            actions that are not ``Discrete``.
     """
+    if sources is None:
+        return _continuous_environment(
+            env,
+            stimuli=tuple(stimuli) if stimuli is not None else ("reward",),
+            actions=actions,
+            basis=basis,
+            bounds=bounds,
+            stimulus_of=stimulus_of or (lambda _x, r, _i: [max(float(r), 0.0)]),
+            out_of_bounds=out_of_bounds,
+            samples=samples,
+        )
     base = getattr(env, "unwrapped", env)
     P = getattr(base, "P", None)
     if not isinstance(P, Mapping) and not isinstance(P, Sequence):
@@ -870,6 +942,11 @@ def _mo_preset(base: Any) -> dict[str, Any]:
         return out
     if name == "FourRoom":
         return {"objectives": ("blue", "green", "red"), "actions": ("left", "up", "right", "down")}
+    if name == "Minecart":
+        return {
+            "objectives": ("ore1", "ore2", "fuel"),
+            "actions": ("mine", "left", "right", "accelerate", "brake", "none"),
+        }
     return {}
 
 
@@ -1159,9 +1236,11 @@ def _placeholder(actions: Sequence[str], stimuli: Sequence[str]) -> Model:
     return Model(1, tuple(actions), tuple(stimuli), ((((0, 1.0),),) * len(actions),))
 
 
+@overload
 def from_mo_gymnasium(
     env: Any,
     *,
+    observations: Literal["discrete"] = "discrete",
     penalties: Literal["drop", "error"] = "drop",
     scale: float = 1.0,
     transitions: Literal["auto", "learn", "table"] = "auto",
@@ -1173,9 +1252,53 @@ def from_mo_gymnasium(
     known_after: int | None = None,
     optimism: Literal["absorbing", "stimulus"] | None = None,
     basis: Mapping[str, Any] | None = None,
-) -> MoEnvironment:
-    """A discrete multi-objective environment (MO-Gymnasium's API: ``step``
-    returns a vector reward) as an mcapi model and a step adapter.
+) -> MoEnvironment: ...
+
+
+@overload
+def from_mo_gymnasium(
+    env: Any,
+    *,
+    observations: Literal["continuous"],
+    penalties: Literal["drop", "error"] = "drop",
+    scale: float = 1.0,
+    objectives: Sequence[str] | None = None,
+    actions: Sequence[str] | None = None,
+    unwrap: bool = True,
+    basis: Mapping[str, Any] | None = None,
+    observation_bounds: Sequence[tuple[float, float]] | None = None,
+    out_of_bounds: Literal["clip", "refuse"] = "clip",
+    samples: Mapping[str, int] | None = None,
+) -> ContinuousEnvironment: ...
+
+
+def from_mo_gymnasium(
+    env: Any,
+    *,
+    observations: Literal["discrete", "continuous"] = "discrete",
+    penalties: Literal["drop", "error"] = "drop",
+    scale: float = 1.0,
+    transitions: Literal["auto", "learn", "table"] = "auto",
+    observation_bounds: Sequence[tuple[float, float]] | None = None,
+    objectives: Sequence[str] | None = None,
+    actions: Sequence[str] | None = None,
+    max_states: int = 10_000,
+    unwrap: bool = True,
+    known_after: int | None = None,
+    optimism: Literal["absorbing", "stimulus"] | None = None,
+    basis: Mapping[str, Any] | None = None,
+    out_of_bounds: Literal["clip", "refuse"] = "clip",
+    samples: Mapping[str, int] | None = None,
+) -> MoEnvironment | ContinuousEnvironment:
+    """A multi-objective environment (MO-Gymnasium's API: ``step`` returns a
+    vector reward) as an mcapi model and a step adapter.
+
+    **Continuous observations** (``observations="continuous"``, e.g.
+    ``minecart-v0``): a ``Box`` observation space becomes a continuous world
+    (:class:`~mcapi_client.continuous.ContinuousEnvironment`;
+    ``observation_bounds`` replaces unbounded components), the stimuli are the kept reward
+    components as below, and the session learns the transitions. The
+    options about states and tables below do not apply.
 
     **States.** The observation space must be discrete: Discrete,
     MultiDiscrete, MultiBinary, a Box of an integer dtype with finite
@@ -1260,32 +1383,41 @@ def from_mo_gymnasium(
         raise ValueError(f"{len(actions)} action names for {n_actions} actions")
     _check_names("actions", actions)
 
-    obs_space = getattr(stepped, "observation_space", None)
-    if obs_space is None:
-        raise UnsupportedEnvironment(f"{name} has no observation_space")
-    leaves = _space_leaves(obs_space, f"{name}'s observation space")
-    if observation_bounds is not None:
-        bounds = [(as_int(lo, "low"), as_int(hi, "high")) for lo, hi in observation_bounds]
-        if len(bounds) != len(leaves):
-            raise ValueError(
-                f"`observation_bounds` has {len(bounds)} entries; "
-                f"the observation has {len(leaves)} components"
+    if observations not in ("discrete", "continuous"):
+        raise ValueError(f"observations must be 'discrete' or 'continuous', not {observations!r}")
+    continuous = observations == "continuous"
+    if not continuous:
+        obs_space = getattr(stepped, "observation_space", None)
+        if obs_space is None:
+            raise UnsupportedEnvironment(f"{name} has no observation_space")
+        leaves = _space_leaves(obs_space, f"{name}'s observation space")
+        if observation_bounds is not None:
+            bounds = [(as_int(lo, "low"), as_int(hi, "high")) for lo, hi in observation_bounds]
+            if len(bounds) != len(leaves):
+                raise ValueError(
+                    f"`observation_bounds` has {len(bounds)} entries; "
+                    f"the observation has {len(leaves)} components"
+                )
+        elif (
+            "bounds" in preset
+            and obs_space == base.observation_space
+            and len(preset["bounds"]) == len(leaves)
+        ):
+            bounds = list(preset["bounds"])
+        else:
+            bounds = leaves
+        for i, (lo, hi) in enumerate(bounds):
+            if hi < lo:
+                raise ValueError(f"observation component {i}: bounds {lo}..{hi} are empty")
+        states = math.prod(hi - lo + 1 for lo, hi in bounds)
+        if states > max_states:
+            raise UnsupportedEnvironment(
+                f"{name}'s observation space {obs_space} gives {states:,} states "
+                f"({' x '.join(str(hi - lo + 1) for lo, hi in bounds)}), "
+                f"more than max_states = {max_states:,}: "
+                "abstract the observation (a gymnasium.ObservationWrapper, with unwrap=False), "
+                "give tighter `observation_bounds`, or raise `max_states`"
             )
-    elif "bounds" in preset and obs_space == base.observation_space and len(preset["bounds"]) == len(leaves):
-        bounds = list(preset["bounds"])
-    else:
-        bounds = leaves
-    for i, (lo, hi) in enumerate(bounds):
-        if hi < lo:
-            raise ValueError(f"observation component {i}: bounds {lo}..{hi} are empty")
-    states = math.prod(hi - lo + 1 for lo, hi in bounds)
-    if states > max_states:
-        raise UnsupportedEnvironment(
-            f"{name}'s observation space {obs_space} gives {states:,} states "
-            f"({' x '.join(str(hi - lo + 1) for lo, hi in bounds)}), more than max_states = {max_states:,}: "
-            "abstract the observation (a gymnasium.ObservationWrapper, with unwrap=False), "
-            "give tighter `observation_bounds`, or raise `max_states`"
-        )
 
     reward_space = getattr(base, "reward_space", None)
     if reward_space is None and hasattr(env, "get_wrapper_attr"):
@@ -1323,6 +1455,23 @@ def from_mo_gymnasium(
     scale = as_float(scale, "scale")
     if not (math.isfinite(scale) and scale > 0.0):
         raise ValueError(f"`scale` {scale} is not a positive number")
+    if continuous:
+        # Observation vectors: the session learns the transitions.
+        def stimulus_of(_x: list[float], reward: Any, _info: Mapping[str, Any]) -> list[float]:
+            r = _flat_list(reward)
+            return [max(float(r[i]), 0.0) * scale for i in kept]
+
+        return _continuous_environment(
+            env,
+            stimuli=[objectives[i] for i in kept],
+            actions=actions,
+            basis=basis,
+            bounds=observation_bounds,
+            stimulus_of=stimulus_of,
+            out_of_bounds=out_of_bounds,
+            samples=samples,
+            stepped=stepped,
+        )
 
     if transitions not in ("auto", "learn", "table"):
         raise ValueError(f"transitions must be 'auto', 'learn' or 'table', not {transitions!r}")
@@ -1391,7 +1540,9 @@ def _mo_table(
     return from_transition_table(rows, actions, {}, stimuli=stimuli)
 
 
-ModelLike = Union[Model, Learned, MoEnvironment, Mapping[str, Any], str]
+ModelLike = Union[
+    Model, Learned, MoEnvironment, ContinuousModel, ContinuousEnvironment, Mapping[str, Any], str
+]
 """A model to create a session from: a :class:`Model`, a :class:`Learned` or a
 :class:`MoEnvironment` (posted by their ``to_json``), the model's JSON as a
 mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
@@ -1401,7 +1552,7 @@ mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
 
 def model_json(model: ModelLike) -> dict[str, Any]:
     """The ``model`` JSON of a create request (REST's body; gRPC sends it as the typed ``Model``)."""
-    if isinstance(model, (Model, Learned, MoEnvironment)):
+    if isinstance(model, (Model, Learned, MoEnvironment, ContinuousModel, ContinuousEnvironment)):
         return model.to_json()
     if isinstance(model, str):
         return {"preset": model}
@@ -1409,3 +1560,42 @@ def model_json(model: ModelLike) -> dict[str, Any]:
         out: dict[str, Any] = plain(dict(model))
         return out
     raise TypeError(f"not a model: {type(model).__name__}")
+
+
+def _continuous_environment(
+    env: Any,
+    *,
+    stimuli: Sequence[str],
+    actions: Sequence[str] | None,
+    basis: Mapping[str, Any] | None,
+    bounds: Sequence[tuple[float, float]] | None,
+    stimulus_of: StimulusOf,
+    out_of_bounds: Literal["clip", "refuse"],
+    samples: Mapping[str, int] | None,
+    stepped: Any = None,
+) -> ContinuousEnvironment:
+    """A ``Box``-observation, ``Discrete``-action environment as a continuous world."""
+    base = getattr(env, "unwrapped", env)
+    name = type(base).__name__
+    stepped = env if stepped is None else stepped
+    action_space: Any = getattr(stepped, "action_space", None)
+    if type(action_space).__name__ != "Discrete":
+        raise TypeError(
+            f"{name}'s action space is {action_space}: only Discrete actions map to mcapi actions"
+        )
+    n_actions = as_int(action_space.n, "action_space.n")
+    names = tuple(actions) if actions is not None else tuple(f"a{i}" for i in range(n_actions))
+    if len(names) != n_actions:
+        raise ValueError(f"{len(names)} action names for {n_actions} actions")
+    low, high = box_bounds(getattr(stepped, "observation_space", None), bounds, name)
+    model = ContinuousModel(
+        low=tuple(low),
+        high=tuple(high),
+        actions=names,
+        stimuli=tuple(stimuli),
+        basis=basis,
+        out_of_bounds=out_of_bounds,
+        samples=samples,
+    )
+    start = as_int(getattr(action_space, "start", 0), "action_space.start")
+    return ContinuousEnvironment(stepped, model, stimulus_of, start)

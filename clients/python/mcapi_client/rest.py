@@ -201,12 +201,13 @@ class Client:
     def observe(
         self,
         session_id: str,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        observation: FloatsLike | None = None,
     ) -> Step:
         """Reports one observation and returns the next action.
 
@@ -227,7 +228,9 @@ class Client:
             signal_source: The signal's source, e.g. 0 = book, 1 = music
                 (server default 0); only with ``signal``.
         """
-        obs = Observation(state, stimulus, action_taken, signal, signal_source)
+        obs = Observation(
+            state, stimulus, action_taken, signal, signal_source, observation=observation
+        )
         return drive(self._protocol.observe(session_id, obs), self._send)
 
     def observe_batch(
@@ -364,15 +367,18 @@ class AsyncClient:
     async def observe(
         self,
         session_id: str,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         *,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        observation: FloatsLike | None = None,
     ) -> Step:
         """Reports one observation; see :meth:`Client.observe`."""
-        obs = Observation(state, stimulus, action_taken, signal, signal_source)
+        obs = Observation(
+            state, stimulus, action_taken, signal, signal_source, observation=observation
+        )
         return await adrive(self._protocol.observe(session_id, obs), self._send)
 
     async def observe_batch(

@@ -599,7 +599,8 @@ class Observation:
     ``int``, ``float`` and ``list`` values.
 
     Attributes:
-        state: The state the agent is in now.
+        state: The state the agent is in now (a model with numbered states);
+            ``None`` for a continuous world.
         stimulus: The stimulus received on arriving there, one float per
             stimulus dimension; ``None`` on a session's first observation.
         action_taken: The action actually taken to get here, by name or
@@ -610,23 +611,34 @@ class Observation:
             appends xi_cur. Not on a session's first observation.
         signal_source: The signal's source (e.g. 0 = book, 1 = music);
             the server's default is 0. Only with a ``signal``.
+        observation: The observation vector of a continuous world (one float
+            per dimension of its space), instead of ``state``.
     """
 
-    state: int
+    state: int | None
     stimulus: list[float] | None
     action_taken: str | int | None
     signal: list[float] | None
     signal_source: int | None
+    observation: list[float] | None
 
     def __init__(
         self,
-        state: IntLike,
+        state: IntLike | None = None,
         stimulus: FloatsLike | None = None,
         action_taken: ActionRef | None = None,
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
+        *,
+        observation: FloatsLike | None = None,
     ) -> None:
-        object.__setattr__(self, "state", as_int(state, "state"))
+        if (state is None) == (observation is None):
+            raise TypeError(
+                "give `state` (a model with numbered states) or `observation` "
+                "(a continuous world), exactly one"
+            )
+        object.__setattr__(self, "state", None if state is None else as_int(state, "state"))
+        object.__setattr__(self, "observation", as_opt_floats(observation, "observation"))
         object.__setattr__(self, "stimulus", as_opt_floats(stimulus, "stimulus"))
         object.__setattr__(
             self, "action_taken", None if action_taken is None else as_action(action_taken)
@@ -636,7 +648,11 @@ class Observation:
 
     def to_json(self) -> dict[str, object]:
         """The observation as the REST API takes it."""
-        out: dict[str, object] = {"state": self.state}
+        out: dict[str, object] = (
+            {"state": self.state}
+            if self.observation is None
+            else {"observation": _finite("observation", self.observation)}
+        )
         if self.stimulus is not None:
             out["stimulus"] = _finite("stimulus", self.stimulus)
         if self.action_taken is not None:
@@ -653,7 +669,7 @@ ObservationLike = Union[Observation, Mapping[str, object], tuple[Any, ...]]
 mapping with ``state``/``stimulus``/``action_taken``/``signal``/``signal_source``
 keys, or a tuple ``(state, stimulus[, action_taken[, signal[, signal_source]]])``."""
 
-_OBSERVATION_KEYS = {"state", "stimulus", "action_taken", "signal", "signal_source"}
+_OBSERVATION_KEYS = {"state", "stimulus", "action_taken", "signal", "signal_source", "observation"}
 
 
 def as_observation(obs: ObservationLike) -> Observation:
@@ -665,7 +681,8 @@ def as_observation(obs: ObservationLike) -> Observation:
         if unknown:
             raise TypeError(f"unknown observation keys: {sorted(unknown)}")
         return Observation(
-            state=obs["state"],  # type: ignore[arg-type]
+            state=obs.get("state"),  # type: ignore[arg-type]
+            observation=obs.get("observation"),  # type: ignore[arg-type]
             stimulus=obs.get("stimulus"),  # type: ignore[arg-type]
             action_taken=obs.get("action_taken"),  # type: ignore[arg-type]
             signal=obs.get("signal"),  # type: ignore[arg-type]

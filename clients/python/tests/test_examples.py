@@ -124,3 +124,14 @@ def test_mo_resource_gathering(
     assert episodes > 50 and enemy <= 0, out
     assert gold >= 30 and gem >= 30, f"both resources brought home often: {out}"
     assert float(final.group(5)) >= 0.8, out
+
+
+def test_minecart(server: Server, examples_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    pytest.importorskip("mo_gymnasium", reason="the mo extra is not installed")
+    out = _run("minecart", ["--url", server.http_url, "--steps", "1000", "--seeds", "1"], capsys)
+    found = re.findall(
+        r"(agent|random)\s*: ore1 ([0-9.]+), ore2 ([0-9.]+) per run of 1000 ticks", out
+    )
+    rows = {name: (float(a), float(b)) for name, a, b in found}
+    assert set(rows) == {"agent", "random"}, out
+    assert all(x > 0 for x in rows["agent"]), f"the agent delivers both ores: {out}"

@@ -7,6 +7,12 @@ from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
 
 DESCRIPTOR: _descriptor.FileDescriptor
 
+class OutOfBounds(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
+    __slots__ = ()
+    OUT_OF_BOUNDS_UNSPECIFIED: _ClassVar[OutOfBounds]
+    OUT_OF_BOUNDS_CLIP: _ClassVar[OutOfBounds]
+    OUT_OF_BOUNDS_REFUSE: _ClassVar[OutOfBounds]
+
 class Optimism(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     OPTIMISM_UNSPECIFIED: _ClassVar[Optimism]
@@ -23,6 +29,9 @@ class StimulusRateRule(int, metaclass=_enum_type_wrapper.EnumTypeWrapper):
     __slots__ = ()
     STIMULUS_RATE_RULE_UNSPECIFIED: _ClassVar[StimulusRateRule]
     STIMULUS_RATE_RULE_SAMPLE_MEAN: _ClassVar[StimulusRateRule]
+OUT_OF_BOUNDS_UNSPECIFIED: OutOfBounds
+OUT_OF_BOUNDS_CLIP: OutOfBounds
+OUT_OF_BOUNDS_REFUSE: OutOfBounds
 OPTIMISM_UNSPECIFIED: Optimism
 OPTIMISM_ABSORBING: Optimism
 OPTIMISM_STIMULUS: Optimism
@@ -43,14 +52,94 @@ class CreateSessionRequest(_message.Message):
     def __init__(self, model_json: _Optional[str] = ..., agent: _Optional[_Union[SessionConfig, _Mapping]] = ..., model: _Optional[_Union[Model, _Mapping]] = ...) -> None: ...
 
 class Model(_message.Message):
-    __slots__ = ("preset", "grid", "full")
+    __slots__ = ("preset", "grid", "full", "continuous")
     PRESET_FIELD_NUMBER: _ClassVar[int]
     GRID_FIELD_NUMBER: _ClassVar[int]
     FULL_FIELD_NUMBER: _ClassVar[int]
+    CONTINUOUS_FIELD_NUMBER: _ClassVar[int]
     preset: PresetModel
     grid: GridModel
     full: FullModel
-    def __init__(self, preset: _Optional[_Union[PresetModel, _Mapping]] = ..., grid: _Optional[_Union[GridModel, _Mapping]] = ..., full: _Optional[_Union[FullModel, _Mapping]] = ...) -> None: ...
+    continuous: ContinuousModel
+    def __init__(self, preset: _Optional[_Union[PresetModel, _Mapping]] = ..., grid: _Optional[_Union[GridModel, _Mapping]] = ..., full: _Optional[_Union[FullModel, _Mapping]] = ..., continuous: _Optional[_Union[ContinuousModel, _Mapping]] = ...) -> None: ...
+
+class ContinuousModel(_message.Message):
+    __slots__ = ("low", "high", "actions", "stimuli", "basis", "out_of_bounds", "samples")
+    LOW_FIELD_NUMBER: _ClassVar[int]
+    HIGH_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    STIMULI_FIELD_NUMBER: _ClassVar[int]
+    BASIS_FIELD_NUMBER: _ClassVar[int]
+    OUT_OF_BOUNDS_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    low: _containers.RepeatedScalarFieldContainer[float]
+    high: _containers.RepeatedScalarFieldContainer[float]
+    actions: _containers.RepeatedScalarFieldContainer[str]
+    stimuli: _containers.RepeatedScalarFieldContainer[str]
+    basis: ContinuousBasis
+    out_of_bounds: OutOfBounds
+    samples: SampleParams
+    def __init__(self, low: _Optional[_Iterable[float]] = ..., high: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., basis: _Optional[_Union[ContinuousBasis, _Mapping]] = ..., out_of_bounds: _Optional[_Union[OutOfBounds, str]] = ..., samples: _Optional[_Union[SampleParams, _Mapping]] = ...) -> None: ...
+
+class ContinuousBasis(_message.Message):
+    __slots__ = ("fourier", "rbf", "tiles", "pvf")
+    FOURIER_FIELD_NUMBER: _ClassVar[int]
+    RBF_FIELD_NUMBER: _ClassVar[int]
+    TILES_FIELD_NUMBER: _ClassVar[int]
+    PVF_FIELD_NUMBER: _ClassVar[int]
+    fourier: FourierBasis
+    rbf: RbfBasis
+    tiles: TileBasis
+    pvf: NystromPvfBasis
+    def __init__(self, fourier: _Optional[_Union[FourierBasis, _Mapping]] = ..., rbf: _Optional[_Union[RbfBasis, _Mapping]] = ..., tiles: _Optional[_Union[TileBasis, _Mapping]] = ..., pvf: _Optional[_Union[NystromPvfBasis, _Mapping]] = ...) -> None: ...
+
+class NystromPvfBasis(_message.Message):
+    __slots__ = ("k", "nodes", "neighbours")
+    K_FIELD_NUMBER: _ClassVar[int]
+    NODES_FIELD_NUMBER: _ClassVar[int]
+    NEIGHBOURS_FIELD_NUMBER: _ClassVar[int]
+    k: int
+    nodes: int
+    neighbours: int
+    def __init__(self, k: _Optional[int] = ..., nodes: _Optional[int] = ..., neighbours: _Optional[int] = ...) -> None: ...
+
+class FourierBasis(_message.Message):
+    __slots__ = ("order", "max_coupling")
+    ORDER_FIELD_NUMBER: _ClassVar[int]
+    MAX_COUPLING_FIELD_NUMBER: _ClassVar[int]
+    order: int
+    max_coupling: int
+    def __init__(self, order: _Optional[int] = ..., max_coupling: _Optional[int] = ...) -> None: ...
+
+class RbfBasis(_message.Message):
+    __slots__ = ("centres_per_dim", "width")
+    CENTRES_PER_DIM_FIELD_NUMBER: _ClassVar[int]
+    WIDTH_FIELD_NUMBER: _ClassVar[int]
+    centres_per_dim: int
+    width: float
+    def __init__(self, centres_per_dim: _Optional[int] = ..., width: _Optional[float] = ...) -> None: ...
+
+class TileBasis(_message.Message):
+    __slots__ = ("tilings", "tiles_per_dim", "table")
+    TILINGS_FIELD_NUMBER: _ClassVar[int]
+    TILES_PER_DIM_FIELD_NUMBER: _ClassVar[int]
+    TABLE_FIELD_NUMBER: _ClassVar[int]
+    tilings: int
+    tiles_per_dim: int
+    table: int
+    def __init__(self, tilings: _Optional[int] = ..., tiles_per_dim: _Optional[int] = ..., table: _Optional[int] = ...) -> None: ...
+
+class SampleParams(_message.Message):
+    __slots__ = ("cells_per_dim", "per_cell", "max", "known_after")
+    CELLS_PER_DIM_FIELD_NUMBER: _ClassVar[int]
+    PER_CELL_FIELD_NUMBER: _ClassVar[int]
+    MAX_FIELD_NUMBER: _ClassVar[int]
+    KNOWN_AFTER_FIELD_NUMBER: _ClassVar[int]
+    cells_per_dim: int
+    per_cell: int
+    max: int
+    known_after: int
+    def __init__(self, cells_per_dim: _Optional[int] = ..., per_cell: _Optional[int] = ..., max: _Optional[int] = ..., known_after: _Optional[int] = ...) -> None: ...
 
 class PresetModel(_message.Message):
     __slots__ = ("name", "basis")
@@ -254,7 +343,7 @@ class BasisSummary(_message.Message):
     def __init__(self, kind: _Optional[str] = ..., k: _Optional[int] = ...) -> None: ...
 
 class ModelSummary(_message.Message):
-    __slots__ = ("states", "actions", "stimuli", "pairs", "transitions", "deterministic", "basis", "features", "layout", "learned")
+    __slots__ = ("states", "actions", "stimuli", "pairs", "transitions", "deterministic", "basis", "features", "layout", "learned", "continuous")
     STATES_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     STIMULI_FIELD_NUMBER: _ClassVar[int]
@@ -265,6 +354,7 @@ class ModelSummary(_message.Message):
     FEATURES_FIELD_NUMBER: _ClassVar[int]
     LAYOUT_FIELD_NUMBER: _ClassVar[int]
     LEARNED_FIELD_NUMBER: _ClassVar[int]
+    CONTINUOUS_FIELD_NUMBER: _ClassVar[int]
     states: int
     actions: _containers.RepeatedScalarFieldContainer[str]
     stimuli: _containers.RepeatedScalarFieldContainer[str]
@@ -275,7 +365,8 @@ class ModelSummary(_message.Message):
     features: int
     layout: GridLayout
     learned: LearnedSummary
-    def __init__(self, states: _Optional[int] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., pairs: _Optional[int] = ..., transitions: _Optional[int] = ..., deterministic: _Optional[bool] = ..., basis: _Optional[_Union[BasisSummary, _Mapping]] = ..., features: _Optional[int] = ..., layout: _Optional[_Union[GridLayout, _Mapping]] = ..., learned: _Optional[_Union[LearnedSummary, _Mapping]] = ...) -> None: ...
+    continuous: ContinuousModel
+    def __init__(self, states: _Optional[int] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., pairs: _Optional[int] = ..., transitions: _Optional[int] = ..., deterministic: _Optional[bool] = ..., basis: _Optional[_Union[BasisSummary, _Mapping]] = ..., features: _Optional[int] = ..., layout: _Optional[_Union[GridLayout, _Mapping]] = ..., learned: _Optional[_Union[LearnedSummary, _Mapping]] = ..., continuous: _Optional[_Union[ContinuousModel, _Mapping]] = ...) -> None: ...
 
 class LearnedSummary(_message.Message):
     __slots__ = ("known_after", "optimism", "max_transitions")
@@ -316,20 +407,38 @@ class GridMark(_message.Message):
     def __init__(self, mark: _Optional[str] = ..., state: _Optional[int] = ...) -> None: ...
 
 class SessionStats(_message.Message):
-    __slots__ = ("lstdq_error", "lambda1_estimate", "condition_1_holds", "constant_stimuli", "factorisation_reuses", "factorisations")
+    __slots__ = ("lstdq_error", "lambda1_estimate", "condition_1_holds", "constant_stimuli", "factorisation_reuses", "factorisations", "continuous")
     LSTDQ_ERROR_FIELD_NUMBER: _ClassVar[int]
     LAMBDA1_ESTIMATE_FIELD_NUMBER: _ClassVar[int]
     CONDITION_1_HOLDS_FIELD_NUMBER: _ClassVar[int]
     CONSTANT_STIMULI_FIELD_NUMBER: _ClassVar[int]
     FACTORISATION_REUSES_FIELD_NUMBER: _ClassVar[int]
     FACTORISATIONS_FIELD_NUMBER: _ClassVar[int]
+    CONTINUOUS_FIELD_NUMBER: _ClassVar[int]
     lstdq_error: float
     lambda1_estimate: float
     condition_1_holds: bool
     constant_stimuli: _containers.RepeatedScalarFieldContainer[int]
     factorisation_reuses: int
     factorisations: int
-    def __init__(self, lstdq_error: _Optional[float] = ..., lambda1_estimate: _Optional[float] = ..., condition_1_holds: _Optional[bool] = ..., constant_stimuli: _Optional[_Iterable[int]] = ..., factorisation_reuses: _Optional[int] = ..., factorisations: _Optional[int] = ...) -> None: ...
+    continuous: ContinuousStats
+    def __init__(self, lstdq_error: _Optional[float] = ..., lambda1_estimate: _Optional[float] = ..., condition_1_holds: _Optional[bool] = ..., constant_stimuli: _Optional[_Iterable[int]] = ..., factorisation_reuses: _Optional[int] = ..., factorisations: _Optional[int] = ..., continuous: _Optional[_Union[ContinuousStats, _Mapping]] = ...) -> None: ...
+
+class ContinuousStats(_message.Message):
+    __slots__ = ("clipped", "samples", "slots", "updates", "rebuilds", "basis_builds")
+    CLIPPED_FIELD_NUMBER: _ClassVar[int]
+    SAMPLES_FIELD_NUMBER: _ClassVar[int]
+    SLOTS_FIELD_NUMBER: _ClassVar[int]
+    UPDATES_FIELD_NUMBER: _ClassVar[int]
+    REBUILDS_FIELD_NUMBER: _ClassVar[int]
+    BASIS_BUILDS_FIELD_NUMBER: _ClassVar[int]
+    clipped: int
+    samples: int
+    slots: int
+    updates: int
+    rebuilds: int
+    basis_builds: int
+    def __init__(self, clipped: _Optional[int] = ..., samples: _Optional[int] = ..., slots: _Optional[int] = ..., updates: _Optional[int] = ..., rebuilds: _Optional[int] = ..., basis_builds: _Optional[int] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
     __slots__ = ("id", "tick", "drive", "policy_version", "state", "model", "agent", "stats", "curiosity", "cost")
@@ -454,7 +563,7 @@ class Stimulus(_message.Message):
     def __init__(self, values: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class Observation(_message.Message):
-    __slots__ = ("session_id", "state", "stimulus", "action_name", "action_index", "signal", "signal_source")
+    __slots__ = ("session_id", "state", "stimulus", "action_name", "action_index", "signal", "signal_source", "observation")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     STIMULUS_FIELD_NUMBER: _ClassVar[int]
@@ -462,6 +571,7 @@ class Observation(_message.Message):
     ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
     SIGNAL_FIELD_NUMBER: _ClassVar[int]
     SIGNAL_SOURCE_FIELD_NUMBER: _ClassVar[int]
+    OBSERVATION_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     state: int
     stimulus: Stimulus
@@ -469,7 +579,8 @@ class Observation(_message.Message):
     action_index: int
     signal: _containers.RepeatedScalarFieldContainer[float]
     signal_source: int
-    def __init__(self, session_id: _Optional[str] = ..., state: _Optional[int] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., action_name: _Optional[str] = ..., action_index: _Optional[int] = ..., signal: _Optional[_Iterable[float]] = ..., signal_source: _Optional[int] = ...) -> None: ...
+    observation: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, session_id: _Optional[str] = ..., state: _Optional[int] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., action_name: _Optional[str] = ..., action_index: _Optional[int] = ..., signal: _Optional[_Iterable[float]] = ..., signal_source: _Optional[int] = ..., observation: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class Step(_message.Message):
     __slots__ = ("tick", "action", "action_index", "drive", "reward", "policy_version", "curiosity")
@@ -596,7 +707,7 @@ class PairVectors(_message.Message):
     def __init__(self, pairs: _Optional[_Iterable[_Union[PairVector, _Mapping]]] = ...) -> None: ...
 
 class Values(_message.Message):
-    __slots__ = ("tick", "policy_version", "v", "q", "policy", "r", "xi", "curiosity", "known_fraction")
+    __slots__ = ("tick", "policy_version", "v", "q", "policy", "r", "xi", "curiosity", "known_fraction", "points")
     TICK_FIELD_NUMBER: _ClassVar[int]
     POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
     V_FIELD_NUMBER: _ClassVar[int]
@@ -606,6 +717,7 @@ class Values(_message.Message):
     XI_FIELD_NUMBER: _ClassVar[int]
     CURIOSITY_FIELD_NUMBER: _ClassVar[int]
     KNOWN_FRACTION_FIELD_NUMBER: _ClassVar[int]
+    POINTS_FIELD_NUMBER: _ClassVar[int]
     tick: int
     policy_version: int
     v: StateValues
@@ -615,7 +727,14 @@ class Values(_message.Message):
     xi: PairVectors
     curiosity: CuriosityInfo
     known_fraction: float
-    def __init__(self, tick: _Optional[int] = ..., policy_version: _Optional[int] = ..., v: _Optional[_Union[StateValues, _Mapping]] = ..., q: _Optional[_Union[PairValues, _Mapping]] = ..., policy: _Optional[_Union[Policy, _Mapping]] = ..., r: _Optional[_Union[PairValues, _Mapping]] = ..., xi: _Optional[_Union[PairVectors, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ..., known_fraction: _Optional[float] = ...) -> None: ...
+    points: _containers.RepeatedCompositeFieldContainer[Point]
+    def __init__(self, tick: _Optional[int] = ..., policy_version: _Optional[int] = ..., v: _Optional[_Union[StateValues, _Mapping]] = ..., q: _Optional[_Union[PairValues, _Mapping]] = ..., policy: _Optional[_Union[Policy, _Mapping]] = ..., r: _Optional[_Union[PairValues, _Mapping]] = ..., xi: _Optional[_Union[PairVectors, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ..., known_fraction: _Optional[float] = ..., points: _Optional[_Iterable[_Union[Point, _Mapping]]] = ...) -> None: ...
+
+class Point(_message.Message):
+    __slots__ = ("x",)
+    X_FIELD_NUMBER: _ClassVar[int]
+    x: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, x: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class GetHistoryRequest(_message.Message):
     __slots__ = ("session_id", "limit")
@@ -626,7 +745,7 @@ class GetHistoryRequest(_message.Message):
     def __init__(self, session_id: _Optional[str] = ..., limit: _Optional[int] = ...) -> None: ...
 
 class HistoryEntry(_message.Message):
-    __slots__ = ("tick", "state", "action_index", "drive", "reward", "lstdq_error", "stimulus", "curiosity", "known_fraction")
+    __slots__ = ("tick", "state", "action_index", "drive", "reward", "lstdq_error", "stimulus", "curiosity", "known_fraction", "observation")
     TICK_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
@@ -636,6 +755,7 @@ class HistoryEntry(_message.Message):
     STIMULUS_FIELD_NUMBER: _ClassVar[int]
     CURIOSITY_FIELD_NUMBER: _ClassVar[int]
     KNOWN_FRACTION_FIELD_NUMBER: _ClassVar[int]
+    OBSERVATION_FIELD_NUMBER: _ClassVar[int]
     tick: int
     state: int
     action_index: int
@@ -645,7 +765,8 @@ class HistoryEntry(_message.Message):
     stimulus: Stimulus
     curiosity: TickCuriosity
     known_fraction: float
-    def __init__(self, tick: _Optional[int] = ..., state: _Optional[int] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., lstdq_error: _Optional[float] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ..., known_fraction: _Optional[float] = ...) -> None: ...
+    observation: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, tick: _Optional[int] = ..., state: _Optional[int] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., lstdq_error: _Optional[float] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ..., known_fraction: _Optional[float] = ..., observation: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class History(_message.Message):
     __slots__ = ("entries",)

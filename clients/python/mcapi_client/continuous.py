@@ -1,0 +1,253 @@
+"""Continuous worlds: observations are vectors in a box, not state numbers.
+
+A :class:`ContinuousModel` is posted as the server's continuous model form
+(docs/sessions.md, "Continuous worlds"); the session then takes
+``observation=[x1, ..., xd]`` instead of ``state``, and learns the
+transitions from what it observes. :class:`ContinuousEnvironment` adapts a
+Gymnasium (or MO-Gymnasium) environment with a ``Box`` observation space and
+``Discrete`` actions: it holds the model and steps the environment with the
+session's actions, returning the observation and stimulus to report::
+
+    world = models.from_gymnasium(env, stimuli=["goal"])
+    step = mc.observe(session.id, observation=world.reset(seed=1))
+    for _ in range(1000):
+        s = world.step(step.action_index)
+        step = mc.observe(session.id, observation=s.observation, stimulus=s.stimulus)
+
+Made by :func:`mcapi_client.models.from_gymnasium` (without ``sources``) and
+:func:`mcapi_client.models.from_mo_gymnasium` (``observations="continuous"``).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, Literal
+
+from ._normalise import as_float, as_int, plain
+
+__all__ = [
+    "MAX_DIM",
+    "MAX_ACTIONS",
+    "ContinuousModel",
+    "ContinuousStep",
+    "ContinuousEnvironment",
+]
+
+MAX_DIM = 64
+"""The most dimensions of an observation space (the server's bound)."""
+
+MAX_ACTIONS = 64
+"""The most actions of a continuous world (the server's bound)."""
+
+MAX_COORDINATE = 1e12
+"""The largest magnitude of a box corner (the server's bound)."""
+
+
+def _floats(values: Any, what: str) -> tuple[float, ...]:
+    out = tuple(as_float(v, what) for v in values)
+    for v in out:
+        if not math.isfinite(v) or abs(v) > MAX_COORDINATE:
+            raise ValueError(f"`{what}` has {v}: a bound must be finite and at most 1e12 in magnitude")
+    return out
+
+
+@dataclass(frozen=True)
+class ContinuousModel:
+    """A continuous world as the server takes it.
+
+    Attributes:
+        low: Lower corner of the box, one coordinate per dimension (1 to 64).
+        high: Upper corner; each coordinate strictly above ``low``'s.
+        actions: Action names, distinct (1 to 64).
+        stimuli: Stimulus names, distinct (at least one).
+        basis: The basis, e.g. ``{"kind": "fourier", "order": 5}``; ``None``
+            for the server's default by dimension.
+        out_of_bounds: ``"clip"`` (the server clips an observation outside
+            the box and counts it) or ``"refuse"`` (400 ``invalid_observation``).
+        samples: How the sample store is cut (``cells_per_dim``, ``per_cell``,
+            ``max``, ``known_after``); ``None`` for the defaults.
+    """
+
+    low: tuple[float, ...]
+    high: tuple[float, ...]
+    actions: tuple[str, ...]
+    stimuli: tuple[str, ...]
+    basis: Mapping[str, Any] | None = None
+    out_of_bounds: Literal["clip", "refuse"] = "clip"
+    samples: Mapping[str, int] | None = None
+
+    def __post_init__(self) -> None:
+        put = object.__setattr__
+        put(self, "low", _floats(self.low, "low"))
+        put(self, "high", _floats(self.high, "high"))
+        put(self, "actions", tuple(self.actions))
+        put(self, "stimuli", tuple(self.stimuli))
+        d = len(self.low)
+        if not 1 <= d <= MAX_DIM:
+            raise ValueError(f"the observation space has {d} dimensions; 1 to {MAX_DIM} are allowed")
+        if len(self.high) != d:
+            raise ValueError(f"`high` has {len(self.high)} coordinates, `low` {d}")
+        for i, (lo, hi) in enumerate(zip(self.low, self.high)):
+            if not lo < hi:
+                raise ValueError(f"dimension {i}: `low` {lo} is not below `high` {hi}")
+        if not 1 <= len(self.actions) <= MAX_ACTIONS:
+            raise ValueError(f"{len(self.actions)} actions; 1 to {MAX_ACTIONS} are allowed")
+        if not self.stimuli:
+            raise ValueError("a continuous world needs at least one stimulus")
+        for what, names in (("action", self.actions), ("stimulus", self.stimuli)):
+            if len(set(names)) != len(names):
+                raise ValueError(f"duplicate {what} names: {list(names)}")
+        if self.out_of_bounds not in ("clip", "refuse"):
+            raise ValueError(f"`out_of_bounds` is {self.out_of_bounds!r}, not 'clip' or 'refuse'")
+
+    @property
+    def dim(self) -> int:
+        """The dimension d of the observation space."""
+        return len(self.low)
+
+    def to_json(self) -> dict[str, Any]:
+        """The model as the REST API takes it."""
+        out: dict[str, Any] = {
+            "observation_space": {"low": list(self.low), "high": list(self.high)},
+            "actions": list(self.actions),
+            "stimuli": list(self.stimuli),
+            "out_of_bounds": self.out_of_bounds,
+        }
+        if self.basis is not None:
+            out["basis"] = plain(dict(self.basis))
+        if self.samples is not None:
+            out["samples"] = plain(dict(self.samples))
+        return out
+
+
+@dataclass(frozen=True)
+class ContinuousStep:
+    """One step of a :class:`ContinuousEnvironment`, as the session should see it.
+
+    Attributes:
+        observation: The observation to report: the environment's after the
+            step, or the first of the next episode when this step ended one.
+        stimulus: The stimulus to report with it.
+        reward: The environment's raw reward (a vector for MO-Gymnasium).
+        terminated: The environment ended the episode on this step.
+        truncated: A wrapper cut the episode short on this step.
+    """
+
+    observation: list[float]
+    stimulus: list[float]
+    reward: Any
+    terminated: bool
+    truncated: bool
+
+    @property
+    def episode_ended(self) -> bool:
+        """Whether the environment was reset after this step."""
+        return self.terminated or self.truncated
+
+
+StimulusOf = Callable[[list[float], Any, Mapping[str, Any]], Sequence[float]]
+"""``stimulus_of(observation, reward, info)``: the stimulus a step delivered."""
+
+
+class ContinuousEnvironment:
+    """A Gymnasium environment with a ``Box`` observation space and
+    ``Discrete`` actions, as a continuous mcapi model with the adapter that
+    steps it. Pass it to ``create_session`` (it posts :attr:`model`).
+
+    Attributes:
+        env: What is stepped.
+        model: The continuous model posted for it.
+        returns: Sum of the raw reward since :meth:`reset` (per component for
+            a vector reward).
+        stimulus_totals: Sum of the stimulus per dimension since :meth:`reset`.
+        ticks: Steps since :meth:`reset`; episodes: episodes ended since.
+    """
+
+    def __init__(
+        self,
+        env: Any,
+        model: ContinuousModel,
+        stimulus_of: StimulusOf,
+        action_start: int = 0,
+    ) -> None:
+        self.env = env
+        self.model = model
+        self._stimulus_of = stimulus_of
+        self._action_start = action_start
+        self._seed: int | None = None
+        self.returns: Any = 0.0
+        self.stimulus_totals = [0.0] * len(model.stimuli)
+        self.ticks = 0
+        self.episodes = 0
+
+    def to_json(self) -> dict[str, Any]:
+        """The model's JSON (what ``create_session`` posts)."""
+        return self.model.to_json()
+
+    @staticmethod
+    def _vector(observation: Any) -> list[float]:
+        flat = observation.ravel().tolist() if hasattr(observation, "ravel") else list(observation)
+        return [float(x) for x in flat]
+
+    def reset(self, seed: int | None = None) -> list[float]:
+        """Resets the environment and the totals; the first observation."""
+        self._seed = seed
+        observation, _ = self.env.reset(seed=seed)
+        self.returns = 0.0
+        self.stimulus_totals = [0.0] * len(self.model.stimuli)
+        self.ticks = 0
+        self.episodes = 0
+        return self._vector(observation)
+
+    def step(self, action_index: int) -> ContinuousStep:
+        """Takes the session's action; what to report next. An episode that
+        ends is reset at once (an agent's life goes on), and the step then
+        carries the next episode's first observation."""
+        n = len(self.model.actions)
+        a = as_int(action_index, "action_index")
+        if not 0 <= a < n:
+            raise ValueError(f"action {a} is not in 0..{n}")
+        observation, reward, terminated, truncated, info = self.env.step(self._action_start + a)
+        seen = self._vector(observation)
+        stimulus = [float(x) for x in self._stimulus_of(seen, reward, info)]
+        if len(stimulus) != len(self.model.stimuli):
+            raise ValueError(
+                f"stimulus_of gave {len(stimulus)} components for {len(self.model.stimuli)} stimuli"
+            )
+        raw = reward.tolist() if hasattr(reward, "tolist") else reward
+        if isinstance(raw, list):
+            base = self.returns if isinstance(self.returns, list) else [0.0] * len(raw)
+            self.returns = [r + float(x) for r, x in zip(base, raw)]
+        else:
+            self.returns = float(self.returns) + float(raw)
+        self.stimulus_totals = [t + s for t, s in zip(self.stimulus_totals, stimulus)]
+        self.ticks += 1
+        if terminated or truncated:
+            self.episodes += 1
+            observation, _ = self.env.reset()
+            seen = self._vector(observation)
+        return ContinuousStep(seen, stimulus, raw, bool(terminated), bool(truncated))
+
+
+def box_bounds(
+    space: Any, bounds: Sequence[tuple[float, float]] | None, name: str
+) -> tuple[list[float], list[float]]:
+    """The box of a ``Box`` space, with ``bounds`` replacing infinite ones."""
+    if type(space).__name__ != "Box":
+        raise TypeError(f"{name}'s observation space is {space}, not a Box")
+    low = [float(x) for x in space.low.ravel().tolist()]
+    high = [float(x) for x in space.high.ravel().tolist()]
+    if bounds is not None:
+        if len(bounds) != len(low):
+            raise ValueError(f"{len(bounds)} bounds for {len(low)} observation components")
+        low = [float(lo) for lo, _ in bounds]
+        high = [float(hi) for _, hi in bounds]
+    for i, (lo, hi) in enumerate(zip(low, high)):
+        if not (math.isfinite(lo) and math.isfinite(hi)):
+            raise ValueError(
+                f"{name}'s observation component {i} is unbounded ({lo}, {hi}): "
+                "give `bounds` with a finite (low, high) per component"
+            )
+    return low, high
