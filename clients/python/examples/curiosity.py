@@ -20,11 +20,13 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import random
 import sys
 from collections.abc import Sequence
 
 from mcapi_client import Client, CuriosityConfig, models
+from mcapi_client.errors import McapiError, one_line
 
 DT = 0.08
 """The signal clock's step per delivered sample (the server's default ``dt``)."""
@@ -39,7 +41,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Runs the curious hallway over REST; returns the exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument("--url", default="http://127.0.0.1:8080", help="REST address of mcapi")
-    parser.add_argument("--api-key", default=None, help="API key, if the server has keys")
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get("MCAPI_API_KEY"),
+        help="API key, if the server has keys (default: $MCAPI_API_KEY)",
+    )
     parser.add_argument("--steps", type=int, default=6000, help="ticks to run")
     parser.add_argument("--seed", type=int, default=1, help="seed of the world and the agent")
     parser.add_argument("--book", type=int, default=25, help="the state where the book is")
@@ -99,4 +105,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except McapiError as e:
+        sys.exit(f"mcapi: {one_line(e)}")

@@ -15,7 +15,7 @@ The drive turns towards whichever stimulus the agent received least
 recently, so it fetches food, then water, then food again, despite the ice.
 This prints the visits to each source per window of ticks and the drive.
 
-    pip install 'mcapi-client[rest,gymnasium]'
+    pip install './clients/python[gymnasium]'
     cargo run --release -- serve          # in another terminal
     python examples/frozenlake.py --steps 3000
 """
@@ -23,12 +23,14 @@ This prints the visits to each source per window of ticks and the drive.
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import sys
 from collections.abc import Sequence
 from typing import Any
 
 from mcapi_client import Client, models
+from mcapi_client.errors import McapiError, one_line
 
 # Source cells per map (FrozenLake numbers cells row by row): food in the top
 # row's far corner, water on the left edge; both are free cells ("F").
@@ -52,7 +54,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Runs the agent on FrozenLake; returns the exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--url", default="http://127.0.0.1:8080", help="REST address of mcapi")
-    parser.add_argument("--api-key", default=None, help="API key, if the server has keys")
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get("MCAPI_API_KEY"),
+        help="API key, if the server has keys (default: $MCAPI_API_KEY)",
+    )
     parser.add_argument("--steps", type=int, default=3000, help="ticks to run")
     parser.add_argument("--seed", type=int, default=1, help="seed of the world and the agent")
     parser.add_argument("--map", choices=["4x4", "8x8"], default="4x4", help="FrozenLake map")
@@ -64,7 +70,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         import gymnasium
     except ImportError:
-        print("this example needs gymnasium: pip install 'mcapi-client[rest,gymnasium]'")
+        print("this example needs gymnasium: pip install './clients/python[gymnasium]'")
         return 2
 
     env = gymnasium.make("FrozenLake-v1", map_name=args.map, is_slippery=True)
@@ -117,4 +123,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except McapiError as e:
+        sys.exit(f"mcapi: {one_line(e)}")

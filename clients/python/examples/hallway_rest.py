@@ -17,11 +17,13 @@ prints each switch of the dominant drive and saves a plot of D over time
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import sys
 from collections.abc import Sequence
 
 from mcapi_client import Client, models
+from mcapi_client.errors import McapiError, one_line
 
 # A drive component takes over when |D_j| >= SWITCH_RATIO |D_current| (the
 # hysteresis the server's experiments use to count switches).
@@ -68,7 +70,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Runs the hallway over REST; returns the exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument("--url", default="http://127.0.0.1:8080", help="REST address of mcapi")
-    parser.add_argument("--api-key", default=None, help="API key, if the server has keys")
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get("MCAPI_API_KEY"),
+        help="API key, if the server has keys (default: $MCAPI_API_KEY)",
+    )
     parser.add_argument("--steps", type=int, default=3000, help="ticks to run")
     parser.add_argument("--seed", type=int, default=1, help="seed of the world and the agent")
     parser.add_argument("--noise-sd", type=float, default=2.0, help="sd of the source noise")
@@ -110,7 +116,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if save_plot(args.plot, drives, states, names):
                 print(f"saved the plot of D over time to {args.plot}")
             else:
-                print("matplotlib is not installed: no plot (pip install 'mcapi-client[plot]')")
+                print("matplotlib is not installed: no plot (pip install './clients/python[plot]')")
         if not args.keep:
             mc.delete_session(session.id)
     return 0
@@ -121,4 +127,7 @@ def _fmt(drive: Sequence[float]) -> str:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except McapiError as e:
+        sys.exit(f"mcapi: {one_line(e)}")

@@ -13,12 +13,14 @@ each switch of the dominant drive.
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import sys
 import time
 from collections.abc import Sequence
 
 from mcapi_client import GrpcClient, models
+from mcapi_client.errors import McapiError, one_line
 
 SWITCH_RATIO = 1.5  # hysteresis of a drive switch, as in hallway_rest.py
 
@@ -35,7 +37,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Runs the hallway over the Interact stream; returns the exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument("--target", default="127.0.0.1:50051", help="gRPC address of mcapi")
-    parser.add_argument("--api-key", default=None, help="API key, if the server has keys")
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get("MCAPI_API_KEY"),
+        help="API key, if the server has keys (default: $MCAPI_API_KEY)",
+    )
     parser.add_argument("--steps", type=int, default=20000, help="ticks to run")
     parser.add_argument("--seed", type=int, default=1, help="seed of the world and the agent")
     parser.add_argument("--noise-sd", type=float, default=2.0, help="sd of the source noise")
@@ -91,4 +97,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except McapiError as e:
+        sys.exit(f"mcapi: {one_line(e)}")

@@ -16,11 +16,13 @@ goes, the tick each source was first reached, and the visits per source.
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import sys
 from collections.abc import Sequence
 
 from mcapi_client import Client, models
+from mcapi_client.errors import McapiError, one_line
 
 THREE_ROOM = """\
 ##########################
@@ -41,7 +43,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Runs the learned maze over REST; returns the exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument("--url", default="http://127.0.0.1:8080", help="REST address of mcapi")
-    parser.add_argument("--api-key", default=None, help="API key, if the server has keys")
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get("MCAPI_API_KEY"),
+        help="API key, if the server has keys (default: $MCAPI_API_KEY)",
+    )
     parser.add_argument("--steps", type=int, default=5000, help="ticks to run")
     parser.add_argument("--seed", type=int, default=1, help="seed of the world and the agent")
     parser.add_argument("--known-after", type=int, default=3, help="visits before a pair is known (m)")
@@ -87,4 +93,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except McapiError as e:
+        sys.exit(f"mcapi: {one_line(e)}")

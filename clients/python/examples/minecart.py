@@ -12,7 +12,7 @@ them; its drive turns to whichever ore it received least recently.
 This runs the agent, then a uniformly random policy on the same seeds, and
 prints each one's ore totals and balance (fewer/more).
 
-    pip install './clients/python[rest,mo]'
+    pip install './clients/python[mo]'
     mcapi serve                           # in another terminal
     python clients/python/examples/minecart.py --steps 3000 --seeds 1
 """
@@ -20,12 +20,14 @@ prints each one's ore totals and balance (fewer/more).
 from __future__ import annotations
 
 import argparse
+import os
 import random
 import sys
 import warnings
 from collections.abc import Sequence
 
-from mcapi_client import Client, McapiError, models
+from mcapi_client import Client, models
+from mcapi_client.errors import McapiError, one_line
 
 
 def run(args: argparse.Namespace, seed: int, agent: bool) -> list[float]:
@@ -56,7 +58,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Runs the agent and the random policy; returns the exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[1])
     parser.add_argument("--url", default="http://127.0.0.1:8080", help="REST address of mcapi")
-    parser.add_argument("--api-key", default=None, help="API key, if the server has keys")
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get("MCAPI_API_KEY"),
+        help="API key, if the server has keys (default: $MCAPI_API_KEY)",
+    )
     parser.add_argument("--steps", type=int, default=3000, help="ticks per run")
     parser.add_argument("--seeds", type=int, default=1, help="runs, seeds 1..N")
     parser.add_argument("--scale", type=float, default=6.0, help="stimulus per unit of ore")
@@ -65,7 +71,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         import mo_gymnasium  # noqa: F401
     except ImportError:
-        print("this example needs MO-Gymnasium: pip install './clients/python[rest,mo]'")
+        print("this example needs MO-Gymnasium: pip install './clients/python[mo]'")
         return 2
     # MO-Gymnasium builds its reward spaces from float64 bounds: gymnasium warns.
     warnings.filterwarnings("ignore", message=".*precision lowered", category=UserWarning)
@@ -88,4 +94,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except McapiError as e:
+        sys.exit(f"mcapi: {one_line(e)}")

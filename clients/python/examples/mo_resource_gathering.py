@@ -14,7 +14,7 @@ drive sends it for whichever resource it received least recently.
 This prints how much of the model is known as it goes, then the totals per
 objective (the raw returns, the enemy penalty included) and the balance.
 
-    pip install 'mcapi-client[rest,mo]'
+    pip install './clients/python[mo]'
     cargo run --release -- serve          # in another terminal
     python examples/mo_resource_gathering.py --steps 5000
 """
@@ -22,18 +22,24 @@ objective (the raw returns, the enemy penalty included) and the balance.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import warnings
 from collections.abc import Sequence
 
 from mcapi_client import Client, models
+from mcapi_client.errors import McapiError, one_line
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Runs the agent in resource-gathering over REST; returns the exit code."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--url", default="http://127.0.0.1:8080", help="REST address of mcapi")
-    parser.add_argument("--api-key", default=None, help="API key, if the server has keys")
+    parser.add_argument(
+        "--api-key",
+        default=os.environ.get("MCAPI_API_KEY"),
+        help="API key, if the server has keys (default: $MCAPI_API_KEY)",
+    )
     parser.add_argument("--steps", type=int, default=5000, help="ticks to run")
     parser.add_argument("--seed", type=int, default=1, help="seed of the environment and the agent")
     parser.add_argument("--scale", type=float, default=6.0, help="stimulus per unit of reward")
@@ -45,7 +51,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         import mo_gymnasium
     except ImportError:
-        print("this example needs MO-Gymnasium: pip install 'mcapi-client[rest,mo]'")
+        print("this example needs MO-Gymnasium: pip install './clients/python[mo]'")
         return 2
 
     # MO-Gymnasium builds its reward spaces from float64 bounds: gymnasium warns.
@@ -84,4 +90,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    try:
+        sys.exit(main())
+    except McapiError as e:
+        sys.exit(f"mcapi: {one_line(e)}")

@@ -25,9 +25,10 @@ action, the drive and the reward.
   of the server, named in order by :data:`AGENT_OPTIONS`.
 
 The core (types, models, errors) needs no third-party package; each
-transport is imported when first used, and without its extra installed that
-raises an :class:`ImportError` naming the extra
-(``pip install 'mcapi-client[rest]'``, ``'mcapi-client[grpc]'``). Every
+transport is imported when first used, and without its packages installed
+that raises an :class:`ImportError` saying how to install them (a plain
+``pip install './clients/python'`` from the mcapi repository has REST;
+``'./clients/python[grpc]'`` adds gRPC). Every
 method takes numpy integer and float scalars and arrays where it takes
 numbers.
 

@@ -20,6 +20,7 @@ from typing import Final
 
 __all__ = [
     "McapiError",
+    "one_line",
     "BadRequest",
     "InvalidModel",
     "InvalidParameter",
@@ -293,3 +294,14 @@ def error_for(
         cls = _BY_STATUS.get(status, InternalError if status >= 500 else McapiError)
         return cls(message, code=code or f"http_{status}", status=status)
     return McapiError(message, code=code or "unknown")
+
+
+def one_line(e: McapiError) -> str:
+    """An error as one line for the person running a script: what to do
+    about a missing or wrong API key or an unreachable server, else the
+    server's stable code and message."""
+    if isinstance(e, Unauthenticated):
+        return "this server needs an API key: --api-key or MCAPI_API_KEY"
+    if isinstance(e, TransportError):
+        return f"cannot reach the server ({e.message}); is `mcapi serve` running there?"
+    return f"{e.code}: {e.message}"

@@ -2,7 +2,7 @@
 :class:`AsyncGrpcClient` (``grpc.aio``), with the REST client's operations,
 the bidirectional ``interact`` stream for high-rate loops and the ``watch``
 stream of snapshots. Needs the ``grpc`` extra (``pip install
-'mcapi-client[grpc]'``: grpcio and protobuf).
+'./clients/python[grpc]'`` from the mcapi repository: grpcio and protobuf).
 
     from mcapi_client import GrpcClient, models
 
@@ -45,7 +45,8 @@ try:
 except ImportError as e:  # pragma: no cover - exercised in a subprocess by tests/test_package.py
     raise ImportError(
         "the gRPC clients (mcapi_client.GrpcClient, AsyncGrpcClient) need grpcio and protobuf: "
-        "install the `grpc` extra, pip install 'mcapi-client[grpc]'",
+        "install the `grpc` extra, pip install './clients/python[grpc]' "
+        "(from the mcapi repository)",
         name=e.name,
     ) from e
 

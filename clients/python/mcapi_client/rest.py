@@ -1,6 +1,6 @@
 """The REST clients: :class:`Client` (blocking) and :class:`AsyncClient` (asyncio),
-over httpx, with the same methods and results. Needs the ``rest`` extra
-(``pip install 'mcapi-client[rest]'``).
+over httpx, with the same methods and results. A plain install has httpx
+(``pip install './clients/python'`` from the mcapi repository).
 
     from mcapi_client import Client, models
 
@@ -27,7 +27,8 @@ try:
 except ImportError as e:  # pragma: no cover - exercised in a subprocess by tests/test_package.py
     raise ImportError(
         "the REST clients (mcapi_client.Client, AsyncClient) need httpx: "
-        "install the `rest` extra, pip install 'mcapi-client[rest]'",
+        "install the client with its dependencies, pip install './clients/python' "
+        "(from the mcapi repository)",
         name=e.name,
     ) from e
 

@@ -135,3 +135,30 @@ def test_minecart(server: Server, examples_path: Path, capsys: pytest.CaptureFix
     rows = {name: (float(a), float(b)) for name, a, b in found}
     assert set(rows) == {"agent", "random"}, out
     assert all(x > 0 for x in rows["agent"]), f"the agent delivers both ores: {out}"
+
+
+def test_examples_say_in_one_line_what_went_wrong(tmp_path: Path, examples_path: Path) -> None:
+    """A missing API key or an unreachable server is one line on stderr and
+    exit status 1, not a traceback."""
+    import subprocess
+    import sys
+
+    from conftest import start_server
+
+    keyed = start_server(tmp_path, ["--api-key", "examples-key-0123456789"])
+    try:
+        for url, line in (
+            (keyed.http_url, "mcapi: this server needs an API key: --api-key or MCAPI_API_KEY"),
+            ("http://127.0.0.1:9", "mcapi: cannot reach the server"),
+        ):
+            done = subprocess.run(
+                [sys.executable, str(examples_path / "hallway_rest.py"), "--url", url, "--no-plot"],
+                capture_output=True,
+                text=True,
+                timeout=60,
+                env={"PATH": "/usr/bin:/bin"},
+            )
+            assert done.returncode == 1, done
+            assert done.stderr.startswith(line) and "Traceback" not in done.stderr, done.stderr
+    finally:
+        keyed.stop()

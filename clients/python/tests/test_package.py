@@ -96,14 +96,15 @@ for name, extra in [("Client", "rest"), ("AsyncClient", "rest"),
     try:
         getattr(mcapi_client, name)
     except ImportError as e:
-        assert f"pip install 'mcapi-client[{extra}]'" in str(e), str(e)
+        hint = "'./clients/python[grpc]'" if extra == "grpc" else "'./clients/python'"
+        assert f"pip install {hint}" in str(e), str(e)
         print(name, "needs", extra)
     else:
         raise AssertionError(f"{name} imported without its extra")
 try:
     from mcapi_client import GrpcClient  # noqa: F401
 except ImportError as e:
-    assert "mcapi-client[grpc]" in str(e)
+    assert "./clients/python[grpc]" in str(e)
 else:
     raise AssertionError("GrpcClient imported without grpcio")
 loaded = sorted(m for m in sys.modules if m.split(".")[0] in ("httpx", "grpc", "numpy")
@@ -155,7 +156,7 @@ def test_grpc_without_httpx_and_rest_without_grpc() -> None:
         "try:\n"
         "    from mcapi_client import Client\n"
         "except ImportError as e:\n"
-        "    print('httpx' in str(e) and 'mcapi-client[rest]' in str(e))\n",
+        "    print('httpx' in str(e) and './clients/python' in str(e))\n",
         blocked=("httpx",),
     )
     assert out.split() == ["3", "False", "True"]
@@ -166,25 +167,25 @@ def test_grpc_without_httpx_and_rest_without_grpc() -> None:
             "try:\n"
             "    import mcapi_client.grpc_client\n"
             "except ImportError as e:\n"
-            "    print('mcapi-client[grpc]' in str(e))\n",
+            "    print('./clients/python[grpc]' in str(e))\n",
             blocked=(blocked,),
         )
         assert out.split() == ["False", "False", "True"], blocked
 
 
 def test_the_extras_hold_the_transports() -> None:
-    """A bare install pulls nothing; httpx comes with `rest`, grpcio and
-    protobuf with `grpc`, both with `all`."""
+    """A plain install has httpx (REST); grpcio and protobuf come with
+    `grpc`; `all` is everything the examples use."""
     by_extra: dict[str, set[str]] = {}
-    for req in metadata.requires("mcapi-client") or []:
+    for req in metadata.requires("mcapi-agents-client") or []:
         marker = re.search(r"""extra\s*==\s*["']([\w-]+)["']""", req)
-        assert marker, f"{req!r} is installed without an extra"
         name = re.match(r"[A-Za-z0-9_.-]+(\[[^]]*\])?", req)
         assert name
-        by_extra.setdefault(marker.group(1), set()).add(name.group(0).lower())
-    assert by_extra["rest"] == {"httpx"}
+        by_extra.setdefault(marker.group(1) if marker else "", set()).add(name.group(0).lower())
+    assert by_extra[""] == {"httpx"}, "a plain install can talk REST"
+    assert "rest" not in by_extra, "`rest` is an empty extra, kept for old commands"
     assert by_extra["grpc"] == {"grpcio", "protobuf"}
-    assert by_extra["all"] == {"mcapi-client[grpc,rest]"}
+    assert by_extra["all"] == {"mcapi-agents-client[grpc,gymnasium,mo,plot]"}
 
 
 @pytest.mark.parametrize("name", ["Client", "AsyncClient", "GrpcClient", "AsyncGrpcClient", "AsyncWatch"])
