@@ -197,7 +197,17 @@ fn dense_pvfs(model: &EnvModel, k: usize) -> Result<StateFeatures> {
             }
         }
     }
-    let eig = SymmetricEigen::new(lap);
+    let (_, values) = smallest_eigenpairs(lap, k);
+    finite(values, k)
+}
+
+/// The k smallest eigenpairs of a symmetric matrix from a dense
+/// decomposition (ties by index): the eigenvalues, and the vectors
+/// row-major `n × k`, each signed so that its entry of largest magnitude is
+/// positive (as the sparse solver signs them).
+pub(crate) fn smallest_eigenpairs(m: DMatrix<f64>, k: usize) -> (Vec<f64>, Vec<f64>) {
+    let n = m.nrows();
+    let eig = SymmetricEigen::new(m);
     let mut order: Vec<usize> = (0..n).collect();
     order.sort_by(|&a, &b| {
         eig.eigenvalues[a]
@@ -216,7 +226,8 @@ fn dense_pvfs(model: &EnvModel, k: usize) -> Result<StateFeatures> {
             values[s * k + j] = sign * v[s];
         }
     }
-    finite(values, k)
+    let theta = order.iter().take(k).map(|&c| eig.eigenvalues[c]).collect();
+    (theta, values)
 }
 
 fn finite(values: Vec<f64>, k: usize) -> Result<StateFeatures> {

@@ -48,6 +48,16 @@ fn us(ops: f64) -> u64 {
     }
 }
 
+/// Bytes of a model's action and stimulus names.
+fn names_bytes(model: &ModelSummary) -> u64 {
+    model
+        .actions
+        .iter()
+        .chain(&model.stimuli)
+        .map(|s| s.len() as u64 + 24)
+        .sum()
+}
+
 /// Estimates the cost of a session on `model` with `config`.
 pub fn estimate(model: &ModelSummary, config: &EffectiveConfig) -> SessionCost {
     estimate_with(
@@ -118,12 +128,7 @@ fn estimate_with(
     let feature_basis = model.basis.kind != "indicator";
 
     // The planning model: CSR successors, pair tables and the dense lookup.
-    let names: u64 = model
-        .actions
-        .iter()
-        .chain(&model.stimuli)
-        .map(|s| s.len() as u64 + 24)
-        .sum();
+    let names = names_bytes(model);
     let mut bytes =
         mul(model.transitions as u64, 12) + mul(pairs, 16) + mul(mul(states, actions), 4) + names;
     if feature_basis {
@@ -218,12 +223,7 @@ fn continuous(
             .unwrap_or(mcapi_core::continuous::model::MAX_SAMPLES),
     );
     let f = k * na;
-    let names: u64 = model
-        .actions
-        .iter()
-        .chain(&model.stimuli)
-        .map(|s| s.len() as u64 + 24)
-        .sum();
+    let names = names_bytes(model);
     let mut bytes = names + mul(mul(na, mul(k, k) + mul(k, n)), 8);
     bytes += mul(mul(f, f), 8) + mul(f, 24);
     bytes += mul(samples, mul(2 * d + 2 * k + 8, 8));

@@ -86,6 +86,24 @@ struct LogEntryV3 {
     signal: Option<(u32, Vec<f64>)>,
 }
 
+impl From<LogEntryV3> for LogEntry {
+    /// An entry of a model with numbered states: no observation vector, and
+    /// no policy update recorded between entries.
+    fn from(e: LogEntryV3) -> Self {
+        Self {
+            state: e.state,
+            observation: None,
+            planned_before: false,
+            stimulus: e.stimulus,
+            taken: e.taken,
+            advised: e.advised,
+            lstdq_error: e.lstdq_error,
+            policy_version: e.policy_version,
+            signal: e.signal,
+        }
+    }
+}
+
 /// A log entry as format 2 wrote it (no signal).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct LogEntryV2 {
@@ -197,32 +215,18 @@ pub fn decode_entry(bytes: &[u8], what: &str) -> Result<LogEntry, DecodeError> {
     match split(bytes, what)? {
         (RECORD_V2, rest) => {
             let e: LogEntryV2 = postcard_decode(rest, what)?;
-            Ok(LogEntry {
+            Ok(LogEntryV3 {
                 state: e.state,
-                observation: None,
-                planned_before: false,
                 stimulus: e.stimulus,
                 taken: e.taken,
                 advised: e.advised,
                 lstdq_error: e.lstdq_error,
                 policy_version: e.policy_version,
                 signal: None,
-            })
+            }
+            .into())
         }
-        (RECORD_V3, rest) => {
-            let e: LogEntryV3 = postcard_decode(rest, what)?;
-            Ok(LogEntry {
-                state: e.state,
-                observation: None,
-                planned_before: false,
-                stimulus: e.stimulus,
-                taken: e.taken,
-                advised: e.advised,
-                lstdq_error: e.lstdq_error,
-                policy_version: e.policy_version,
-                signal: e.signal,
-            })
-        }
+        (RECORD_V3, rest) => postcard_decode::<LogEntryV3>(rest, what).map(LogEntry::from),
         (_, rest) => postcard_decode(rest, what),
     }
 }

@@ -28,8 +28,6 @@
 //! feature e_1: the agent explores on the optimism of unknown pairs alone
 //! until the graph has [`super::pvf_graph::FIRST_BUILD_NODES`] nodes.
 
-use nalgebra::{DMatrix, SymmetricEigen};
-
 use crate::basis::{StateGraph, sparse_pvfs};
 use crate::error::{AlgoError, Result};
 
@@ -260,29 +258,7 @@ pub(crate) fn nearest(nodes: &[f64], d: usize, s: &[f64]) -> (usize, f64) {
 /// dense decomposition; vectors row-major `n × k`, each signed so that
 /// its entry of largest magnitude is positive (as the sparse solver).
 fn dense(graph: &StateGraph, k: usize) -> (Vec<f64>, Vec<f64>) {
-    let n = graph.states();
-    let lap: DMatrix<f64> = graph.dense_laplacian();
-    let eig = SymmetricEigen::new(lap);
-    let mut order: Vec<usize> = (0..n).collect();
-    order.sort_by(|&a, &b| {
-        eig.eigenvalues[a]
-            .total_cmp(&eig.eigenvalues[b])
-            .then(a.cmp(&b))
-    });
-    let mut values = vec![0.0; n * k];
-    for (c, &col) in order.iter().take(k).enumerate() {
-        let v = eig.eigenvectors.column(col);
-        let pivot = v
-            .iter()
-            .copied()
-            .fold(0.0f64, |m, x| if x.abs() > m.abs() { x } else { m });
-        let sign = if pivot < 0.0 { -1.0 } else { 1.0 };
-        for j in 0..n {
-            values[j * k + c] = sign * v[j];
-        }
-    }
-    let theta = order.iter().take(k).map(|&c| eig.eigenvalues[c]).collect();
-    (theta, values)
+    crate::basis::smallest_eigenpairs(graph.dense_laplacian(), k)
 }
 
 #[cfg(test)]

@@ -514,6 +514,22 @@
     $("chart-values").dataset.version = String(view.values.policy_version);
   }
 
+  // The colour scale of V under a heatmap, from lo to hi.
+  function colourBar(ctx, y0, w, lo, hi) {
+    const barW = Math.min(w, 320);
+    for (let i = 0; i < barW; i++) {
+      ctx.fillStyle = colour(i / (barW - 1));
+      ctx.fillRect(i, y0, 1, 10);
+    }
+    ctx.fillStyle = "#1c2430";
+    ctx.font = "12px system-ui, sans-serif";
+    ctx.textBaseline = "top";
+    ctx.textAlign = "left";
+    ctx.fillText("V " + fmt(lo), 0, y0 + 12);
+    ctx.textAlign = "right";
+    ctx.fillText(fmt(hi), barW, y0 + 12);
+  }
+
   function drawHeatmap(view) {
     const canvas = $("heatmap");
     const { rows, cols, cells, marks } = view.info.model.layout;
@@ -593,18 +609,7 @@
     }
     // Colour bar.
     const y0 = cell * rows + 8;
-    const barW = Math.min(w, 320);
-    for (let i = 0; i < barW; i++) {
-      ctx.fillStyle = colour(i / (barW - 1));
-      ctx.fillRect(i, y0, 1, 10);
-    }
-    ctx.fillStyle = "#1c2430";
-    ctx.font = "12px system-ui, sans-serif";
-    ctx.textBaseline = "top";
-    ctx.textAlign = "left";
-    ctx.fillText("V " + fmt(lo), 0, y0 + 12);
-    ctx.textAlign = "right";
-    ctx.fillText(fmt(hi), barW, y0 + 12);
+    colourBar(ctx, y0, w, lo, hi);
     canvas.dataset.version = String(view.values.policy_version);
     canvas.dataset.draws = String(Number(canvas.dataset.draws || 0) + 1);
     canvas.dataset.state = view.state === null ? "" : String(view.state);
@@ -692,18 +697,7 @@
     }
     // Colour bar.
     const y0 = plotH + 8;
-    const barW = Math.min(w, 320);
-    for (let i = 0; i < barW; i++) {
-      ctx.fillStyle = colour(i / (barW - 1));
-      ctx.fillRect(i, y0, 1, 10);
-    }
-    ctx.fillStyle = "#1c2430";
-    ctx.font = "12px system-ui, sans-serif";
-    ctx.textBaseline = "top";
-    ctx.textAlign = "left";
-    ctx.fillText("V " + fmt(lo), 0, y0 + 12);
-    ctx.textAlign = "right";
-    ctx.fillText(fmt(hi), barW, y0 + 12);
+    colourBar(ctx, y0, w, lo, hi);
     canvas.dataset.version = String(view.values.policy_version);
     canvas.dataset.draws = String(Number(canvas.dataset.draws || 0) + 1);
     canvas.dataset.found = String(view.found.length);
