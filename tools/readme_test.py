@@ -151,13 +151,13 @@ def main() -> int:
                 print(f"README.md:{b.line}: not run: `{b.needs}` is not installed")
                 continue
             # On a line of its own, whatever the block before left unended.
-            script.append(f"printf '\\n%s\\n' '{MARK.format(n)}'")
+            script.append(f"printf '\\n%s %s\\n' '{MARK.format(n)}' \"$(date +%s.%N)\"")
             if b.lang == "python":
                 script.append(f"python3 - <<'README_PYTHON_{n}'\n{b.text}README_PYTHON_{n}")
             else:
                 script.append(b.text)
             ran.append(b)
-        script.append(f"printf '\\n%s\\n' '{MARK.format('end')}'")
+        script.append(f"printf '\\n%s %s\\n' '{MARK.format('end')}' \"$(date +%s.%N)\"")
         started = time.time()
         proc = subprocess.run(
             ["bash", "-c", "\n".join(script)],
@@ -178,13 +178,20 @@ def main() -> int:
     output = proc.stdout
     # The output of each block, by its marker.
     chunks: dict[int, list[str]] = {}
+    started_at: dict[int, float] = {}
+    took: dict[int, float] = {}
     current: int | None = None
     ended = False
     for line in output.splitlines():
-        m = re.fullmatch(r"@@readme-test block (\d+|end)@@", line)
+        m = re.fullmatch(r"@@readme-test block (\d+|end)@@ ([0-9.]+)", line)
         if m:
+            at = float(m.group(2))
+            if current is not None:
+                took[current] = at - started_at[current]
             ended = m.group(1) == "end"
             current = None if ended else int(m.group(1))
+            if current is not None:
+                started_at[current] = at
             chunks.setdefault(current if current is not None else -1, [])
             continue
         if current is not None:
@@ -215,7 +222,9 @@ def main() -> int:
             + "\n".join("    " + g for g in (chunks.get(last) or output.splitlines())[-30:])
         )
     for b in ran:
-        print(f"README.md:{b.line}: {b.lang} block run, {len(b.shown)} shown line(s) checked")
+        n = found.index(b)
+        secs = f"{took[n]:.1f} s" if n in took else "did not finish"
+        print(f"README.md:{b.line}: {b.lang} block run in {secs}, {len(b.shown)} shown line(s) checked")
     if problems:
         print("\n".join(problems), file=sys.stderr)
         print(f"readme-test: {len(problems)} problem(s); server log: {log}", file=sys.stderr)
