@@ -97,6 +97,23 @@ async fn a_replica_serves_its_shards_and_refuses_the_others() {
     let (status, _, _) = send(&app, "DELETE", &format!("/v1/sessions/{foreign}"), None).await;
     assert_eq!(status, StatusCode::MISDIRECTED_REQUEST);
 
+    // A well-formed id beyond the shard count is no shard at all: 404 on
+    // every route, as on a single node (it once indexed the map out of
+    // bounds: a 500 and a backtrace per request).
+    for beyond in ["s0400", "sffff"] {
+        let id = format!("{beyond}.01JDX4AAAAAAAAAAAAAAAAAAAA");
+        for (method, uri, body) in [
+            ("GET", format!("/v1/sessions/{id}"), None),
+            ("GET", format!("/v1/sessions/{id}/values"), None),
+            ("POST", format!("/v1/sessions/{id}/observations"), Some(r#"{"state": 1}"#)),
+            ("DELETE", format!("/v1/sessions/{id}"), None),
+        ] {
+            let (status, _, reply) = send(&app, method, &uri, body).await;
+            assert_eq!(status, StatusCode::NOT_FOUND, "{method} {uri}: {reply}");
+            assert_eq!(reply["code"], "not_found");
+        }
+    }
+
     // A frozen shard: 503 with Retry-After; nothing is minted there.
     let shard = shard_of_id(&ids[0]).expect("shard");
     placement.set_state(shard, ShardState::Frozen);

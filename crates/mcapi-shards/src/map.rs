@@ -87,13 +87,14 @@ pub fn shard_key(shard: u16) -> String {
 }
 
 /// The shard of a session id `s<4 hex>.<ULID>`; `None` if the id does not
-/// have that form (then no replica can hold it).
+/// have that form or names a shard beyond [`SHARDS`] (then no replica can
+/// hold it).
 pub fn shard_of_id(id: &str) -> Option<u16> {
     let key = id.get(..5)?;
     if id.as_bytes().get(5) != Some(&b'.') {
         return None;
     }
-    parse_shard_key(key)
+    parse_shard_key(key).filter(|&s| usize::from(s) < SHARDS)
 }
 
 /// A shard key given alone (a path, a command line): `s0000`..`s03ff` to
@@ -489,6 +490,11 @@ mod tests {
         assert_eq!(shard_of_id("s03a7x"), None);
         assert_eq!(shard_of_id("s03a"), None);
         assert_eq!(shard_of_id("é0000.x"), None);
+        // Well formed, but beyond the shard count: no shard, so no panic
+        // indexing the map with it.
+        assert_eq!(shard_of_id("s03ff.x"), Some(0x3ff));
+        assert_eq!(shard_of_id("s0400.x"), None);
+        assert_eq!(shard_of_id("sffff.x"), None);
         assert_eq!(shard_key(0x3a7), "s03a7");
     }
 
