@@ -214,6 +214,7 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "move_conflict": (MoveConflict, 409),
     "not_found": (NotFound, 404),
     "unknown_route": (UnknownRoute, 404),
+    "method_not_allowed": (UnknownRoute, 405),
     "limit_exceeded": (LimitExceeded, 413),
     "payload_too_large": (PayloadTooLarge, 413),
     "too_many_sessions": (TooManySessions, 429),

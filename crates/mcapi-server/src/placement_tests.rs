@@ -105,7 +105,11 @@ async fn a_replica_serves_its_shards_and_refuses_the_others() {
         for (method, uri, body) in [
             ("GET", format!("/v1/sessions/{id}"), None),
             ("GET", format!("/v1/sessions/{id}/values"), None),
-            ("POST", format!("/v1/sessions/{id}/observations"), Some(r#"{"state": 1}"#)),
+            (
+                "POST",
+                format!("/v1/sessions/{id}/observations"),
+                Some(r#"{"state": 1}"#),
+            ),
             ("DELETE", format!("/v1/sessions/{id}"), None),
         ] {
             let (status, _, reply) = send(&app, method, &uri, body).await;

@@ -18,6 +18,7 @@
 use axum::Json;
 use axum::Router;
 use axum::body::Body;
+use axum::extract::rejection::{PathRejection, QueryRejection};
 use axum::extract::{Path, Query, State};
 use axum::http::{HeaderMap, header};
 use axum::response::{IntoResponse, Response};
@@ -63,9 +64,11 @@ fn admit(state: &AppState, headers: &HeaderMap) -> Result<(), ServiceError> {
 async fn status(
     State(state): State<AppState>,
     headers: HeaderMap,
-    Path(shard): Path<String>,
+    path: Result<Path<String>, PathRejection>,
 ) -> Result<Response, ApiError> {
+    // The key first: nothing of the request is read for a caller without it.
     admit(&state, &headers)?;
+    let Path(shard) = path.map_err(|e| ServiceError::BadRequest(e.body_text()))?;
     let shard = parse_shard(&shard)?;
     Ok(Json(state.manager.shard_status(shard)?).into_response())
 }
@@ -107,11 +110,15 @@ fn octets(bytes: Vec<u8>) -> Response {
 async fn step(
     State(state): State<AppState>,
     headers: HeaderMap,
-    Path((shard, step)): Path<(String, String)>,
-    Query(q): Query<StepQuery>,
+    path: Result<Path<(String, String)>, PathRejection>,
+    query: Result<Query<StepQuery>, QueryRejection>,
     body: Body,
 ) -> Result<Response, ApiError> {
+    // The key first: nothing of the request is read for a caller without it.
     admit(&state, &headers)?;
+    let Path((shard, step)) = path.map_err(|e| ServiceError::BadRequest(e.body_text()))?;
+    let Query(q) = query
+        .map_err(|e| ServiceError::BadRequest(format!("bad query string: {}", e.body_text())))?;
     let shard = parse_shard(&shard)?;
     let body = read_body(body).await?;
     let manager = &state.manager;

@@ -51,6 +51,11 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
         ServiceError::BadRequest(_) => (H::BAD_REQUEST, G::InvalidArgument, "bad_request"),
         ServiceError::NotFound(_) => (H::NOT_FOUND, G::NotFound, "not_found"),
         ServiceError::UnknownRoute(_) => (H::NOT_FOUND, G::Unimplemented, "unknown_route"),
+        ServiceError::MethodNotAllowed(_) => (
+            H::METHOD_NOT_ALLOWED,
+            G::Unimplemented,
+            "method_not_allowed",
+        ),
         ServiceError::LimitExceeded(_) => {
             (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "limit_exceeded")
         }

@@ -46,6 +46,7 @@ pub fn router(state: AppState) -> Router {
         // A panicking handler answers 500 `internal`, and is recorded.
         .layer(conn::rest_panic_layer())
         .layer(DefaultBodyLimit::max(body_limit))
+        .layer(axum::middleware::map_response(json_errors))
         .into_inner();
     Router::new()
         // Full paths, not `nest("/v1", ...)`: a nested router rewrites the
@@ -76,6 +77,49 @@ pub(crate) fn replica_header(manager: &SessionManager) -> Option<HeaderValue> {
     manager
         .placement()
         .and_then(|p| HeaderValue::from_str(p.replica().as_str()).ok())
+}
+
+/// Every 4xx answer is `{"code","message"}`: axum's own rejections (a
+/// path that is not UTF-8, a query string that does not parse, a method a
+/// route does not take) come as plain text or an empty body, and are
+/// turned into the error of the one table ([`ApiError`]), their text kept
+/// as the message and their headers (`Allow`) kept. Other answers pass as
+/// they are.
+async fn json_errors(resp: Response) -> Response {
+    let status = resp.status();
+    let json = resp
+        .headers()
+        .get(axum::http::header::CONTENT_TYPE)
+        .is_some_and(|v| v.as_bytes().starts_with(b"application/json"));
+    if !status.is_client_error() || json {
+        return resp;
+    }
+    let (parts, body) = resp.into_parts();
+    // axum's rejection texts are short; more is not read.
+    let text = axum::body::to_bytes(body, 4096)
+        .await
+        .map(|b| String::from_utf8_lossy(&b).trim().to_owned())
+        .unwrap_or_default();
+    let error = match status {
+        axum::http::StatusCode::METHOD_NOT_ALLOWED => ServiceError::MethodNotAllowed(
+            "this route does not take that method (the `Allow` header lists those it takes)".into(),
+        ),
+        axum::http::StatusCode::PAYLOAD_TOO_LARGE => ServiceError::PayloadTooLarge(
+            "the request body is larger than the server accepts".into(),
+        ),
+        axum::http::StatusCode::NOT_FOUND => ServiceError::UnknownRoute(text),
+        _ if text.is_empty() => {
+            ServiceError::BadRequest(format!("the request was refused ({status})"))
+        }
+        _ => ServiceError::BadRequest(text),
+    };
+    let mut out = ApiError(error).into_response();
+    for (name, value) in &parts.headers {
+        if name != axum::http::header::CONTENT_TYPE && name != axum::http::header::CONTENT_LENGTH {
+            out.headers_mut().insert(name, value.clone());
+        }
+    }
+    out
 }
 
 async fn not_found(method: axum::http::Method, uri: axum::http::Uri) -> ApiError {

@@ -21,9 +21,12 @@ pub enum ServiceError {
     /// No such session (or not visible to the caller).
     #[error("session `{0}` not found")]
     NotFound(String),
-    /// No such route or method (REST).
+    /// No such route (REST).
     #[error("no route for {0}")]
     UnknownRoute(String),
+    /// A known route that does not take this method (REST).
+    #[error("{0}")]
+    MethodNotAllowed(String),
     /// A size limit of the server was exceeded.
     #[error("{0}")]
     LimitExceeded(String),

@@ -142,6 +142,21 @@ impl ModelInput {
         let Some(obj) = value.as_object() else {
             return Err(ServiceError::field("model", "must be a JSON object"));
         };
+        // serde reads a struct from an array too; the API takes objects
+        // only, on every transport (gRPC's `model_json` comes here as well).
+        for key in ["basis", "learning", "observation_space", "samples"] {
+            if obj.get(key).is_some_and(|v| !v.is_object() && !v.is_null()) {
+                return Err(ServiceError::field(
+                    match key {
+                        "basis" => "model.basis",
+                        "learning" => "model.learning",
+                        "observation_space" => "model.observation_space",
+                        _ => "model.samples",
+                    },
+                    "must be a JSON object",
+                ));
+            }
+        }
         if obj.contains_key("observation_space") {
             if obj.contains_key("transitions") || obj.contains_key("next") {
                 return Err(ServiceError::field(
@@ -569,6 +584,24 @@ mod tests {
             (
                 json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "guess"}),
                 "unknown variant `guess`, expected `learn`",
+            ),
+            (
+                json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "learn",
+                       "learning": [5, "stimulus"]}),
+                "`model.learning`: must be a JSON object",
+            ),
+            (
+                json!({"grid": ["#a#"], "sources": {"a": 0}, "learn": true, "learning": []}),
+                "`model.learning`: must be a JSON object",
+            ),
+            (
+                json!({"observation_space": [[0], [1]], "actions": ["a"], "stimuli": ["x"]}),
+                "`model.observation_space`: must be a JSON object",
+            ),
+            (
+                json!({"observation_space": {"low": [0], "high": [1]}, "actions": ["a"],
+                       "stimuli": ["x"], "samples": [1, 2, 3, 4]}),
+                "`model.samples`: must be a JSON object",
             ),
             (
                 json!({"states": 2, "actions": ["go"], "stimuli": ["x"], "transitions": "learn",

@@ -364,6 +364,36 @@ async fn bad_inputs_get_precise_errors() {
     assert_eq!(status, 400);
     let (status, err) = get(&client, &format!("{base}/v2/nothing")).await;
     assert_eq!((status, err["code"].as_str()), (404, Some("unknown_route")));
+    // axum's own rejections answer `{code, message}` too: a path that is
+    // not UTF-8, a query that does not parse, a method a route does not take.
+    let (status, err) = get(&client, &format!("{base}/v1/sessions/%00%ff")).await;
+    assert_eq!(
+        (status, err["code"].as_str()),
+        (400, Some("bad_request")),
+        "{err}"
+    );
+    assert!(
+        err["message"].as_str().is_some_and(|m| m.contains("UTF-8")),
+        "{err}"
+    );
+    let (status, err) = get(&client, &format!("{base}/v1/sessions?limit=abc")).await;
+    assert_eq!(
+        (status, err["code"].as_str()),
+        (400, Some("bad_request")),
+        "{err}"
+    );
+    let resp = client
+        .put(format!("{base}/v1/sessions"))
+        .send()
+        .await
+        .expect("request");
+    assert_eq!(resp.status().as_u16(), 405);
+    assert!(
+        resp.headers().get("allow").is_some(),
+        "the Allow header stays"
+    );
+    let err: Value = resp.json().await.expect("a JSON body");
+    assert_eq!(err["code"], "method_not_allowed", "{err}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

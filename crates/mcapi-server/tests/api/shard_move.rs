@@ -137,6 +137,21 @@ async fn admin_routes_refuse_what_does_not_fit() {
         assert_eq!(body["code"], "forbidden");
         assert!(!body.to_string().contains(KEY), "the key is not echoed");
     }
+    // The key is checked before anything of the request is parsed; a query
+    // that does not parse is then a JSON 400.
+    let bad_query = format!("/admin/shards/{mine}/activate?epoch=abc");
+    let (code, body) = send(&a.app, "POST", &bad_query, None, None).await;
+    assert_eq!(
+        (code, body["code"].as_str()),
+        (StatusCode::FORBIDDEN, Some("forbidden")),
+        "{body}"
+    );
+    let (code, body) = send(&a.app, "POST", &bad_query, Some(KEY), None).await;
+    assert_eq!(
+        (code, body["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("bad_request")),
+        "{body}"
+    );
     let (code, body) = send(&a.app, "GET", &status, Some(KEY), None).await;
     assert_eq!(code, StatusCode::OK, "{body}");
     assert_eq!(body["state"], "owned");
