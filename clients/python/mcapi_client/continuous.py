@@ -25,7 +25,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Literal
 
-from ._normalise import as_float, as_int, plain
+from ._normalise import as_float, as_floats, as_int, plain
 
 __all__ = [
     "MAX_DIM",
@@ -106,6 +106,29 @@ class ContinuousModel:
     def dim(self) -> int:
         """The dimension d of the observation space."""
         return len(self.low)
+
+    @classmethod
+    def from_json(cls, d: Mapping[str, Any]) -> ContinuousModel:
+        """A model from its REST JSON (what :meth:`to_json` writes, and what a
+        session's ``model.continuous`` holds: the model as the server built
+        it, its basis and sample store filled in)."""
+        space = d["observation_space"]
+        basis, samples = d.get("basis"), d.get("samples")
+        return cls(
+            low=tuple(space["low"]),
+            high=tuple(space["high"]),
+            actions=tuple(str(a) for a in d["actions"]),
+            stimuli=tuple(str(s) for s in d["stimuli"]),
+            basis=None if basis is None else dict(basis),
+            out_of_bounds=d.get("out_of_bounds", "clip"),
+            samples=None if samples is None else {str(k): int(v) for k, v in samples.items()},
+        )
+
+    def contains(self, observation: Any) -> bool:
+        """Whether ``observation`` (a vector of d numbers) lies in the box;
+        outside it, the server clips it (``"clip"``) or refuses it (``"refuse"``)."""
+        x = as_floats(observation, "observation")
+        return len(x) == self.dim and all(lo <= v <= hi for lo, v, hi in zip(self.low, x, self.high))
 
     def to_json(self) -> dict[str, Any]:
         """The model as the REST API takes it."""
@@ -232,22 +255,34 @@ class ContinuousEnvironment:
 
 
 def box_bounds(
-    space: Any, bounds: Sequence[tuple[float, float]] | None, name: str
+    space: Any, bounds: Sequence[tuple[float, float] | None] | None, name: str
 ) -> tuple[list[float], list[float]]:
-    """The box of a ``Box`` space, with ``bounds`` replacing infinite ones."""
+    """The box of a 1-d ``Box`` space, with ``bounds`` replacing its own: a
+    (low, high) per component, or ``None`` to keep the space's. A bound that
+    is infinite, or beyond 1e12 in magnitude (``numpy.finfo(float32).max``
+    stands for "unbounded" in some environments), must be replaced."""
     if type(space).__name__ != "Box":
         raise TypeError(f"{name}'s observation space is {space}, not a Box")
+    shape = tuple(getattr(space, "shape", ()) or ())
+    if len(shape) != 1:
+        raise TypeError(
+            f"{name}'s observation space {space} has shape {shape}: only a 1-d Box is an "
+            "observation vector (flatten it with gymnasium.wrappers.FlattenObservation)"
+        )
     low = [float(x) for x in space.low.ravel().tolist()]
     high = [float(x) for x in space.high.ravel().tolist()]
     if bounds is not None:
         if len(bounds) != len(low):
             raise ValueError(f"{len(bounds)} bounds for {len(low)} observation components")
-        low = [float(lo) for lo, _ in bounds]
-        high = [float(hi) for _, hi in bounds]
+        for i, b in enumerate(bounds):
+            if b is not None:
+                lo, hi = b
+                low[i], high[i] = as_float(lo, f"bounds[{i}]"), as_float(hi, f"bounds[{i}]")
     for i, (lo, hi) in enumerate(zip(low, high)):
-        if not (math.isfinite(lo) and math.isfinite(hi)):
+        if not (math.isfinite(lo) and math.isfinite(hi)) or max(abs(lo), abs(hi)) > MAX_COORDINATE:
             raise ValueError(
                 f"{name}'s observation component {i} is unbounded ({lo}, {hi}): "
-                "give `bounds` with a finite (low, high) per component"
+                f"give `bounds` with a finite (low, high) for component {i} "
+                "(None keeps a component's own bounds)"
             )
     return low, high

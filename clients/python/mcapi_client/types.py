@@ -637,7 +637,12 @@ class Observation:
                 "give `state` (a model with numbered states) or `observation` "
                 "(a continuous world), exactly one"
             )
-        object.__setattr__(self, "state", None if state is None else as_int(state, "state"))
+        index = None if state is None else as_int(state, "state")
+        if index is not None and index < 0:
+            # The server's answer to a state it does not have, on both
+            # transports (over gRPC a negative state cannot even be encoded).
+            raise error_for("unknown_state", f"state {index} is negative: states are 0, 1, ...")
+        object.__setattr__(self, "state", index)
         object.__setattr__(self, "observation", as_opt_floats(observation, "observation"))
         object.__setattr__(self, "stimulus", as_opt_floats(stimulus, "stimulus"))
         object.__setattr__(

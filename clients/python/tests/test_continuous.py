@@ -205,3 +205,4 @@ def test_a_continuous_session_survives_kill_9(tmp_path: Path) -> None:
             assert replay[-1] == step
     finally:
         second.stop()
+

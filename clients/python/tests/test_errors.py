@@ -187,3 +187,12 @@ def _raises_transport(fn: Callable[[], object]) -> McapiError:
     with pytest.raises(TransportError) as info:
         fn()
     return info.value
+
+
+def test_a_negative_state_is_an_invalid_observation_on_both_transports(server: Server) -> None:
+    with Client(server.http_url) as mc, GrpcClient(server.grpc_target) as grpc:
+        for client in (mc, grpc):
+            sid = client.create_session("hallway", seed=1).id
+            with pytest.raises(InvalidObservation, match="negative"):
+                client.observe(sid, -1)
+            client.delete_session(sid)
