@@ -45,7 +45,8 @@ fn invalid(msg: impl Into<String>) -> AlgoError {
     AlgoError::InvalidModel(msg.into())
 }
 
-fn check_names(kind: &str, names: &[String]) -> Result<()> {
+/// Names of one kind: at least one, none blank, none twice.
+pub(crate) fn check_names(kind: &str, names: &[String]) -> Result<()> {
     if names.is_empty() {
         return Err(invalid(format!("`{kind}` must not be empty")));
     }

@@ -152,20 +152,8 @@ impl ContinuousSpec {
                 "a continuous world has 1..={MAX_ACTIONS} actions, not {na}"
             )));
         }
-        if self.stimuli.is_empty() {
-            return Err(AlgoError::InvalidModel(
-                "`stimuli` names at least one stimulus".into(),
-            ));
-        }
-        for (what, names) in [("action", &self.actions), ("stimulus", &self.stimuli)] {
-            for (i, name) in names.iter().enumerate() {
-                if names[..i].contains(name) {
-                    return Err(AlgoError::InvalidModel(format!(
-                        "duplicate {what} name `{name}`"
-                    )));
-                }
-            }
-        }
+        crate::model::check_names("actions", &self.actions)?;
+        crate::model::check_names("stimuli", &self.stimuli)?;
         let basis = self
             .basis
             .clone()

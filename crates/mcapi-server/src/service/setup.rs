@@ -236,6 +236,16 @@ impl Setup {
                     "a curiosity channel needs a model with numbered states; this model is continuous",
                 ));
             }
+            // Sizes and names before anything is built.
+            if spec.stimuli.len() > limits.max_stimuli {
+                return Err(ServiceError::LimitExceeded(format!(
+                    "`model.stimuli` has {} names; the limit is {} (--max-stimuli)",
+                    spec.stimuli.len(),
+                    limits.max_stimuli
+                )));
+            }
+            limits.check_names("model.actions", &spec.actions)?;
+            limits.check_names("model.stimuli", &spec.stimuli)?;
             let model = ModelInput::build_continuous(spec)?;
             let params = agent.params().check(model.n_stimuli(), self.fresh_u64())?;
             let config = agent.effective(&params);

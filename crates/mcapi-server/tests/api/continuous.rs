@@ -300,8 +300,20 @@ async fn absurd_continuous_models_and_observations_are_refused_precisely() {
             400,
             "actions",
         ),
-        (square(json!({"actions": ["n", "n"]})), 400, "duplicate"),
+        (square(json!({"actions": ["n", "n"]})), 400, "twice"),
         (square(json!({"stimuli": []})), 400, "stimuli"),
+        (square(json!({"stimuli": [""]})), 400, "empty name"),
+        (square(json!({"actions": ["n", " "]})), 400, "empty name"),
+        (
+            square(json!({"stimuli": ["x".repeat(1000)]})),
+            413,
+            "length in bytes",
+        ),
+        (
+            square(json!({"stimuli": (0..65).map(|i| format!("s{i}")).collect::<Vec<_>>()})),
+            413,
+            "--max-stimuli",
+        ),
         (
             square(json!({"out_of_bounds": "wrap"})),
             400,

@@ -6,7 +6,9 @@ use serde_json::json;
 use utoipa::openapi::RefOr;
 use utoipa::openapi::schema::{OneOfBuilder, Schema, Type};
 
-use super::builders::{Bound, array, closed, integer, non_blank_name, number, reference, typed};
+use super::builders::{
+    Bound, array, closed, integer, non_blank_name, nullable_ref, number, reference, typed,
+};
 use crate::service::Limits;
 use mcapi_core::continuous::basis::{
     MAX_CENTRES_PER_DIM, MAX_ORDER, MAX_PVF_K, MAX_PVF_NEIGHBOURS, MAX_PVF_NODES,
@@ -206,7 +208,13 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             "the names of the stimulus dimensions, distinct (limit)",
         ),
     )
-    .property("basis", reference("ContinuousBasis"))
+    .property(
+        "basis",
+        nullable_ref(
+            "ContinuousBasis",
+            "the basis; absent or null for the default by dimension",
+        ),
+    )
     .property(
         "out_of_bounds",
         typed(Type::String, false)
