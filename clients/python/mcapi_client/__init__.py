@@ -14,6 +14,10 @@ action, the drive and the reward.
 - :mod:`mcapi_client.models`: model builders (hallway, grid maps, transition
   tables, Gymnasium toy-text environments, learned models, discrete
   MO-Gymnasium environments with their step adapter).
+- Continuous worlds: a session created on a :class:`ContinuousModel` (a box
+  of observation vectors) takes ``observation=[x1, ..., xd]`` instead of
+  ``state``; ``models.from_gymnasium`` and ``models.from_mo_gymnasium`` make
+  one of a ``Box``-observation environment (:mod:`mcapi_client.continuous`).
 - :mod:`mcapi_client.errors`: :class:`McapiError` and its subclasses, one per
   family of the server's stable error codes.
 - Curiosity: ``create_session(..., curiosity=CuriosityConfig(signal_dim=2))``
@@ -47,6 +51,7 @@ import importlib
 from typing import TYPE_CHECKING, Any
 
 from . import models
+from .continuous import ContinuousModel
 from .errors import (
     BadRequest,
     Forbidden,
@@ -77,6 +82,7 @@ from .types import (
     AgentKwargs,
     AgentOptions,
     BasisSummary,
+    ContinuousStats,
     CuriosityConfig,
     CuriosityInfo,
     FrozenModule,
@@ -151,6 +157,7 @@ __all__ = [
     "Watch",
     "AsyncWatch",
     "models",
+    "ContinuousModel",
     "McapiError",
     "BadRequest",
     "InvalidModel",
@@ -179,6 +186,7 @@ __all__ = [
     "AGENT_OPTIONS",
     "AgentOptions",
     "BasisSummary",
+    "ContinuousStats",
     "CuriosityConfig",
     "CuriosityInfo",
     "FrozenModule",

@@ -6,9 +6,11 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from ._params import AGENT_KINDS, AGENT_OPTIONS
+from .continuous import ContinuousModel
 from .types import (
     AgentConfig,
     BasisSummary,
+    ContinuousStats,
     CuriosityConfig,
     CuriosityInfo,
     FrozenModule,
@@ -104,6 +106,25 @@ def model_summary(d: Json) -> ModelSummary:
         features=int(d["features"]),
         layout=None if d.get("layout") is None else grid_layout(d["layout"]),
         learned=None if d.get("learned") is None else learned_summary(d["learned"]),
+        continuous=(
+            None
+            if d.get("continuous") is None
+            else ContinuousModel.from_json(d["continuous"], check=False)
+        ),
+    )
+
+
+def continuous_stats(d: Json | None) -> ContinuousStats | None:
+    """A continuous session's counters (absent for numbered states)."""
+    if d is None:
+        return None
+    return ContinuousStats(
+        clipped=int(d["clipped"]),
+        samples=int(d["samples"]),
+        slots=int(d["slots"]),
+        updates=int(d["updates"]),
+        rebuilds=int(d["rebuilds"]),
+        basis_builds=int(d.get("basis_builds", 0)),
     )
 
 
@@ -192,6 +213,7 @@ def session_info(d: Json) -> SessionInfo:
             constant_stimuli=[int(i) for i in s["constant_stimuli"]],
             factorisation_reuses=int(s["factorisation_reuses"]),
             factorisations=int(s["factorisations"]),
+            continuous=continuous_stats(s.get("continuous")),
         ),
         curiosity=curiosity_info(d.get("curiosity")),
         cost=(
@@ -230,6 +252,7 @@ def values(d: Json) -> Values:
     xi = d.get("xi")
     v = d.get("v")
     policy = d.get("policy")
+    points = d.get("points")
     return Values(
         tick=int(d["tick"]),
         policy_version=int(d["policy_version"]),
@@ -242,6 +265,7 @@ def values(d: Json) -> Values:
         else [[None if x is None else _floats(x) for x in row] for row in xi],
         curiosity=curiosity_info(d.get("curiosity")),
         known_fraction=None if d.get("known_fraction") is None else float(d["known_fraction"]),
+        points=None if points is None else [_floats(p) for p in points],
     )
 
 
@@ -251,6 +275,7 @@ def history(entries: Sequence[Json], actions: Sequence[str]) -> list[HistoryEntr
     for e in entries:
         a = int(e["action"])
         stimulus = e.get("stimulus")
+        observation = e.get("observation")
         out.append(
             HistoryEntry(
                 tick=int(e["tick"]),
@@ -265,6 +290,7 @@ def history(entries: Sequence[Json], actions: Sequence[str]) -> list[HistoryEntr
                 known_fraction=None
                 if e.get("known_fraction") is None
                 else float(e["known_fraction"]),
+                observation=None if observation is None else _floats(observation),
             )
         )
     return out

@@ -24,6 +24,7 @@ from ._normalise import as_float, as_opt_int
 from ._params import AGENT_KINDS, AGENT_OPTIONS
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._sansio import Op, SessionCache
+from .continuous import ContinuousModel
 from .errors import McapiError, Timeout, TransportError, WrongReplica, error_for
 from .models import ModelLike, model_json
 from .types import (
@@ -31,6 +32,7 @@ from .types import (
     AgentConfig,
     AgentOptions,
     BasisSummary,
+    ContinuousStats,
     CuriosityConfig,
     CuriosityInfo,
     FrozenModule,
@@ -190,6 +192,104 @@ def _full(model: dict[str, Any], out: pb.FullModel) -> None:
         _basis(model["basis"], out.basis)
 
 
+def _uint32(value: Any) -> int:
+    n = _uint(value)
+    if n >= 1 << 32:
+        raise _NotTyped  # the server names the mistake, as REST does
+    return n
+
+
+_OUT_OF_BOUNDS = {"clip": pb.OUT_OF_BOUNDS_CLIP, "refuse": pb.OUT_OF_BOUNDS_REFUSE}
+_OUT_OF_BOUNDS_NAMES = {v: k for k, v in _OUT_OF_BOUNDS.items()}
+
+# The fields of each continuous basis: (required, optional), as REST names them.
+_CONTINUOUS_BASES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
+    "fourier": (("order",), ("max_coupling",)),
+    "rbf": (("centres_per_dim",), ("width",)),
+    "tiles": (("tilings", "tiles_per_dim"), ("table",)),
+    "pvf": (("k",), ("nodes", "neighbours")),
+}
+
+
+def _continuous_basis(spec: Any, out: pb.ContinuousBasis) -> None:
+    """A continuous world's REST ``basis`` (tagged by ``kind``) as the typed oneof."""
+    if not isinstance(spec, dict) or spec.get("kind") not in _CONTINUOUS_BASES:
+        raise _NotTyped
+    kind = spec["kind"]
+    required, optional = _CONTINUOUS_BASES[kind]
+    _only(spec, "kind", *required, *optional)
+    if not all(spec.get(f) is not None for f in required):
+        raise _NotTyped  # proto3 would send 0: REST's message names the missing field
+    msg = getattr(out, kind)
+    msg.SetInParent()
+    for field in required + optional:
+        value = spec.get(field)
+        if value is None:
+            continue
+        setattr(msg, field, _number(value) if field == "width" else _uint32(value))
+
+
+def _continuous(model: dict[str, Any], out: pb.ContinuousModel) -> None:
+    """A continuous world's REST JSON (``observation_space``, ...) as the typed message."""
+    _only(model, "observation_space", "actions", "stimuli", "basis", "out_of_bounds", "samples")
+    space = model.get("observation_space")
+    if not isinstance(space, dict):
+        raise _NotTyped
+    _only(space, "low", "high")
+    low, high = space.get("low"), space.get("high")
+    if not isinstance(low, list) or not isinstance(high, list):
+        raise _NotTyped
+    out.low.extend(_number(x) for x in low)
+    out.high.extend(_number(x) for x in high)
+    out.actions.extend(_strings(model.get("actions")))
+    out.stimuli.extend(_strings(model.get("stimuli")))
+    if model.get("basis") is not None:
+        _continuous_basis(model["basis"], out.basis)
+    oob = model.get("out_of_bounds")
+    if oob is not None:
+        if oob not in _OUT_OF_BOUNDS:
+            raise _NotTyped
+        out.out_of_bounds = _OUT_OF_BOUNDS[oob]
+    samples = model.get("samples")
+    if samples is not None:
+        if not isinstance(samples, dict):
+            raise _NotTyped
+        _only(samples, "cells_per_dim", "per_cell", "max", "known_after")
+        out.samples.SetInParent()
+        for field, value in samples.items():
+            if value is not None:
+                setattr(out.samples, field, _uint32(value))
+
+
+def continuous_model(m: pb.ContinuousModel) -> ContinuousModel:
+    """A typed continuous model (a session's ``model.continuous``), as REST has it."""
+    d: dict[str, Any] = {
+        "observation_space": {"low": list(m.low), "high": list(m.high)},
+        "actions": list(m.actions),
+        "stimuli": list(m.stimuli),
+        "out_of_bounds": _OUT_OF_BOUNDS_NAMES.get(m.out_of_bounds, "clip"),
+    }
+    if m.HasField("basis"):
+        kind = m.basis.WhichOneof("kind")
+        if kind is not None:
+            msg = getattr(m.basis, kind)
+            basis: dict[str, Any] = {"kind": kind}
+            required, optional = _CONTINUOUS_BASES.get(kind, ((), ()))
+            for field in required:
+                basis[field] = getattr(msg, field)
+            for field in optional:
+                if msg.HasField(field):
+                    basis[field] = getattr(msg, field)
+            d["basis"] = basis
+    if m.HasField("samples"):
+        d["samples"] = {
+            f: getattr(m.samples, f)
+            for f in ("cells_per_dim", "per_cell", "max", "known_after")
+            if m.samples.HasField(f)
+        }
+    return ContinuousModel.from_json(d, check=False)
+
+
 def model_message(model: dict[str, Any]) -> pb.Model | None:
     """The typed ``Model`` of a model's REST JSON, or ``None`` when the JSON
     does not map onto it as it is (unknown keys, wrong types, an explicit
@@ -207,6 +307,9 @@ def model_message(model: dict[str, Any]) -> pb.Model | None:
             out.preset.SetInParent()
             if model.get("basis") is not None:
                 _basis(model["basis"], out.preset.basis)
+        elif "observation_space" in model:
+            _continuous(model, out.continuous)
+            out.continuous.SetInParent()
         elif "grid" in model:
             _only(model, "grid", "sources", "stimuli", "basis", "learn", "learning")
             learn = model.get("learn", False)
@@ -573,6 +676,7 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
                 if model.HasField("learned")
                 else None
             ),
+            continuous=continuous_model(model.continuous) if model.HasField("continuous") else None,
         ),
         agent=agent_config(m.agent),
         stats=SessionStats(
@@ -582,6 +686,18 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
             constant_stimuli=list(stats.constant_stimuli),
             factorisation_reuses=stats.factorisation_reuses,
             factorisations=stats.factorisations,
+            continuous=(
+                ContinuousStats(
+                    clipped=stats.continuous.clipped,
+                    samples=stats.continuous.samples,
+                    slots=stats.continuous.slots,
+                    updates=stats.continuous.updates,
+                    rebuilds=stats.continuous.rebuilds,
+                    basis_builds=stats.continuous.basis_builds,
+                )
+                if stats.HasField("continuous")
+                else None
+            ),
         ),
         curiosity=curiosity_info(m.curiosity) if m.HasField("curiosity") else None,
         cost=(
@@ -626,7 +742,11 @@ def _dense_vectors(
 
 
 def values(m: pb.Values, states: int, actions: int) -> Values:
-    """Value tables; gRPC lists available pairs only, made dense here as REST sends them."""
+    """Value tables; gRPC lists available pairs only, made dense here as REST
+    sends them (a continuous session's tables have a row per point)."""
+    points = [list(p.x) for p in m.points] or None
+    if points is not None:
+        states = len(points)
     return Values(
         tick=m.tick,
         policy_version=m.policy_version,
@@ -637,6 +757,7 @@ def values(m: pb.Values, states: int, actions: int) -> Values:
         xi=_dense_vectors(m.xi.pairs, states, actions) if m.HasField("xi") else None,
         curiosity=curiosity_info(m.curiosity) if m.HasField("curiosity") else None,
         known_fraction=m.known_fraction if m.HasField("known_fraction") else None,
+        points=points,
     )
 
 
@@ -655,6 +776,7 @@ def history(m: pb.History, actions: Sequence[str]) -> list[HistoryEntry]:
             stimulus=list(e.stimulus.values) if e.HasField("stimulus") else None,
             curiosity=tick_curiosity(e.curiosity) if e.HasField("curiosity") else None,
             known_fraction=e.known_fraction if e.HasField("known_fraction") else None,
+            observation=list(e.observation) or None,
         )
         for e in m.entries
     ]

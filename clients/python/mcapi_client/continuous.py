@@ -30,6 +30,8 @@ from ._normalise import as_float, as_floats, as_int, plain
 __all__ = [
     "MAX_DIM",
     "MAX_ACTIONS",
+    "BASIS_KEYS",
+    "SAMPLE_KEYS",
     "ContinuousModel",
     "ContinuousStep",
     "ContinuousEnvironment",
@@ -46,10 +48,54 @@ MAX_COORDINATE = 1e12
 
 
 def _floats(values: Any, what: str) -> tuple[float, ...]:
-    out = tuple(as_float(v, what) for v in values)
-    for v in out:
+    out = tuple(as_floats(values, what))
+    for i, v in enumerate(out):
         if not math.isfinite(v) or abs(v) > MAX_COORDINATE:
-            raise ValueError(f"`{what}` has {v}: a bound must be finite and at most 1e12 in magnitude")
+            raise ValueError(
+                f"`{what}[{i}]` is {v}: a bound must be finite and at most 1e12 in magnitude"
+            )
+    return out
+
+
+BASIS_KEYS: dict[str, tuple[str, ...]] = {
+    "fourier": ("order", "max_coupling"),
+    "rbf": ("centres_per_dim", "width"),
+    "tiles": ("tilings", "tiles_per_dim", "table"),
+    "pvf": ("k", "nodes", "neighbours"),
+}
+"""The bases of a continuous world, by ``kind``, and the fields each takes
+(the server checks their values: docs/sessions.md, "Continuous worlds")."""
+
+SAMPLE_KEYS = ("cells_per_dim", "per_cell", "max", "known_after")
+"""The fields of ``samples``, every one optional."""
+
+
+def _basis(basis: Any) -> dict[str, Any]:
+    if not isinstance(basis, Mapping):
+        raise TypeError(f"`basis` must be a mapping such as {{'kind': 'fourier', 'order': 5}}, not {basis!r}")
+    out: dict[str, Any] = plain(dict(basis))
+    kind = out.get("kind")
+    if kind not in BASIS_KEYS:
+        raise ValueError(f"`basis.kind` is {kind!r}; a continuous world takes {', '.join(BASIS_KEYS)}")
+    unknown = sorted(set(out) - {"kind", *BASIS_KEYS[kind]})
+    if unknown:
+        raise ValueError(
+            f"`basis` of kind {kind!r} has no field {unknown[0]!r} (it takes {', '.join(BASIS_KEYS[kind])})"
+        )
+    return out
+
+
+def _samples(samples: Any) -> dict[str, int]:
+    if not isinstance(samples, Mapping):
+        raise TypeError(f"`samples` must be a mapping such as {{'max': 2048}}, not {samples!r}")
+    out: dict[str, int] = {}
+    for key, value in samples.items():
+        if key not in SAMPLE_KEYS:
+            raise ValueError(f"`samples` has no field {key!r} (it takes {', '.join(SAMPLE_KEYS)})")
+        n = as_int(value, f"samples.{key}")
+        if n < 0:
+            raise ValueError(f"`samples.{key}` is {n}, not a count")
+        out[key] = n
     return out
 
 
@@ -84,6 +130,10 @@ class ContinuousModel:
         put(self, "high", _floats(self.high, "high"))
         put(self, "actions", tuple(self.actions))
         put(self, "stimuli", tuple(self.stimuli))
+        if self.basis is not None:
+            put(self, "basis", _basis(self.basis))
+        if self.samples is not None:
+            put(self, "samples", _samples(self.samples))
         d = len(self.low)
         if not 1 <= d <= MAX_DIM:
             raise ValueError(f"the observation space has {d} dimensions; 1 to {MAX_DIM} are allowed")
@@ -97,6 +147,9 @@ class ContinuousModel:
         if not self.stimuli:
             raise ValueError("a continuous world needs at least one stimulus")
         for what, names in (("action", self.actions), ("stimulus", self.stimuli)):
+            for i, n in enumerate(names):
+                if not isinstance(n, str) or not n.strip():
+                    raise ValueError(f"{what} {i} is {n!r}, not a name")
             if len(set(names)) != len(names):
                 raise ValueError(f"duplicate {what} names: {list(names)}")
         if self.out_of_bounds not in ("clip", "refuse"):
@@ -108,21 +161,29 @@ class ContinuousModel:
         return len(self.low)
 
     @classmethod
-    def from_json(cls, d: Mapping[str, Any]) -> ContinuousModel:
+    def from_json(cls, d: Mapping[str, Any], *, check: bool = True) -> ContinuousModel:
         """A model from its REST JSON (what :meth:`to_json` writes, and what a
         session's ``model.continuous`` holds: the model as the server built
-        it, its basis and sample store filled in)."""
+        it, its basis and sample store filled in). ``check=False`` takes a
+        server's reply as it is (a basis field this client does not know yet
+        is kept, not refused)."""
         space = d["observation_space"]
         basis, samples = d.get("basis"), d.get("samples")
-        return cls(
-            low=tuple(space["low"]),
-            high=tuple(space["high"]),
-            actions=tuple(str(a) for a in d["actions"]),
-            stimuli=tuple(str(s) for s in d["stimuli"]),
-            basis=None if basis is None else dict(basis),
-            out_of_bounds=d.get("out_of_bounds", "clip"),
-            samples=None if samples is None else {str(k): int(v) for k, v in samples.items()},
-        )
+        fields: dict[str, Any] = {
+            "low": tuple(as_floats(space["low"], "low")),
+            "high": tuple(as_floats(space["high"], "high")),
+            "actions": tuple(str(a) for a in d["actions"]),
+            "stimuli": tuple(str(s) for s in d["stimuli"]),
+            "basis": None if basis is None else plain(dict(basis)),
+            "out_of_bounds": d.get("out_of_bounds", "clip"),
+            "samples": None if samples is None else {str(k): int(v) for k, v in samples.items()},
+        }
+        if check:
+            return cls(**fields)
+        model = object.__new__(cls)
+        for name, value in fields.items():
+            object.__setattr__(model, name, value)
+        return model
 
     def contains(self, observation: Any) -> bool:
         """Whether ``observation`` (a vector of d numbers) lies in the box;
@@ -139,9 +200,9 @@ class ContinuousModel:
             "out_of_bounds": self.out_of_bounds,
         }
         if self.basis is not None:
-            out["basis"] = plain(dict(self.basis))
+            out["basis"] = dict(self.basis)
         if self.samples is not None:
-            out["samples"] = plain(dict(self.samples))
+            out["samples"] = dict(self.samples)
         return out
 
 

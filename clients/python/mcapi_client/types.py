@@ -38,6 +38,7 @@ from ._normalise import (
     as_opt_int,
 )
 from ._params import AGENT_KINDS, AGENT_OPTIONS, AgentKwargs
+from .continuous import ContinuousModel
 from .errors import error_for
 
 if TYPE_CHECKING:
@@ -58,6 +59,7 @@ __all__ = [
     "BasisSummary",
     "ModelSummary",
     "LearnedSummary",
+    "ContinuousStats",
     "AgentConfig",
     "AgentKwargs",
     "AGENT_OPTIONS",
@@ -233,6 +235,10 @@ class ModelSummary:
         learned: How the agent learns the transitions, for a model posted
             with ``"learn": true`` or ``"transitions": "learn"``
             (docs/algorithm.md section 8); ``None`` when they were posted.
+        continuous: For a continuous world, the model as the server built
+            it (its basis and sample store filled in); ``states``, ``pairs``
+            and ``transitions`` are then 0 and ``features`` is k x |A|.
+            ``None`` for a model with numbered states.
     """
 
     states: int
@@ -245,6 +251,7 @@ class ModelSummary:
     features: int
     layout: GridLayout | None = None
     learned: LearnedSummary | None = None
+    continuous: ContinuousModel | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -429,6 +436,27 @@ class SessionCost:
 
 
 @dataclass(frozen=True, slots=True)
+class ContinuousStats:
+    """The counters of a continuous session (:attr:`SessionStats.continuous`).
+
+    Attributes:
+        clipped: Observations outside the box, clipped into it.
+        samples: Transitions in the sample store now.
+        slots: (cell, action) slots visited.
+        updates: Rank-one updates of the planner's inverse.
+        rebuilds: Rebuilds of the planner's inverse.
+        basis_builds: Builds of a ``pvf`` basis (0 for the other bases).
+    """
+
+    clipped: int
+    samples: int
+    slots: int
+    updates: int
+    rebuilds: int
+    basis_builds: int = 0
+
+
+@dataclass(frozen=True, slots=True)
 class SessionStats:
     """Statistics of a session's learner.
 
@@ -440,6 +468,8 @@ class SessionStats:
         constant_stimuli: Stimulus dimensions whose column of Xi is constant.
         factorisation_reuses: Policy updates that reused the factorisation.
         factorisations: Full factorisations of A.
+        continuous: A continuous session's sample store and clipping;
+            ``None`` for a session with numbered states.
     """
 
     lstdq_error: float
@@ -448,6 +478,7 @@ class SessionStats:
     constant_stimuli: list[int]
     factorisation_reuses: int
     factorisations: int
+    continuous: ContinuousStats | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -543,6 +574,10 @@ class Values:
         known_fraction: For a session that learns its transitions, the
             fraction of pairs seen at least m times (always sent); ``None``
             for a session with posted transitions.
+        points: For a continuous session, the observations the tables are
+            given at: "state" i of ``v``, ``q`` and ``policy`` is
+            ``points[i]`` (a grid over the box for d <= 2, else the history's
+            observations); ``None`` for a session with numbered states.
     """
 
     tick: int
@@ -554,6 +589,7 @@ class Values:
     xi: list[list[list[float] | None]] | None = None
     curiosity: CuriosityInfo | None = None
     known_fraction: float | None = None
+    points: list[list[float]] | None = None
 
 
 @dataclass(frozen=True, slots=True)
@@ -562,7 +598,8 @@ class HistoryEntry:
 
     Attributes:
         tick: The tick.
-        state: The state observed at that tick.
+        state: The state observed at that tick (0 in a continuous world:
+            see ``observation``).
         action: Name of the action advised for that state.
         action_index: Index of that action.
         drive: The drive after the tick.
@@ -588,6 +625,9 @@ class HistoryEntry:
     known_fraction: float | None = None
     """For a session that learns its transitions: the fraction of pairs seen
     at least m times after this tick (``None`` otherwise)."""
+    observation: list[float] | None = None
+    """For a continuous session: the observation vector of this tick
+    (``None`` for a session with numbered states)."""
 
 
 @dataclass(frozen=True, slots=True, init=False)

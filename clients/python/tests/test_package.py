@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 import mcapi_client
-from mcapi_client import errors, grpc_client, models, rest, types
+from mcapi_client import continuous, errors, grpc_client, models, rest, types
 
-PUBLIC_MODULES = [mcapi_client, errors, grpc_client, models, rest, types]
+PUBLIC_MODULES = [mcapi_client, continuous, errors, grpc_client, models, rest, types]
 
 
 def test_typed_marker_and_stub_types_are_shipped() -> None:
