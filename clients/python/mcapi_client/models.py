@@ -638,11 +638,15 @@ def from_transition_table(
     )
 
 
-# Action names of the toy-text environments, by class name.
+# Action names of the toy-text and classic-control environments, by class name.
 _GYM_ACTIONS: dict[str, tuple[str, ...]] = {
     "FrozenLakeEnv": ("left", "down", "right", "up"),
     "CliffWalkingEnv": ("up", "right", "down", "left"),
     "TaxiEnv": ("south", "north", "east", "west", "pickup", "dropoff"),
+    "MountainCarEnv": ("push_left", "none", "push_right"),
+    "CartPoleEnv": ("push_left", "push_right"),
+    "AcrobotEnv": ("torque_minus", "torque_zero", "torque_plus"),
+    "LunarLander": ("none", "fire_left", "fire_main", "fire_right"),
 }
 
 
@@ -666,7 +670,7 @@ def from_gymnasium(
     stimuli: Sequence[str] | None = None,
     actions: Sequence[str] | None = None,
     basis: Mapping[str, Any] | None = None,
-    bounds: Sequence[tuple[float, float]] | None = None,
+    bounds: Sequence[tuple[float, float] | None] | None = None,
     stimulus_of: StimulusOf | None = None,
     out_of_bounds: Literal["clip", "refuse"] = "clip",
     samples: Mapping[str, int] | None = None,
@@ -681,21 +685,24 @@ def from_gymnasium(
     actions: Sequence[str] | None = None,
     on_terminated: Literal["restart", "keep"] = "restart",
     basis: Mapping[str, Any] | None = None,
-    bounds: Sequence[tuple[float, float]] | None = None,
+    bounds: Sequence[tuple[float, float] | None] | None = None,
     stimulus_of: StimulusOf | None = None,
     out_of_bounds: Literal["clip", "refuse"] = "clip",
     samples: Mapping[str, int] | None = None,
 ) -> Model | ContinuousEnvironment:
     """A model from a Gymnasium environment.
 
-    **Without** ``sources``: an environment with a ``Box`` observation space
-    and ``Discrete`` actions becomes a continuous world
+    **Without** ``sources``: an environment with a 1-d ``Box`` observation
+    space and ``Discrete`` actions becomes a continuous world
     (:class:`~mcapi_client.continuous.ContinuousEnvironment`): its box is the
     model's observation space (``bounds`` gives a finite (low, high) per
-    component where the space is unbounded), and each step's stimulus is
-    ``stimulus_of(observation, reward, info)``, by default one stimulus,
-    the positive part of the reward (named ``stimuli[0]``, default
-    ``"reward"``). The session learns the transitions.
+    component, ``None`` keeping the space's own; an unbounded component
+    without one is a ``ValueError`` naming it), and each step's stimulus is
+    ``stimulus_of(observation, reward, info)``, one value per name in
+    ``stimuli``; without ``stimulus_of``, one stimulus, the positive part of
+    the reward (named ``stimuli[0]``, default ``"reward"``). The session
+    learns the transitions. Actions are named as the environment's own
+    (MountainCar, CartPole, Acrobot, LunarLander) or ``a0``, ``a1``, ...
 
     **With** ``sources``, the model is read from a toy-text environment's
     transition table:
@@ -725,7 +732,8 @@ def from_gymnasium(
         on_terminated: ``"restart"`` or ``"keep"``, see above.
         basis: Optional basis for the server.
 
-        bounds: Without ``sources``: a finite (low, high) per observation component.
+        bounds: Without ``sources``: a finite (low, high) per observation
+            component, or ``None`` for a component whose own bounds are finite.
         stimulus_of: Without ``sources``: the stimulus of a step.
         out_of_bounds: Without ``sources``: ``"clip"`` or ``"refuse"``.
         samples: Without ``sources``: the sample store's parameters.
@@ -738,9 +746,22 @@ def from_gymnasium(
             actions that are not ``Discrete``.
     """
     if sources is None:
+        space = getattr(env, "observation_space", None)
+        if type(space).__name__ == "Discrete":
+            raise TypeError(
+                f"{type(getattr(env, 'unwrapped', env)).__name__} has Discrete observations: "
+                "give `sources` (stimulus name -> source states) to read its transition table"
+            )
+        names = tuple(stimuli) if stimuli is not None else ("reward",)
+        if stimulus_of is None and len(names) != 1:
+            raise ValueError(
+                f"{len(names)} stimuli {list(names)} without `stimulus_of`: the default stimulus "
+                "is one number (the positive part of the reward); give "
+                "`stimulus_of(observation, reward, info)` returning one value per stimulus"
+            )
         return _continuous_environment(
             env,
-            stimuli=tuple(stimuli) if stimuli is not None else ("reward",),
+            stimuli=names,
             actions=actions,
             basis=basis,
             bounds=bounds,
@@ -943,9 +964,14 @@ def _mo_preset(base: Any) -> dict[str, Any]:
     if name == "FourRoom":
         return {"objectives": ("blue", "green", "red"), "actions": ("left", "up", "right", "down")}
     if name == "Minecart":
+        # (x, y, speed, sin, cos, fill of ore 1, fill of ore 2): the space says
+        # [-1, 1] for each, the cart's position, speed (at most MAX_SPEED = 1)
+        # and the fills (of a capacity of 1) stay in [0, 1].
+        unit, signed = (0.0, 1.0), (-1.0, 1.0)
         return {
             "objectives": ("ore1", "ore2", "fuel"),
             "actions": ("mine", "left", "right", "accelerate", "brake", "none"),
+            "box": (unit, unit, unit, signed, signed, unit, unit),
         }
     return {}
 
@@ -968,7 +994,8 @@ def _space_leaves(space: Any, where: str) -> list[tuple[int, int]]:
         if getattr(dtype, "kind", "f") not in "iub":
             raise UnsupportedEnvironment(
                 f"{where} is continuous ({space}): only discrete observations become states "
-                "(Discrete, MultiDiscrete, MultiBinary, an integer Box, or a Tuple or Dict of them)"
+                "(Discrete, MultiDiscrete, MultiBinary, an integer Box, or a Tuple or Dict of them); "
+                "pass observations='continuous' for a continuous world of observation vectors"
             )
         return [(int(lo), int(hi)) for lo, hi in zip(_flat_list(space.low), _flat_list(space.high))]
     if kind == "Tuple":
@@ -1266,7 +1293,7 @@ def from_mo_gymnasium(
     actions: Sequence[str] | None = None,
     unwrap: bool = True,
     basis: Mapping[str, Any] | None = None,
-    observation_bounds: Sequence[tuple[float, float]] | None = None,
+    observation_bounds: Sequence[tuple[float, float] | None] | None = None,
     out_of_bounds: Literal["clip", "refuse"] = "clip",
     samples: Mapping[str, int] | None = None,
 ) -> ContinuousEnvironment: ...
@@ -1279,7 +1306,7 @@ def from_mo_gymnasium(
     penalties: Literal["drop", "error"] = "drop",
     scale: float = 1.0,
     transitions: Literal["auto", "learn", "table"] = "auto",
-    observation_bounds: Sequence[tuple[float, float]] | None = None,
+    observation_bounds: Sequence[Any] | None = None,
     objectives: Sequence[str] | None = None,
     actions: Sequence[str] | None = None,
     max_states: int = 10_000,
@@ -1294,11 +1321,16 @@ def from_mo_gymnasium(
     vector reward) as an mcapi model and a step adapter.
 
     **Continuous observations** (``observations="continuous"``, e.g.
-    ``minecart-v0``): a ``Box`` observation space becomes a continuous world
-    (:class:`~mcapi_client.continuous.ContinuousEnvironment`;
-    ``observation_bounds`` replaces unbounded components), the stimuli are the kept reward
-    components as below, and the session learns the transitions. The
-    options about states and tables below do not apply.
+    ``minecart-v0``): a 1-d ``Box`` observation space becomes a continuous
+    world (:class:`~mcapi_client.continuous.ContinuousEnvironment`;
+    ``observation_bounds`` gives a (low, high) per component, ``None``
+    keeping the space's own, and must replace unbounded ones), the stimuli
+    are the kept reward components as below, and the session learns the
+    transitions. The options about states and tables below do not apply.
+    Minecart declares [-1, 1] for all 7 components while position, speed
+    and the two fills never go below 0: its box here is the one it reaches,
+    [0, 1] for those and [-1, 1] for the heading's sine and cosine, so the
+    basis does not spend half its resolution on values never seen.
 
     **States.** The observation space must be discrete: Discrete,
     MultiDiscrete, MultiBinary, a Box of an integer dtype with finite
@@ -1457,6 +1489,12 @@ def from_mo_gymnasium(
         raise ValueError(f"`scale` {scale} is not a positive number")
     if continuous:
         # Observation vectors: the session learns the transitions.
+        box = observation_bounds
+        if box is None and "box" in preset:
+            space = getattr(stepped, "observation_space", None)
+            if tuple(getattr(space, "shape", ())) == (len(preset["box"]),):
+                box = preset["box"]
+
         def stimulus_of(_x: list[float], reward: Any, _info: Mapping[str, Any]) -> list[float]:
             r = _flat_list(reward)
             return [max(float(r[i]), 0.0) * scale for i in kept]
@@ -1466,7 +1504,7 @@ def from_mo_gymnasium(
             stimuli=[objectives[i] for i in kept],
             actions=actions,
             basis=basis,
-            bounds=observation_bounds,
+            bounds=box,
             stimulus_of=stimulus_of,
             out_of_bounds=out_of_bounds,
             samples=samples,
@@ -1568,7 +1606,7 @@ def _continuous_environment(
     stimuli: Sequence[str],
     actions: Sequence[str] | None,
     basis: Mapping[str, Any] | None,
-    bounds: Sequence[tuple[float, float]] | None,
+    bounds: Sequence[tuple[float, float] | None] | None,
     stimulus_of: StimulusOf,
     out_of_bounds: Literal["clip", "refuse"],
     samples: Mapping[str, int] | None,
@@ -1584,6 +1622,9 @@ def _continuous_environment(
             f"{name}'s action space is {action_space}: only Discrete actions map to mcapi actions"
         )
     n_actions = as_int(action_space.n, "action_space.n")
+    if actions is None:
+        known = _GYM_ACTIONS.get(name, ())
+        actions = known if len(known) == n_actions else None
     names = tuple(actions) if actions is not None else tuple(f"a{i}" for i in range(n_actions))
     if len(names) != n_actions:
         raise ValueError(f"{len(names)} action names for {n_actions} actions")
