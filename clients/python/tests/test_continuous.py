@@ -1,5 +1,7 @@
-"""Continuous worlds from Python: the model form, observation vectors over
-REST and gRPC (unary and the stream), Gymnasium ``Box`` spaces, MO-Gymnasium's
+"""Continuous worlds from Python: the model form (checked here, posted as
+REST JSON and as the typed gRPC message), observation vectors over REST and
+gRPC (unary, batches, the streams; numpy arrays), the continuous parts of the
+session, history and values replies, Gymnasium ``Box`` spaces, MO-Gymnasium's
 minecart, and a session that survives ``kill -9``."""
 
 from __future__ import annotations
@@ -7,14 +9,19 @@ from __future__ import annotations
 import math
 import random
 from pathlib import Path
+from typing import Any
 
 import httpx
 import pytest
 from conftest import Server, start_server
 
-from mcapi_client import Client, GrpcClient, Observation, models
-from mcapi_client.continuous import ContinuousEnvironment, ContinuousModel
+from mcapi_client import BadRequest, Client, ContinuousStats, GrpcClient, Observation, models
+from mcapi_client import _json as rest_json
+from mcapi_client.continuous import SAMPLE_KEYS, ContinuousEnvironment, ContinuousModel
 from mcapi_client.errors import InvalidObservation, McapiError
+
+# MO-Gymnasium's reward spaces are float64 Boxes cast to float32.
+pytestmark = pytest.mark.filterwarnings("ignore:.*precision lowered:UserWarning")
 
 
 def square(**kw: object) -> ContinuousModel:
@@ -25,6 +32,13 @@ def square(**kw: object) -> ContinuousModel:
         stimuli=("food", "rest"),
         **kw,  # type: ignore[arg-type]
     )
+
+
+class _Fixed:
+    """An environment of the given spaces that never moves."""
+
+    def __init__(self, observation_space: object, action_space: object) -> None:
+        self.observation_space, self.action_space = observation_space, action_space
 
 
 class Point:
@@ -93,27 +107,260 @@ def test_gymnasium_box_spaces_become_continuous_worlds() -> None:
         stimulus_of=lambda x, _r, _i: [1.0 if x[0] >= 0.5 else 0.0],
     )
     assert isinstance(world, ContinuousEnvironment)
-    assert world.model.dim == 2 and len(world.model.actions) == 3
+    assert world.model.dim == 2 and world.model.actions == ("push_left", "none", "push_right")
+    assert world.model.stimuli == ("goal",) and world.to_json() == world.model.to_json()
+    assert world.model.low + world.model.high == pytest.approx((-1.2, -0.07, 0.6, 0.07))
     x = world.reset(seed=1)
-    assert len(x) == 2 and world.model.low[0] <= x[0] <= world.model.high[0]
+    assert len(x) == 2 and world.model.contains(x) and all(type(v) is float for v in x)
     s = world.step(2)
     assert len(s.observation) == 2 and s.stimulus in ([0.0], [1.0])
-    # CartPole's velocities are unbounded: bounds must be given.
-    with pytest.raises(ValueError, match="unbounded"):
+    assert world.ticks == 1 and world.returns == -1.0
+    with pytest.raises(ValueError, match="action 3 is not in 0..3"):
+        world.step(3)
+    # CartPole's velocities are unbounded: bounds must be given, the message names the component.
+    with pytest.raises(ValueError, match="component 1 is unbounded"):
         models.from_gymnasium(gym.make("CartPole-v1"))
-    cart = models.from_gymnasium(
-        gym.make("CartPole-v1"), bounds=[(-4.8, 4.8), (-5, 5), (-0.42, 0.42), (-5, 5)]
+    with pytest.raises(ValueError, match="component 3 is unbounded"):
+        models.from_gymnasium(gym.make("CartPole-v1"), bounds=[None, (-5, 5), None, None])
+    cart = models.from_gymnasium(gym.make("CartPole-v1"), bounds=[None, (-5, 5), None, (-5, 5)])
+    assert cart.model.stimuli == ("reward",) and cart.model.actions == ("push_left", "push_right")
+    assert cart.model.low[1:] == (-5.0, pytest.approx(-0.41887903), -5.0)
+    assert cart.model.high[0] == pytest.approx(4.8)
+    cart.reset(seed=3)
+    assert cart.step(0).stimulus == [1.0]  # the positive part of CartPole's reward
+    # Names and stimuli: given names are taken; several stimuli need stimulus_of.
+    rbf = {"kind": "rbf", "centres_per_dim": 5}
+    named = models.from_gymnasium(gym.make("MountainCar-v0"), actions=["l", "n", "r"], basis=rbf)
+    assert named.model.actions == ("l", "n", "r") and named.model.basis == rbf
+    with pytest.raises(ValueError, match="2 action names for 3 actions"):
+        models.from_gymnasium(gym.make("MountainCar-v0"), actions=["l", "r"])
+    with pytest.raises(ValueError, match="without `stimulus_of`"):
+        models.from_gymnasium(gym.make("MountainCar-v0"), stimuli=["left", "right"])
+    two = models.from_gymnasium(
+        gym.make("MountainCar-v0"),
+        stimuli=["left", "right"],
+        stimulus_of=lambda x, _r, _i: [float(x[0] < -1.0), float(x[0] > 0.4)],
     )
-    assert cart.model.stimuli == ("reward",)
+    two.reset(seed=0)
+    assert two.step(1).stimulus == [0.0, 0.0]
+    broken = models.from_gymnasium(
+        gym.make("MountainCar-v0"), stimuli=["a"], stimulus_of=lambda *_: [0.0, 1.0]
+    )
+    broken.reset(seed=0)
+    with pytest.raises(ValueError, match="2 components for 1 stimuli"):
+        broken.step(0)
+    # What is not a 1-d Box with Discrete actions is refused, saying why.
+    with pytest.raises(TypeError, match="Discrete observations: give `sources`"):
+        models.from_gymnasium(gym.make("FrozenLake-v1"))
+    with pytest.raises(TypeError, match="only Discrete actions"):
+        models.from_gymnasium(gym.make("MountainCarContinuous-v0"))
+    flat = gym.spaces.Box(low=0.0, high=1.0, shape=(2, 2))
+    with pytest.raises(TypeError, match="only a 1-d Box"):
+        models.from_gymnasium(_Fixed(flat, gym.spaces.Discrete(2)))
 
 
 def test_minecart_becomes_a_continuous_world_with_its_ores_as_stimuli() -> None:
     mo = pytest.importorskip("mo_gymnasium")
-    world = models.from_mo_gymnasium(mo.make("minecart-v0"), observations="continuous")
+    np = pytest.importorskip("numpy")
+    env = mo.make("minecart-v0")
+    world = models.from_mo_gymnasium(env, observations="continuous", scale=6)
     assert world.model.stimuli == ("ore1", "ore2")  # fuel, a cost, is no stimulus
-    assert world.model.dim == 7 and len(world.model.actions) == 6
-    with pytest.raises(models.UnsupportedEnvironment):
+    assert world.model.actions == ("mine", "left", "right", "accelerate", "brake", "none")
+    # The box the cart reaches, not the [-1, 1]^7 the space declares.
+    assert env.observation_space.low.tolist() == [-1.0] * 7
+    assert world.model.low == (0.0, 0.0, 0.0, -1.0, -1.0, 0.0, 0.0)
+    assert world.model.high == (1.0,) * 7
+    np.random.seed(1)  # minecart's mines draw from numpy's global generator
+    assert world.model.contains(world.reset(seed=1))
+    returns = np.zeros(3)
+    for t in range(300):
+        s = world.step((3, 3, 3, 0, 1, 5)[t % 6])
+        assert world.model.contains(s.observation), s.observation
+        assert len(s.stimulus) == 2 and min(s.stimulus) >= 0.0
+        returns += np.asarray(s.reward)
+    assert world.returns == pytest.approx(returns.tolist(), abs=1e-4)  # fuel included
+    assert world.returns[2] < 0 and world.stimulus_totals == pytest.approx(
+        [6 * max(r, 0.0) for r in world.returns[:2]], abs=1e-4
+    )
+    # Given bounds replace the preset's, None keeping the space's own.
+    loose = models.from_mo_gymnasium(env, observations="continuous", observation_bounds=[None] * 7)
+    assert loose.model.low == (-1.0,) * 7
+    with pytest.raises(models.UnsupportedEnvironment, match="observations='continuous'"):
         models.from_mo_gymnasium(mo.make("minecart-v0"))
+    # mo-mountaincar's objectives are all penalties: no stimulus to receive.
+    with pytest.raises(models.UnsupportedEnvironment, match="all penalties"):
+        models.from_mo_gymnasium(mo.make("mo-mountaincar-v0"), observations="continuous")
+
+
+def test_the_model_checks_names_bases_and_samples_and_reads_back() -> None:
+    np = pytest.importorskip("numpy")
+    m = ContinuousModel(
+        low=np.zeros(3),
+        high=np.array([1.0, 2.0, 3.0], dtype=np.float32),
+        actions=["a", "b"],
+        stimuli=["x"],
+        basis={"kind": "rbf", "centres_per_dim": np.int64(4), "width": np.float32(0.5)},
+        samples={"max": np.uint16(512), "known_after": 2},
+        out_of_bounds="refuse",
+    )
+    assert (m.low, m.high, m.dim) == ((0.0, 0.0, 0.0), (1.0, 2.0, 3.0), 3)
+    assert m.basis == {"kind": "rbf", "centres_per_dim": 4, "width": 0.5}
+    assert type(m.basis["centres_per_dim"]) is int and m.samples == {"max": 512, "known_after": 2}
+    assert ContinuousModel.from_json(m.to_json()) == m
+    assert m.contains([0.0, 2.0, 1.5]) and not m.contains([0.0, 2.5, 1.5]) and not m.contains([0.0])
+    one = {"low": (0.0,), "high": (1.0,), "actions": ("a",), "stimuli": ("x",)}
+    for bad, message in (
+        ({"basis": {"kind": "wavelet"}}, "basis.kind"),
+        ({"basis": {"kind": "fourier", "order": 3, "width": 1.0}}, "no field 'width'"),
+        ({"basis": "fourier"}, "mapping"),
+        ({"samples": {"cells": 4}}, "no field 'cells'"),
+        ({"samples": {"max": -1}}, "not a count"),
+        ({"actions": ("a", "")}, "action 1"),
+        ({"stimuli": ("x", 3)}, "stimulus 1"),
+        ({"actions": tuple(f"a{i}" for i in range(65))}, "65 actions"),
+        ({"out_of_bounds": "wrap"}, "out_of_bounds"),
+        ({"low": (math.inf,)}, r"`low\[0\]` is inf"),
+        ({"high": (2e12,)}, r"`high\[0\]`"),
+    ):
+        with pytest.raises((ValueError, TypeError), match=message):
+            ContinuousModel(**{**one, **bad})  # type: ignore[arg-type]
+    # A server's summary is taken as sent, a basis field this client does not know included.
+    built = {**m.to_json(), "basis": {"kind": "rbf", "centres_per_dim": 4, "spread": 2}}
+    assert ContinuousModel.from_json(built, check=False).basis == built["basis"]
+    with pytest.raises(ValueError, match="spread"):
+        ContinuousModel.from_json(built)
+
+
+BASES = [
+    {"kind": "fourier", "order": 5, "max_coupling": 2},
+    {"kind": "fourier", "order": 3},
+    {"kind": "rbf", "centres_per_dim": 6, "width": 0.75},
+    {"kind": "tiles", "tilings": 4, "tiles_per_dim": 8, "table": 4096},
+    {"kind": "pvf", "k": 20, "nodes": 300, "neighbours": 8},
+    None,
+]
+
+
+@pytest.mark.parametrize("basis", BASES, ids=lambda b: b["kind"] + str(len(b)) if b else "default")
+def test_the_model_travels_typed_over_grpc(basis: dict[str, object] | None) -> None:
+    pytest.importorskip("grpc")
+    from mcapi_client import _pb
+    from mcapi_client.types import AgentOptions
+
+    m = square(basis=basis, out_of_bounds="refuse", samples={"cells_per_dim": 10, "max": 300})
+    request = _pb.create_request(models.model_json(m), AgentOptions())
+    assert not request.model_json and request.model.WhichOneof("form") == "continuous"
+    typed = request.model.continuous
+    assert (list(typed.low), list(typed.high)) == ([0.0, 0.0], [1.0, 1.0])
+    assert list(typed.actions) == list(m.actions) and list(typed.stimuli) == list(m.stimuli)
+    assert typed.out_of_bounds == _pb.pb.OUT_OF_BOUNDS_REFUSE
+    assert typed.samples.cells_per_dim == 10 and not typed.samples.HasField("per_cell")
+    assert typed.HasField("basis") == (basis is not None)
+    # Read back (a session's model.continuous), it is the model posted.
+    assert _pb.continuous_model(typed) == m
+    assert _pb.continuous_model(_pb.pb.ContinuousModel(low=[0], high=[1], actions=["a"], stimuli=["x"])) == (
+        ContinuousModel(low=(0.0,), high=(1.0,), actions=("a",), stimuli=("x",))
+    )
+
+
+def test_a_continuous_json_the_typed_form_cannot_carry_is_sent_as_json() -> None:
+    pytest.importorskip("grpc")
+    from mcapi_client import _pb
+
+    base = square().to_json()
+    for odd in (
+        {**base, "transitions": "learn"},  # the server refuses it, naming the field
+        {**base, "basis": {"kind": "fourier"}},  # no order: REST's message says so
+        {**base, "basis": {"kind": "fourier", "order": 1 << 32}},
+        {**base, "observation_space": {"low": [0, 0], "high": [1, "1"]}},
+        {**base, "out_of_bounds": "wrap"},
+        {**base, "samples": {"max": -1}},
+    ):
+        assert _pb.model_message(odd) is None, odd
+
+
+def test_the_replies_of_a_continuous_session_are_read_on_both_transports() -> None:
+    built = square(
+        basis={"kind": "rbf", "centres_per_dim": 8},
+        samples={"cells_per_dim": 25, "per_cell": 2, "max": 2048, "known_after": 1},
+    )
+    info = {
+        "id": "s0.X", "tick": 2, "drive": [0.5, 0.5], "policy_version": 2, "state": None,
+        "model": {
+            "states": 0, "actions": list(built.actions), "stimuli": list(built.stimuli), "pairs": 0,
+            "transitions": 0, "deterministic": False, "basis": {"kind": "rbf", "k": 64},
+            "features": 256, "continuous": built.to_json(),
+        },
+        "agent": {
+            "eta": 0.01, "gamma": 0.95, "priorities": [1.0, 1.0], "stimulus_rate": "sample_mean",
+            "optimistic_sd": 0.3, "ridge": 1e-6, "epsilon": 0.0, "seed": 3, "update_mode": "lockstep",
+            "history": 256,
+        },
+        "stats": {
+            "lstdq_error": 0.0, "lambda1_estimate": 1.0, "condition_1_holds": True, "constant_stimuli": [],
+            "factorisation_reuses": 0, "factorisations": 0,
+            "continuous": {
+                "clipped": 1, "samples": 2, "slots": 2, "updates": 3, "rebuilds": 0, "basis_builds": 0,
+            },
+        },
+    }
+    got = rest_json.session_info(info)
+    assert got.model.continuous == built and got.model.states == 0
+    assert got.stats.continuous == ContinuousStats(clipped=1, samples=2, slots=2, updates=3, rebuilds=0)
+    entry = {"tick": 1, "state": 0, "action": 2, "drive": [0.4, 0.9], "reward": 0.9, "lstdq_error": 0.0,
+             "stimulus": [0.0, 1.0], "observation": [0.52, 0.5]}
+    (h,) = rest_json.history([entry], list(built.actions))
+    assert (h.observation, h.action, h.state) == ([0.52, 0.5], "east", 0)
+    values = rest_json.values({"tick": 2, "policy_version": 2, "v": [1.0, 2.0],
+                               "points": [[0.0, 0.0], [0.5, 0.0]]})
+    assert values.points == [[0.0, 0.0], [0.5, 0.0]] and values.v == [1.0, 2.0]
+    # Numbered states have none of these.
+    assert rest_json.history([{**entry, "observation": None}], ["a"] * 4)[0].observation is None
+
+    pytest.importorskip("grpc")
+    from mcapi_client import _pb
+
+    pb = _pb.pb
+    msg = pb.SessionInfo(id="s0.X", tick=2, drive=[0.5, 0.5])
+    msg.model.continuous.CopyFrom(_pb.model_message(built.to_json()).continuous)  # type: ignore[union-attr]
+    counters = pb.ContinuousStats(clipped=1, samples=2, slots=2, updates=3, basis_builds=4)
+    msg.stats.continuous.CopyFrom(counters)
+    typed = _pb.session_info(msg)
+    assert typed.model.continuous == built
+    assert typed.stats.continuous == ContinuousStats(1, 2, 2, 3, 0, 4)
+    assert _pb.session_info(pb.SessionInfo(id="s0.Y")).model.continuous is None
+    history = pb.History(entries=[pb.HistoryEntry(tick=1, action_index=2, observation=[0.52, 0.5])])
+    assert _pb.history(history, list(built.actions))[0].observation == [0.52, 0.5]
+    assert _pb.history(pb.History(entries=[pb.HistoryEntry(tick=1)]), ["a"])[0].observation is None
+    # gRPC lists pairs: a continuous session's tables have a row per point.
+    v = pb.Values(tick=2, points=[pb.Point(x=[0.0, 0.0]), pb.Point(x=[0.5, 0.0]), pb.Point(x=[1.0, 0.0])])
+    v.q.pairs.add(state=2, action=3, value=7.0)
+    read = _pb.values(v, states=0, actions=4)
+    assert read.points == [[0.0, 0.0], [0.5, 0.0], [1.0, 0.0]]
+    assert read.q is not None and len(read.q) == 3 and read.q[2][3] == 7.0
+
+
+def test_an_observation_is_a_state_or_a_vector_of_plain_floats() -> None:
+    np = pytest.importorskip("numpy")
+    obs = Observation(observation=np.array([0.25, 0.5], dtype=np.float32), stimulus=np.zeros(2))
+    assert obs.observation == [0.25, 0.5] and type(obs.observation[0]) is float and obs.state is None
+    assert Observation(observation=(np.float64(0.1), 1)).observation == [0.1, 1.0]
+    with pytest.raises(TypeError, match="exactly one"):
+        Observation(np.int64(2), observation=np.zeros(2))
+    with pytest.raises(TypeError):
+        Observation(observation=["0.5"])
+    with pytest.raises(TypeError):
+        Observation(observation=[True, 0.5])
+    # JSON cannot carry NaN: refused before sending over REST, as a stimulus is.
+    with pytest.raises(InvalidObservation, match=r"`observation\[1\]` is nan") as e:
+        Observation(observation=[0.5, math.nan]).to_json()
+    assert e.value.code == "non_finite_number"
+    pytest.importorskip("grpc")
+    from mcapi_client import _pb
+
+    msg = _pb.observation_message(Observation(observation=np.array([0.5, math.nan]), stimulus=[1, 0]))
+    assert list(msg.observation)[0] == 0.5 and math.isnan(msg.observation[1]) and msg.state == 0
+    assert list(msg.stimulus.values) == [1.0, 0.0]
 
 
 def drive_rest(mc: Client, sid: str, world: Point, ticks: int) -> list[object]:
@@ -157,17 +404,150 @@ def test_a_continuous_session_over_rest_and_grpc(server: Server) -> None:
         grpc.delete_session(grpc_id)
 
 
+def test_a_continuous_session_on_every_client(any_client: Any, request: pytest.FixtureRequest) -> None:
+    """Create, 50 ticks, a batch, the summary, stats, history, values and the
+    refusals, over REST and gRPC, blocking and asyncio."""
+    np = pytest.importorskip("numpy")
+    kind = request.node.callspec.params["any_client"]
+    mc = any_client
+    model = square(basis={"kind": "fourier", "order": 3}, out_of_bounds="refuse", samples={"max": 512})
+    info = mc.create_session(model, seed=11, history=16)
+    sid = info.id
+    built = info.model.continuous
+    assert built is not None, info.model
+    assert (built.low, built.high, built.actions, built.stimuli) == (
+        model.low, model.high, model.actions, model.stimuli
+    )
+    assert built.out_of_bounds == "refuse" and dict(built.basis or {})["order"] == 3
+    assert built.samples is not None and built.samples["max"] == 512
+    assert set(built.samples) == set(SAMPLE_KEYS)  # the defaults filled in
+    assert (info.model.states, info.model.pairs, info.model.transitions) == (0, 0, 0)
+    assert info.model.features == info.model.basis.k * len(model.actions)
+    assert info.stats.continuous == ContinuousStats(0, 0, 0, 0, 0, 0)
+
+    world = Point(3)
+    step = mc.observe(sid, observation=np.array(world.x))  # the first: no stimulus
+    sent = [list(world.x)]
+    assert step.tick == 0
+    for t in range(1, 51):
+        xi = world.step(step.action_index)
+        x = np.asarray(world.x, dtype=np.float32)  # as a float32 Box would give it
+        step = mc.observe(sid, observation=x, stimulus=xi)
+        sent.append(x.tolist())
+        assert step.tick == t and step.action == model.actions[step.action_index], step
+        assert len(step.drive) == 2 and math.isfinite(step.reward) and step.reward >= 0.0
+    assert step.policy_version >= 50  # lockstep: one update per observation
+    batch = mc.observe_batch(
+        sid,
+        [Observation(observation=world.x, stimulus=[0.0, 0.0]), {"observation": world.x, "stimulus": [0, 0]}],
+    )
+    assert [s.tick for s in batch] == [51, 52]
+    sent += [list(world.x)] * 2
+
+    got = mc.get_session(sid)
+    assert got.tick == 52 and got.model.continuous == built
+    stats = got.stats.continuous
+    assert stats is not None and stats.clipped == 0 and stats.samples > 10 and stats.slots > 0, stats
+    assert stats.updates > 0 and stats.basis_builds == 0
+    history = mc.history(sid, limit=5)
+    assert [h.tick for h in history] == [48, 49, 50, 51, 52]
+    assert [h.observation for h in history] == sent[-5:] and {h.state for h in history} == {0}
+    assert history[-1].stimulus == [0.0, 0.0]
+    values = mc.values(sid, include="all")
+    assert values.points is not None and len(values.points) == 31 * 31  # the grid over the square (d = 2)
+    assert values.points[0] == [0.0, 0.0] and values.points[-1] == [1.0, 1.0]
+    assert values.v is not None and values.q is not None and values.policy is not None
+    assert len(values.v) == len(values.q) == len(values.policy) == len(values.points)
+    assert set(values.policy) <= set(model.actions) and values.r is None and values.xi is None
+
+    # Refused, and nothing changes: a wrong dimension, outside the box
+    # ("refuse"), not a finite number, a state number.
+    for bad in ([0.5], [0.5, 0.5, 0.5], [1.5, 0.5], [-0.01, 0.5]):
+        with pytest.raises(InvalidObservation) as e:
+            mc.observe(sid, observation=bad, stimulus=[0.0, 0.0])
+        assert (e.value.code, e.value.status) == ("invalid_observation", 400), e.value
+    with pytest.raises(InvalidObservation) as e:
+        mc.observe(sid, observation=[math.nan, 0.5], stimulus=[0.0, 0.0])
+    # JSON cannot carry NaN: the REST clients refuse it before sending; gRPC sends it.
+    assert e.value.code == ("non_finite_number" if "rest" in kind else "invalid_observation"), e.value
+    with pytest.raises(BadRequest, match="continuous"):
+        mc.observe(sid, 3, [0.0, 0.0])
+    assert mc.get_session(sid).tick == 52
+    # In a batch of several, the entries before a refused one are applied (docs/errors.md).
+    with pytest.raises(BadRequest, match=r"observations\[1\].*outside"):
+        mc.observe_batch(sid, [{"observation": [0.5, 0.5], "stimulus": [0, 0]}, {"observation": [2.0, 0.5]}])
+    assert mc.get_session(sid).tick == 53
+    mc.delete_session(sid)
+
+
+def test_nan_sent_by_hand_over_rest_is_refused(client: Client, server: Server) -> None:
+    sid = client.create_session(square(), seed=1).id
+    client.observe(sid, observation=[0.5, 0.5])
+    url = f"{server.http_url}/v1/sessions/{sid}/observations"
+    for text in ('{"observation": [NaN, 0.5], "stimulus": [0, 0]}', '{"observation": [1e999, 0.5]}'):
+        reply = httpx.post(url, content=text, headers={"content-type": "application/json"})
+        assert reply.status_code == 400, reply.text
+        # Not JSON (NaN is no JSON number, 1e999 none a double holds): the
+        # server refuses the body as it parses it.
+        assert reply.json()["code"] in ("bad_request", "invalid_observation"), reply.text
+    assert client.get_session(sid).tick == 0
+
+
+def test_clipping_and_the_streams(server: Server) -> None:
+    with Client(server.http_url) as mc, GrpcClient(server.grpc_target) as grpc:
+        sid = mc.create_session(square(samples={"max": 256}), seed=4).id
+        mc.observe(sid, observation=[0.5, 0.5])
+        mc.observe(sid, observation=[1.5, -0.25], stimulus=[0.0, 0.0])  # "clip": taken, counted
+        stats = mc.get_session(sid).stats.continuous
+        assert stats is not None and stats.clipped == 1
+        with grpc.interact(sid) as stream:
+            stream.send(observation=[0.4, 0.4], stimulus=[0.0, 6.0])
+            stream.send(observation=(0.45, 0.4), stimulus=[0.0, 0.0])
+            assert [stream.recv().tick, stream.recv().tick] == [2, 3]
+            with pytest.raises(TypeError, match="exactly one"):
+                stream.send(stimulus=[0.0, 0.0])
+        other = grpc.create_session(square(samples={"max": 256}), seed=4).id
+        grpc.observe(other, observation=[0.5, 0.5])
+        with grpc.interact_batch() as batch:
+            results = batch.step(
+                [
+                    (sid, Observation(observation=[0.5, 0.4], stimulus=[0.0, 0.0])),
+                    (other, {"observation": [0.5, 0.6], "stimulus": [6.0, 0.0]}),
+                    (other, Observation(observation=[0.5], stimulus=[0.0, 0.0])),
+                ]
+            )
+        assert [getattr(r, "tick", None) for r in results[:2]] == [4, 1]
+        assert isinstance(results[2], InvalidObservation)
+        assert [h.observation for h in grpc.history(other)] == [[0.5, 0.6]]
+        for s in (sid, other):
+            mc.delete_session(s)
+
+
 def test_minecart_is_driven_through_the_client(server: Server) -> None:
     mo = pytest.importorskip("mo_gymnasium")
-    world = models.from_mo_gymnasium(mo.make("minecart-v0"), observations="continuous")
+    np = pytest.importorskip("numpy")
+    world = models.from_mo_gymnasium(mo.make("minecart-v0"), observations="continuous", scale=6)
+    np.random.seed(2)  # the mines' yields
     with Client(server.http_url) as mc:
-        sid = mc.create_session(world, seed=2).id
+        info = mc.create_session(world, seed=2)
+        assert info.model.continuous is not None
+        built = info.model.continuous
+        assert built.low == world.model.low and built.stimuli == ("ore1", "ore2")
+        assert info.model.basis.kind == "fourier"  # the default for d = 7
+        sid = info.id
         step = mc.observe(sid, observation=world.reset(seed=2))
         for _ in range(200):
             s = world.step(step.action_index)
             step = mc.observe(sid, observation=s.observation, stimulus=s.stimulus)
         assert step.tick == 200 and world.ticks == 200
         assert all(math.isfinite(d) for d in step.drive)
+        got = mc.get_session(sid)
+        stats = got.stats.continuous
+        # The preset box holds the cart: nothing clipped.
+        assert stats is not None and stats.clipped == 0 and stats.samples > 50, stats
+        last = mc.history(sid, limit=1)[0]
+        assert last.observation == pytest.approx(s.observation) and len(last.observation or []) == 7
+        assert len(world.returns) == 3 and world.returns[2] < 0  # fuel was spent
         mc.delete_session(sid)
 
 
@@ -205,4 +585,3 @@ def test_a_continuous_session_survives_kill_9(tmp_path: Path) -> None:
             assert replay[-1] == step
     finally:
         second.stop()
-
