@@ -345,7 +345,8 @@ def test_models_the_typed_form_cannot_carry_go_as_json(client: Client, grpc_clie
 @pytest.mark.parametrize(
     ("kwargs", "field"),
     [
-        ({"state": -1}, "state"),
+        # A negative state is an unknown one, refused before sending on both
+        # transports (test_errors: InvalidObservation, `unknown_state`).
         ({"state": 1 << 64}, "state"),
         ({"state": 3, "stimulus": [0.0, 0.0], "action_taken": -2}, "action_taken"),
         ({"state": 3, "stimulus": [0.0, 0.0], "action_taken": 1 << 32}, "action_taken"),
