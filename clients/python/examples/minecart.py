@@ -3,14 +3,17 @@
 
 ``models.from_mo_gymnasium(env, observations="continuous")`` turns the
 environment into a continuous world: its 7 observation components (the
-cart's position, speed, heading and the fill of its two ore slots) are the
-observation vector, its 6 actions the session's, and the two ore components
-of its reward (ore delivered at home) the stimuli. Fuel, a cost, is no
-stimulus. The server learns the dynamics from the observations and plans on
-them; its drive turns to whichever ore it received least recently.
+cart's position, speed, heading and the fill of its two ore slots, in the
+box the cart reaches: [0, 1], and [-1, 1] for the heading's sine and cosine)
+are the observation vector, its 6 actions the session's, and the two ore
+components of its reward (ore delivered at home) the stimuli. Fuel, a cost,
+is no stimulus. The server learns the dynamics from the observations and
+plans on them; its drive turns to whichever ore it received least recently.
 
 This runs the agent, then a uniformly random policy on the same seeds, and
-prints each one's ore totals and balance (fewer/more).
+prints each one's ore totals and balance (fewer/more). Minecart's mines draw
+their yield from numpy's global generator, not the environment's, so each
+run seeds it too: the agent and the random policy meet the same mines.
 
     pip install './clients/python[mo]'
     mcapi serve                           # in another terminal
@@ -20,6 +23,7 @@ prints each one's ore totals and balance (fewer/more).
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import random
 import sys
@@ -33,10 +37,13 @@ from mcapi_client.errors import McapiError, one_line
 def run(args: argparse.Namespace, seed: int, agent: bool) -> list[float]:
     """One run of ``args.steps`` ticks; the ore delivered, per ore."""
     import mo_gymnasium
+    import numpy
 
     env = mo_gymnasium.make("minecart-v0")  # type: ignore[attr-defined]
     scale: float = args.scale
-    world = models.from_mo_gymnasium(env, observations="continuous", scale=scale)
+    basis = json.loads(args.basis) if args.basis else None
+    world = models.from_mo_gymnasium(env, observations="continuous", scale=scale, basis=basis)
+    numpy.random.seed(seed)  # the mines' yields (see above)
     observation = world.reset(seed=seed)
     if not agent:
         rng = random.Random(seed)
@@ -66,6 +73,11 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("--steps", type=int, default=3000, help="ticks per run")
     parser.add_argument("--seeds", type=int, default=1, help="runs, seeds 1..N")
     parser.add_argument("--scale", type=float, default=6.0, help="stimulus per unit of ore")
+    parser.add_argument(
+        "--basis",
+        default=None,
+        help='the basis as JSON, e.g. \'{"kind": "fourier", "order": 2}\' (default: the server\'s)',
+    )
     parser.add_argument("--keep", action="store_true", help="keep the sessions afterwards")
     args = parser.parse_args(argv)
     try:
@@ -83,6 +95,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"mcapi: {e}")
             return 1
         runs["random"].append(run(args, seed, agent=False))
+        (a1, a2), (r1, r2) = runs["agent"][-1], runs["random"][-1]
+        print(f"seed {seed}: agent ore1 {a1:.2f}, ore2 {a2:.2f}; random ore1 {r1:.2f}, ore2 {r2:.2f}")
     for name, rows in runs.items():
         totals = [sum(r[i] for r in rows) / len(rows) for i in range(2)]
         balances = [min(r) / max(max(r), 1e-9) for r in rows]
