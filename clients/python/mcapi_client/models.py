@@ -19,6 +19,11 @@ the examples drive their agents.
   environment, its vector reward as the stimulus dimensions, usually with a
   learned transition model; the :class:`MoEnvironment` it returns also steps
   the environment for the session (the ``mo`` extra installs MO-Gymnasium).
+- :class:`ContinuousModel`: a continuous world, observations being vectors
+  in a box; :func:`from_gymnasium` (without ``sources``) and
+  :func:`from_mo_gymnasium` (``observations="continuous"``) make one of an
+  environment with a ``Box`` observation space, with the
+  :class:`ContinuousEnvironment` that steps it.
 
 Models are checked here by the server's rules (every state has an available
 action; probabilities in (0, 1] summing to 1 within 1e-9), so a mistake is a
@@ -1581,8 +1586,9 @@ def _mo_table(
 ModelLike = Union[
     Model, Learned, MoEnvironment, ContinuousModel, ContinuousEnvironment, Mapping[str, Any], str
 ]
-"""A model to create a session from: a :class:`Model`, a :class:`Learned` or a
-:class:`MoEnvironment` (posted by their ``to_json``), the model's JSON as a
+"""A model to create a session from: a :class:`Model`, a :class:`Learned`, a
+:class:`MoEnvironment`, a :class:`ContinuousModel` or a
+:class:`ContinuousEnvironment` (posted by their ``to_json``), the model's JSON as a
 mapping (a full model, ``{"preset": "hallway"}`` or ``{"grid": [...],
 "sources": {...}}``; numpy values allowed), or a preset name
 (``"hallway"``, ``"three_room"``)."""
