@@ -13,9 +13,9 @@ from typing import Any
 
 import httpx
 import pytest
-from conftest import Server, start_server
+from conftest import Server, async_test, start_server
 
-from mcapi_client import BadRequest, Client, ContinuousStats, GrpcClient, Observation, models
+from mcapi_client import AsyncGrpcClient, BadRequest, Client, ContinuousStats, GrpcClient, Observation, models
 from mcapi_client import _json as rest_json
 from mcapi_client.continuous import SAMPLE_KEYS, ContinuousEnvironment, ContinuousModel
 from mcapi_client.errors import InvalidObservation, McapiError
@@ -542,6 +542,23 @@ def test_clipping_and_the_streams(server: Server) -> None:
         assert [h.observation for h in grpc.history(other)] == [[0.5, 0.6]]
         for s in (sid, other):
             mc.delete_session(s)
+
+
+@async_test
+async def test_the_asyncio_stream_takes_observation_vectors(server: Server) -> None:
+    np = pytest.importorskip("numpy")
+    world = Point(5)
+    async with AsyncGrpcClient(server.grpc_target) as mc:
+        sid = (await mc.create_session(square(samples={"max": 256}), seed=5)).id
+        async with mc.interact(sid) as stream:
+            step = await stream.step(observation=np.array(world.x))
+            for _ in range(20):
+                xi = world.step(step.action_index)
+                step = await stream.step(observation=np.array(world.x), stimulus=np.array(xi))
+        assert step.tick == 20
+        (last,) = await mc.history(sid, limit=1)
+        assert last.observation == world.x
+        await mc.delete_session(sid)
 
 
 def test_minecart_is_driven_through_the_client(server: Server) -> None:
