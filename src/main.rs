@@ -327,7 +327,7 @@ fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
         n => format!("on ({n})"),
     };
     if cfg.log_format == telemetry::LogFormat::Json {
-        tracing::info!(http = %cfg.http, grpc = %cfg.grpc, store = %store, api_keys = %keys, config = %shown, "starting");
+        tracing::info!(http = %cfg.http, grpc = %cfg.grpc, store = %store, api_keys = cfg.api_keys.len(), config = %shown, "starting");
     } else {
         tracing::info!(http = %cfg.http, grpc = %cfg.grpc, store = %store, api_keys = %keys, "starting");
         tracing::debug!(config = %shown, "configuration");

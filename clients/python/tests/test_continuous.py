@@ -493,11 +493,6 @@ def test_nan_sent_by_hand_over_rest_is_refused(client: Client, server: Server) -
     assert client.get_session(sid).tick == 0
 
 
-@pytest.mark.xfail(
-    reason="the server answers a malformed continuous model with bad_request "
-    "('`model`: invalid model: ...', '`model`: invalid basis: ...'), where a model with "
-    "numbered states gets invalid_model and invalid_basis (docs/errors.md)",
-)
 def test_a_malformed_continuous_model_has_the_codes_of_the_error_table(server: Server) -> None:
     """Posted as raw JSON (ContinuousModel would refuse these before sending),
     over REST and as the typed gRPC message."""

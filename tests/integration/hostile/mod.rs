@@ -117,7 +117,7 @@ async fn hostile_requests_get_precise_refusals_and_the_server_stays_up() {
             "continuous space of 10^5 dimensions",
             json!({"observation_space": {"low": vec![0; 100_000], "high": vec![1; 100_000]}}),
             400,
-            "bad_request",
+            "invalid_model",
         ),
         (
             "continuous 2025 features over 16384 samples (gigabytes)",

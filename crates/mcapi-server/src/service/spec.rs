@@ -456,7 +456,13 @@ impl ModelInput {
     /// Checks and builds a continuous model (its sizes first, then its
     /// basis), naming the field at fault.
     pub fn build_continuous(spec: &ContinuousSpec) -> Result<ContinuousModel, ServiceError> {
-        spec.build().map_err(|e| ServiceError::algo_at("model", e))
+        spec.build().map_err(|e| match e {
+            // `invalid_model` and `invalid_basis`, as a model with numbered
+            // states gets them; a parameter is named under `model`.
+            e @ (mcapi_core::AlgoError::InvalidModel(_)
+            | mcapi_core::AlgoError::InvalidBasis(_)) => e.into(),
+            e => ServiceError::algo_at("model", e),
+        })
     }
 }
 
