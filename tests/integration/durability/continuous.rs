@@ -8,7 +8,7 @@
 
 use crate::common;
 
-use common::{Launch, Server, assert_bits_eq, grpc_request, http_client, rest};
+use common::{Launch, Server, assert_bits_eq, grpc_request, http_client, rest, rest_get};
 use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation, ContinuousSpec};
 use mcapi_server::api::grpc::pb;
 use rand::{RngExt, SeedableRng};
@@ -298,27 +298,13 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
         d.ticks(&client, &base, &mut grpc, 300).await;
     }
     let builds = |info: &Value| info["stats"]["continuous"]["basis_builds"].as_u64();
-    let (_, info) = rest(
-        &client,
-        Method::GET,
-        &format!("{base}/v1/sessions/{}", pvf.id),
-        None,
-        None,
-    )
-    .await;
+    let (_, info) = rest_get(&client, &base, None, &pvf.id).await;
     let builds_before = builds(&info).expect("basis_builds");
     eprintln!("pvf basis builds before the kill: {builds_before}");
     // The async session's queued updates land, then its tables are read.
     settled(&client, &base, None, &async_.id).await;
     let before = values(&client, &base, &async_.id).await;
-    let (_, info) = rest(
-        &client,
-        Method::GET,
-        &format!("{base}/v1/sessions/{}", lockstep.id),
-        None,
-        None,
-    )
-    .await;
+    let (_, info) = rest_get(&client, &base, None, &lockstep.id).await;
     assert!(
         info["stats"]["continuous"]["samples"].as_u64().unwrap_or(0) > 50,
         "the sample store fills: {info}"
@@ -351,14 +337,7 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
     for d in [&mut lockstep, &mut async_, &mut typed, &mut pvf] {
         d.ticks(&client, &base, &mut grpc, 200).await;
     }
-    let (_, info) = rest(
-        &client,
-        Method::GET,
-        &format!("{base}/v1/sessions/{}", pvf.id),
-        None,
-        None,
-    )
-    .await;
+    let (_, info) = rest_get(&client, &base, None, &pvf.id).await;
     let builds_after = builds(&info).expect("basis_builds");
     eprintln!("pvf basis builds after: {builds_after}");
     assert!(
