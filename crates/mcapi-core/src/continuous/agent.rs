@@ -18,6 +18,7 @@ use rand_chacha::ChaCha8Rng;
 mod rebuild;
 
 use super::basis::{FeatureMap, PvfGraph};
+use super::dot::dot;
 use super::model::ContinuousModel;
 use super::planner::SamplePlanner;
 use super::samples::SampleStore;
@@ -35,6 +36,10 @@ const PLANNER_RIDGE: f64 = 1e-2;
 /// Actions within this relative distance of the best Q are tied
 /// (docs/algorithm.md §2.6).
 const TIE: f64 = 1e-10;
+
+/// Successor actions changed per tick, at most: the improvement of line 9
+/// is bounded, the largest advantages first (docs/algorithm.md §9.5).
+const MAX_SWITCHES: usize = 8;
 
 /// One observation of a continuous world.
 #[derive(Debug, Clone, Copy)]
@@ -117,11 +122,17 @@ pub struct ContinuousAgent {
     u: Vec<f64>,
     scaled_drive: Vec<f64>,
     targets: Vec<f64>,
+    /// R(s′_i, a) of every stored transition i and action a, row-major,
+    /// as of the last [`Self::refresh_reward_weights`]; 0 where (s′_i, a)
+    /// is known (the planner's Q is used there, not R).
+    next_rewards: Vec<f64>,
     r_max: f64,
     /// v at the probe points (`PROBES × k`).
     probes: Vec<f64>,
     /// The graph of a PVF basis, grown by every observation.
     graph: Option<PvfGraph>,
+    /// Scratch: the successor actions to change (advantage, index, π, known).
+    switches: Vec<(f64, usize, usize, bool)>,
 }
 
 impl ContinuousAgent {
@@ -163,12 +174,14 @@ impl ContinuousAgent {
             u: vec![0.0; na * k],
             scaled_drive: vec![0.0; n],
             targets: Vec::new(),
+            next_rewards: Vec::new(),
             r_max: 0.0,
             probes: probe_features(&model.features, d),
             graph: match &model.features {
                 FeatureMap::Pvf(p) => Some(PvfGraph::new(p)),
                 _ => None,
             },
+            switches: Vec::new(),
             model,
         }
     }
@@ -363,16 +376,17 @@ impl ContinuousAgent {
         } else {
             self.known_next[inserted.index] = mask;
         }
-        let (pi, known) = self.greedy_successor(inserted.index);
+        let (pi, known, _) = self.greedy_successor(inserted.index, false);
         let sample = &self.store.samples()[inserted.index];
         self.planner.add(inserted.index, sample, pi, known);
     }
 
     /// u_a = W_a Λ D; R(s_i, a_i) of every stored transition into
-    /// `targets`; and R_max: the best reward the agent can name, over the
-    /// stored transitions, every action at the current point, at their
-    /// successors and at the probe points (where Ξ may still hold its
-    /// optimistic prior).
+    /// `targets`, R(s′_i, a) of its unknown successor pairs into
+    /// `next_rewards`; and R_max: the best reward the agent can name, over
+    /// the stored transitions, their unknown successor pairs, every action
+    /// at the current point and at the probe points (where Ξ may still
+    /// hold its optimistic prior).
     fn refresh_reward_weights(&mut self, v_now: &[f64]) {
         for ((s, d), l) in self
             .scaled_drive
@@ -394,12 +408,21 @@ impl ContinuousAgent {
             }
         }
         self.targets.clear();
-        for sample in self.store.samples() {
+        self.next_rewards.clear();
+        for (sample, &mask) in self.store.samples().iter().zip(&self.known_next) {
             let r = self.reward(&sample.v, sample.a);
             self.targets.push(r);
             r_max = r_max.max(r);
+            // Only unknown successor pairs need R (for Q_opt); a known
+            // one's reward is among the stored transitions' own.
             for a in 0..self.model.n_actions() {
-                r_max = r_max.max(self.reward(&sample.v_next, a));
+                let r = if mask >> a & 1 == 1 {
+                    0.0
+                } else {
+                    self.reward(&sample.v_next, a)
+                };
+                self.next_rewards.push(r);
+                r_max = r_max.max(r);
             }
         }
         self.r_max = r_max;
@@ -408,11 +431,7 @@ impl ContinuousAgent {
     /// R(s, a) = |v(s) · u_a| (line 8).
     fn reward(&self, v: &[f64], a: usize) -> f64 {
         let k = v.len();
-        v.iter()
-            .zip(&self.u[a * k..(a + 1) * k])
-            .map(|(v, u)| v * u)
-            .sum::<f64>()
-            .abs()
+        dot(v, &self.u[a * k..(a + 1) * k]).abs()
     }
 
     /// Q(s, a) as the agent acts on it: v(s) · w_a for a known pair, Q_opt
@@ -431,16 +450,24 @@ impl ContinuousAgent {
         self.reward(v, a) + g * self.r_max / (1.0 - g)
     }
 
-    /// The greedy action at transition i's successor, and whether that pair is known.
-    fn greedy_successor(&self, i: usize) -> (usize, bool) {
+    /// The greedy action at transition i's successor, whether that pair
+    /// is known, and its advantage over the action A holds for i (0 when
+    /// they are the same or tied).
+    /// `cached`: R(s′_i, ·) is in `next_rewards` (it is after
+    /// [`Self::refresh_reward_weights`], for the transitions stored then).
+    fn greedy_successor(&self, i: usize, cached: bool) -> (usize, bool, f64) {
         let sample = &self.store.samples()[i];
         let mask = self.known_next[i];
         let previous = self.planner.successor(i).map(|(pi, _)| pi);
         let mut best = (f64::NEG_INFINITY, 0usize);
         let mut qs = [0.0f64; super::model::MAX_ACTIONS];
-        for (a, q) in qs.iter_mut().enumerate().take(self.model.n_actions()) {
+        let na = self.model.n_actions();
+        let g = self.params.gamma;
+        for (a, q) in qs.iter_mut().enumerate().take(na) {
             *q = if mask >> a & 1 == 1 {
                 self.planner.q(&sample.v_next, a)
+            } else if cached {
+                self.next_rewards[i * na + a] + g * self.r_max / (1.0 - g)
             } else {
                 self.q_opt(&sample.v_next, a)
             };
@@ -449,27 +476,47 @@ impl ContinuousAgent {
             }
         }
         let tol = TIE * (1.0 + best.0.abs());
-        let pi = match previous {
-            Some(p) if qs[p] >= best.0 - tol => p,
-            _ => best.1,
+        let (pi, advantage) = match previous {
+            Some(p) if qs[p] >= best.0 - tol => (p, 0.0),
+            Some(p) => (best.1, best.0 - qs[p]),
+            None => (best.1, 0.0),
         };
-        (pi, mask >> pi & 1 == 1)
+        (pi, mask >> pi & 1 == 1, advantage)
     }
 
     /// Line 8 and line 9: rewards of the stored transitions, one LSTDQ
-    /// evaluation, one greedy improvement of every successor action.
+    /// evaluation, one bounded greedy improvement of the successor actions.
     fn plan_at(&mut self, v_now: &[f64]) {
         self.refresh_reward_weights(v_now);
         let g = self.params.gamma;
-        for (i, sample) in self.store.samples().iter().enumerate() {
+        let na = self.model.n_actions();
+        let opt = g * self.r_max / (1.0 - g);
+        for i in 0..self.store.samples().len() {
             if let Some((pi, false)) = self.planner.successor(i) {
-                self.targets[i] += g * self.q_opt(&sample.v_next, pi);
+                self.targets[i] += g * (self.next_rewards[i * na + pi] + opt);
             }
         }
         self.planner.maybe_rebuild(self.store.samples());
         self.planner.evaluate(self.store.samples(), &self.targets);
+        // The improvement: every successor whose greedy action differs from
+        // the one A holds is a candidate; at most MAX_SWITCHES of them, the
+        // largest advantages first (ties by index), change this tick.
+        self.switches.clear();
         for i in 0..self.store.samples().len() {
-            let (pi, known) = self.greedy_successor(i);
+            let (pi, known, advantage) = self.greedy_successor(i, true);
+            if self.planner.successor(i) != Some((pi, known)) {
+                self.switches.push((advantage, i, pi, known));
+            }
+        }
+        if self.switches.len() > MAX_SWITCHES {
+            self.switches
+                .select_nth_unstable_by(MAX_SWITCHES - 1, |x, y| {
+                    y.0.total_cmp(&x.0).then(x.1.cmp(&y.1))
+                });
+            self.switches.truncate(MAX_SWITCHES);
+            self.switches.sort_unstable_by_key(|s| s.1);
+        }
+        for &(_, i, pi, known) in &self.switches {
             let sample = &self.store.samples()[i];
             self.planner.set_successor(i, sample, pi, known);
         }

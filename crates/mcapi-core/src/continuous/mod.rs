@@ -10,6 +10,7 @@
 
 pub mod agent;
 pub mod basis;
+mod dot;
 pub mod model;
 pub mod planner;
 pub mod samples;

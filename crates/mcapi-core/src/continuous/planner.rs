@@ -31,6 +31,7 @@
 
 use nalgebra::DMatrix;
 
+use super::dot::dot;
 use super::samples::Sample;
 
 /// Ticks between rebuilds of A⁻¹ from the samples.
@@ -104,10 +105,7 @@ impl SamplePlanner {
     /// Q(s, a) = v(s) · w_a.
     pub fn q(&self, v: &[f64], a: usize) -> f64 {
         let k = self.k;
-        v.iter()
-            .zip(&self.w[a * k..(a + 1) * k])
-            .map(|(v, w)| v * w)
-            .sum()
+        dot(v, &self.w[a * k..(a + 1) * k])
     }
 
     /// The successor action and knownness A holds for transition i.
@@ -134,7 +132,7 @@ impl SamplePlanner {
         // x = A⁻¹ u: the columns of block a, weighted by f.
         for (r, x) in self.x.iter_mut().enumerate() {
             let row = &self.ainv[r * n + a * k..r * n + (a + 1) * k];
-            *x = sign * row.iter().zip(f).map(|(m, f)| m * f).sum::<f64>();
+            *x = sign * dot(row, f);
         }
         // y = vᵀ A⁻¹, and vᵀx.
         self.y.iter_mut().for_each(|y| *y = 0.0);
@@ -224,9 +222,12 @@ impl SamplePlanner {
             return false;
         }
         let (k, n) = (self.k, self.k * self.actions);
-        let mut a = DMatrix::<f64>::zeros(n, n);
+        // A, row-major while it is summed (each term adds k-long runs to a
+        // row), then handed to nalgebra, which stores columns: so `a` below
+        // is Aᵀ, inverted, and its inverse transposed back.
+        let mut rows = vec![0.0; n * n];
         for i in 0..n {
-            a[(i, i)] = self.ridge;
+            rows[i * n + i] = self.ridge;
         }
         for (sample, &(pi, known)) in samples.iter().zip(&self.succ) {
             let (terms, len) = self.terms(sample, pi, known);
@@ -235,14 +236,16 @@ impl SamplePlanner {
                 if fj == 0.0 {
                     continue;
                 }
-                let r = sample.a * k + j;
+                let row = &mut rows[(sample.a * k + j) * n..(sample.a * k + j + 1) * n];
                 for &(block, coef, g) in &terms[..len] {
-                    for (c, &gc) in g.iter().enumerate() {
-                        a[(r, block * k + c)] += fj * coef * gc;
+                    let c = fj * coef;
+                    for (x, &gc) in row[block * k..(block + 1) * k].iter_mut().zip(g) {
+                        *x += c * gc;
                     }
                 }
             }
         }
+        let a = DMatrix::from_vec(n, n, rows);
         let inv = a.clone().try_inverse().or_else(|| {
             // Singular even with the ridge: add a stronger one.
             let mut b = a;
@@ -252,11 +255,8 @@ impl SamplePlanner {
             b.try_inverse()
         });
         if let Some(inv) = inv {
-            for r in 0..n {
-                for c in 0..n {
-                    self.ainv[r * n + c] = inv[(r, c)];
-                }
-            }
+            // inv = (Aᵀ)⁻¹ = (A⁻¹)ᵀ in column-major order: A⁻¹ row-major.
+            self.ainv.copy_from_slice(inv.as_slice());
         }
         self.stale = false;
         self.since_rebuild = 0;
@@ -277,11 +277,7 @@ impl SamplePlanner {
             }
         }
         for (r, w) in self.w.iter_mut().enumerate() {
-            *w = self.ainv[r * n..(r + 1) * n]
-                .iter()
-                .zip(&self.b)
-                .map(|(m, b)| m * b)
-                .sum();
+            *w = dot(&self.ainv[r * n..(r + 1) * n], &self.b);
         }
         if self.w.iter().any(|w| !w.is_finite()) {
             // Never let a NaN reach Q: start over from A = λI next tick.
