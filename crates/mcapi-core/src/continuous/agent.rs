@@ -39,7 +39,7 @@ const TIE: f64 = 1e-10;
 
 /// Successor actions changed per tick, at most: the improvement of line 9
 /// is bounded, the largest advantages first (docs/algorithm.md §9.5).
-const MAX_SWITCHES: usize = 8;
+const MAX_SWITCHES: usize = 32;
 
 /// One observation of a continuous world.
 #[derive(Debug, Clone, Copy)]
