@@ -13,6 +13,7 @@
 mod continuous;
 mod eviction;
 mod grpc;
+mod numerics;
 mod openapi;
 mod parity;
 mod rest;
