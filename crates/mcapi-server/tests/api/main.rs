@@ -15,6 +15,7 @@ mod eviction;
 mod grpc;
 mod numerics;
 mod openapi;
+mod panics;
 mod parity;
 mod rest;
 mod shard_move;
