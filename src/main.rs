@@ -311,6 +311,7 @@ const BLOCKING_KEEP_ALIVE: std::time::Duration = std::time::Duration::from_secs(
 
 fn serve(cfg: ServeConfig) -> anyhow::Result<()> {
     telemetry::init_logging(cfg.log_format, "info");
+    telemetry::install_panic_hook();
     cfg.validate().map_err(anyhow::Error::msg)?;
     // A short summary for people; the whole configuration at debug, and in
     // the JSON log format (for machines) at info. The JSON form leaves the

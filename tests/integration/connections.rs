@@ -618,7 +618,7 @@ async fn a_panicking_rest_handler_answers_500_for_its_request_alone() {
             .expect("a response, not a dropped connection");
         assert_eq!(resp.status(), 500);
         let body: Value = resp.json().await.expect("JSON body");
-        assert_eq!(body["code"], "internal", "{body}");
+        assert_eq!(body["code"], "internal_panic", "{body}");
         assert_eq!(body["message"], "internal error", "the panic is not sent");
         let ok = client
             .get(format!("http://{addr}/ok"))
@@ -691,7 +691,7 @@ async fn a_panicking_grpc_method_answers_internal_for_its_call_alone() {
             .await
             .expect_err("the panicking method fails");
         assert_eq!(status.code(), Code::Internal, "{status:?}");
-        assert_eq!(error_code(&status), "internal");
+        assert_eq!(error_code(&status), "internal_panic");
         assert_eq!(status.message(), "internal error");
         // The connection and the other calls on it go on.
         let reply = health

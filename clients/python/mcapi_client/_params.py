@@ -22,13 +22,13 @@ class AgentKwargs(TypedDict, total=False):
     """Discount gamma, in [0, 1); default 0.95."""
     priorities: FloatsLike | None
     """Priorities rho, one per stimulus dimension, a curiosity dimension included (Lambda =
-    diag(1/rho)), in (0, 1]; default all 1."""
+    diag(1/rho)), in [1e-6, 1]; default all 1."""
     stimulus_rate: StimulusRate | FloatLike | None
     """How Xi learns: the sample mean of each pair, or a constant rate; default "sample_mean"."""
     optimistic_sd: FloatLike | None
-    """Sigma of the optimistic initial draw of Xi, in [0, inf); default 0.3."""
+    """Sigma of the optimistic initial draw of Xi, in [0, 1e12]; default 0.3."""
     ridge: FloatLike | None
-    """Ridge lambda added to A only when A is singular, in (0, inf); default 1e-6."""
+    """Ridge lambda added to A only when A is singular, in [1e-12, 1e6]; default 1e-6."""
     epsilon: FloatLike | None
     """Epsilon of epsilon-greedy exploration, in [0, 1]; default 0."""
     seed: IntLike | None

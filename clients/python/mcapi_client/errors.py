@@ -228,6 +228,7 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "shard_moving": (Unavailable, 503),
     "numerical_failure": (InternalError, 500),
     "internal": (InternalError, 500),
+    "internal_panic": (InternalError, 500),
 }
 """Each stable error code of the server: the exception class raised for it
 and the HTTP status it comes with."""

@@ -36,6 +36,23 @@ impl BasisSpec {
     }
 }
 
+/// The largest magnitude of an entry of a `custom` basis: the planner's
+/// Gram matrix ΦᵀΦ then has entries of at most |S|·1e12, and Φw, Q and
+/// their differences stay far from overflowing f64.
+pub const MAX_FEATURE: f64 = 1e6;
+
+/// The largest condition number σ_max/σ_min of a `custom` basis's table V
+/// (`states × k`) that [`Basis::build_checked`] accepts. The planner inverts
+/// A = ΦᵀΦ − γ MᵀΨ_π and calls it singular when a pivot of its LU
+/// factorisation is below 1e-12 of the largest; ΦᵀΦ's condition is V's
+/// squared, so a limit of 1e5 leaves it at 1e10, two orders inside that.
+/// The discount narrows the margin (A's smallest pivots shrink with 1 − γ),
+/// which the server checks by running the first factorisation when it
+/// creates the session. A table with linearly dependent columns (more
+/// features than states, a zero or repeated column) has an infinite
+/// condition number.
+pub const MAX_FEATURE_CONDITION: f64 = 1e5;
+
 /// State features v(s) ∈ R^k, stored row-major (`states × k`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct StateFeatures {
@@ -71,6 +88,24 @@ impl StateFeatures {
     pub fn states(&self) -> usize {
         self.values.len() / self.k
     }
+
+    /// The condition number σ_max/σ_min of the table V, from the
+    /// eigenvalues of VᵀV (k × k, so the cost is that of the planner's own
+    /// Gram matrix); infinite when V's columns are linearly dependent.
+    pub fn condition(&self) -> f64 {
+        let (n, k) = (self.states(), self.k);
+        if k > n {
+            return f64::INFINITY;
+        }
+        let v = DMatrix::from_row_slice(n, k, &self.values);
+        let eig = SymmetricEigen::new(v.tr_mul(&v));
+        let max = eig.eigenvalues.max();
+        let min = eig.eigenvalues.min();
+        if !(min > 0.0 && max.is_finite()) {
+            return f64::INFINITY;
+        }
+        (max / min).sqrt()
+    }
 }
 
 /// A built basis.
@@ -92,6 +127,28 @@ impl Basis {
                 Ok(Self::StateBlocks(custom_features(model, state_features)?))
             }
         }
+    }
+
+    /// Builds the basis `spec` names, as [`Basis::build`], and refuses a
+    /// `custom` table the planner could not work with: one whose condition
+    /// number is beyond [`MAX_FEATURE_CONDITION`] (the check of a client's
+    /// basis; the PVFs are orthonormal by construction).
+    pub fn build_checked(spec: &BasisSpec, model: &EnvModel) -> Result<Self> {
+        let basis = Self::build(spec, model)?;
+        if let (BasisSpec::Custom { .. }, Self::StateBlocks(f)) = (spec, &basis) {
+            let c = f.condition();
+            if c > MAX_FEATURE_CONDITION {
+                let c = if c.is_finite() {
+                    format!("{c:.3e}")
+                } else {
+                    "infinite (its columns are linearly dependent)".to_owned()
+                };
+                return Err(AlgoError::InvalidBasis(format!(
+                    "`state_features` is too badly conditioned for the planner: its condition number (largest over smallest singular value) is {c}, the limit is {MAX_FEATURE_CONDITION:e}; scale the features alike and drop dependent ones"
+                )));
+            }
+        }
+        Ok(basis)
     }
 
     /// Number of features (columns of Φ).
@@ -127,6 +184,11 @@ fn custom_features(model: &EnvModel, rows: &[Vec<f64>]) -> Result<StateFeatures>
         if row.iter().any(|x| !x.is_finite()) {
             return Err(bad(format!(
                 "`state_features[{s}]` contains a non-finite number"
+            )));
+        }
+        if let Some((j, x)) = row.iter().enumerate().find(|(_, x)| x.abs() > MAX_FEATURE) {
+            return Err(bad(format!(
+                "`state_features[{s}][{j}]` = {x:e} exceeds the limit of ±{MAX_FEATURE:e}"
             )));
         }
         values.extend_from_slice(row);
@@ -762,6 +824,37 @@ mod tests {
             e.to_string().contains("`state_features[3]` has 1 features"),
             "{e}"
         );
+    }
+
+    #[test]
+    fn custom_bases_are_bounded_and_conditioned() {
+        let m = EnvModel::chain(2, vec!["x".into()]).expect("chain");
+        let custom = |rows: Vec<Vec<f64>>| BasisSpec::Custom {
+            state_features: rows,
+        };
+        let e = Basis::build(&custom(vec![vec![1e200, 0.0], vec![0.0, 1.0]]), &m)
+            .expect_err("too large");
+        assert!(e.to_string().contains("`state_features[0][0]`"), "{e}");
+        for (rows, what) in [
+            (vec![vec![1e6, 0.0], vec![0.0, 1.0]], "1.000e6"),
+            (vec![vec![1.0, 2.0], vec![2.0, 4.0]], "infinite"),
+            (vec![vec![0.0], vec![0.0]], "infinite"),
+            (vec![vec![1.0, 0.0, 1.0], vec![0.0, 1.0, 1.0]], "infinite"),
+        ] {
+            Basis::build(&custom(rows.clone()), &m).expect("the core builds it");
+            let e = Basis::build_checked(&custom(rows), &m).expect_err("conditioning");
+            assert!(
+                matches!(e, AlgoError::InvalidBasis(_)) && e.to_string().contains(what),
+                "{e}"
+            );
+        }
+        for rows in [
+            vec![vec![1e5, 0.0], vec![0.0, 1.0]],
+            vec![vec![1e6, 1e6], vec![1e6, -1e6]],
+            vec![vec![0.5], vec![-2.0]],
+        ] {
+            Basis::build_checked(&custom(rows.clone()), &m).expect("well conditioned");
+        }
     }
 
     #[test]

@@ -32,7 +32,7 @@ use serde::{Deserialize, Serialize};
 
 use super::agent::{Agent, AgentSnapshot, Observation, ObserveOutcome, Step};
 use super::curiosity::{CuriosityChannel, CuriosityStep, ValidCuriosityParams};
-use super::error::{AlgoError, Result};
+use super::error::{AlgoError, MAX_STIMULUS, Result};
 use super::lstdq::{PlanOutcome, PlanningModel};
 use super::params::ValidParams;
 use super::stimulus::OwnColumn;
@@ -234,6 +234,11 @@ impl CuriousAgent {
             None => None,
         };
         let xi_cur = curiosity.map_or(0.0, |c| c.xi_cur);
+        // ξ_cur is the server's own number, not the client's: Eq. 7 keeps
+        // it in [0, clip], and the table bounds the clip far inside the
+        // stimulus limit, so the agent never refuses it as if the client
+        // had sent it.
+        debug_assert!((0.0..=MAX_STIMULUS).contains(&xi_cur), "ξ_cur = {xi_cur:e}");
         self.xi[self.cur] = xi_cur;
         let xi = std::mem::take(&mut self.xi);
         let observed = self.agent.observe(&inner(obs, &xi));

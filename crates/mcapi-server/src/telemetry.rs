@@ -1,7 +1,10 @@
-//! Logging and metrics set-up.
+//! Logging and metrics set-up, and the panic hook.
 
+use std::collections::HashSet;
 use std::io::IsTerminal;
 use std::sync::OnceLock;
+
+use parking_lot::Mutex;
 
 use metrics_exporter_prometheus::{PrometheusBuilder, PrometheusHandle};
 
@@ -53,4 +56,65 @@ pub fn prometheus() -> Option<PrometheusHandle> {
             }
         })
         .clone()
+}
+
+/// The places in the code that have panicked, each logged once.
+#[derive(Debug, Default)]
+pub struct PanicSites(Mutex<HashSet<String>>);
+
+impl PanicSites {
+    /// Records a panic at `site`; true the first time.
+    pub fn first(&self, site: &str) -> bool {
+        let mut seen = self.0.lock();
+        !seen.contains(site) && seen.insert(site.to_owned())
+    }
+}
+
+/// Installs the process's panic hook in place of the default one (which
+/// writes every panic to stderr, so a request that panics on every call
+/// would write one per request): every panic counts in
+/// `mcapi_panics_total{site}` (its `file:line`), and only the first at each
+/// site is logged, at error level, with its message and a backtrace. What
+/// the request gets is the caller's business (500 / INTERNAL
+/// `internal_panic`, docs/errors.md).
+pub fn install_panic_hook() {
+    static SITES: OnceLock<PanicSites> = OnceLock::new();
+    std::panic::set_hook(Box::new(|info| {
+        let site = info.location().map_or_else(
+            || "unknown".to_owned(),
+            |l| format!("{}:{}", l.file(), l.line()),
+        );
+        metrics::counter!("mcapi_panics_total", "site" => site.clone()).increment(1);
+        if SITES.get_or_init(PanicSites::default).first(&site) {
+            let payload = info.payload();
+            let message = payload
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_owned())
+                .or_else(|| payload.downcast_ref::<String>().cloned())
+                .unwrap_or_default();
+            let backtrace = std::backtrace::Backtrace::force_capture();
+            tracing::error!(
+                %site,
+                panic = %message,
+                %backtrace,
+                "a panic, logged once for its place in the code (mcapi_panics_total counts each)"
+            );
+        }
+    }));
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_panic_site_is_logged_once() {
+        let sites = PanicSites::default();
+        assert!(sites.first("src/a.rs:1"));
+        assert!(
+            !sites.first("src/a.rs:1"),
+            "the second panic there only counts"
+        );
+        assert!(sites.first("src/a.rs:2"));
+    }
 }

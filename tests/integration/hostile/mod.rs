@@ -384,6 +384,42 @@ async fn hostile_requests_get_precise_refusals_and_the_server_stays_up() {
         "invalid_parameter",
     )
     .await;
+    // Numbers the arithmetic cannot carry: refused at creation, not
+    // accepted and then answered 500 at every observation.
+    for (what, agent) in [
+        (
+            "priorities [5e-324, 1]",
+            json!({"priorities": [5e-324, 1.0]}),
+        ),
+        ("optimistic_sd 1e308", json!({"optimistic_sd": 1e308})),
+        ("ridge 5e-324", json!({"ridge": 5e-324})),
+        (
+            "curiosity gain and clip 1e308",
+            json!({"curiosity": {"signal_dim": 2, "params": {"gain": 1e308, "clip": 1e308}}}),
+        ),
+    ] {
+        b.create(what, hallway(agent), 400, "invalid_parameter")
+            .await;
+    }
+    for (what, rows) in [
+        (
+            "custom basis [[1e6, 0], [0, 1]]",
+            json!([[1e6, 0.0], [0.0, 1.0]]),
+        ),
+        (
+            "custom basis [[1e100, 1], [1, 1e-100]]",
+            json!([[1e100, 1.0], [1.0, 1e-100]]),
+        ),
+    ] {
+        b.create(
+            what,
+            json!({"model": {"states": 2, "actions": ["a"], "stimuli": ["s"], "next": [[1], [0]],
+                "basis": {"kind": "custom", "state_features": rows}}}),
+            400,
+            "invalid_basis",
+        )
+        .await;
+    }
     b.create("seed -1", hallway(json!({"seed": -1})), 400, "bad_request")
         .await;
     b.create(

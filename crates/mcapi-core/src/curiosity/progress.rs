@@ -44,9 +44,14 @@ impl ErrorWindow {
 }
 
 /// Eq. 7: ξ_cur = Clip(g·(ε_{n−L} − ε_n)/L, 0, clip), the learning progress
-/// over the last L learned samples, scaled by the gain g.
+/// over the last L learned samples, scaled by the gain g. Always in
+/// [0, clip]: a progress that is not a number (errors that overflowed to
+/// ∞ on both sides) counts as none (our guard, not the paper's).
 pub fn curiosity_stimulus(eps_lagged: f64, eps_now: f64, params: &ValidCuriosityParams) -> f64 {
     let progress = params.gain * (eps_lagged - eps_now) / params.lag as f64;
+    if progress.is_nan() {
+        return 0.0;
+    }
     progress.clamp(0.0, params.clip)
 }
 

@@ -148,6 +148,20 @@ mod tests {
             ),
             (
                 CuriosityParams {
+                    gain: 1e308,
+                    ..Default::default()
+                },
+                "`gain`",
+            ),
+            (
+                CuriosityParams {
+                    clip: 1e308,
+                    ..Default::default()
+                },
+                "`clip`",
+            ),
+            (
+                CuriosityParams {
                     freeze_after: 0,
                     ..Default::default()
                 },

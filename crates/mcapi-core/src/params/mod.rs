@@ -66,7 +66,7 @@ macro_rules! agent_params {
             eta: f64,
             /// Discount γ in [0, 1).
             gamma: f64,
-            /// Priorities ρ in (0, 1], one per stimulus dimension; Λ = diag(1/ρ).
+            /// Priorities ρ in [1e-6, 1], one per stimulus dimension; Λ = diag(1/ρ).
             priorities: Vec<f64>,
             /// Learning rate of Ξ (Algorithm 1, line 5).
             stimulus_rate: $crate::StimulusRate,
@@ -233,6 +233,61 @@ mod tests {
                 "{msg:?} should contain {expected:?}"
             );
         }
+    }
+
+    /// Values the arithmetic cannot carry (Λ = diag(1/ρ) or the optimistic
+    /// draw of Ξ overflowing, a ridge too small to ever regularise) are
+    /// refused by the check, naming the field, not by the first plan.
+    #[test]
+    fn values_the_arithmetic_cannot_carry_are_refused() {
+        let cases = [
+            (
+                AgentParams {
+                    priorities: Some(vec![5e-324, 1.0]),
+                    ..Default::default()
+                },
+                "`priorities`",
+            ),
+            (
+                AgentParams {
+                    priorities: Some(vec![1e-200, 1.0]),
+                    ..Default::default()
+                },
+                "`priorities`",
+            ),
+            (
+                AgentParams {
+                    optimistic_sd: Some(1e308),
+                    ..Default::default()
+                },
+                "`optimistic_sd`",
+            ),
+            (
+                AgentParams {
+                    ridge: Some(5e-324),
+                    ..Default::default()
+                },
+                "`ridge`",
+            ),
+            (
+                AgentParams {
+                    ridge: Some(1e308),
+                    ..Default::default()
+                },
+                "`ridge`",
+            ),
+        ];
+        for (params, expected) in cases {
+            let msg = params.check(2, 0).expect_err("refused").to_string();
+            assert!(msg.contains(expected), "{msg:?} should name {expected}");
+        }
+        let edges = AgentParams {
+            priorities: Some(vec![table::MIN_PRIORITY, 1.0]),
+            optimistic_sd: Some(crate::error::MAX_STIMULUS),
+            ridge: Some(1e-12),
+            ..Default::default()
+        };
+        edges.check(2, 0).expect("the ends of the ranges are valid");
     }
 
     #[test]

@@ -12,6 +12,22 @@
 
 use super::spec::{Bound, Default, Kind, Max, Param};
 use crate::curiosity::{MAX_CENTRES, MAX_SOURCES_LIMIT, MAX_WINDOW};
+use crate::error::MAX_STIMULUS;
+
+/// The smallest priority ρ: Λ = diag(1/ρ) then has entries of at most 1e6,
+/// and with stimuli within ±[`MAX_STIMULUS`] every Λξ, reward and Q value
+/// stays far from overflowing f64.
+pub const MIN_PRIORITY: f64 = 1e-6;
+
+/// The largest gain g of Eq. 7: g times a difference of errors stays
+/// finite, and the clip bounds ξ_cur anyway.
+pub const MAX_CURIOSITY_GAIN: f64 = 1e6;
+
+/// The largest clip of ξ_cur in Eq. 7: the curiosity dimension the server
+/// computes stays far inside the stimulus limit ([`MAX_STIMULUS`]) that a
+/// client's own stimuli must keep.
+pub const MAX_CURIOSITY_CLIP: f64 = 1e6;
+const _: () = assert!(MAX_CURIOSITY_CLIP <= MAX_STIMULUS);
 
 /// MCA learning rate η of Eq. 1; at most 0.5 by condition (1).
 pub const ETA: Param = Param {
@@ -39,11 +55,12 @@ pub const GAMMA: Param = Param {
     see: "",
 };
 
-/// Priorities ρ, one per stimulus dimension; Λ = diag(1/ρ).
+/// Priorities ρ, one per stimulus dimension; Λ = diag(1/ρ). At least
+/// [`MIN_PRIORITY`], so Λ's entries stay at most 1e6.
 pub const PRIORITIES: Param = Param {
     name: "priorities",
     kind: Kind::PerStimulus {
-        lower: Bound::Excl(0.0),
+        lower: Bound::Incl(MIN_PRIORITY),
         upper: Bound::Incl(1.0),
     },
     default: Default::AllOnes,
@@ -66,12 +83,14 @@ pub const STIMULUS_RATE: Param = Param {
     see: "algorithm.md#22-stimulus-function-line-5",
 };
 
-/// σ of the optimistic initialisation Ξ ~ N(0, σ²).
+/// σ of the optimistic initialisation Ξ ~ N(0, σ²); at most the largest
+/// stimulus a client may send ([`MAX_STIMULUS`]), so Ξ starts on the scale
+/// of what it will learn.
 pub const OPTIMISTIC_SD: Param = Param {
     name: "optimistic_sd",
     kind: Kind::Real {
         lower: Bound::Incl(0.0),
-        upper: Bound::None,
+        upper: Bound::Incl(MAX_STIMULUS),
     },
     default: Default::Real(0.3),
     unit: "",
@@ -79,12 +98,15 @@ pub const OPTIMISTIC_SD: Param = Param {
     see: "algorithm.md#3-initialisation",
 };
 
-/// Ridge λ, added to A only when A is singular.
+/// Ridge λ, added to A only when A is singular. The planner calls A
+/// singular when a pivot of its LU factorisation is below 1e-12 of the
+/// largest, so a smaller ridge could never make it regular; the upper end
+/// keeps A + λI and its inverse finite.
 pub const RIDGE: Param = Param {
     name: "ridge",
     kind: Kind::Real {
-        lower: Bound::Excl(0.0),
-        upper: Bound::None,
+        lower: Bound::Incl(1e-12),
+        upper: Bound::Incl(1e6),
     },
     default: Default::Real(1e-6),
     unit: "",
@@ -220,14 +242,14 @@ pub const CURIOSITY_PARAMS: [Param; 16] = [
     real(
         "gain",
         Bound::Excl(0.0),
-        Bound::None,
+        Bound::Incl(MAX_CURIOSITY_GAIN),
         800.0,
         "g, the gain of Eq. 7",
     ),
     real(
         "clip",
         Bound::Excl(0.0),
-        Bound::None,
+        Bound::Incl(MAX_CURIOSITY_CLIP),
         12.0,
         "the upper clip of ξ_cur in Eq. 7",
     ),

@@ -81,6 +81,9 @@ struct StepQuery {
     owner: Option<String>,
 }
 
+/// Decodes a postcard body whole: an empty body is the default, and bytes
+/// left after the value are refused (postcard alone would ignore them, so
+/// 64 MiB of zeros read as an empty shard).
 fn decode<T: serde::de::DeserializeOwned + Default>(
     body: &[u8],
     what: &str,
@@ -88,8 +91,16 @@ fn decode<T: serde::de::DeserializeOwned + Default>(
     if body.is_empty() {
         return Ok(T::default());
     }
-    postcard::from_bytes(body)
-        .map_err(|e| ServiceError::BadRequest(format!("the {what} does not decode: {e}")))
+    let (value, rest) = postcard::take_from_bytes(body)
+        .map_err(|e| ServiceError::BadRequest(format!("the {what} does not decode: {e}")))?;
+    if !rest.is_empty() {
+        return Err(ServiceError::BadRequest(format!(
+            "the {what} does not decode: {} bytes of {} are left after it",
+            rest.len(),
+            body.len()
+        )));
+    }
+    Ok(value)
 }
 
 fn epoch_of(q: &StepQuery) -> Result<u64, ServiceError> {

@@ -520,7 +520,7 @@ impl<T: AsyncWrite + Unpin> AsyncWrite for SendTimeout<T> {
 }
 
 /// The text of a panic payload.
-fn panic_text(payload: &(dyn std::any::Any + Send)) -> String {
+pub(crate) fn panic_text(payload: &(dyn std::any::Any + Send)) -> String {
     if let Some(s) = payload.downcast_ref::<String>() {
         s.clone()
     } else if let Some(s) = payload.downcast_ref::<&str>() {
@@ -530,8 +530,8 @@ fn panic_text(payload: &(dyn std::any::Any + Send)) -> String {
     }
 }
 
-/// Answers a panicking REST handler with 500 `{"code":"internal",...}`
-/// (the panic is logged, not sent).
+/// Answers a panicking REST handler with 500
+/// `{"code":"internal_panic",...}` (the panic is logged, not sent).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct RestPanic;
 
@@ -542,7 +542,7 @@ impl ResponseForPanic for RestPanic {
         &mut self,
         err: Box<dyn std::any::Any + Send + 'static>,
     ) -> axum::http::Response<Self::ResponseBody> {
-        ApiError(ServiceError::Internal(format!(
+        ApiError(ServiceError::Panicked(format!(
             "a request handler panicked: {}",
             panic_text(&*err)
         )))
@@ -556,7 +556,7 @@ pub fn rest_panic_layer() -> CatchPanicLayer<RestPanic> {
     CatchPanicLayer::custom(RestPanic)
 }
 
-/// Answers a panicking gRPC method with INTERNAL (code `internal`).
+/// Answers a panicking gRPC method with INTERNAL (code `internal_panic`).
 #[derive(Debug, Clone, Copy, Default)]
 pub struct GrpcPanic;
 
@@ -567,7 +567,7 @@ impl ResponseForPanic for GrpcPanic {
         &mut self,
         err: Box<dyn std::any::Any + Send + 'static>,
     ) -> axum::http::Response<Self::ResponseBody> {
-        to_status(ServiceError::Internal(format!(
+        to_status(ServiceError::Panicked(format!(
             "a gRPC method panicked: {}",
             panic_text(&*err)
         )))

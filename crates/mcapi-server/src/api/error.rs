@@ -83,6 +83,7 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
             "storage_unavailable",
         ),
         ServiceError::Internal(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal"),
+        ServiceError::Panicked(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "internal_panic"),
         ServiceError::TooManyStreams(_) => (
             H::TOO_MANY_REQUESTS,
             G::ResourceExhausted,
@@ -118,6 +119,13 @@ pub fn public_message(e: &ServiceError, status: StatusCode) -> String {
                 numerically (details in the server log); do not send it again: the next \
                 observation plans anew"
             .to_string();
+    }
+    if let ServiceError::Panicked(detail) = e {
+        // The panic hook logged its backtrace once for its place in the
+        // code and counts every one (`mcapi_panics_total`): not a line per
+        // request here, which a client repeating it could flood the log with.
+        tracing::debug!(panic = %detail, "a request panicked");
+        return "internal error".to_string();
     }
     if let ServiceError::SessionFailed(_) = e {
         // A server fault, but the client must learn what to do about it.

@@ -148,14 +148,41 @@ where
     async fn from_request(req: Request, state: &S) -> Result<Self, Self::Rejection> {
         let JsonValue(value) = JsonValue::from_request(req, state).await?;
         require_objects(&value, T::OBJECTS)?;
-        // Typed from its text again, so errors name the field's path.
-        let bytes = serde_json::to_vec(&value)
-            .map_err(|e| ServiceError::Internal(format!("re-encoding a JSON body: {e}")))?;
-        match Json::<T>::from_bytes(&bytes) {
-            Ok(Json(v)) => Ok(Self(v)),
-            Err(rejection) => Err(ApiError(json_rejection(&rejection))),
-        }
+        typed(&value)
+            .map(Self)
+            .map_err(|rejection| ApiError(json_rejection(&rejection)))
     }
+}
+
+/// A checked value typed from its text again, so errors name the field's
+/// path.
+fn typed<T: serde::de::DeserializeOwned>(value: &Value) -> Result<T, JsonRejection> {
+    let bytes = serde_json::to_vec(value).unwrap_or_default();
+    Json::<T>::from_bytes(&bytes).map(|Json(v)| v)
+}
+
+/// One part of a create request that gRPC carries as JSON text (the
+/// deprecated `model_json`, a curiosity channel's `params_json`), read
+/// exactly as REST reads that part of its body: placed at its pointer `at`
+/// in the body (`/model`, `/agent/curiosity/params`), numbers read as JSON
+/// Schema reads them, objects required where [`CreateSession`] has structs
+/// (with REST's messages, which name the part's path), then typed. `field`
+/// is the proto field named when the text is not JSON or does not type.
+pub fn create_part<T: serde::de::DeserializeOwned>(
+    field: &str,
+    text: &str,
+    at: &str,
+) -> Result<T, ServiceError> {
+    let mut part: Value = serde_json::from_str(text)
+        .map_err(|e| ServiceError::field(field, format!("is not valid JSON: {e}")))?;
+    integral_numbers_as_integers(&mut part);
+    let mut body = part;
+    for key in at.split('/').skip(1).collect::<Vec<_>>().into_iter().rev() {
+        body = Value::Object([(key.to_owned(), body)].into_iter().collect());
+    }
+    require_objects(&body, CreateSession::OBJECTS)?;
+    let part = body.pointer(at).unwrap_or(&Value::Null);
+    typed(part).map_err(|rejection| ServiceError::field(field, rejection.body_text()))
 }
 
 /// A JSON body as a value, numbers read as JSON Schema reads them.

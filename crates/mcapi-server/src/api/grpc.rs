@@ -16,7 +16,8 @@
 //! `Watch` streams count against its budget of watch streams, shared with
 //! the REST event streams ([`crate::api::streams`]); connections, HTTP/2
 //! streams per connection, keep-alive and the request timeout come from
-//! [`ConnLimits`]; a panicking method answers INTERNAL.
+//! [`ConnLimits`]; a panicking method, or a stream that panics while
+//! answering a message, ends with INTERNAL (`internal_panic`).
 
 pub mod convert;
 pub mod guard;
@@ -122,8 +123,7 @@ impl AgentsService {
         let mut inbound = request.into_inner();
         let (tx, rx) = mpsc::channel(self.stream_buffer);
         let manager = Arc::clone(&self.manager);
-        let stopping = self.stopping.clone();
-        let closed = tx.clone();
+        let ends = tx.clone();
         let serve = async move {
             loop {
                 let reply = match inbound.message().await {
@@ -140,18 +140,7 @@ impl AgentsService {
                 }
             }
         };
-        tokio::spawn(
-            async move {
-                tokio::select! {
-                    () = serve => {}
-                    () = closed.closed() => tracing::debug!("client went away"),
-                    () = stopped(stopping) => {
-                        let _ = closed.send(Err(shutting_down())).await;
-                    }
-                }
-            }
-            .instrument(span),
-        );
+        spawn_stream(name, span, ends, self.stopping.clone(), serve, ());
         Ok(Response::new(ReceiverStream::new(rx)))
     }
 
@@ -166,6 +155,51 @@ impl AgentsService {
         };
         streams.acquire(caller, peer).map(Some).map_err(to_status)
     }
+}
+
+/// Runs a stream's `work` on a task of its own until it ends, the client
+/// goes away or the server stops (the stream then ends with UNAVAILABLE).
+/// A panic in `work` ends the stream with INTERNAL (`internal_panic`), never
+/// with the OK that a reply channel closed by the unwinding task would
+/// give: `ends` is a sender of the stream kept for that last word. `hold`
+/// is dropped when the stream ends (a `Watch` stream's slot).
+fn spawn_stream<T: Send + 'static>(
+    name: &'static str,
+    span: tracing::Span,
+    ends: mpsc::Sender<Result<T, Status>>,
+    stopping: watch::Receiver<bool>,
+    work: impl Future<Output = ()> + Send + 'static,
+    hold: impl Send + 'static,
+) {
+    let worker = tokio::spawn(work.instrument(span.clone()));
+    let abort = worker.abort_handle();
+    tokio::spawn(
+        async move {
+            tokio::select! {
+                joined = worker => {
+                    if let Err(e) = joined
+                        && e.is_panic()
+                    {
+                        let what = crate::api::conn::panic_text(&*e.into_panic());
+                        let status = to_status(ServiceError::Panicked(format!(
+                            "the {name} stream panicked: {what}"
+                        )));
+                        let _ = ends.send(Err(status)).await;
+                    }
+                }
+                () = ends.closed() => {
+                    abort.abort();
+                    tracing::debug!("client went away");
+                }
+                () = stopped(stopping) => {
+                    abort.abort();
+                    let _ = ends.send(Err(shutting_down())).await;
+                }
+            }
+            drop(hold);
+        }
+        .instrument(span),
+    );
 }
 
 /// Resolves once `stopping` turns true; never if its sender is gone.
@@ -362,21 +396,10 @@ impl Agents for AgentsService {
         // One slot: a slow reader gets fresh snapshots, not a backlog of old ones.
         let (tx, rx) = mpsc::channel(1);
         let manager = Arc::clone(&self.manager);
-        let stopping = self.stopping.clone();
         let span = tracing::info_span!("watch", session = %id);
-        tokio::spawn(
-            async move {
-                tokio::select! {
-                    () = watch_loop(&manager, caller, &id, interval, first, &tx) => {}
-                    () = tx.closed() => tracing::debug!("client went away"),
-                    () = stopped(stopping) => {
-                        let _ = tx.send(Err(shutting_down())).await;
-                    }
-                }
-                drop(slot);
-            }
-            .instrument(span),
-        );
+        let ends = tx.clone();
+        let work = async move { watch_loop(&manager, caller, &id, interval, first, &tx).await };
+        spawn_stream("watch", span, ends, self.stopping.clone(), work, slot);
         Ok(Response::new(ReceiverStream::new(rx)))
     }
 

@@ -59,6 +59,12 @@ pub enum ServiceError {
     /// A fault of the server, not the client's; details are logged, not sent.
     #[error("internal error")]
     Internal(String),
+    /// A request's handler panicked (a bug of the server): that request,
+    /// or that stream, ends with it; the panic's message is kept here, its
+    /// backtrace is logged once per place in the code
+    /// (`telemetry::install_panic_hook`), nothing of it is sent.
+    #[error("internal error")]
+    Panicked(String),
     /// The caller already holds its maximum of concurrent watch streams
     /// (REST events, gRPC `Watch`).
     #[error("{0}")]

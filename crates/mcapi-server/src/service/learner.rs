@@ -239,6 +239,19 @@ impl Learner {
         }
     }
 
+    /// Runs the first policy update on a copy, which is dropped: whether
+    /// the planner can factorise its system for the initial policy (the
+    /// copy's Ξ and D are the fresh agent's, so its factorisation is the
+    /// one the session's first plan makes). A continuous world's planner
+    /// regularises itself and has nothing to check.
+    pub fn try_first_plan(&self) -> Result<(), AlgoError> {
+        match self {
+            Self::Plain(a) => a.clone().plan().map(drop),
+            Self::Curious(c) => c.as_ref().clone().plan().map(drop),
+            Self::Continuous(_) => Ok(()),
+        }
+    }
+
     /// One policy update (Algorithm 1, lines 8-9).
     pub fn plan(&mut self) -> Result<(), AlgoError> {
         match self {

@@ -185,7 +185,7 @@ impl Setup {
         // a time.
         let _slot = self.builds.acquire()?;
         let (model, basis_spec) = input.build(limits, curious)?;
-        let basis = Basis::build(&basis_spec, &model).map_err(|e| match e {
+        let basis = Basis::build_checked(&basis_spec, &model).map_err(|e| match e {
             // A basis the solver could not compute (the sparse PVF solver
             // gives up on some graphs) is no fault of the server's: say
             // which basis, and what to ask for instead.
@@ -284,6 +284,18 @@ impl Setup {
                 ))
             }
         };
+        if summary.basis.kind == "custom" {
+            // A client's features can be well conditioned and still leave
+            // the planner a system it cannot solve at this discount: refuse
+            // the session now rather than answer every observation 500.
+            learner.try_first_plan().map_err(|e| match e {
+                AlgoError::Numerical(detail) => ServiceError::Algo(AlgoError::InvalidBasis(format!(
+                    "`state_features`: the planner cannot solve its first policy update with these features at `gamma` = {} and `ridge` = {} ({detail}); scale the features alike, or lower `gamma` or raise `ridge`",
+                    config.gamma, config.ridge
+                ))),
+                other => other.into(),
+            })?;
+        }
         Ok((learner, summary, config))
     }
 }

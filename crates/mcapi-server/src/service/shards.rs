@@ -228,8 +228,27 @@ impl SessionManager {
     /// Steps 2 and 4 on the target: applies `data` to the store and waits
     /// for its commit. `begin` starts an import: the shard must be foreign
     /// here, and what the store holds of it (a failed earlier move's
-    /// leftovers) is deleted first.
+    /// leftovers) is deleted first. On error nothing is committed and a
+    /// beginning import leaves the shard in the state it found it in.
     pub async fn import_shard(
+        &self,
+        shard: u16,
+        data: ShardData,
+        begin: bool,
+    ) -> Result<usize, ServiceError> {
+        let (p, _) = self.move_parts()?;
+        let before = p.state(shard);
+        let result = self.import_inner(shard, data, begin).await;
+        if begin && result.is_err() && before != ShardState::Importing {
+            let found = p.swap_state(shard, &[ShardState::Importing], before);
+            if found == ShardState::Importing {
+                tracing::warn!(shard = %shard_key(shard), state = state_name(before), "import failed: the shard is back in its state before it");
+            }
+        }
+        result
+    }
+
+    async fn import_inner(
         &self,
         shard: u16,
         data: ShardData,

@@ -13,7 +13,9 @@
 mod continuous;
 mod eviction;
 mod grpc;
+mod numerics;
 mod openapi;
+mod panics;
 mod parity;
 mod rest;
 mod shard_move;

@@ -229,6 +229,51 @@ async fn admin_routes_refuse_what_does_not_fit() {
     assert_eq!(body["state"], "owned", "nothing changed");
 }
 
+/// An import answers 400 `{code, message}` for bytes that are not exactly
+/// one shard's data (64 MiB of zeros used to read as an empty shard, 200
+/// `{"sessions": 0}`, and left the shard `importing`), and the shard stays
+/// as it was.
+#[tokio::test]
+async fn an_import_of_bytes_that_are_not_exactly_shard_data_changes_nothing() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let names = ordinal_names("mcapi", 2).expect("names");
+    let map = plan(&names, None).expect("plan").map;
+    let a = replica(&map, "mcapi-0", &tmp.path().join("a"), Some(KEY));
+    let theirs = shard_key(map.shards_of(&names[1])[0]);
+    let status = format!("/admin/shards/{theirs}");
+    let mut valid_then_more =
+        postcard::to_allocvec(&mcapi_shards::moves::ShardData::default()).expect("encode");
+    valid_then_more.push(7);
+    for (what, bytes) in [
+        ("64 MiB of zeros", vec![0u8; 64 << 20]),
+        ("empty shard data and one byte more", valid_then_more),
+        ("bytes that do not decode", vec![0xff; 9]),
+    ] {
+        let req = Request::builder()
+            .method("POST")
+            .uri(format!("{status}/import?begin=true"))
+            .header("authorization", format!("Bearer {KEY}"))
+            .header("content-type", "application/octet-stream")
+            .body(Body::from(bytes))
+            .expect("request");
+        let resp = a.app.clone().oneshot(req).await.expect("response");
+        let code = resp.status();
+        let bytes = resp.into_body().collect().await.expect("body").to_bytes();
+        let body: Value = serde_json::from_slice(&bytes).unwrap_or(Value::Null);
+        assert_eq!(code, StatusCode::BAD_REQUEST, "{what}: {body}");
+        assert_eq!(body["code"], "bad_request", "{what}: {body}");
+        assert!(
+            body["message"]
+                .as_str()
+                .is_some_and(|m| m.contains("does not decode")),
+            "{what}: {body}"
+        );
+        assert_eq!(body.as_object().map(|o| o.len()), Some(2), "{body}");
+        let (_, shard) = send(&a.app, "GET", &status, Some(KEY), None).await;
+        assert_eq!(shard["state"], "foreign", "{what}: the shard is as it was");
+    }
+}
+
 #[tokio::test]
 async fn a_shard_moves_whole_with_what_was_acknowledged_before_the_freeze() {
     let tmp = tempfile::tempdir().expect("tempdir");

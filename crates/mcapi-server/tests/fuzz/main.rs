@@ -35,7 +35,7 @@ use mcapi_server::service::{Limits, SessionManager};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, TestCaseError, TestRunner};
 use prost::Message;
-use serde_json::{Value, json};
+use serde_json::json;
 use tokio::runtime::Runtime;
 
 mod checks;
@@ -47,38 +47,6 @@ use grpc::grpc_raw;
 use rest::rest_call;
 
 // ------------------------------------------------------------------ setup
-
-/// Found by this fuzzer and not in the contract's area (reported with the
-/// REST contract's work, docs/rest.md, "The contract"): numbers the core accepts
-/// but cannot compute with. The session is created, then its first policy
-/// update fails and the client gets
-/// `500 numerical_failure` ("internal error"), an error of its own input
-/// reported as a fault of the server (src/algo/lstdq.rs: "A is singular even
-/// with ridge", "LSTDQ produced a non-finite Q"):
-///
-/// - a `custom` basis with badly scaled features (`[[1e6, 0], [0, 1]]`);
-/// - `agent.optimistic_sd` ≥ about 1e154 (Ξ's initial values square to ∞);
-/// - an `agent.priorities` entry ≤ about 1e-154 (Λ = diag(1/ρ) overflows).
-///
-/// Tolerated for exactly these inputs until the core refuses them.
-fn known_numerical_failure(create: &[u8], status: u16, reply: &Value) -> bool {
-    if status != 500 || reply["code"] != "numerical_failure" {
-        return false;
-    }
-    let Ok(v) = serde_json::from_slice::<Value>(create) else {
-        return false;
-    };
-    let custom = v.pointer("/model/basis/kind") == Some(&json!("custom"));
-    let huge_sd = v
-        .pointer("/agent/optimistic_sd")
-        .and_then(Value::as_f64)
-        .is_some_and(|x| x > 1e100);
-    let tiny_priority = v
-        .pointer("/agent/priorities")
-        .and_then(Value::as_array)
-        .is_some_and(|p| p.iter().filter_map(Value::as_f64).any(|x| x < 1e-100));
-    custom || huge_sd || tiny_priority
-}
 
 struct Env {
     rt: Runtime,

@@ -27,6 +27,7 @@ use mcapi_core::spec::{ActionRef, ModelSpec, TransitionSpec};
 use mcapi_core::{BasisSpec, LearnedParams, Optimism, StimulusRate};
 
 use super::pb;
+use crate::api::extract::create_part;
 
 /// Interval of `Watch` when the request leaves it 0.
 pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_secs(1);
@@ -80,9 +81,7 @@ pub fn create_session(req: pb::CreateSessionRequest) -> Result<CreateCall, Servi
             agent,
         }),
         (None, false) => {
-            let model = serde_json::from_str(&model_json).map_err(|e| {
-                ServiceError::field("model_json", format!("is not valid JSON: {e}"))
-            })?;
+            let model = create_part("model_json", &model_json, "/model")?;
             Ok(CreateCall::Json(CreateSession { model, agent }))
         }
     }
@@ -351,8 +350,11 @@ fn curiosity_config(c: pb::CuriosityConfig) -> Result<CuriosityConfig, ServiceEr
     let params = if params_json.trim().is_empty() {
         Default::default()
     } else {
-        serde_json::from_str(&params_json)
-            .map_err(|e| ServiceError::field("agent.curiosity.params_json", e))?
+        create_part(
+            "agent.curiosity.params_json",
+            &params_json,
+            "/agent/curiosity/params",
+        )?
     };
     Ok(CuriosityConfig {
         signal_dim: to_usize("agent.curiosity.signal_dim", signal_dim)?,

@@ -14,6 +14,7 @@ use super::builders::{
     reference, typed,
 };
 use crate::service::Limits;
+use mcapi_core::basis::MAX_FEATURE;
 
 /// The model schemas, by component name, for these limits.
 pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
@@ -53,7 +54,10 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     .required("k");
     let basis_custom = closed(
         "Client-given state features: one row of k numbers per state, the same k \
-         for every state (k × actions ≤ the feature limit).",
+         for every state (k × actions ≤ the feature limit), each within ±1e6. The \
+         table's condition number must be at most 1e5 (independent columns alike in \
+         scale) and the planner's first policy update must succeed with it; otherwise \
+         400 `invalid_basis`.",
     )
     .property(
         "kind",
@@ -63,7 +67,12 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
         "state_features",
         array(
             array(
-                typed(Type::Number, false),
+                number(
+                    Bound::Incl(-MAX_FEATURE),
+                    Bound::Incl(MAX_FEATURE),
+                    false,
+                    "a feature (|x| ≤ 1e6)",
+                ),
                 1,
                 limits.max_features,
                 false,

@@ -110,7 +110,8 @@ error_responses! {
         "The session's policy update failed numerically (`numerical_failure`; the \
          observation was applied and logged, do not resend it) or the session is \
          quarantined after a fault of the server (`session_failed`: delete it and create \
-         it again).",
+         it again), or the server failed (`internal`; `internal_panic` when its handler \
+         panicked).",
         "session_failed",
         "session `s0001.01J0000000000000000000000` failed while applying an update and is quarantined; its state is not served. Delete it and create it again"
     );

@@ -129,6 +129,8 @@ pub struct SessionManager {
     evict_after: Option<Duration>,
     /// Set by [`SessionManager::shutdown`]: the evictor stops.
     stopping: AtomicBool,
+    /// Observations left to panic on ([`SessionManager::panic_next_observations`]).
+    panic_observations: std::sync::atomic::AtomicU32,
 }
 
 impl SessionManager {
@@ -161,6 +163,7 @@ impl SessionManager {
             .map_err(|e| ServiceError::Internal(format!("starting tick workers: {e}")))?;
         Ok(Self {
             sessions: RwLock::new(SessionTable::default()),
+            panic_observations: std::sync::atomic::AtomicU32::new(0),
             evict_after,
             setup: Arc::new(Setup::new(workers)),
             limits,

@@ -4,6 +4,25 @@
 use super::*;
 
 impl SessionManager {
+    /// Makes the next `n` calls of [`SessionManager::observe`] panic on the
+    /// request's task before they touch a session, as a bug of the server
+    /// would (for the tests of how a panicking request or stream ends; set
+    /// only through this call, never by a request).
+    #[doc(hidden)]
+    pub fn panic_next_observations(&self, n: u32) {
+        self.panic_observations.store(n, Ordering::Release);
+    }
+
+    fn panic_if_asked(&self) {
+        let asked = self
+            .panic_observations
+            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| n.checked_sub(1))
+            .is_ok();
+        if asked {
+            panic!("injected by a test: panic_next_observations");
+        }
+    }
+
     /// Applies observations in order and returns one reply each (docs/sessions.md,
     /// "Observing"). Lockstep sessions reply after their update
     /// on the tick pool; async sessions reply at once and queue an update.
@@ -13,6 +32,7 @@ impl SessionManager {
         id: &str,
         batch: Vec<ObservationIn>,
     ) -> Result<Vec<StepOut>, ServiceError> {
+        self.panic_if_asked();
         if batch.is_empty() {
             return Err(ServiceError::field("observations", "must not be empty"));
         }
