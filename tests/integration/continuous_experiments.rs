@@ -112,10 +112,24 @@ fn continuous_three_room_runs_against_the_discrete_reference() {
     let s = summary(dir.path());
     let configs = s["configs"].as_object().expect("configs");
     let names: Vec<&str> = configs.keys().map(String::as_str).collect();
-    assert_eq!(names, ["discrete_mca_pi", "mca_pi", "random_walk"]);
+    assert_eq!(
+        names,
+        ["discrete_mca_pi", "map_navigator", "mca_pi", "random_walk"]
+    );
     assert!(
         stat(&s, "discrete_mca_pi", "total_stimulus", "mean") > 0.0,
         "the discrete agent finds a source in 300 ticks"
+    );
+    assert_eq!(
+        stat(&s, "map_navigator", "sources_found", "mean"),
+        3.0,
+        "the navigator knows the map: every source in 300 ticks"
+    );
+    assert!(
+        s["ratios"]["navigator_vs_discrete"]
+            .as_f64()
+            .expect("ratio")
+            > 0.0
     );
     assert_eq!(
         s["model"]["observation_space"]["low"],

@@ -8,18 +8,19 @@
 //!
 //! The first argument is `hallway` or `three-room`; the second the basis
 //! as a model's `basis` field is written (`default` for the world's own).
-//! Prints the results table; `--out DIR` keeps `summary.json` (default: a
+//! Prints the results table; `--samples` takes the model's `samples` field
+//! (the sample store's cut); `--out DIR` keeps `summary.json` (default: a
 //! directory under the system's temporary directory).
 
 use anyhow::{Context, bail};
-use mcapi_core::continuous::ContinuousBasisSpec;
-use mcapi_experiments::continuous::{ContinuousKind, results_table, run_with_basis};
+use mcapi_core::continuous::{ContinuousBasisSpec, SampleParams};
+use mcapi_experiments::continuous::{ContinuousKind, results_table, run_with_model};
 use mcapi_experiments::run::RunOptions;
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let usage = "usage: continuous_basis <hallway|three-room> <basis JSON|default> \
-                 [--trials N] [--steps N] [--seed N] [--out DIR]";
+                 [--trials N] [--steps N] [--seed N] [--samples JSON] [--out DIR]";
     let (Some(world), Some(basis)) = (args.first(), args.get(1)) else {
         bail!("{usage}");
     };
@@ -41,6 +42,7 @@ fn main() -> anyhow::Result<()> {
         figures: false,
         progress: true,
     };
+    let mut samples = SampleParams::default();
     let mut rest = args[2..].iter();
     while let Some(flag) = rest.next() {
         let value = rest
@@ -50,11 +52,12 @@ fn main() -> anyhow::Result<()> {
             "--trials" => opts.trials = value.parse().context("--trials")?,
             "--steps" => opts.steps = value.parse().context("--steps")?,
             "--seed" => opts.seed = value.parse().context("--seed")?,
+            "--samples" => samples = serde_json::from_str(value).context("--samples")?,
             "--out" => opts.out = value.into(),
             other => bail!("unknown flag {other:?}; {usage}"),
         }
     }
-    let out = run_with_basis(kind, &opts, basis)?;
+    let out = run_with_model(kind, &opts, basis, samples)?;
     print!("{}", results_table(&out.summary));
     println!("ratios: {:?}", out.summary.ratios);
     Ok(())

@@ -23,6 +23,7 @@ use serde::{Deserialize, Serialize};
 
 use mcapi_core::continuous::{
     ContinuousAgent, ContinuousBasisSpec, ContinuousObservation, ContinuousSpec, ObservationSpace,
+    SampleParams,
 };
 use mcapi_core::{AgentParams, Drive};
 
@@ -82,6 +83,9 @@ pub enum Driver {
     McaPi,
     /// A uniformly random action every tick.
     RandomWalk,
+    /// The three-room's [`worlds::Navigator`]: the map known, heading for
+    /// the source of the largest discounted drive.
+    Navigator,
 }
 
 /// What one trial produced, tick by tick.
@@ -143,9 +147,15 @@ pub fn run_trial(
     .check(n, agent_seed)?;
     let mut agent = match driver {
         Driver::McaPi => Some(ContinuousAgent::new(spec.build()?, params.clone())),
-        Driver::RandomWalk => None,
+        Driver::RandomWalk | Driver::Navigator => None,
     };
-    // The random walk keeps the same drive bookkeeping, for |r|.
+    let navigator = match (&world, driver) {
+        (World::ThreeRoom(maze), Driver::Navigator) => Some(worlds::Navigator::new(maze)),
+        (_, Driver::Navigator) => anyhow::bail!("the navigator needs the three-room's map"),
+        _ => None,
+    };
+    // The random walk and the navigator keep the same drive bookkeeping,
+    // for |r| (and the navigator for its heading).
     let mut drive = Drive::new(
         &params.priorities,
         eta,
@@ -168,7 +178,10 @@ pub fn run_trial(
                 })?
                 .action
         }
-        None => policy_rng.random_range(0..na),
+        None => match &navigator {
+            Some(nav) => nav.act(&x, nav.heading(&x, drive.vector(), gamma)),
+            None => policy_rng.random_range(0..na),
+        },
     };
     for _ in 0..steps {
         x = world.step(&x, action, &mut rng);
@@ -184,7 +197,11 @@ pub fn run_trial(
             }
             None => {
                 let r = drive.update(&xi).abs();
-                (policy_rng.random_range(0..na), r, drive.vector().to_vec())
+                let next = match &navigator {
+                    Some(nav) => nav.act(&x, nav.heading(&x, drive.vector(), gamma)),
+                    None => policy_rng.random_range(0..na),
+                };
+                (next, r, drive.vector().to_vec())
             }
         };
         rec.points.extend_from_slice(&x);
@@ -259,10 +276,11 @@ pub struct ContinuousSummary {
     pub model: ContinuousSpec,
     /// `{config: {metric: Stat}}`: `mca_pi`, `random_walk`, and for the
     /// three-room `discrete_mca_pi` (Experiment 2's agent, indicator
-    /// basis, on the same layout and trials).
+    /// basis, on the same layout and trials) and `map_navigator` (a
+    /// driver that knows the map, [`worlds::Navigator`]).
     pub configs: BTreeMap<String, BTreeMap<String, Stat>>,
     /// Ratios of means: `traversals_vs_random_walk` and (three-room)
-    /// `stimulus_vs_discrete`.
+    /// `stimulus_vs_discrete` and `navigator_vs_discrete`.
     pub ratios: BTreeMap<String, f64>,
 }
 
@@ -279,14 +297,16 @@ pub struct ContinuousOutput {
 /// trials in parallel (and the discrete reference for the three-room),
 /// writes `summary.json`, the per-trial CSV series and the figures.
 pub fn run(kind: ContinuousKind, opts: &RunOptions) -> anyhow::Result<ContinuousOutput> {
-    run_with_basis(kind, opts, None)
+    run_with_model(kind, opts, None, SampleParams::default())
 }
 
-/// [`run`] with the agent on `basis` (the world's default when `None`).
-pub fn run_with_basis(
+/// [`run`] with the agent on `basis` (the world's default when `None`)
+/// and the sample store cut as `samples` says.
+pub fn run_with_model(
     kind: ContinuousKind,
     opts: &RunOptions,
     basis: Option<ContinuousBasisSpec>,
+    samples: SampleParams,
 ) -> anyhow::Result<ContinuousOutput> {
     anyhow::ensure!(opts.trials > 0, "--trials must be at least 1");
     anyhow::ensure!(opts.steps > 0, "--steps must be at least 1");
@@ -295,17 +315,17 @@ pub fn run_with_basis(
     let world = kind.world();
     let spec = ContinuousSpec {
         basis,
+        samples,
         ..spec_of(&world)
     }
     .build()?
     .spec;
-    let names = ["mca_pi", "random_walk"];
-    let grouped = run_trials(opts, kind.name(), &names, |c, t| {
-        let driver = if c == 0 {
-            Driver::McaPi
-        } else {
-            Driver::RandomWalk
-        };
+    let names: &[&'static str] = match kind {
+        ContinuousKind::Hallway => &["mca_pi", "random_walk"],
+        ContinuousKind::ThreeRoom => &["mca_pi", "random_walk", "map_navigator"],
+    };
+    let grouped = run_trials(opts, kind.name(), names, |c, t| {
+        let driver = [Driver::McaPi, Driver::RandomWalk, Driver::Navigator][c];
         let rec = run_trial(kind, &spec, driver, opts.seed, t, opts.steps)
             .with_context(|| format!("{} trial {t}", names[c]))?;
         if opts.csv {
@@ -346,6 +366,12 @@ pub fn run_with_basis(
         ("discrete_mca_pi", "total_stimulus"),
     ) {
         ratios.insert("stimulus_vs_discrete".into(), r);
+    }
+    if let Some(r) = ratio(
+        ("map_navigator", "total_stimulus"),
+        ("discrete_mca_pi", "total_stimulus"),
+    ) {
+        ratios.insert("navigator_vs_discrete".into(), r);
     }
     let summary = ContinuousSummary {
         experiment: kind.name().into(),

@@ -89,6 +89,133 @@ impl Maze {
     }
 }
 
+/// A navigator that knows the maze: the reference for how much stimulus
+/// following the drive can collect on the continuous layout when the way
+/// to every source is known (docs/algorithm.md §9.6).
+///
+/// It keeps the agent's drive D (the same MCA rule) and heads for the
+/// source i with the largest discounted reward γ^{T_i} |D_i|, T_i the
+/// moves to its disc (0 inside it): the choice MCA-PI's planner makes
+/// with a perfect model, up to the drive's own change on the way. It moves
+/// down a geodesic distance field to that source's disc, computed once by
+/// breadth-first search over a grid of `NAV_RES`² points in free space;
+/// inside the disc it moves towards the disc's centre, so it stays while
+/// D still points there. It learns nothing: what it collects is set by the
+/// layout, the move length, γ and the drive alone.
+#[derive(Debug, Clone)]
+pub struct Navigator {
+    maze: Maze,
+    /// Per source, the number of grid moves from each grid point to the
+    /// disc (`u32::MAX`: in a wall or cut off).
+    dist: Vec<Vec<u32>>,
+}
+
+/// Grid points per unit length of the navigator's distance field (a
+/// move of [`STEP`] crosses two).
+pub const NAV_RES: usize = 100;
+
+impl Navigator {
+    /// The distance fields of the maze's sources.
+    pub fn new(maze: &Maze) -> Self {
+        let r = NAV_RES;
+        let centre = |i: usize| (i as f64 + 0.5) / r as f64;
+        let free: Vec<bool> = (0..r * r)
+            .map(|k| !maze.blocked([centre(k % r), centre(k / r)]))
+            .collect();
+        let dist = maze
+            .sources
+            .iter()
+            .map(|c| {
+                let mut dist = vec![u32::MAX; r * r];
+                let mut queue = std::collections::VecDeque::new();
+                for k in 0..r * r {
+                    let (dx, dy) = (centre(k % r) - c[0], centre(k / r) - c[1]);
+                    if free[k] && dx * dx + dy * dy <= DISC_RADIUS * DISC_RADIUS {
+                        dist[k] = 0;
+                        queue.push_back(k);
+                    }
+                }
+                while let Some(k) = queue.pop_front() {
+                    let (x, y) = (k % r, k / r);
+                    let next = [
+                        (x > 0).then(|| k - 1),
+                        (x + 1 < r).then(|| k + 1),
+                        (y > 0).then(|| k - r),
+                        (y + 1 < r).then(|| k + r),
+                    ];
+                    for n in next.into_iter().flatten() {
+                        if free[n] && dist[n] == u32::MAX {
+                            dist[n] = dist[k] + 1;
+                            queue.push_back(n);
+                        }
+                    }
+                }
+                dist
+            })
+            .collect();
+        Self {
+            maze: maze.clone(),
+            dist,
+        }
+    }
+
+    /// The distance field's value at `p`.
+    fn distance(&self, source: usize, p: [f64; 2]) -> u32 {
+        let cell = |v: f64| ((v * NAV_RES as f64).floor().max(0.0) as usize).min(NAV_RES - 1);
+        self.dist[source][cell(p[1]) * NAV_RES + cell(p[0])]
+    }
+
+    /// The source to head for from `x` with drive `d`: the largest
+    /// γ^{T_i} |d_i| (the first when tied).
+    pub fn heading(&self, x: &[f64], d: &[f64], gamma: f64) -> usize {
+        let p = [x[0], x[1]];
+        let per_move = STEP * NAV_RES as f64;
+        let mut best = (0, f64::NEG_INFINITY);
+        for (i, di) in d.iter().enumerate().take(self.dist.len()) {
+            let grid = self.distance(i, p);
+            if grid == u32::MAX {
+                continue;
+            }
+            let moves = (f64::from(grid) / per_move).ceil();
+            let value = gamma.powf(moves) * di.abs();
+            if value > best.1 {
+                best = (i, value);
+            }
+        }
+        best.0
+    }
+
+    /// The move towards `source` from `x`: nearer the disc's centre when
+    /// inside the disc, else down the distance field (ties to the first
+    /// action; a move into a wall is never chosen while another is open).
+    pub fn act(&self, x: &[f64], source: usize) -> usize {
+        let c = self.maze.sources[source];
+        let inside = {
+            let (dx, dy) = (x[0] - c[0], x[1] - c[1]);
+            dx * dx + dy * dy <= DISC_RADIUS * DISC_RADIUS
+        };
+        let mut best = (0, f64::INFINITY);
+        for (a, (dx, dy)) in MOVES.iter().enumerate() {
+            let p = [x[0] + dx, x[1] + dy];
+            if self.maze.blocked(p) {
+                continue;
+            }
+            let cost = if inside {
+                (p[0] - c[0]).powi(2) + (p[1] - c[1]).powi(2)
+            } else {
+                f64::from(self.distance(source, p))
+            };
+            if cost < best.1 {
+                best = (a, cost);
+            }
+        }
+        best.0
+    }
+}
+
+/// The three-room's moves: west, east, north, south.
+const MOVES: [(f64, f64); 4] = [(-STEP, 0.0), (STEP, 0.0), (0.0, -STEP), (0.0, STEP)];
+
 impl World {
     /// The continuous hallway.
     pub fn hallway() -> Self {
@@ -143,7 +270,7 @@ impl World {
                 vec![(x[0] + dx + noise.sample(rng)).clamp(0.0, 1.0)]
             }
             Self::ThreeRoom(maze) => {
-                let (dx, dy) = [(-STEP, 0.0), (STEP, 0.0), (0.0, -STEP), (0.0, STEP)][a.min(3)];
+                let (dx, dy) = MOVES[a.min(3)];
                 let next = [x[0] + dx + noise.sample(rng), x[1] + dy + noise.sample(rng)];
                 if maze.blocked(next) {
                     x.to_vec()
@@ -196,6 +323,24 @@ mod tests {
         // The wall between rooms 1 and 2 (column 8) outside its door (row 3).
         assert!(maze.blocked([8.5 / 26.0, 5.5 / 11.0]));
         assert!(!maze.blocked([8.5 / 26.0, 3.5 / 11.0]));
+    }
+
+    #[test]
+    fn the_navigator_reaches_every_source_from_a_random_point() {
+        let world = World::three_room();
+        let World::ThreeRoom(maze) = &world else {
+            unreachable!()
+        };
+        let nav = Navigator::new(maze);
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        for source in 0..3 {
+            let mut x = world.start(&mut rng);
+            let arrived = (0..2000).any(|_| {
+                x = world.step(&x, nav.act(&x, source), &mut rng);
+                world.source_at(&x) == Some(source)
+            });
+            assert!(arrived, "source {source} not reached from {x:?}");
+        }
     }
 
     #[test]
