@@ -226,6 +226,7 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "storage_unavailable": (Unavailable, 503),
     "wrong_replica": (WrongReplica, 421),
     "shard_moving": (Unavailable, 503),
+    "responses_busy": (Unavailable, 503),
     "numerical_failure": (InternalError, 500),
     "internal": (InternalError, 500),
     "internal_panic": (InternalError, 500),

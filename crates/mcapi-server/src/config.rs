@@ -183,6 +183,11 @@ pub struct ServeConfig {
     /// Maximum bytes of one response of value tables.
     #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_RESPONSE_BYTES", default_value_t = Limits::default().max_response_bytes)]
     pub max_response_bytes: usize,
+    /// Maximum bytes of all value-table and history responses in flight
+    /// together (at least --max-response-bytes); a response that does not
+    /// fit gets 503 `responses_busy` with Retry-After.
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_RESPONSE_BYTES_TOTAL", default_value_t = Limits::default().max_response_bytes_total)]
+    pub max_response_bytes_total: usize,
 
     // Connection limits
     /// Open connections per port (REST and gRPC each); further clients wait
@@ -298,6 +303,7 @@ impl ServeConfig {
             max_key_sessions: self.max_key_sessions,
             max_key_bytes: self.max_key_bytes,
             max_response_bytes: self.max_response_bytes,
+            max_response_bytes_total: self.max_response_bytes_total,
             ..Limits::default()
         }
     }
@@ -451,6 +457,12 @@ impl ServeConfig {
             if value == 0 {
                 return Err(format!("{flag} must be at least 1"));
             }
+        }
+        if self.max_response_bytes_total < self.max_response_bytes {
+            return Err(format!(
+                "--max-response-bytes-total ({}) must be at least --max-response-bytes ({}): a response of the largest size would never fit",
+                self.max_response_bytes_total, self.max_response_bytes
+            ));
         }
         if self.max_roc_centres < 2 {
             return Err("--max-roc-centres must be at least 2 (ROC merges a pair)".into());

@@ -365,7 +365,7 @@ fn poll(
     cursor: &mut Cursor,
 ) -> Result<Vec<Event>, ServiceError> {
     // No tables: just the tick and the policy version.
-    let now = manager.values(caller, id, ValueSelection::default())?;
+    let now = manager.values(caller, id, ValueSelection::default())?.value;
     let mut events = Vec::new();
     let due = match cursor.tick {
         Some(last) => usize::try_from(now.tick.saturating_sub(last)).unwrap_or(usize::MAX),
@@ -375,7 +375,7 @@ fn poll(
         // A little more than is due: the session may tick between the two
         // calls, and the filter below drops what was sent already.
         let want = due.min(MAX_TICKS_PER_POLL).saturating_add(64);
-        let history = manager.history(caller, id, Some(want))?;
+        let history = manager.history(caller, id, Some(want))?.value;
         let new: Vec<&HistoryEntry> = history
             .iter()
             .filter(|e| cursor.tick.is_none_or(|last| e.tick > last))
@@ -389,15 +389,17 @@ fn poll(
         cursor.tick = Some(new.last().map_or(now.tick, |e| e.tick.max(now.tick)));
     }
     if cursor.policy_version != Some(now.policy_version) {
-        let values = manager.values(
-            caller,
-            id,
-            ValueSelection {
-                v: true,
-                policy: true,
-                ..ValueSelection::default()
-            },
-        )?;
+        let values = manager
+            .values(
+                caller,
+                id,
+                ValueSelection {
+                    v: true,
+                    policy: true,
+                    ..ValueSelection::default()
+                },
+            )?
+            .value;
         cursor.policy_version = Some(values.policy_version);
         events.push(json_event("values", &values)?);
     }

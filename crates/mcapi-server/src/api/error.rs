@@ -98,6 +98,9 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
         // gRPC, UNAVAILABLE is the code a client may retry as is.
         ServiceError::WrongReplica(_) => (H::MISDIRECTED_REQUEST, G::Unavailable, "wrong_replica"),
         ServiceError::ShardFrozen(_) => (H::SERVICE_UNAVAILABLE, G::Unavailable, "shard_moving"),
+        ServiceError::ResponsesBusy(_) => {
+            (H::SERVICE_UNAVAILABLE, G::Unavailable, "responses_busy")
+        }
         ServiceError::Forbidden(_) => (H::FORBIDDEN, G::PermissionDenied, "forbidden"),
         ServiceError::MoveConflict(_) => (H::CONFLICT, G::FailedPrecondition, "move_conflict"),
     }
@@ -236,12 +239,17 @@ pub fn step_error(e: ServiceError) -> mcapi_proto::StepError {
 /// session's shard (docs/cluster.md).
 pub const OWNER_HEADER: &str = "x-mcapi-owner";
 
-/// The headers a cluster refusal carries besides its body: the owner of a
-/// misdirected session's shard, the wait for a frozen one.
+/// The headers a refusal carries besides its body: the owner of a
+/// misdirected session's shard, the wait for a frozen one or for the
+/// response memory.
 fn cluster_headers(e: &ServiceError) -> Vec<(&'static str, String)> {
     match e {
         ServiceError::WrongReplica(w) => vec![(OWNER_HEADER, w.owner.clone())],
         ServiceError::ShardFrozen(f) => vec![("retry-after", f.retry_after_secs.to_string())],
+        ServiceError::ResponsesBusy(_) => vec![(
+            "retry-after",
+            crate::service::budget::RETRY_AFTER_SECS.to_string(),
+        )],
         _ => Vec::new(),
     }
 }

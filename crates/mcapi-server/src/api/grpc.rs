@@ -411,12 +411,14 @@ impl Agents for AgentsService {
         let meta = metadata_session(request.metadata())?;
         let (id, sel) =
             convert::values_request(request.into_inner(), meta.as_deref()).map_err(to_status)?;
+        // The permit is held until the message is built; tonic encodes it
+        // after the handler returns.
         let values = self
             .manager
             .off_runtime(move |m| m.values(caller, &id, sel))
             .await
             .map_err(to_status)?;
-        Ok(Response::new(convert::values(values)))
+        Ok(Response::new(convert::values(values.value)))
     }
 
     async fn get_history(
@@ -432,7 +434,7 @@ impl Agents for AgentsService {
             .off_runtime(move |m| m.history(caller, &id, limit))
             .await
             .map_err(to_status)?;
-        Ok(Response::new(convert::history(entries)))
+        Ok(Response::new(convert::history(entries.value)))
     }
 }
 

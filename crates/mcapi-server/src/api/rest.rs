@@ -21,6 +21,7 @@ use crate::api::schemas::{
     BadRequest, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply, ObserveReply,
     ObserveRequest, PayloadTooLarge, TooManyRequests, Unauthorized, Unavailable,
 };
+use crate::service::budget::ResponsePermit;
 use crate::service::{
     CreateSession, HistoryEntry, ServiceError, SessionInfo, SessionPage, ValueSelection, Values,
 };
@@ -236,13 +237,36 @@ fn encode<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
     serde_json::to_vec(value).map_err(|e| ServiceError::Internal(format!("encoding JSON: {e}")))
 }
 
-fn json_response(body: Vec<u8>) -> Response {
+/// Chunks of a budgeted response body: the connection takes the next one
+/// only when it has written the last, so the permit is held until the
+/// response is nearly all sent.
+const BUDGETED_CHUNK: usize = 64 << 10;
+
+/// A JSON response that holds its share of the response budget until its
+/// last chunk is taken by the connection (or the connection is gone).
+fn budgeted_json_response(body: Vec<u8>, permit: ResponsePermit) -> Response {
+    use futures_util::StreamExt;
+    let body = axum::body::Bytes::from(body);
+    let len = body.len();
+    let chunks = (0..len)
+        .step_by(BUDGETED_CHUNK)
+        .map(move |at| body.slice(at..(at + BUDGETED_CHUNK).min(len)));
+    let stream = futures_util::stream::iter(chunks).map(move |chunk| {
+        let _held = &permit;
+        Ok::<_, std::convert::Infallible>(chunk)
+    });
     (
-        [(
-            axum::http::header::CONTENT_TYPE,
-            axum::http::HeaderValue::from_static("application/json"),
-        )],
-        body,
+        [
+            (
+                axum::http::header::CONTENT_TYPE,
+                axum::http::HeaderValue::from_static("application/json"),
+            ),
+            (
+                axum::http::header::CONTENT_LENGTH,
+                axum::http::HeaderValue::from(len),
+            ),
+        ],
+        axum::body::Body::from_stream(stream),
     )
         .into_response()
 }
@@ -282,11 +306,14 @@ pub(crate) async fn values(
 ) -> Result<Response, ApiError> {
     let sel = ValueSelection::parse(query(q)?.include.as_deref())?;
     // Tables of up to --max-response-bytes: encoded on the blocking pool too.
-    let json = state
+    let (json, permit) = state
         .manager
-        .off_runtime(move |m| encode(&m.values(caller, &id, sel)?))
+        .off_runtime(move |m| {
+            let values = m.values(caller, &id, sel)?;
+            Ok::<_, ServiceError>((encode(&values.value)?, values.permit))
+        })
         .await?;
-    Ok(json_response(json))
+    Ok(budgeted_json_response(json, permit))
 }
 
 #[derive(Debug, Deserialize, utoipa::IntoParams)]
@@ -321,9 +348,12 @@ pub(crate) async fn history(
 ) -> Result<Response, ApiError> {
     let q = query(q)?;
     let limit = q.limit.map(NonZeroUsize::get);
-    let json = state
+    let (json, permit) = state
         .manager
-        .off_runtime(move |m| encode(&m.history(caller, &id, limit)?))
+        .off_runtime(move |m| {
+            let history = m.history(caller, &id, limit)?;
+            Ok::<_, ServiceError>((encode(&history.value)?, history.permit))
+        })
         .await?;
-    Ok(json_response(json))
+    Ok(budgeted_json_response(json, permit))
 }

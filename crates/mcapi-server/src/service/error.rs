@@ -69,6 +69,10 @@ pub enum ServiceError {
     /// (REST events, gRPC `Watch`).
     #[error("{0}")]
     TooManyStreams(String),
+    /// Responses in flight hold the server's response memory
+    /// (`--max-response-bytes-total`); retry shortly.
+    #[error("{0}")]
+    ResponsesBusy(String),
     /// The request did not finish within the server's request timeout.
     #[error("{0}")]
     RequestTimeout(String),

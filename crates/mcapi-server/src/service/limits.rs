@@ -65,6 +65,10 @@ pub struct Limits {
     /// Bytes of one response of value tables (`/values`), estimated before
     /// the tables are built.
     pub max_response_bytes: usize,
+    /// Bytes of all value and history responses in flight together, by
+    /// the same estimate (`service::budget`); at least
+    /// `max_response_bytes`.
+    pub max_response_bytes_total: usize,
 }
 
 impl Default for Limits {
@@ -91,6 +95,7 @@ impl Default for Limits {
             max_key_sessions: 250_000,
             max_key_bytes: 8 << 30,
             max_response_bytes: 64 << 20,
+            max_response_bytes_total: 256 << 20,
         }
     }
 }
@@ -120,6 +125,7 @@ impl Limits {
             max_key_sessions: usize::MAX,
             max_key_bytes: u64::MAX,
             max_response_bytes: usize::MAX,
+            max_response_bytes_total: usize::MAX,
         }
     }
 }

@@ -16,6 +16,7 @@
 
 pub mod agent_config;
 pub mod auth;
+pub mod budget;
 pub mod cost;
 pub mod durable;
 pub mod error;

@@ -68,8 +68,8 @@ impl ValueSelection {
     /// Refuses value tables whose JSON would exceed `limit`
     /// ([`Limits::max_response_bytes`](super::limits::Limits::max_response_bytes)),
     /// before anything is built (about 24 bytes per number, and per name
-    /// for `policy`).
-    pub fn check_size(self, model: &ModelSummary, limit: usize) -> Result<(), ServiceError> {
+    /// for `policy`); the estimate, when it fits.
+    pub fn check_size(self, model: &ModelSummary, limit: usize) -> Result<usize, ServiceError> {
         let sel = self;
         let m = model;
         if let Some(spec) = &m.continuous {
@@ -89,7 +89,7 @@ impl ValueSelection {
                     "the value tables of this continuous session would take up to {bytes} bytes; the limit of one response is {limit} (--max-response-bytes)"
                 )));
             }
-            return Ok(());
+            return Ok(bytes);
         }
         let cells = m.states.saturating_mul(m.actions.len());
         let longest = m.actions.iter().map(String::len).max().unwrap_or(0);
@@ -114,7 +114,7 @@ impl ValueSelection {
                 limit
             )));
         }
-        Ok(())
+        Ok(bytes)
     }
 }
 

@@ -113,8 +113,14 @@ fn assert_same_step(got: &StepOut, want: &StepOut, ctx: &str) {
 /// Everything a client can read of a session, as JSON (f64s print exactly).
 fn everything(manager: &SessionManager, id: &str) -> Value {
     let all = ValueSelection::parse(Some("v,q,policy,r,xi")).expect("selection");
-    let values = manager.values(Caller::Anyone, id, all).expect("values");
-    let history = manager.history(Caller::Anyone, id, None).expect("history");
+    let values = manager
+        .values(Caller::Anyone, id, all)
+        .expect("values")
+        .value;
+    let history = manager
+        .history(Caller::Anyone, id, None)
+        .expect("history")
+        .value;
     let info = manager.get(Caller::Anyone, id).expect("get");
     json!({
         "values": values,

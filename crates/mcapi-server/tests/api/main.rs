@@ -17,6 +17,7 @@ mod numerics;
 mod openapi;
 mod panics;
 mod parity;
+mod responses;
 mod rest;
 mod shard_move;
 mod storage_failures;

@@ -247,8 +247,15 @@ fn a_lockstep_observation_whose_plan_fails_is_logged() {
     assert_eq!(live.tick, 3, "the failed update's observation is applied");
     assert_bits_eq(&live.drive, core.drive().vector(), "D");
     let all = ValueSelection::parse(Some("xi")).expect("selection");
-    let live_xi = manager.values(Caller::Anyone, &id, all).expect("values").xi;
-    let live_history = manager.history(Caller::Anyone, &id, None).expect("history");
+    let live_xi = manager
+        .values(Caller::Anyone, &id, all)
+        .expect("values")
+        .value
+        .xi;
+    let live_history = manager
+        .history(Caller::Anyone, &id, None)
+        .expect("history")
+        .value;
     assert_eq!(live_history.last().map(|h| h.tick), Some(3));
     // A crash: what was served comes back from the log.
     drop(manager);
@@ -259,12 +266,19 @@ fn a_lockstep_observation_whose_plan_fails_is_logged() {
     assert_eq!(recovered.tick, 3, "the log has the observation memory had");
     assert_bits_eq(&recovered.drive, &live.drive, "D after recovery");
     assert_eq!(
-        manager.values(Caller::Anyone, &id, all).expect("values").xi,
+        manager
+            .values(Caller::Anyone, &id, all)
+            .expect("values")
+            .value
+            .xi,
         live_xi,
         "Ξ after recovery"
     );
     assert_eq!(
-        manager.history(Caller::Anyone, &id, None).expect("history"),
+        manager
+            .history(Caller::Anyone, &id, None)
+            .expect("history")
+            .value,
         live_history,
         "history after recovery"
     );
@@ -278,7 +292,11 @@ fn a_lockstep_observation_whose_plan_fails_is_logged() {
     assert_eq!(steps[0].tick, 4);
     assert_eq!(steps[0].action_index, step.action, "action after recovery");
     assert_bits_eq(&steps[0].drive, core.drive().vector(), "D after recovery");
-    let xi = manager.values(Caller::Anyone, &id, all).expect("values").xi;
+    let xi = manager
+        .values(Caller::Anyone, &id, all)
+        .expect("values")
+        .value
+        .xi;
     let model = core.planning_model().model();
     for (s, row) in xi.expect("xi").iter().enumerate() {
         for (a, cell) in row.iter().enumerate() {

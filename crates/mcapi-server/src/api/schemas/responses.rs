@@ -127,9 +127,9 @@ error_responses! {
     Unavailable = (
         "The server is recovering its sessions, stopping, its tick queue is full, its \
          store failed, the request took longer than the server's request timeout, or \
-         (clustered) the session's shard is being moved (`unavailable`, \
-         `storage_unavailable`, `request_timeout`, `shard_moving` with `Retry-After`); \
-         may be retried.",
+         (clustered) the session's shard is being moved, or responses in flight hold the \
+         server's response memory (`unavailable`, `storage_unavailable`, `request_timeout`, \
+         `shard_moving` and `responses_busy` with `Retry-After`); may be retried.",
         "unavailable",
         "the server is recovering its stored sessions; retry shortly"
     );

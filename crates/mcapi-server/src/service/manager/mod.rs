@@ -24,6 +24,7 @@ use mcapi_store::{Store, Write};
 
 use super::agent_config::{SessionConfig, UpdateMode};
 use super::auth::{ApiKeys, Caller};
+use super::budget::{Budgeted, ResponseBudget};
 use super::cost;
 use super::durable;
 use super::error::{RecoveryError, ServiceError, StorageError};
@@ -111,6 +112,8 @@ pub struct SessionManager {
     /// Builds sessions: shared planning models, seeds, bounded builds.
     setup: Arc<Setup>,
     limits: Limits,
+    /// The memory of value and history responses in flight.
+    responses: ResponseBudget,
     pool: TickPool,
     inline_plan_ns: u64,
     durability: Option<Durability>,
@@ -166,6 +169,7 @@ impl SessionManager {
             panic_observations: std::sync::atomic::AtomicU32::new(0),
             evict_after,
             setup: Arc::new(Setup::new(workers)),
+            responses: ResponseBudget::new(limits.max_response_bytes_total),
             limits,
             pool,
             inline_plan_ns: u64::try_from(inline_plan.as_nanos()).unwrap_or(u64::MAX),
@@ -188,6 +192,11 @@ impl SessionManager {
     /// The limits in force.
     pub fn limits(&self) -> &Limits {
         &self.limits
+    }
+
+    /// The memory of value and history responses in flight.
+    pub fn responses(&self) -> &ResponseBudget {
+        &self.responses
     }
 
     /// Number of sessions.

@@ -179,10 +179,14 @@ impl SessionManager {
         caller: Caller,
         id: &str,
         sel: ValueSelection,
-    ) -> Result<Values, ServiceError> {
+    ) -> Result<Budgeted<Values>, ServiceError> {
         let session = self.session_for(caller, id)?;
-        sel.check_size(&session.model, self.limits.max_response_bytes)?;
-        Ok(values::tables(&session, sel))
+        let bytes = sel.check_size(&session.model, self.limits.max_response_bytes)?;
+        let permit = self.responses.reserve(bytes)?;
+        Ok(Budgeted {
+            value: values::tables(&session, sel),
+            permit,
+        })
     }
 
     /// The most recent `limit` ticks of a session's history, oldest first.
@@ -191,7 +195,7 @@ impl SessionManager {
         caller: Caller,
         id: &str,
         limit: Option<usize>,
-    ) -> Result<Vec<HistoryEntry>, ServiceError> {
+    ) -> Result<Budgeted<Vec<HistoryEntry>>, ServiceError> {
         let session = self.session_for(caller, id)?;
         let limit = limit.unwrap_or(usize::MAX).min(session.config.history);
         // About 24 bytes per number: D, the stimulus, and the fixed fields.
@@ -204,6 +208,10 @@ impl SessionManager {
                 self.limits.max_response_bytes / entry
             )));
         }
-        Ok(session.history(limit))
+        let permit = self.responses.reserve(bytes)?;
+        Ok(Budgeted {
+            value: session.history(limit),
+            permit,
+        })
     }
 }
