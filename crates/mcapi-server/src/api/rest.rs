@@ -233,8 +233,13 @@ pub(crate) async fn observe(
 }
 
 /// JSON of a large answer, encoded where the call ran (off the runtime).
-fn encode<T: serde::Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
-    serde_json::to_vec(value).map_err(|e| ServiceError::Internal(format!("encoding JSON: {e}")))
+/// JSON into a buffer of `estimate` bytes to start with, so that a large
+/// response does not grow it by doubling to up to twice its size.
+fn encode_sized<T: serde::Serialize>(value: &T, estimate: usize) -> Result<Vec<u8>, ServiceError> {
+    let mut out = Vec::with_capacity(estimate.saturating_add(estimate / 8));
+    serde_json::to_writer(&mut out, value)
+        .map_err(|e| ServiceError::Internal(format!("encoding JSON: {e}")))?;
+    Ok(out)
 }
 
 /// Chunks of a budgeted response body: the connection takes the next one
@@ -310,7 +315,8 @@ pub(crate) async fn values(
         .manager
         .off_runtime(move |m| {
             let values = m.values(caller, &id, sel)?;
-            Ok::<_, ServiceError>((encode(&values.value)?, values.permit))
+            let json = encode_sized(&values.value, values.estimate)?;
+            Ok::<_, ServiceError>((json, values.permit))
         })
         .await?;
     Ok(budgeted_json_response(json, permit))
@@ -352,7 +358,8 @@ pub(crate) async fn history(
         .manager
         .off_runtime(move |m| {
             let history = m.history(caller, &id, limit)?;
-            Ok::<_, ServiceError>((encode(&history.value)?, history.permit))
+            let json = encode_sized(&history.value, history.estimate)?;
+            Ok::<_, ServiceError>((json, history.permit))
         })
         .await?;
     Ok(budgeted_json_response(json, permit))

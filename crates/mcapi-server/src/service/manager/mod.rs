@@ -24,7 +24,7 @@ use mcapi_store::{Store, Write};
 
 use super::agent_config::{SessionConfig, UpdateMode};
 use super::auth::{ApiKeys, Caller};
-use super::budget::{Budgeted, ResponseBudget};
+use super::budget::{self, Budgeted, ResponseBudget};
 use super::cost;
 use super::durable;
 use super::error::{RecoveryError, ServiceError, StorageError};

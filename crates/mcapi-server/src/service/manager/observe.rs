@@ -182,9 +182,10 @@ impl SessionManager {
     ) -> Result<Budgeted<Values>, ServiceError> {
         let session = self.session_for(caller, id)?;
         let bytes = sel.check_size(&session.model, self.limits.max_response_bytes)?;
-        let permit = self.responses.reserve(bytes)?;
+        let permit = self.responses.reserve(budget::charge(bytes))?;
         Ok(Budgeted {
             value: values::tables(&session, sel),
+            estimate: bytes,
             permit,
         })
     }
@@ -208,9 +209,12 @@ impl SessionManager {
                 self.limits.max_response_bytes / entry
             )));
         }
-        let permit = self.responses.reserve(bytes)?;
+        let permit = self.responses.reserve(budget::charge(bytes))?;
+        let value = session.history(limit);
         Ok(Budgeted {
-            value: session.history(limit),
+            // The ring may hold fewer than `limit` entries.
+            estimate: value.len().saturating_mul(entry),
+            value,
             permit,
         })
     }
