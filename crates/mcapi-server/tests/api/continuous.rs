@@ -3,24 +3,11 @@
 //! continuous model and observation refused with its exact status, code and
 //! message, the server serving on after each.
 
-use std::sync::Arc;
-
-use mcapi_server::api::{AppState, router};
-use mcapi_server::service::{Limits, SessionManager};
+use mcapi_server::service::Limits;
 use serde_json::{Value, json};
 
 async fn start(limits: Limits) -> String {
-    let manager = Arc::new(SessionManager::new(limits, 2).expect("manager"));
-    let state = AppState {
-        manager,
-        metrics: None,
-        serving: None,
-    };
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let addr = listener.local_addr().expect("addr");
-    tokio::spawn(async move { axum::serve(listener, router(state)).await.expect("serve") });
+    let (_, addr) = crate::serve_rest(limits).await;
     format!("http://{addr}")
 }
 

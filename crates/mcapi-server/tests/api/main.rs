@@ -21,3 +21,31 @@ mod responses;
 mod rest;
 mod shard_move;
 mod storage_failures;
+
+/// The REST router over a fresh manager with these limits, served on a free
+/// local port: the manager (for checks from inside) and the address.
+async fn serve_rest(
+    limits: mcapi_server::service::Limits,
+) -> (
+    std::sync::Arc<mcapi_server::service::SessionManager>,
+    std::net::SocketAddr,
+) {
+    let manager = std::sync::Arc::new(
+        mcapi_server::service::SessionManager::new(limits, 2).expect("manager"),
+    );
+    let state = mcapi_server::api::AppState {
+        manager: std::sync::Arc::clone(&manager),
+        metrics: None,
+        serving: None,
+    };
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let addr = listener.local_addr().expect("addr");
+    tokio::spawn(async move {
+        axum::serve(listener, mcapi_server::api::router(state))
+            .await
+            .expect("serve")
+    });
+    (manager, addr)
+}

@@ -7,7 +7,6 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use mcapi_server::api::{AppState, router};
 use mcapi_server::service::auth::Caller;
 use mcapi_server::service::budget;
 use mcapi_server::service::{Limits, SessionManager, ValueSelection};
@@ -17,18 +16,7 @@ use tokio::io::{AsyncReadExt, AsyncWriteExt};
 const TOTAL: usize = 24 << 20;
 
 async fn start(limits: Limits) -> (Arc<SessionManager>, std::net::SocketAddr) {
-    let manager = Arc::new(SessionManager::new(limits, 2).expect("manager"));
-    let state = AppState {
-        manager: Arc::clone(&manager),
-        metrics: None,
-        serving: None,
-    };
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let addr = listener.local_addr().expect("addr");
-    tokio::spawn(async move { axum::serve(listener, router(state)).await.expect("serve") });
-    (manager, addr)
+    crate::serve_rest(limits).await
 }
 
 /// A 200 × 100 open grid, on a one-feature custom basis (cheap to build):
