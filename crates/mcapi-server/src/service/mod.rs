@@ -19,6 +19,7 @@ pub mod auth;
 pub mod cost;
 pub mod durable;
 pub mod error;
+pub mod groups;
 pub mod history;
 pub mod learner;
 pub mod limits;
