@@ -21,7 +21,7 @@ use serde::{Deserialize, Serialize};
 
 use mcapi_core::spec::ActionRef;
 
-use super::agent_config::UpdateMode;
+use super::agent_config::{SessionConfig, UpdateMode};
 use super::error::ServiceError;
 use super::session::Owner;
 use super::wire::{ModelSummary, ObservationIn};
@@ -48,6 +48,24 @@ fn mix(mut z: u64) -> u64 {
 /// in wrapping 64-bit arithmetic, with SplitMix64's output function `mix`.
 pub fn member_seed(seed: u64, index: u64) -> u64 {
     mix(seed.wrapping_add(index.wrapping_add(1).wrapping_mul(GOLDEN_GAMMA)))
+}
+
+/// A request to create a group (`POST /v1/groups`): a session's body, the
+/// number of members and the group's seed.
+#[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CreateGroup {
+    /// The environment model of every member, as `POST /v1/sessions` takes it.
+    #[schema(value_type = Object)]
+    pub model: serde_json::Value,
+    /// The agent configuration of every member (without `seed`).
+    #[serde(default)]
+    pub agent: SessionConfig,
+    /// Members, 1 to [`MAX_GROUP_MEMBERS`].
+    pub n: u64,
+    /// The group's seed; drawn when absent.
+    #[serde(default)]
+    pub seed: Option<u64>,
 }
 
 /// What a member's creation record says of its group (in

@@ -48,7 +48,7 @@ fn every_operation_is_tagged_and_documents_its_errors() {
         .collect();
     assert_eq!(
         tags,
-        ["sessions", "observations", "inspection", "operations"]
+        ["sessions", "observations", "inspection", "groups", "operations"]
     );
     let mut operations = 0;
     for (path, item) in d["paths"].as_object().expect("paths") {
@@ -105,7 +105,7 @@ fn every_operation_is_tagged_and_documents_its_errors() {
             }
         }
     }
-    assert_eq!(operations, 11);
+    assert_eq!(operations, 15);
     for code in ["413", "429"] {
         assert!(d["paths"]["/v1/sessions"]["post"]["responses"][code].is_object());
     }

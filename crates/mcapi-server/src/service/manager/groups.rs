@@ -11,13 +11,44 @@ use futures_util::future::join_all;
 
 use super::*;
 use crate::service::groups::{
-    Columns, Group, GroupInfo, GroupTag, MAX_GROUP_MEMBERS, MemberStep, member_seed,
+    Columns, CreateGroup, Group, GroupInfo, GroupTag, MAX_GROUP_MEMBERS, MemberStep, member_seed,
 };
 
 /// The groups in memory by id.
 pub(crate) type GroupTable = BTreeMap<String, Arc<Group>>;
 
 impl SessionManager {
+    /// Creates a group from REST's body (the model as JSON, parsed as
+    /// `POST /v1/sessions` parses it); see [`Self::create_group_parsed`].
+    pub fn create_group(&self, caller: Caller, req: CreateGroup) -> Result<GroupInfo, ServiceError> {
+        let CreateGroup {
+            model,
+            agent,
+            n,
+            seed,
+        } = req;
+        let model_text = self.durability.as_ref().map(|_| model.to_string());
+        let input = ModelInput::parse(model)?;
+        self.create_group_from(caller, input, model_text, &agent, n, seed)
+    }
+
+    /// Creates a group from a model already parsed (gRPC's typed `Model`);
+    /// otherwise as [`Self::create_group`].
+    pub fn create_group_parsed(
+        &self,
+        caller: Caller,
+        input: ModelInput,
+        agent: &SessionConfig,
+        n: u64,
+        seed: Option<u64>,
+    ) -> Result<GroupInfo, ServiceError> {
+        let model_text = match &self.durability {
+            Some(_) => Some(input.to_json_text()?),
+            None => None,
+        };
+        self.create_group_from(caller, input, model_text, agent, n, seed)
+    }
+
     /// Creates a group of `n` sessions of one model and configuration
     /// (docs/groups.md, "Creating a group"): member i is seeded
     /// [`member_seed`]`(seed, i)`, every member is on the group's shard. The
@@ -25,7 +56,7 @@ impl SessionManager {
     /// and the caller's quota before any member is built, and refused whole;
     /// with a store, the members' records are committed together before
     /// any is served. Synchronous and possibly slow: call it off the runtime.
-    pub fn create_group(
+    fn create_group_from(
         &self,
         caller: Caller,
         input: ModelInput,
