@@ -530,7 +530,9 @@ async fn step_group_stream(
         let mut last_seq: Option<u64> = None;
         loop {
             let item = match inbound.message().await {
-                Ok(Some(message)) => step_message(message, meta.as_deref(), &mut group, &mut last_seq),
+                Ok(Some(message)) => {
+                    step_message(message, meta.as_deref(), &mut group, &mut last_seq)
+                }
                 Ok(None) => return,
                 Err(status) => Err(status),
             };

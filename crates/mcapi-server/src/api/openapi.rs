@@ -12,8 +12,8 @@ use crate::api::schemas::{
     NotFound, ObserveBatchReply, PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized,
     Unavailable, request_schemas,
 };
-use crate::service::groups::GroupInfo;
 use crate::service::Limits;
+use crate::service::groups::GroupInfo;
 
 /// The paths of the OpenAPI document; [`document`] completes it with the request schemas of the server's limits.
 #[derive(OpenApi)]

@@ -48,7 +48,13 @@ fn every_operation_is_tagged_and_documents_its_errors() {
         .collect();
     assert_eq!(
         tags,
-        ["sessions", "observations", "inspection", "groups", "operations"]
+        [
+            "sessions",
+            "observations",
+            "inspection",
+            "groups",
+            "operations"
+        ]
     );
     let mut operations = 0;
     for (path, item) in d["paths"].as_object().expect("paths") {

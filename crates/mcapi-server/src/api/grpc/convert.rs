@@ -1278,7 +1278,9 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
             }
             Err(e) => {
                 reply.actions.push(ADVISED);
-                reply.drives.extend(le_bytes(std::iter::repeat_n(f64::NAN, n)));
+                reply
+                    .drives
+                    .extend(le_bytes(std::iter::repeat_n(f64::NAN, n)));
                 reply.rewards.extend(f64::NAN.to_le_bytes());
                 reply.policy_versions.push(0);
                 reply.ticks.push(0);

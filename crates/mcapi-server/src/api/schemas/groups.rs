@@ -45,9 +45,8 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     .required("n")
     .examples([json!({"model": {"preset": "hallway"}, "n": 4, "seed": 7})]);
     let max_state = (limits.max_pairs as u64).saturating_sub(1);
-    let row = |what: &str, items: ObjectBuilder, max_len: usize| {
-        array(items, 0, max_len, false, what)
-    };
+    let row =
+        |what: &str, items: ObjectBuilder, max_len: usize| array(items, 0, max_len, false, what);
     let step = closed(&format!(
         "One step of a group by columns: each array has one entry (or row) per member \
          stepped, in the order of `mask` (all members in order without one), at most {max}."

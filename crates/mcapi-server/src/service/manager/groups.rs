@@ -20,7 +20,11 @@ pub(crate) type GroupTable = BTreeMap<String, Arc<Group>>;
 impl SessionManager {
     /// Creates a group from REST's body (the model as JSON, parsed as
     /// `POST /v1/sessions` parses it); see [`Self::create_group_parsed`].
-    pub fn create_group(&self, caller: Caller, req: CreateGroup) -> Result<GroupInfo, ServiceError> {
+    pub fn create_group(
+        &self,
+        caller: Caller,
+        req: CreateGroup,
+    ) -> Result<GroupInfo, ServiceError> {
         let CreateGroup {
             model,
             agent,
@@ -233,7 +237,9 @@ impl SessionManager {
             metrics::gauge!("mcapi_sessions").set(table.len() as f64);
             // Under the session table's lock: a shard move removing this
             // shard's sessions sees the group with them.
-            self.groups.write().insert(group_id.clone(), Arc::clone(&group));
+            self.groups
+                .write()
+                .insert(group_id.clone(), Arc::clone(&group));
         }
         tracing::info!(group = %group_id, members = n, "group created");
         Ok(group.info())
@@ -333,14 +339,15 @@ impl SessionManager {
             let member = group.members[index].clone();
             async move {
                 let result = match member {
-                    Some(member) => self
-                        .observe(caller, &member, vec![obs])
-                        .await
-                        .and_then(|mut steps| {
-                            steps.pop().ok_or_else(|| {
-                                ServiceError::Internal("observe returned no step".into())
+                    Some(member) => {
+                        self.observe(caller, &member, vec![obs])
+                            .await
+                            .and_then(|mut steps| {
+                                steps.pop().ok_or_else(|| {
+                                    ServiceError::Internal("observe returned no step".into())
+                                })
                             })
-                        }),
+                    }
                     None => Err(ServiceError::NotFound(format!(
                         "{id}[{index}] (this member could not be recovered from the store)"
                     ))),
@@ -356,7 +363,15 @@ impl SessionManager {
     /// size and index.
     pub(super) fn register_groups<'a>(
         &self,
-        members: impl IntoIterator<Item = (&'a GroupTag, &'a str, &'a Arc<ModelSummary>, UpdateMode, session::Owner)>,
+        members: impl IntoIterator<
+            Item = (
+                &'a GroupTag,
+                &'a str,
+                &'a Arc<ModelSummary>,
+                UpdateMode,
+                session::Owner,
+            ),
+        >,
     ) {
         let mut found: BTreeMap<String, Group> = BTreeMap::new();
         for (tag, id, model, mode, owner) in members {
