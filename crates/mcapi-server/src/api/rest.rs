@@ -450,16 +450,24 @@ fn group_columns(body: GroupStep) -> Result<Columns, ServiceError> {
         stimuli,
         action_taken,
     } = body;
+    let action_taken = action_taken
+        .unwrap_or_default()
+        .into_iter()
+        .enumerate()
+        .map(|(j, a)| match a {
+            Some(ADVISED) => Err(ServiceError::field(
+                &format!("action_taken[{j}]"),
+                format!("{ADVISED} is no action index (null takes the advised action)"),
+            )),
+            a => Ok(a.unwrap_or(ADVISED)),
+        })
+        .collect::<Result<_, _>>()?;
     Ok(Columns {
         mask: mask.unwrap_or_default(),
         states: states.unwrap_or_default(),
         observations: rows("observations", observations.unwrap_or_default())?,
         stimuli: rows("stimuli", stimuli.unwrap_or_default())?,
-        action_taken: action_taken
-            .unwrap_or_default()
-            .into_iter()
-            .map(|a| a.unwrap_or(ADVISED))
-            .collect(),
+        action_taken,
     })
 }
 
