@@ -91,7 +91,7 @@ async fn a_group_is_created_stepped_read_and_deleted_over_rest_as_sessions_alone
     assert_eq!((status, &got), (200, &group));
 
     // The group by columns; each member's observations kept to replay.
-    let mut states = vec![25u64; N];
+    let mut states = [25u64; N];
     let mut sent: Vec<Vec<Value>> = vec![Vec::new(); N];
     let mut answers: Vec<Vec<Value>> = vec![Vec::new(); N];
     for t in 0..200 {

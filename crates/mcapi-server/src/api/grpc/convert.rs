@@ -1065,86 +1065,6 @@ pub fn values(v: Values) -> pb::Values {
     }
 }
 
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn metadata_fills_an_empty_id_and_must_agree_with_a_given_one() {
-        assert_eq!(session_id("a".into(), None).expect("id"), "a");
-        assert_eq!(session_id(String::new(), Some("b")).expect("id"), "b");
-        assert_eq!(session_id("a".into(), Some("a")).expect("id"), "a");
-        let e = session_id("a".into(), Some("b")).expect_err("mismatch");
-        assert!(e.to_string().contains("x-mcapi-session"), "{e}");
-        assert!(session_id(String::new(), None).is_err());
-    }
-
-    #[test]
-    fn an_observation_without_stimulus_is_a_first_observation() {
-        let (id, obs) = observation(
-            pb::Observation {
-                session_id: "s".into(),
-                state: 3,
-                stimulus: None,
-                action_taken: None,
-                signal: vec![],
-                signal_source: None,
-                observation: vec![],
-            },
-            None,
-        )
-        .expect("valid");
-        assert_eq!(id, "s");
-        assert_eq!(obs.stimulus, None);
-        let (_, obs) = observation(
-            pb::Observation {
-                session_id: "s".into(),
-                state: 3,
-                stimulus: Some(pb::Stimulus { values: vec![] }),
-                action_taken: Some(pb::observation::ActionTaken::ActionName("left".into())),
-                signal: vec![0.5, 1.0],
-                signal_source: Some(1),
-                observation: vec![],
-            },
-            None,
-        )
-        .expect("valid");
-        assert_eq!(obs.stimulus, Some(vec![]));
-        assert_eq!(obs.action_taken, Some(ActionRef::Name("left".into())));
-        assert_eq!(obs.signal, Some(vec![0.5, 1.0]));
-        assert_eq!(obs.signal_source, Some(1));
-    }
-
-    #[test]
-    fn watch_interval_is_bounded() {
-        let req = |ms| pb::WatchRequest {
-            session_id: "s".into(),
-            interval_ms: ms,
-        };
-        assert_eq!(
-            watch_request(req(0), None).expect("default").1,
-            DEFAULT_WATCH_INTERVAL
-        );
-        assert_eq!(
-            watch_request(req(10), None).expect("min").1,
-            Duration::from_millis(10)
-        );
-        assert!(watch_request(req(9), None).is_err());
-        assert!(watch_request(req(MAX_WATCH_INTERVAL_MS + 1), None).is_err());
-    }
-
-    #[test]
-    fn per_pair_tables_skip_unavailable_pairs() {
-        let t = pair_values(vec![vec![None, Some(1.0)], vec![Some(2.0), None]]);
-        let got: Vec<_> = t
-            .pairs
-            .iter()
-            .map(|p| (p.state, p.action, p.value))
-            .collect();
-        assert_eq!(got, vec![(0, 1, 1.0), (1, 0, 2.0)]);
-    }
-}
-
 // ------------------------------------------------------------------ groups
 
 /// `CreateGroup`: the typed model, the members' configuration, `n` and the
@@ -1300,4 +1220,84 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
         }
     }
     reply
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn metadata_fills_an_empty_id_and_must_agree_with_a_given_one() {
+        assert_eq!(session_id("a".into(), None).expect("id"), "a");
+        assert_eq!(session_id(String::new(), Some("b")).expect("id"), "b");
+        assert_eq!(session_id("a".into(), Some("a")).expect("id"), "a");
+        let e = session_id("a".into(), Some("b")).expect_err("mismatch");
+        assert!(e.to_string().contains("x-mcapi-session"), "{e}");
+        assert!(session_id(String::new(), None).is_err());
+    }
+
+    #[test]
+    fn an_observation_without_stimulus_is_a_first_observation() {
+        let (id, obs) = observation(
+            pb::Observation {
+                session_id: "s".into(),
+                state: 3,
+                stimulus: None,
+                action_taken: None,
+                signal: vec![],
+                signal_source: None,
+                observation: vec![],
+            },
+            None,
+        )
+        .expect("valid");
+        assert_eq!(id, "s");
+        assert_eq!(obs.stimulus, None);
+        let (_, obs) = observation(
+            pb::Observation {
+                session_id: "s".into(),
+                state: 3,
+                stimulus: Some(pb::Stimulus { values: vec![] }),
+                action_taken: Some(pb::observation::ActionTaken::ActionName("left".into())),
+                signal: vec![0.5, 1.0],
+                signal_source: Some(1),
+                observation: vec![],
+            },
+            None,
+        )
+        .expect("valid");
+        assert_eq!(obs.stimulus, Some(vec![]));
+        assert_eq!(obs.action_taken, Some(ActionRef::Name("left".into())));
+        assert_eq!(obs.signal, Some(vec![0.5, 1.0]));
+        assert_eq!(obs.signal_source, Some(1));
+    }
+
+    #[test]
+    fn watch_interval_is_bounded() {
+        let req = |ms| pb::WatchRequest {
+            session_id: "s".into(),
+            interval_ms: ms,
+        };
+        assert_eq!(
+            watch_request(req(0), None).expect("default").1,
+            DEFAULT_WATCH_INTERVAL
+        );
+        assert_eq!(
+            watch_request(req(10), None).expect("min").1,
+            Duration::from_millis(10)
+        );
+        assert!(watch_request(req(9), None).is_err());
+        assert!(watch_request(req(MAX_WATCH_INTERVAL_MS + 1), None).is_err());
+    }
+
+    #[test]
+    fn per_pair_tables_skip_unavailable_pairs() {
+        let t = pair_values(vec![vec![None, Some(1.0)], vec![Some(2.0), None]]);
+        let got: Vec<_> = t
+            .pairs
+            .iter()
+            .map(|p| (p.state, p.action, p.value))
+            .collect();
+        assert_eq!(got, vec![(0, 1, 1.0), (1, 0, 2.0)]);
+    }
 }

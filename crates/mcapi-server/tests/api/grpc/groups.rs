@@ -66,6 +66,20 @@ async fn open(
     (tx, replies)
 }
 
+/// A message in flight: its mask's number, the mask and the stimuli sent.
+type InFlight = (usize, Vec<u32>, Vec<Option<Vec<f64>>>);
+
+/// A malformed-step case: its name, the good messages before it, the
+/// message, and the code, stable code and words it is refused with.
+type Case<'a> = (
+    &'a str,
+    Vec<pb::GroupStepRequest>,
+    pb::GroupStepRequest,
+    Code,
+    &'a str,
+    &'a str,
+);
+
 /// What one member was sent and answered at one tick.
 #[derive(Debug, Clone, PartialEq)]
 struct Tick {
@@ -106,7 +120,7 @@ async fn members_step_as_sessions_driven_alone_with_three_messages_in_flight() {
     let mut last: [Option<usize>; N] = [None; N];
     let mut trajectories: Vec<Vec<Tick>> = vec![Vec::new(); N];
     let mut seq = 40u64;
-    let mut in_flight: VecDeque<(usize, Vec<u32>, Vec<Option<Vec<f64>>>)> = VecDeque::new();
+    let mut in_flight: VecDeque<InFlight> = VecDeque::new();
     let send = |mask: &[u32], states: &[usize; N], last: &[Option<usize>; N], seq: u64| {
         let stimuli: Vec<Option<Vec<f64>>> = mask
             .iter()
@@ -375,14 +389,7 @@ async fn every_malformed_step_gets_its_own_code_and_a_refused_member_stops_no_ot
         stimuli: le(&[0.0; 8]),
         ..Default::default()
     };
-    let cases: Vec<(
-        &str,
-        Vec<pb::GroupStepRequest>,
-        pb::GroupStepRequest,
-        Code,
-        &str,
-        &str,
-    )> = vec![
+    let cases: Vec<Case> = vec![
         (
             "seq backwards",
             vec![first(5)],
