@@ -571,9 +571,14 @@ async fn every_malformed_step_gets_its_own_code_and_a_refused_member_stops_no_ot
         },
     )
     .await;
+    assert_eq!(status.code(), Code::ResourceExhausted, "{status:?}");
+    assert_eq!(stable(&status), "limit_exceeded");
     assert!(
-        matches!(status.code(), Code::ResourceExhausted | Code::OutOfRange),
-        "{status:?}"
+        status
+            .message()
+            .contains("a StepGroup message has 16777270 bytes; the limit is 16777216"),
+        "{}",
+        status.message()
     );
 
     // Values a member refuses: that member only, with Interact's code.
