@@ -26,9 +26,6 @@ use super::error::ServiceError;
 use super::session::Owner;
 use super::wire::{ModelSummary, ObservationIn};
 
-/// Most members of one group (docs/groups.md, "Bounds").
-pub const MAX_GROUP_MEMBERS: usize = 10_000;
-
 /// In a step's `action_taken` column: the member took the advised action.
 pub const ADVISED: u32 = u32::MAX;
 
@@ -61,7 +58,7 @@ pub struct CreateGroup {
     /// The agent configuration of every member (without `seed`).
     #[serde(default)]
     pub agent: SessionConfig,
-    /// Members, 1 to [`MAX_GROUP_MEMBERS`].
+    /// Members, 1 to `--max-group-members`.
     pub n: u64,
     /// The group's seed; drawn when absent.
     #[serde(default)]

@@ -147,9 +147,20 @@ fn bounds_are_the_limits_of_the_server() {
         max_curiosity_window: 77,
         max_roc_centres: 9,
         max_signal_sources: 12,
+        max_group_members: 40,
         ..Limits::default()
     };
     let d = doc(&limits);
+    let group = &schema(&d, "CreateGroup")["properties"];
+    assert_eq!(group["n"]["maximum"], 40);
+    assert_eq!(group["n"]["minimum"], 1);
+    let step = &schema(&d, "GroupStep")["properties"];
+    for column in ["mask", "states", "observations", "stimuli", "action_taken"] {
+        assert_eq!(step[column]["maxItems"], 40, "{column}");
+    }
+    assert_eq!(step["mask"]["items"]["maximum"], 39);
+    assert_eq!(step["states"]["items"]["maximum"], 1233);
+    assert_eq!(step["stimuli"]["items"]["maxItems"], 7);
     let full = schema(&d, "FullModelNext");
     assert_eq!(full["properties"]["states"]["maximum"], 1234);
     assert_eq!(full["properties"]["states"]["minimum"], 1);

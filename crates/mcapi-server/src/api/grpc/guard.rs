@@ -548,7 +548,7 @@ mod tests {
 
     #[test]
     fn frame_limit_follows_heads_across_chunks() {
-        let mut limit = FrameLimit::new(Body::default(), 10, None);
+        let mut limit = FrameLimit::new(Body::default(), 10, "an Interact", None);
         let ok = frame(&[7; 10]);
         let mut stream = ok.clone();
         stream.extend(&ok);
@@ -562,6 +562,10 @@ mod tests {
         let err = limit.scan(&big[..3]).and_then(|()| limit.scan(&big[3..]));
         let status = err.expect_err("over the limit");
         assert_eq!(status.code(), tonic::Code::ResourceExhausted);
+        assert_eq!(
+            status.message(),
+            "an Interact message has 11 bytes; the limit is 10"
+        );
     }
 
     /// Feeds `stream` to a counting frame limit `chunk` bytes at a time.
@@ -569,6 +573,7 @@ mod tests {
         let mut limit = FrameLimit::new(
             Body::default(),
             1 << 20,
+            "an InteractBatch",
             Some(EntryCounter::new(BATCH_FIELD, max)),
         );
         stream.chunks(chunk).try_for_each(|c| limit.scan(c))

@@ -14,13 +14,13 @@ use super::builders::{Bound, U64_MAX, array, closed, integer, number, reference,
 use super::request_schemas;
 use crate::api::extract::BodyShape;
 use crate::service::Limits;
-use crate::service::groups::{MAX_GROUP_MEMBERS, MemberStep};
+use crate::service::groups::MemberStep;
 use mcapi_core::continuous::space::MAX_DIM;
 use mcapi_core::error::MAX_STIMULUS;
 
 /// The group schemas, by component name, for these limits.
 pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
-    let max = MAX_GROUP_MEMBERS;
+    let max = limits.max_group_members;
     let create = closed(&format!(
         "A request to create a group: a session's model and agent configuration (without \
          `agent.seed` and `agent.curiosity`), the number of members `n` (at most {max}) and the \
@@ -30,7 +30,12 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     .property("agent", reference("SessionConfig"))
     .property(
         "n",
-        integer(1, max as u64, false, "members (limit: at most 10000)"),
+        integer(
+            1,
+            max as u64,
+            false,
+            &format!("members (limit: at most {max})"),
+        ),
     )
     .property(
         "seed",
@@ -54,7 +59,7 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     .property(
         "mask",
         array(
-            integer(0, max as u64 - 1, false, "a member index"),
+            integer(0, (max as u64).saturating_sub(1), false, "a member index"),
             0,
             max,
             true,

@@ -11,7 +11,7 @@ use futures_util::future::join_all;
 
 use super::*;
 use crate::service::groups::{
-    Columns, CreateGroup, Group, GroupInfo, GroupTag, MAX_GROUP_MEMBERS, MemberStep, member_seed,
+    Columns, CreateGroup, Group, GroupInfo, GroupTag, MemberStep, member_seed,
 };
 
 /// The groups in memory by id.
@@ -73,9 +73,10 @@ impl SessionManager {
         if n == 0 {
             return Err(ServiceError::field("n", "must be at least 1"));
         }
-        if n > MAX_GROUP_MEMBERS {
+        if n > self.limits.max_group_members {
             return Err(ServiceError::LimitExceeded(format!(
-                "`n` is {n}; the limit is {MAX_GROUP_MEMBERS} members per group"
+                "`n` is {n}; the limit is {} members per group (--max-group-members)",
+                self.limits.max_group_members
             )));
         }
         if agent.seed.is_some() {
