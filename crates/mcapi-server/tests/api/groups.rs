@@ -466,3 +466,72 @@ fn a_group_and_its_stepped_members_survive_a_restart() {
     assert_eq!(manager.groups_len(), 0);
     manager.shutdown();
 }
+
+/// Server time per member-observation on the group path against the
+/// per-session path, in this process (no transport): `cargo test -p
+/// mcapi-server --test api groups::measure -- --ignored --nocapture`.
+#[test]
+#[ignore = "a measurement, not a check"]
+fn measure_group_steps_against_single_observations() {
+    const N: usize = 1000;
+    const TICKS: usize = 200;
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .build()
+        .expect("runtime");
+    let manager = SessionManager::new(Limits::default(), 2).expect("manager");
+    let group = manager
+        .create_group(
+            Caller::Anyone,
+            serde_json::from_value::<CreateGroup>(
+                json!({"model": {"preset": "hallway"}, "n": N, "seed": 1}),
+            )
+            .expect("body"),
+        )
+        .expect("create");
+    let members: Vec<String> = group.members.iter().flatten().cloned().collect();
+    let mut states = vec![25u32; N];
+    let started = std::time::Instant::now();
+    for t in 0..TICKS {
+        let steps = rt
+            .block_on(manager.step_group(
+                Caller::Anyone,
+                &group.id,
+                Columns {
+                    states: states.clone(),
+                    stimuli: if t == 0 { Vec::new() } else { vec![0.0; 2 * N] },
+                    ..Columns::default()
+                },
+            ))
+            .expect("step");
+        for (s, m) in states.iter_mut().zip(steps) {
+            let a = m.result.expect("applied").action_index;
+            *s = u32::try_from(moved(u64::from(*s), a as u64)).expect("state");
+        }
+    }
+    let group_us = started.elapsed().as_secs_f64() * 1e6 / (N * TICKS) as f64;
+    let started = std::time::Instant::now();
+    for t in 0..TICKS {
+        for (k, id) in members.iter().enumerate() {
+            let obs = mcapi_server::service::ObservationIn {
+                state: Some(states[k] as usize),
+                observation: None,
+                stimulus: Some(vec![0.0, 0.0]),
+                action_taken: None,
+                signal: None,
+                signal_source: None,
+            };
+            let step = rt
+                .block_on(manager.observe(Caller::Anyone, id, vec![obs]))
+                .expect("observe");
+            let _ = t;
+            states[k] = u32::try_from(moved(u64::from(states[k]), step[0].action_index as u64))
+                .expect("state");
+        }
+    }
+    let single_us = started.elapsed().as_secs_f64() * 1e6 / (N * TICKS) as f64;
+    eprintln!(
+        "{N} hallway members x {TICKS} ticks, lockstep, in memory: {group_us:.2} µs per member-observation by group steps, {single_us:.2} µs by single observations"
+    );
+    manager.shutdown();
+}
