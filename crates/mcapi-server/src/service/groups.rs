@@ -96,6 +96,9 @@ pub struct Group {
     pub model: Arc<ModelSummary>,
     /// The members' update mode.
     pub mode: UpdateMode,
+    /// One member's estimated CPU time per observation (they share their
+    /// model and configuration).
+    pub tick_us: u64,
 }
 
 /// A group as the API shows it.

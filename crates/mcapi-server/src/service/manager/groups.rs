@@ -17,6 +17,32 @@ use crate::service::groups::{
 /// The groups in memory by id.
 pub(crate) type GroupTable = BTreeMap<String, Arc<Group>>;
 
+/// One member of a group as recovered or imported: what its group is
+/// rebuilt from.
+pub(super) struct GroupMember {
+    tag: GroupTag,
+    id: String,
+    model: Arc<ModelSummary>,
+    mode: UpdateMode,
+    owner: session::Owner,
+    tick_us: u64,
+}
+
+impl GroupMember {
+    /// The member `session` is, if it was created in a group.
+    pub(super) fn of(session: &Session) -> Option<Self> {
+        let tag = session.group.clone()?;
+        Some(Self {
+            tag,
+            id: session.id.clone(),
+            model: Arc::clone(&session.model),
+            mode: session.mode,
+            owner: session.owner,
+            tick_us: cost::estimate(&session.model, &session.config).tick_us,
+        })
+    }
+}
+
 impl SessionManager {
     /// Creates a group from REST's body (the model as JSON, parsed as
     /// `POST /v1/sessions` parses it); see [`Self::create_group_parsed`].
@@ -207,6 +233,7 @@ impl SessionManager {
             members: ids.iter().cloned().map(Some).collect(),
             model,
             mode,
+            tick_us: cost.tick_us,
         });
         {
             let mut table = self.sessions.write();
@@ -330,12 +357,19 @@ impl SessionManager {
     ) -> Result<Vec<MemberStep>, ServiceError> {
         let group = self.group_for(caller, id)?;
         let stepped = group.observations(columns)?;
-        self.check_message_cost(
-            caller,
-            stepped
-                .iter()
-                .filter_map(|(i, _)| group.members[*i].as_deref().map(|id| (id, 1))),
-        )?;
+        // The members share their model and configuration, so one's
+        // estimate prices them all (as `check_message_cost` would, without
+        // a lookup per member).
+        let us = group.tick_us.saturating_mul(stepped.len() as u64);
+        if us / 1000 > self.limits.max_batch_ms {
+            return Err(ServiceError::LimitExceeded(format!(
+                "the step's {} members cost an estimated {} ms in all; the limit per message \
+                 is {} ms (--max-batch-ms): step fewer members per message",
+                stepped.len(),
+                us / 1000,
+                self.limits.max_batch_ms
+            )));
+        }
         let steps = stepped.into_iter().map(|(index, obs)| {
             let member = group.members[index].clone();
             async move {
@@ -362,20 +396,17 @@ impl SessionManager {
     /// Registers the groups of these sessions (recovered at start, or
     /// imported with their shard): each session's record names its group,
     /// size and index.
-    pub(super) fn register_groups<'a>(
-        &self,
-        members: impl IntoIterator<
-            Item = (
-                &'a GroupTag,
-                &'a str,
-                &'a Arc<ModelSummary>,
-                UpdateMode,
-                session::Owner,
-            ),
-        >,
-    ) {
+    pub(super) fn register_groups(&self, members: impl IntoIterator<Item = GroupMember>) {
         let mut found: BTreeMap<String, Group> = BTreeMap::new();
-        for (tag, id, model, mode, owner) in members {
+        for GroupMember {
+            tag,
+            id,
+            model,
+            mode,
+            owner,
+            tick_us,
+        } in members
+        {
             let size = tag.size as usize;
             let index = tag.index as usize;
             if index >= size {
@@ -387,11 +418,12 @@ impl SessionManager {
                 owner,
                 seed: tag.seed,
                 members: vec![None; size],
-                model: Arc::clone(model),
+                model,
                 mode,
+                tick_us,
             });
             if let Some(slot) = group.members.get_mut(index) {
-                *slot = Some(id.to_string());
+                *slot = Some(id);
             }
         }
         let mut groups = self.groups.write();

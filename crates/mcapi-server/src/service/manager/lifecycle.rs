@@ -69,14 +69,8 @@ impl SessionManager {
         // from them.
         let members = Mutex::new(Vec::new());
         let keep = |session: SessionRef| {
-            if let Some(tag) = &session.group {
-                members.lock().push((
-                    tag.clone(),
-                    session.id.clone(),
-                    Arc::clone(&session.model),
-                    session.mode,
-                    session.owner,
-                ));
+            if let Some(member) = groups::GroupMember::of(&session) {
+                members.lock().push(member);
             }
             keep_entry(session)
         };
@@ -89,12 +83,7 @@ impl SessionManager {
                 "stored sessions of shards this replica does not own are kept in the store, not served"
             );
         }
-        let members = members.into_inner();
-        self.register_groups(
-            members
-                .iter()
-                .map(|(tag, id, model, mode, owner)| (tag, id.as_str(), model, *mode, *owner)),
-        );
+        self.register_groups(members.into_inner());
         let mut sessions = self.sessions.write();
         for (id, entry) in rebuilt {
             sessions.insert_entry(id, entry);

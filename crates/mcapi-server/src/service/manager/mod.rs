@@ -297,11 +297,7 @@ impl SessionManager {
 
     /// Serves these sessions (a shard moved here).
     pub(super) fn insert_sessions(&self, rebuilt: Vec<SessionRef>) {
-        self.register_groups(rebuilt.iter().filter_map(|s| {
-            s.group
-                .as_ref()
-                .map(|tag| (tag, s.id.as_str(), &s.model, s.mode, s.owner))
-        }));
+        self.register_groups(rebuilt.iter().filter_map(|s| groups::GroupMember::of(s)));
         let mut sessions = self.sessions.write();
         for session in rebuilt {
             sessions.insert(session.id.clone(), session);
