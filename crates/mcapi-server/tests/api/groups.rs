@@ -535,3 +535,51 @@ fn measure_group_steps_against_single_observations() {
     );
     manager.shutdown();
 }
+
+#[test]
+fn a_step_beyond_the_batch_time_budget_is_refused_whole() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let manager = SessionManager::new(
+        Limits {
+            max_batch_ms: 0,
+            ..Limits::default()
+        },
+        1,
+    )
+    .expect("manager");
+    let group = manager
+        .create_group(
+            Caller::Anyone,
+            serde_json::from_value::<CreateGroup>(
+                json!({"model": {"preset": "hallway"}, "n": 1000, "seed": 1}),
+            )
+            .expect("body"),
+        )
+        .expect("create");
+    let step = |mask: Vec<u32>| {
+        let m = if mask.is_empty() { 1000 } else { mask.len() };
+        rt.block_on(manager.step_group(
+            Caller::Anyone,
+            &group.id,
+            Columns {
+                mask,
+                states: vec![25; m],
+                ..Columns::default()
+            },
+        ))
+    };
+    // At least 1 µs each: 1000 members cost at least 1 ms.
+    let e = step(Vec::new()).expect_err("over the budget");
+    assert!(
+        matches!(&e, mcapi_server::service::ServiceError::LimitExceeded(m) if m.contains("--max-batch-ms")),
+        "{e}"
+    );
+    for m in group.members.iter().flatten() {
+        let info = manager.get(Caller::Anyone, m).expect("member");
+        assert_eq!(info.state, None, "nothing applied");
+    }
+    // A mask of a few fits.
+    let steps = step(vec![0, 1, 2]).expect("three members");
+    assert!(steps.iter().all(|s| s.result.is_ok()));
+    manager.shutdown();
+}
