@@ -11,14 +11,18 @@
 //! not strictly increasing or names a member beyond the group
 //! (`invalid_mask`), a column whose length disagrees with the members
 //! stepped, the stimulus dimensions or the observation dimensions
-//! (`column_length`). A value a session refuses (a state outside the
-//! model, a NaN stimulus) refuses that member only, with the code an
-//! `Interact` of the same observation would end with.
+//! (`column_length`), a number no member could take (a state outside the
+//! model, a NaN, infinite or too large stimulus component, a NaN
+//! observation coordinate: the code one such observation gets alone). What
+//! only a member's own state refuses (an action it cannot take, a stimulus
+//! on its first observation, a member deleted alone) refuses that member
+//! only, with the code an `Interact` of the same observation would end with.
 
 use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
+use mcapi_core::AlgoError;
 use mcapi_core::spec::ActionRef;
 
 use super::agent_config::{SessionConfig, UpdateMode};
@@ -215,6 +219,7 @@ impl Group {
         if !action_taken.is_empty() {
             column("action_taken", action_taken.len(), m, &members)?;
         }
+        self.check_values(&states, &observations, &stimuli)?;
         let d = self.dim().unwrap_or(0);
         let out = stepped
             .into_iter()
@@ -235,6 +240,43 @@ impl Group {
             })
             .collect();
         Ok(out)
+    }
+}
+
+impl Group {
+    /// The numbers of a step that no member could take, refused with the
+    /// message: a state outside the model, a stimulus component that is
+    /// NaN, infinite or beyond ±10¹², an observation coordinate that is NaN
+    /// or infinite. Each gets the code one such observation sent alone gets.
+    fn check_values(
+        &self,
+        states: &[u32],
+        observations: &[f64],
+        stimuli: &[f64],
+    ) -> Result<(), ServiceError> {
+        let states_of_model = self.model.states;
+        if self.dim().is_none()
+            && let Some(&state) = states.iter().find(|&&s| s as usize >= states_of_model)
+        {
+            return Err(AlgoError::StateOutOfRange {
+                state: state as usize,
+                states: states_of_model,
+            }
+            .into());
+        }
+        let n = self.model.stimuli.len();
+        if n > 0 {
+            for row in stimuli.chunks_exact(n) {
+                mcapi_core::error::check_stimulus(row, n)?;
+            }
+        }
+        if let Some(j) = observations.iter().position(|x| !x.is_finite()) {
+            return Err(AlgoError::InvalidObservation(format!(
+                "`observations` has a NaN or infinite coordinate (number {j})"
+            ))
+            .into());
+        }
+        Ok(())
     }
 }
 

@@ -306,6 +306,21 @@ async fn every_malformed_rest_step_and_group_gets_its_status() {
             400,
             "bad_request",
         ),
+        (
+            json!({"states": [1, 50, 3, 4], "stimuli": stim}),
+            400,
+            "unknown_state",
+        ),
+        (
+            json!({"states": [1_000_000, 2, 3, 4], "stimuli": stim}),
+            400,
+            "unknown_state",
+        ),
+        (
+            json!({"states": [1, 2, 3, 4], "stimuli": [[0, 0], [0, 2e12], [0, 0], [0, 0]]}),
+            400,
+            "stimulus_too_large",
+        ),
         (json!({"states": [-1, 2, 3, 4]}), 400, "bad_request"),
         (
             json!({"states": [1, 2, 3, 4], "stimuli": stim, "action_taken": [null, null, null, 4294967295u64]}),
@@ -322,10 +337,10 @@ async fn every_malformed_rest_step_and_group_gets_its_status() {
             "{body}: {err}"
         );
     }
-    // Values one member refuses: that member only.
+    // What only a member refuses: that member only.
     let (status, reply) = post(
         &url,
-        &json!({"states": [24, 50, 26, 25], "stimuli": stim, "action_taken": [null, null, null, 9]}),
+        &json!({"states": [24, 25, 26, 25], "stimuli": stim, "action_taken": [null, 5, null, 9]}),
     )
     .await;
     assert_eq!(status, 200, "{reply}");
@@ -339,7 +354,7 @@ async fn every_malformed_rest_step_and_group_gets_its_status() {
                 e["code"].as_str().expect("code")
             ))
             .collect::<Vec<_>>(),
-        [(1, "unknown_state"), (3, "unknown_action")]
+        [(1, "unknown_action"), (3, "unknown_action")]
     );
     assert_eq!(reply["actions"][1], Value::Null);
     assert_eq!(reply["ticks"], json!([1, null, 1, null]));

@@ -494,6 +494,50 @@ async fn every_malformed_step_gets_its_own_code_and_a_refused_member_stops_no_ot
             "below",
         ),
         (
+            "a state beyond the model",
+            vec![first(0)],
+            pb::GroupStepRequest {
+                states: vec![24, 50, 26, 25],
+                ..later(1)
+            },
+            Code::InvalidArgument,
+            "unknown_state",
+            "state 50 is out of range (the model has 50 states)",
+        ),
+        (
+            "a NaN stimulus",
+            vec![first(0)],
+            pb::GroupStepRequest {
+                stimuli: le(&[0.0, 0.0, 0.0, 0.0, f64::NAN, 0.0, 0.0, 1.0]),
+                ..later(1)
+            },
+            Code::InvalidArgument,
+            "non_finite_number",
+            "non-finite",
+        ),
+        (
+            "an infinite stimulus",
+            vec![first(0)],
+            pb::GroupStepRequest {
+                stimuli: le(&[0.0, f64::NEG_INFINITY, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0]),
+                ..later(1)
+            },
+            Code::InvalidArgument,
+            "non_finite_number",
+            "non-finite",
+        ),
+        (
+            "a stimulus beyond 1e12",
+            vec![first(0)],
+            pb::GroupStepRequest {
+                stimuli: le(&[0.0, 0.0, 0.0, 0.0, 0.0, 2e12, 0.0, 1.0]),
+                ..later(1)
+            },
+            Code::InvalidArgument,
+            "stimulus_too_large",
+            "exceeds the limit",
+        ),
+        (
             "mask beyond the group",
             vec![],
             pb::GroupStepRequest {
@@ -581,7 +625,8 @@ async fn every_malformed_step_gets_its_own_code_and_a_refused_member_stops_no_ot
         status.message()
     );
 
-    // Values a member refuses: that member only, with Interact's code.
+    // What only a member refuses: that member only, with Interact's code
+    // (members 1 and 3 cannot have taken actions 7 and 3 of three).
     let members = {
         let (tx, mut replies) = open(&mut client).await;
         tx.send(pb::GroupStepRequest {
@@ -592,9 +637,9 @@ async fn every_malformed_step_gets_its_own_code_and_a_refused_member_stops_no_ot
         .expect("send");
         replies.message().await.expect("reply").expect("a reply");
         tx.send(pb::GroupStepRequest {
-            states: vec![24, 9_999, 26, 25],
-            stimuli: le(&[0.0, 0.0, 0.0, 0.0, f64::NAN, 0.0, 0.0, 1.0]),
-            action_taken: vec![u32::MAX, u32::MAX, u32::MAX, 7],
+            states: vec![24, 24, 26, 25],
+            stimuli: le(&[0.0; 8]),
+            action_taken: vec![u32::MAX, 7, u32::MAX, 3],
             ..later(1)
         })
         .await
@@ -610,11 +655,7 @@ async fn every_malformed_step_gets_its_own_code_and_a_refused_member_stops_no_ot
         .collect();
     assert_eq!(
         codes,
-        [
-            (1, "unknown_state"),
-            (2, "non_finite_number"),
-            (3, "unknown_action")
-        ],
+        [(1, "unknown_action"), (3, "unknown_action")],
         "{:?}",
         members.statuses
     );
@@ -626,8 +667,8 @@ async fn every_malformed_step_gets_its_own_code_and_a_refused_member_stops_no_ot
     );
     assert_eq!(
         members.ticks,
-        [1, 0, 0, 0],
-        "member 0 applied, the others not"
+        [1, 0, 1, 0],
+        "members 0 and 2 applied, the others not"
     );
     server.stop().await;
 }

@@ -215,9 +215,10 @@ class AgentsServicer:
         """Steps a group by columns (docs/groups.md, "Stepping"): each message one
         step of the members it masks, each reply that step's columns, in order.
         Up to 8 messages are read ahead of the replies; a message that does not
-        fit the group (lengths, mask, seq) ends the stream with its status; a
-        member that refuses its observation gets a status in the reply and the
-        others go on.
+        fit the group (lengths, mask, seq, a state outside the model, a NaN or
+        too large number) ends the stream with its status; a member that
+        refuses its observation (an action it cannot take, ...) gets a status in
+        the reply and the others go on.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
