@@ -483,38 +483,62 @@ fn a_group_and_its_stepped_members_survive_a_restart() {
 }
 
 /// Server time per member-observation on the group path against the
-/// per-session path, in this process (no transport): `cargo test -p
-/// mcapi-server --test api groups::measure -- --ignored --nocapture`.
+/// per-session path, in this process (no transport), in memory and on a
+/// durable store: `cargo test -p mcapi-server --test api groups::measure --
+/// --ignored --nocapture`.
 #[test]
 #[ignore = "a measurement, not a check"]
 fn measure_group_steps_against_single_observations() {
-    const N: usize = 1000;
-    const TICKS: usize = 200;
+    let (group_us, single_us) = measure(
+        &SessionManager::new(Limits::default(), 2).expect("manager"),
+        1000,
+        200,
+    );
+    eprintln!(
+        "1000 hallway members x 200 ticks, lockstep, in memory: {group_us:.2} µs per member-observation by group steps, {single_us:.2} µs by single observations"
+    );
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = SessionManager::with_options(ManagerOptions {
+        store: Some(store),
+        ..ManagerOptions::new(Limits::default(), 2)
+    })
+    .expect("manager");
+    manager.recover().expect("recovery");
+    let (group_us, single_us) = measure(&manager, 200, 10);
+    eprintln!(
+        "200 hallway members x 10 ticks, lockstep, durable store (fsync): {group_us:.2} µs per member-observation by group steps, {single_us:.2} µs by single observations"
+    );
+}
+
+/// (group, single) µs per member-observation of `n` hallway members
+/// stepped `ticks` times each way.
+fn measure(manager: &SessionManager, n: usize, ticks: usize) -> (f64, f64) {
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
+        .enable_all()
         .build()
         .expect("runtime");
-    let manager = SessionManager::new(Limits::default(), 2).expect("manager");
     let group = manager
         .create_group(
             Caller::Anyone,
             serde_json::from_value::<CreateGroup>(
-                json!({"model": {"preset": "hallway"}, "n": N, "seed": 1}),
+                json!({"model": {"preset": "hallway"}, "n": n, "seed": 1}),
             )
             .expect("body"),
         )
         .expect("create");
     let members: Vec<String> = group.members.iter().flatten().cloned().collect();
-    let mut states = vec![25u32; N];
+    let mut states = vec![25u32; n];
     let started = std::time::Instant::now();
-    for t in 0..TICKS {
+    for t in 0..ticks {
         let steps = rt
             .block_on(manager.step_group(
                 Caller::Anyone,
                 &group.id,
                 Columns {
                     states: states.clone(),
-                    stimuli: if t == 0 { Vec::new() } else { vec![0.0; 2 * N] },
+                    stimuli: if t == 0 { Vec::new() } else { vec![0.0; 2 * n] },
                     ..Columns::default()
                 },
             ))
@@ -524,9 +548,9 @@ fn measure_group_steps_against_single_observations() {
             *s = u32::try_from(moved(u64::from(*s), a as u64)).expect("state");
         }
     }
-    let group_us = started.elapsed().as_secs_f64() * 1e6 / (N * TICKS) as f64;
+    let group_us = started.elapsed().as_secs_f64() * 1e6 / (n * ticks) as f64;
     let started = std::time::Instant::now();
-    for t in 0..TICKS {
+    for _ in 0..ticks {
         for (k, id) in members.iter().enumerate() {
             let obs = mcapi_server::service::ObservationIn {
                 state: Some(states[k] as usize),
@@ -539,16 +563,13 @@ fn measure_group_steps_against_single_observations() {
             let step = rt
                 .block_on(manager.observe(Caller::Anyone, id, vec![obs]))
                 .expect("observe");
-            let _ = t;
             states[k] = u32::try_from(moved(u64::from(states[k]), step[0].action_index as u64))
                 .expect("state");
         }
     }
-    let single_us = started.elapsed().as_secs_f64() * 1e6 / (N * TICKS) as f64;
-    eprintln!(
-        "{N} hallway members x {TICKS} ticks, lockstep, in memory: {group_us:.2} µs per member-observation by group steps, {single_us:.2} µs by single observations"
-    );
+    let single_us = started.elapsed().as_secs_f64() * 1e6 / (n * ticks) as f64;
     manager.shutdown();
+    (group_us, single_us)
 }
 
 #[test]
