@@ -763,3 +763,41 @@ async fn a_group_that_does_not_fit_is_refused_whole_before_anything_exists() {
     );
     server.stop().await;
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn more_messages_in_flight_than_the_server_reads_ahead_wait_and_are_answered_in_order() {
+    const MESSAGES: u64 = 40;
+    let server = Server::start().await;
+    let mut client = server.client().await;
+    let group = create_group(&mut client, 2, pb::UpdateMode::Lockstep).await;
+    let (tx, rx) = mpsc::channel(MESSAGES as usize);
+    // Every message sent before any reply is read: the server reads 8
+    // ahead, the rest wait in the transport.
+    for seq in 0..MESSAGES {
+        tx.send(pb::GroupStepRequest {
+            group_id: group.group_id.clone(),
+            seq: 1000 + seq,
+            states: vec![START as u32; 2],
+            stimuli: if seq == 0 { Vec::new() } else { le(&[0.0; 4]) },
+            // Each member stays where it is, whatever it was advised.
+            action_taken: if seq == 0 { Vec::new() } else { vec![2, 2] },
+            ..Default::default()
+        })
+        .await
+        .expect("send");
+    }
+    drop(tx);
+    let mut replies = client
+        .step_group(ReceiverStream::new(rx))
+        .await
+        .expect("step_group")
+        .into_inner();
+    for seq in 0..MESSAGES {
+        let reply = replies.message().await.expect("reply").expect("a reply");
+        assert_eq!(reply.seq, 1000 + seq);
+        assert!(reply.statuses.is_empty(), "{:?}", reply.statuses);
+        assert_eq!(reply.ticks, [seq, seq]);
+    }
+    assert!(replies.message().await.expect("ends cleanly").is_none());
+    server.stop().await;
+}
