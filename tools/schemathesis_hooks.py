@@ -6,8 +6,8 @@ refuses a body that parses but means nothing (an unknown state, a model
 whose `next` has the wrong number of rows, ...) with 400 and a semantic
 code (`invalid_model`, `unknown_state`, ...); schemathesis' own
 `positive_data_acceptance` check cannot tell those apart from a parse
-failure, so tools/schemathesis.toml lets `create_session` and `observe`
-answer 400, and this check keeps the contract exact: a 400 whose message is
+failure, so tools/schemathesis.toml lets `create_session`, `observe`,
+`create_group` and `step_group` answer 400, and this check keeps the contract exact: a 400 whose message is
 a parse error (serde's `missing field`, `unknown field`, `invalid type`,
 ...), or any 400 to an operation whose parameters have no semantic
 constraint, means the document and the parser disagree.
@@ -25,7 +25,16 @@ PARSE_ERROR = re.compile(
 
 # Operations whose parameters the document describes completely: any 400
 # to a schema-valid request is a contract failure.
-NO_SEMANTIC_400 = {"list_sessions", "get_session", "delete_session", "get_values", "get_history", "get_events"}
+NO_SEMANTIC_400 = {
+    "list_sessions",
+    "get_session",
+    "delete_session",
+    "get_values",
+    "get_history",
+    "get_events",
+    "get_group",
+    "delete_group",
+}
 
 
 @schemathesis.check

@@ -197,6 +197,9 @@ class SessionFailed(InternalError):
 # The server's stable codes (crates/mcapi-server/src/api/error.rs) with their class and HTTP status.
 ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "bad_request": (BadRequest, 400),
+    "column_length": (BadRequest, 400),
+    "invalid_mask": (BadRequest, 400),
+    "sequence_out_of_order": (BadRequest, 400),
     "invalid_model": (InvalidModel, 400),
     "invalid_basis": (InvalidModel, 400),
     "invalid_parameter": (InvalidParameter, 400),

@@ -4,9 +4,10 @@
 //! through the Runtime API (`set map` on the stats socket), with no reload.
 //!
 //! - REST: the shard is the first five characters of the fourth path field
-//!   (`/v1/sessions/s03a7.01JD…/observations`); the owner comes from the map
-//!   file; `POST /v1/sessions` and `GET /v1/sessions` have no shard and go
-//!   round-robin over every replica.
+//!   (`/v1/sessions/s03a7.01JD…/observations`, `/v1/groups/s03a7.g01JD…/steps`:
+//!   a group's id carries its members' shard); the owner comes from the map
+//!   file; `POST /v1/sessions`, `GET /v1/sessions` and `POST /v1/groups`
+//!   have no shard and go round-robin over every replica.
 //! - gRPC: h2 on both sides; the shard comes from the `x-mcapi-session`
 //!   metadata; calls without it (`CreateSession`, `ListSessions`) go
 //!   round-robin.
@@ -242,7 +243,7 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
          \n\
          frontend fe_rest\n\
          \x20 bind {rest}\n\
-         \x20 http-request set-var(txn.shard) path,field(4,/),field(1,.) if {{ path_beg /v1/sessions/ }}\n\
+         \x20 http-request set-var(txn.shard) path,field(4,/),field(1,.) if {{ path_beg /v1/sessions/ /v1/groups/ }}\n\
          \x20 use_backend be_rest_%[var(txn.shard),map({map_path})] if {found}\n\
          \x20 # Creates and listings: no shard, round-robin.\n\
          \x20 default_backend be_rest_any\n\

@@ -141,6 +141,9 @@ pub struct ServeConfig {
     /// Maximum observations in one batch.
     #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_BATCH", default_value_t = Limits::default().max_batch)]
     pub max_batch: usize,
+    /// Maximum members of one session group.
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_GROUP_MEMBERS", default_value_t = Limits::default().max_group_members)]
+    pub max_group_members: usize,
     /// Buffered messages per gRPC stream.
     #[arg(help_heading = "Connections", long, env = "MCAPI_STREAM_BUFFER", default_value_t = Limits::default().stream_buffer)]
     pub stream_buffer: usize,
@@ -290,6 +293,7 @@ impl ServeConfig {
             max_stimuli: self.max_stimuli,
             max_body_bytes: self.max_body_bytes,
             max_batch: self.max_batch,
+            max_group_members: self.max_group_members,
             stream_buffer: self.stream_buffer,
             max_history: self.max_history,
             max_pvf_states: self.max_pvf_states,
@@ -434,6 +438,7 @@ impl ServeConfig {
             ("--max-stimuli", self.max_stimuli),
             ("--max-body-bytes", self.max_body_bytes),
             ("--max-batch", self.max_batch),
+            ("--max-group-members", self.max_group_members),
             ("--stream-buffer", self.stream_buffer),
             ("--max-pvf-states", self.max_pvf_states),
             ("--max-name-bytes", self.max_name_bytes),

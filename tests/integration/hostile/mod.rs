@@ -1017,8 +1017,222 @@ async fn hostile_requests_get_precise_refusals_and_the_server_stays_up() {
     )
     .await;
 
+    // ---------------------------------------------------------------- groups
+    let group = b
+        .rest(
+            "a legal group of two",
+            Method::POST,
+            "/v1/groups",
+            Body::Json(json!({"model": {"preset": "hallway"}, "n": 2, "seed": 1})),
+            201,
+            "",
+        )
+        .await;
+    let gid = group["id"].as_str().expect("group id").to_string();
+    let hallway_group = |extra: Value| {
+        let mut body = json!({"model": {"preset": "hallway"}});
+        if let (Some(b), Some(e)) = (body.as_object_mut(), extra.as_object()) {
+            b.extend(e.clone());
+        }
+        body
+    };
+    for (name, body, status, code) in [
+        (
+            "group of u64::MAX members",
+            hallway_group(json!({"n": u64::MAX})),
+            413,
+            "limit_exceeded",
+        ),
+        (
+            "group of 10001 members",
+            hallway_group(json!({"n": 10_001})),
+            413,
+            "limit_exceeded",
+        ),
+        (
+            "group of 0 members",
+            hallway_group(json!({"n": 0})),
+            400,
+            "bad_request",
+        ),
+        (
+            "group of -1 members",
+            hallway_group(json!({"n": -1})),
+            400,
+            "bad_request",
+        ),
+        (
+            "group of 1e300 members",
+            hallway_group(json!({"n": 1e300})),
+            400,
+            "bad_request",
+        ),
+        (
+            "group without n",
+            hallway_group(json!({})),
+            400,
+            "bad_request",
+        ),
+        (
+            "group with a member's seed",
+            hallway_group(json!({"n": 2, "agent": {"seed": 3}})),
+            400,
+            "bad_request",
+        ),
+        // Two sessions and the group's two are held: 49 more do not fit 50.
+        (
+            "group over the key's quota",
+            hallway_group(json!({"n": 49})),
+            429,
+            "quota_exceeded",
+        ),
+    ] {
+        b.rest(
+            name,
+            Method::POST,
+            "/v1/groups",
+            Body::Json(body),
+            status,
+            code,
+        )
+        .await;
+    }
+    let steps = format!("/v1/groups/{gid}/steps");
+    for (name, body, status, code) in [
+        (
+            "step: states of another length",
+            json!({"states": [1]}),
+            400,
+            "column_length",
+        ),
+        (
+            "step: a mask of 100000 entries",
+            json!({"mask": (0..100_000).collect::<Vec<u32>>(), "states": vec![0; 100_000]}),
+            400,
+            "invalid_mask",
+        ),
+        (
+            "step: a mask entry u32::MAX",
+            json!({"mask": [u32::MAX], "states": [1]}),
+            400,
+            "invalid_mask",
+        ),
+        (
+            "step: a mask entry beyond u32",
+            json!({"mask": [u64::MAX], "states": [1]}),
+            400,
+            "bad_request",
+        ),
+        (
+            "step: a repeated mask entry",
+            json!({"mask": [1, 1], "states": [1, 1]}),
+            400,
+            "invalid_mask",
+        ),
+        (
+            "step: ragged stimuli",
+            json!({"states": [1, 1], "stimuli": [[0, 0], [0]]}),
+            400,
+            "column_length",
+        ),
+        (
+            "step: 100000 stimulus rows",
+            json!({"states": [1, 1], "stimuli": vec![[0, 0]; 100_000]}),
+            400,
+            "column_length",
+        ),
+        (
+            "step: a state of 1e300",
+            json!({"states": [1e300, 1]}),
+            400,
+            "bad_request",
+        ),
+        (
+            "step: an action u32::MAX",
+            json!({"states": [1, 1], "action_taken": [u32::MAX, null]}),
+            400,
+            "bad_request",
+        ),
+        ("step: an array body", json!([1, 2]), 400, "bad_request"),
+    ] {
+        b.rest(name, Method::POST, &steps, Body::Json(body), status, code)
+            .await;
+    }
+    b.rest(
+        "step an unknown group",
+        Method::POST,
+        "/v1/groups/s0000.g01ARZ3NDEKTSV4RRFFQ69G5FAV/steps",
+        Body::Json(json!({"states": [1]})),
+        404,
+        "not_found",
+    )
+    .await;
+    b.rest(
+        "a group id of 10 kB",
+        Method::GET,
+        &format!("/v1/groups/{}", big(10_000)),
+        Body::None,
+        404,
+        "not_found",
+    )
+    .await;
+    b.rest(
+        "delete an unknown group",
+        Method::DELETE,
+        "/v1/groups/s0000.g01ARZ3NDEKTSV4RRFFQ69G5FAV",
+        Body::None,
+        404,
+        "not_found",
+    )
+    .await;
+    let r = g
+        .create_group(authed(pb::CreateGroupRequest {
+            model: Some(pb::Model::preset("hallway")),
+            agent: None,
+            n: u32::MAX,
+            seed: None,
+        }))
+        .await;
+    b.grpc(
+        "gRPC group of u32::MAX members",
+        r,
+        Code::ResourceExhausted,
+        "limit_exceeded",
+    )
+    .await;
+    let (tx, rx) = tokio::sync::mpsc::channel(4);
+    let mut replies = g
+        .step_group(authed(tokio_stream::wrappers::ReceiverStream::new(rx)))
+        .await
+        .expect("a StepGroup stream opens")
+        .into_inner();
+    let step = |seq: u64, first: bool| pb::GroupStepRequest {
+        group_id: gid.clone(),
+        seq,
+        states: vec![25, 25],
+        stimuli: if first {
+            Vec::new()
+        } else {
+            [0.0f64; 4].iter().flat_map(|x| x.to_le_bytes()).collect()
+        },
+        ..Default::default()
+    };
+    tx.send(step(u64::MAX, true)).await.expect("send");
+    assert!(replies.message().await.expect("a reply").is_some());
+    tx.send(step(0, false)).await.expect("send");
+    let r = replies.message().await;
+    b.grpc(
+        "gRPC StepGroup seq wrapping around",
+        r,
+        Code::InvalidArgument,
+        "sequence_out_of_order",
+    )
+    .await;
+    drop(tx);
+
     // ----------------------------------------------------- quota of the key
-    let mut made = 2;
+    // Two sessions and the group's two members are held.
+    let mut made = 4;
     while made < 50 {
         b.rest(
             "filling the key's quota",

@@ -49,7 +49,14 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
             AlgoError::Numerical(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "numerical_failure"),
         },
         ServiceError::BadRequest(_) => (H::BAD_REQUEST, G::InvalidArgument, "bad_request"),
-        ServiceError::NotFound(_) => (H::NOT_FOUND, G::NotFound, "not_found"),
+        ServiceError::NotFound(_) | ServiceError::GroupNotFound(_) => {
+            (H::NOT_FOUND, G::NotFound, "not_found")
+        }
+        ServiceError::ColumnLength(_) => (H::BAD_REQUEST, G::InvalidArgument, "column_length"),
+        ServiceError::InvalidMask(_) => (H::BAD_REQUEST, G::InvalidArgument, "invalid_mask"),
+        ServiceError::SequenceOutOfOrder(_) => {
+            (H::BAD_REQUEST, G::InvalidArgument, "sequence_out_of_order")
+        }
         ServiceError::UnknownRoute(_) => (H::NOT_FOUND, G::Unimplemented, "unknown_route"),
         ServiceError::MethodNotAllowed(_) => (
             H::METHOD_NOT_ALLOWED,

@@ -421,6 +421,77 @@ impl Agents for AgentsService {
         Ok(Response::new(convert::values(values.value)))
     }
 
+    async fn create_group(
+        &self,
+        request: Request<pb::CreateGroupRequest>,
+    ) -> Result<Response<pb::GroupInfo>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let (model, agent, n, seed) =
+            convert::create_group(request.into_inner()).map_err(to_status)?;
+        let manager = Arc::clone(&self.manager);
+        // Building N agents (and a model) must not block the runtime.
+        let info = tokio::task::spawn_blocking(move || {
+            manager.create_group_parsed(caller, model, &agent, n, seed)
+        })
+        .await
+        .map_err(|e| to_status(ServiceError::Internal(format!("create task: {e}"))))?
+        .map_err(to_status)?;
+        Ok(Response::new(convert::group_info(info)))
+    }
+
+    async fn get_group(
+        &self,
+        request: Request<pb::GetGroupRequest>,
+    ) -> Result<Response<pb::GroupInfo>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let pb::GetGroupRequest { group_id } = request.into_inner();
+        let id = convert::group_id(group_id, meta.as_deref()).map_err(to_status)?;
+        let info = self
+            .manager
+            .off_runtime(move |m| m.get_group(caller, &id))
+            .await
+            .map_err(to_status)?;
+        Ok(Response::new(convert::group_info(info)))
+    }
+
+    async fn delete_group(
+        &self,
+        request: Request<pb::DeleteGroupRequest>,
+    ) -> Result<Response<pb::DeleteGroupResponse>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let pb::DeleteGroupRequest { group_id } = request.into_inner();
+        let id = convert::group_id(group_id, meta.as_deref()).map_err(to_status)?;
+        self.manager
+            .delete_group(caller, &id)
+            .await
+            .map_err(to_status)?;
+        Ok(Response::new(pb::DeleteGroupResponse {}))
+    }
+
+    type StepGroupStream = ReceiverStream<Result<pb::GroupStepReply, Status>>;
+
+    async fn step_group(
+        &self,
+        request: Request<Streaming<pb::GroupStepRequest>>,
+    ) -> Result<Response<Self::StepGroupStream>, Status> {
+        let caller = caller(&self.manager, &request)?;
+        let meta = metadata_session(request.metadata())?;
+        let span = tracing::info_span!(
+            "stream",
+            method = "step_group",
+            group = meta.as_deref().unwrap_or("")
+        );
+        let inbound = request.into_inner();
+        let (tx, rx) = mpsc::channel(STEP_GROUP_IN_FLIGHT);
+        let manager = Arc::clone(&self.manager);
+        let ends = tx.clone();
+        let serve = step_group_stream(manager, caller, meta, inbound, tx);
+        spawn_stream("step_group", span, ends, self.stopping.clone(), serve, ());
+        Ok(Response::new(ReceiverStream::new(rx)))
+    }
+
     async fn get_history(
         &self,
         request: Request<pb::GetHistoryRequest>,
@@ -436,6 +507,110 @@ impl Agents for AgentsService {
             .map_err(to_status)?;
         Ok(Response::new(convert::history(entries.value)))
     }
+}
+
+/// Messages of one `StepGroup` stream the server reads before answering
+/// them (docs/groups.md, "Pipelining"): one being applied and the rest
+/// waiting; its replies wait for the client in a buffer as long.
+pub const STEP_GROUP_IN_FLIGHT: usize = 8;
+
+/// Serves a `StepGroup` stream: a reader checks each message's group id
+/// and `seq` and decodes its columns, up to [`STEP_GROUP_IN_FLIGHT`]
+/// messages ahead; the steps are applied one message at a time, in order,
+/// each answered before the next is applied. The first message that does
+/// not fit ends the stream with its status, after the replies before it.
+async fn step_group_stream(
+    manager: Arc<SessionManager>,
+    caller: Caller,
+    meta: Option<String>,
+    mut inbound: Streaming<pb::GroupStepRequest>,
+    tx: mpsc::Sender<Result<pb::GroupStepReply, Status>>,
+) {
+    let (ahead_tx, mut ahead) = mpsc::channel(STEP_GROUP_IN_FLIGHT - 1);
+    let read = async move {
+        let mut group: Option<String> = None;
+        let mut last_seq: Option<u64> = None;
+        loop {
+            let item = match inbound.message().await {
+                Ok(Some(message)) => {
+                    step_message(message, meta.as_deref(), &mut group, &mut last_seq)
+                }
+                Ok(None) => return,
+                Err(status) => Err(status),
+            };
+            let failed = item.is_err();
+            if ahead_tx.send(item).await.is_err() || failed {
+                return;
+            }
+        }
+    };
+    let apply = async move {
+        // The stimulus dimensions of the group, for refused members' rows.
+        let mut width: Option<usize> = None;
+        while let Some(item) = ahead.recv().await {
+            let reply = match item {
+                Ok((id, seq, columns)) => {
+                    let n = match width {
+                        Some(n) => Ok(n),
+                        None => manager
+                            .group_for(caller, &id)
+                            .map(|g| *width.insert(g.model.stimuli.len())),
+                    };
+                    match n {
+                        Ok(n) => manager
+                            .step_group(caller, &id, columns)
+                            .await
+                            .map(|steps| convert::group_step_reply(seq, n, steps))
+                            .map_err(to_status),
+                        Err(e) => Err(to_status(e)),
+                    }
+                }
+                Err(status) => Err(status),
+            };
+            let failed = reply.is_err();
+            if tx.send(reply).await.is_err() || failed {
+                return;
+            }
+        }
+    };
+    tokio::join!(read, apply);
+}
+
+/// One `StepGroup` message checked against the stream so far: the group
+/// is the first message's (or the metadata's), later ones name it again or
+/// leave it empty; each `seq` is the previous one's plus one.
+fn step_message(
+    message: pb::GroupStepRequest,
+    meta: Option<&str>,
+    group: &mut Option<String>,
+    last_seq: &mut Option<u64>,
+) -> Result<(String, u64, crate::service::groups::Columns), Status> {
+    let (id, seq, columns) = convert::group_step(message).map_err(to_status)?;
+    let id = match group.as_deref() {
+        None => convert::group_id(id, meta).map_err(to_status)?,
+        Some(first) if id.is_empty() || id == first => first.to_string(),
+        Some(first) => {
+            return Err(to_status(ServiceError::field(
+                "group_id",
+                format!("`{id}` differs from the stream's group `{first}`"),
+            )));
+        }
+    };
+    if let Some(last) = *last_seq
+        && Some(seq) != last.checked_add(1)
+    {
+        let why = if seq <= last {
+            "does not increase"
+        } else {
+            "skips ahead"
+        };
+        return Err(to_status(ServiceError::SequenceOutOfOrder(format!(
+            "`seq` is {seq} after {last}: it {why}; each message's `seq` is the previous one's plus one"
+        ))));
+    }
+    *last_seq = Some(seq);
+    group.get_or_insert_with(|| id.clone());
+    Ok((id, seq, columns))
 }
 
 /// The one step of a one-observation batch.

@@ -8,10 +8,12 @@ use utoipa::OpenApi;
 
 use crate::api::error::ErrorBody;
 use crate::api::schemas::{
-    BadRequest, BearerAuth, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply,
-    PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized, Unavailable, request_schemas,
+    BadRequest, BearerAuth, GroupStepReply, InternalError, MemberError, MisdirectedRequest,
+    NotFound, ObserveBatchReply, PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized,
+    Unavailable, request_schemas,
 };
 use crate::service::Limits;
+use crate::service::groups::GroupInfo;
 
 /// The paths of the OpenAPI document; [`document`] completes it with the request schemas of the server's limits.
 #[derive(OpenApi)]
@@ -32,12 +34,16 @@ use crate::service::Limits;
         crate::api::rest::values,
         crate::api::rest::history,
         crate::api::dashboard::events,
+        crate::api::rest::create_group,
+        crate::api::rest::get_group,
+        crate::api::rest::delete_group,
+        crate::api::rest::step_group,
         crate::api::rest::healthz,
         crate::api::rest::readyz,
         crate::api::rest::metrics_text
     ),
     components(
-        schemas(ErrorBody, ObserveBatchReply, SseEvent),
+        schemas(ErrorBody, ObserveBatchReply, SseEvent, GroupInfo, GroupStepReply, MemberError),
         responses(BadRequest, Unauthorized, NotFound, MisdirectedRequest, PayloadTooLarge, TooManyRequests, InternalError, Unavailable)
     ),
     modifiers(&BearerAuth),
@@ -46,6 +52,7 @@ use crate::service::Limits;
         (name = "sessions", description = "Create, list, read and delete sessions."),
         (name = "observations", description = "Report what the agent observed; get its next action."),
         (name = "inspection", description = "A session's value tables, recent ticks and live event stream."),
+        (name = "groups", description = "Groups of sessions of one model and configuration, created, read, deleted and stepped together by columns."),
         (name = "operations", description = "Liveness, readiness and Prometheus metrics (no API key needed).")
     )
 )]

@@ -18,10 +18,12 @@ use crate::api::error::ApiError;
 use crate::api::extract::{AppState, Auth, JsonBody, query};
 use crate::api::observe_body::ObserveBody;
 use crate::api::schemas::{
-    BadRequest, InternalError, MisdirectedRequest, NotFound, ObserveBatchReply, ObserveReply,
-    ObserveRequest, PayloadTooLarge, TooManyRequests, Unauthorized, Unavailable,
+    BadRequest, CreateGroupRequest, GroupStep, GroupStepReply, InternalError, MisdirectedRequest,
+    NotFound, ObserveBatchReply, ObserveReply, ObserveRequest, PayloadTooLarge, TooManyRequests,
+    Unauthorized, Unavailable,
 };
 use crate::service::budget::ResponsePermit;
+use crate::service::groups::{ADVISED, Columns, CreateGroup, GroupInfo};
 use crate::service::{
     CreateSession, HistoryEntry, ServiceError, SessionInfo, SessionPage, ValueSelection, Values,
 };
@@ -363,4 +365,158 @@ pub(crate) async fn history(
         })
         .await?;
     Ok(budgeted_json_response(json, permit))
+}
+
+/// Create a group
+///
+/// N sessions of one model and one agent configuration on one shard
+/// (docs/groups.md); member i's seed derives from the group's `seed`. Each
+/// member is an ordinary session. Refused whole, before any member exists,
+/// when the group does not fit the limits or the caller's quota.
+#[utoipa::path(post, path = "/v1/groups", tag = "groups", operation_id = "create_group",
+    request_body = CreateGroupRequest,
+    responses(
+        (status = 201, description = "The group: its id, seed, shape and member session ids.",
+            body = GroupInfo,
+            links(
+                ("GetGroup" = (operation_id = "get_group", parameters(("id" = "$response.body#/id")),
+                    description = "The group just created.")),
+                ("DeleteGroup" = (operation_id = "delete_group", parameters(("id" = "$response.body#/id")),
+                    description = "Delete the group just created.")),
+                ("StepGroup" = (operation_id = "step_group", parameters(("id" = "$response.body#/id")),
+                    description = "Step the group just created."))
+            )),
+        (status = 400, response = BadRequest),
+        (status = 401, response = Unauthorized),
+        (status = 413, response = PayloadTooLarge),
+        (status = 429, response = TooManyRequests),
+        (status = 503, response = Unavailable)))]
+pub(crate) async fn create_group(
+    State(state): State<AppState>,
+    Auth(caller): Auth,
+    JsonBody(req): JsonBody<CreateGroup>,
+) -> Result<(StatusCode, Json<GroupInfo>), ApiError> {
+    let manager = Arc::clone(&state.manager);
+    let info = tokio::task::spawn_blocking(move || manager.create_group(caller, req))
+        .await
+        .map_err(|e| ServiceError::Internal(format!("create task: {e}")))??;
+    Ok((StatusCode::CREATED, Json(info)))
+}
+
+/// Get a group
+///
+/// Its seed, its shape (members, stimulus and observation dimensions) and its
+/// member session ids by index.
+#[utoipa::path(get, path = "/v1/groups/{id}", tag = "groups", operation_id = "get_group",
+    params(("id" = String, Path, description = "The group's id, as `POST /v1/groups` returned it.")),
+    responses(
+        (status = 200, description = "The group.", body = GroupInfo),
+        (status = 401, response = Unauthorized),
+        (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
+        (status = 503, response = Unavailable)))]
+pub(crate) async fn get_group(
+    State(state): State<AppState>,
+    Auth(caller): Auth,
+    Path(id): Path<String>,
+) -> Result<Json<GroupInfo>, ApiError> {
+    Ok(Json(
+        state
+            .manager
+            .off_runtime(move |m| m.get_group(caller, &id))
+            .await?,
+    ))
+}
+
+/// Delete a group
+///
+/// Every member, with its stored data, then the group.
+#[utoipa::path(delete, path = "/v1/groups/{id}", tag = "groups", operation_id = "delete_group",
+    params(("id" = String, Path, description = "The group's id, as `POST /v1/groups` returned it.")),
+    responses(
+        (status = 204, description = "Deleted."),
+        (status = 401, response = Unauthorized),
+        (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
+        (status = 503, response = Unavailable)))]
+pub(crate) async fn delete_group(
+    State(state): State<AppState>,
+    Auth(caller): Auth,
+    Path(id): Path<String>,
+) -> Result<StatusCode, ApiError> {
+    state.manager.delete_group(caller, &id).await?;
+    Ok(StatusCode::NO_CONTENT)
+}
+
+/// Step a group
+///
+/// One step of the members masked (all without a mask) by columns: each
+/// column has one entry per member stepped. A member that refuses its
+/// observation is null in the reply's columns and listed in `errors`; the
+/// others are applied.
+#[utoipa::path(post, path = "/v1/groups/{id}/steps", tag = "groups", operation_id = "step_group",
+    params(("id" = String, Path, description = "The group's id, as `POST /v1/groups` returned it.")),
+    request_body = GroupStep,
+    responses(
+        (status = 200, description = "The step's columns, one entry per member stepped.", body = GroupStepReply),
+        (status = 400, response = BadRequest),
+        (status = 401, response = Unauthorized),
+        (status = 404, response = NotFound),
+        (status = 421, response = MisdirectedRequest),
+        (status = 413, response = PayloadTooLarge),
+        (status = 500, response = InternalError),
+        (status = 503, response = Unavailable)))]
+pub(crate) async fn step_group(
+    State(state): State<AppState>,
+    Auth(caller): Auth,
+    Path(id): Path<String>,
+    JsonBody(body): JsonBody<GroupStep>,
+) -> Result<Json<GroupStepReply>, ApiError> {
+    let columns = group_columns(body)?;
+    let steps = state.manager.step_group(caller, &id, columns).await?;
+    Ok(Json(GroupStepReply::of(steps)))
+}
+
+/// A step's JSON columns as the service's: rows of numbers laid end to end
+/// (every row as long as the first), null actions as the advised one.
+fn group_columns(body: GroupStep) -> Result<Columns, ServiceError> {
+    let GroupStep {
+        mask,
+        states,
+        observations,
+        stimuli,
+        action_taken,
+    } = body;
+    let action_taken = action_taken
+        .unwrap_or_default()
+        .into_iter()
+        .enumerate()
+        .map(|(j, a)| match a {
+            Some(ADVISED) => Err(ServiceError::field(
+                &format!("action_taken[{j}]"),
+                format!("{ADVISED} is no action index (null takes the advised action)"),
+            )),
+            a => Ok(a.unwrap_or(ADVISED)),
+        })
+        .collect::<Result<_, _>>()?;
+    Ok(Columns {
+        mask: mask.unwrap_or_default(),
+        states: states.unwrap_or_default(),
+        observations: rows("observations", observations.unwrap_or_default())?,
+        stimuli: rows("stimuli", stimuli.unwrap_or_default())?,
+        action_taken,
+    })
+}
+
+/// Rows of equal length laid end to end.
+fn rows(field: &str, rows: Vec<Vec<f64>>) -> Result<Vec<f64>, ServiceError> {
+    let width = rows.first().map_or(0, Vec::len);
+    if let Some((i, row)) = rows.iter().enumerate().find(|(_, r)| r.len() != width) {
+        return Err(ServiceError::ColumnLength(format!(
+            "`{field}[{i}]` has {} numbers and `{field}[0]` {width}: every row has one number \
+             per dimension",
+            row.len()
+        )));
+    }
+    Ok(rows.into_iter().flatten().collect())
 }

@@ -25,8 +25,8 @@ use crate::api::error::ApiError;
 use crate::api::extract::AppState;
 use crate::api::openapi::document;
 use crate::api::rest::{
-    create_session, delete_session, get_session, healthz, history, list_sessions, metrics_text,
-    observe, readyz, values,
+    create_group, create_session, delete_group, delete_session, get_group, get_session, healthz,
+    history, list_sessions, metrics_text, observe, readyz, step_group, values,
 };
 use crate::api::{admin, conn, dashboard};
 use crate::service::{ServiceError, SessionManager};
@@ -56,6 +56,9 @@ pub fn router(state: AppState) -> Router {
         .route("/v1/sessions/{id}/observations", post(observe))
         .route("/v1/sessions/{id}/values", get(values))
         .route("/v1/sessions/{id}/history", get(history))
+        .route("/v1/groups", post(create_group))
+        .route("/v1/groups/{id}", get(get_group).delete(delete_group))
+        .route("/v1/groups/{id}/steps", post(step_group))
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
         .route("/metrics", get(metrics_text))

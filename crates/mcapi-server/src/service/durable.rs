@@ -47,6 +47,10 @@ pub struct SessionRecord {
     pub config: EffectiveConfig,
     /// SHA-256 of the API key that created it, if keys were in force.
     pub owner: Option<[u8; 32]>,
+    /// The group it was created in, if any (docs/groups.md): the groups
+    /// are rebuilt at start from their members' records.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub group: Option<super::groups::GroupTag>,
 }
 
 /// One observation as logged.

@@ -21,6 +21,22 @@ pub enum ServiceError {
     /// No such session (or not visible to the caller).
     #[error("session `{0}` not found")]
     NotFound(String),
+    /// No such group (or not visible to the caller, docs/groups.md).
+    #[error("group `{0}` not found")]
+    GroupNotFound(String),
+    /// A column of a group step whose length disagrees with the members
+    /// stepped, the stimulus dimensions or the observation dimensions
+    /// (docs/groups.md, "Stepping"); nothing was applied.
+    #[error("{0}")]
+    ColumnLength(String),
+    /// A group step's mask that is not strictly increasing or names a
+    /// member beyond the group; nothing was applied.
+    #[error("{0}")]
+    InvalidMask(String),
+    /// A `StepGroup` message whose `seq` is not the previous one's plus
+    /// one; nothing was applied, and the stream ends.
+    #[error("{0}")]
+    SequenceOutOfOrder(String),
     /// No such route (REST).
     #[error("no route for {0}")]
     UnknownRoute(String),

@@ -36,6 +36,8 @@ pub struct Limits {
     pub max_body_bytes: usize,
     /// Observations in one batch.
     pub max_batch: usize,
+    /// Members of one session group (docs/groups.md).
+    pub max_group_members: usize,
     /// History entries per session.
     pub max_history: usize,
     /// Buffered messages per gRPC stream.
@@ -82,6 +84,7 @@ impl Default for Limits {
             max_stimuli: 64,
             max_body_bytes: 16 << 20,
             max_batch: 10_000,
+            max_group_members: 10_000,
             max_history: 100_000,
             stream_buffer: 64,
             queue: 1 << 20,
@@ -112,6 +115,7 @@ impl Limits {
             max_stimuli: usize::MAX,
             max_body_bytes: usize::MAX,
             max_batch: usize::MAX,
+            max_group_members: usize::MAX,
             max_history: usize::MAX,
             stream_buffer: usize::MAX,
             queue: usize::MAX,

@@ -20,6 +20,7 @@ pub mod budget;
 pub mod cost;
 pub mod durable;
 pub mod error;
+pub mod groups;
 pub mod history;
 pub mod learner;
 pub mod limits;

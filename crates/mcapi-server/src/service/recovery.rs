@@ -232,6 +232,7 @@ pub(super) fn rebuild(
         Some(d.clone()),
         session::Resumed {
             owner: record.owner,
+            group: record.group,
             history,
             seq: next_seq,
             since_snapshot,

@@ -16,6 +16,7 @@ use mcapi_store::{Commit, Store, Write};
 use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
+use super::groups::GroupTag;
 use super::history::{RingTick, push_tick};
 use super::learner::Learner;
 use super::wire::{HistoryEntry, ModelSummary, ObservationIn, SessionCost, StepOut};
@@ -89,6 +90,8 @@ pub struct Session {
     pub config: EffectiveConfig,
     /// SHA-256 of the API key that created it, if keys were in force.
     pub owner: Option<[u8; 32]>,
+    /// The group it was created in, if any (docs/groups.md).
+    pub group: Option<GroupTag>,
     /// Mutable state.
     pub state: Mutex<SessionState>,
     durability: Option<Durability>,
@@ -176,6 +179,7 @@ impl Session {
             model,
             config,
             owner: resumed.owner,
+            group: resumed.group,
             durability,
             state: Mutex::new(SessionState {
                 learner,
@@ -570,6 +574,8 @@ pub struct Resumed {
     pub last_observed_ns: u64,
     /// Owner digest.
     pub owner: Option<[u8; 32]>,
+    /// Its group, from its creation record.
+    pub group: Option<GroupTag>,
     /// History ring, oldest first.
     pub history: VecDeque<RingTick>,
     /// Sequence number of the next log entry.

@@ -12,6 +12,7 @@
 
 mod continuous;
 mod eviction;
+mod groups;
 mod grpc;
 mod numerics;
 mod openapi;

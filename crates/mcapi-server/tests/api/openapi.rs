@@ -48,7 +48,13 @@ fn every_operation_is_tagged_and_documents_its_errors() {
         .collect();
     assert_eq!(
         tags,
-        ["sessions", "observations", "inspection", "operations"]
+        [
+            "sessions",
+            "observations",
+            "inspection",
+            "groups",
+            "operations"
+        ]
     );
     let mut operations = 0;
     for (path, item) in d["paths"].as_object().expect("paths") {
@@ -105,7 +111,7 @@ fn every_operation_is_tagged_and_documents_its_errors() {
             }
         }
     }
-    assert_eq!(operations, 11);
+    assert_eq!(operations, 15);
     for code in ["413", "429"] {
         assert!(d["paths"]["/v1/sessions"]["post"]["responses"][code].is_object());
     }
@@ -141,9 +147,20 @@ fn bounds_are_the_limits_of_the_server() {
         max_curiosity_window: 77,
         max_roc_centres: 9,
         max_signal_sources: 12,
+        max_group_members: 40,
         ..Limits::default()
     };
     let d = doc(&limits);
+    let group = &schema(&d, "CreateGroup")["properties"];
+    assert_eq!(group["n"]["maximum"], 40);
+    assert_eq!(group["n"]["minimum"], 1);
+    let step = &schema(&d, "GroupStep")["properties"];
+    for column in ["mask", "states", "observations", "stimuli", "action_taken"] {
+        assert_eq!(step[column]["maxItems"], 40, "{column}");
+    }
+    assert_eq!(step["mask"]["items"]["maximum"], 39);
+    assert_eq!(step["states"]["items"]["maximum"], 1233);
+    assert_eq!(step["stimuli"]["items"]["maxItems"], 7);
     let full = schema(&d, "FullModelNext");
     assert_eq!(full["properties"]["states"]["maximum"], 1234);
     assert_eq!(full["properties"]["states"]["minimum"], 1);

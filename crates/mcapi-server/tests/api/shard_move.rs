@@ -453,3 +453,92 @@ async fn a_shard_moves_whole_with_what_was_acknowledged_before_the_freeze() {
     assert_eq!(code, StatusCode::OK, "{body}");
     assert_eq!(body["tick"], 2);
 }
+
+/// A group moves with its shard: its members' records name it, so the
+/// target serves the group (and steps it) once the shard is active there,
+/// and the source refuses it as it refuses the members.
+#[tokio::test]
+async fn a_group_moves_with_its_shard() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let names = ordinal_names("mcapi", 2).expect("names");
+    let base = plan(&names, None).expect("plan").map;
+    let shard = base.shards_of(&names[0])[0];
+    let owners: Vec<ReplicaName> = (0..1024u16)
+        .map(|s| {
+            if s == shard {
+                names[0].clone()
+            } else {
+                names[1].clone()
+            }
+        })
+        .collect();
+    let map = ShardMap::from_owners(1, &owners).expect("map");
+    let a = replica(&map, "mcapi-0", &tmp.path().join("a"), Some(KEY));
+    let b = replica(&map, "mcapi-1", &tmp.path().join("b"), Some(KEY));
+    let (code, group) = send(
+        &a.app,
+        "POST",
+        "/v1/groups",
+        None,
+        Some(r#"{"model": {"preset": "hallway"}, "n": 3, "seed": 11}"#),
+    )
+    .await;
+    assert_eq!(code, StatusCode::CREATED, "{group}");
+    let id = group["id"].as_str().expect("id").to_string();
+    assert_eq!(
+        shard_of_id(&id),
+        Some(shard),
+        "the group's id names its shard"
+    );
+    let steps = format!("/v1/groups/{id}/steps");
+    let (code, body) = send(
+        &a.app,
+        "POST",
+        &steps,
+        None,
+        Some(r#"{"states": [25, 25, 25]}"#),
+    )
+    .await;
+    assert_eq!(code, StatusCode::OK, "{body}");
+    let snapshot = a.manager.export_shard(shard, None).expect("snapshot");
+    assert_eq!(snapshot.sessions.len(), 3);
+    let manifest = snapshot.manifest(&Manifest::default());
+    b.manager
+        .import_shard(shard, snapshot, true)
+        .await
+        .expect("import");
+    a.manager.freeze_shard(shard).await.expect("freeze");
+    let (code, body) = send(&a.app, "GET", &format!("/v1/groups/{id}"), None, None).await;
+    assert_eq!(code, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert_eq!(body["code"], "shard_moving");
+    let delta = a
+        .manager
+        .export_shard(shard, Some(&manifest))
+        .expect("delta");
+    b.manager
+        .import_shard(shard, delta, false)
+        .await
+        .expect("delta import");
+    assert_eq!(b.manager.activate_shard(shard, 2).expect("activate"), 3);
+    a.manager
+        .release_shard(shard, &names[1], 2)
+        .await
+        .expect("release");
+    assert_eq!(a.manager.groups_len(), 0, "the source forgot the group");
+    let (code, moved) = send(&b.app, "GET", &format!("/v1/groups/{id}"), None, None).await;
+    assert_eq!(code, StatusCode::OK, "{moved}");
+    assert_eq!(moved, group, "the same group, members and seed");
+    let (code, body) = send(&a.app, "GET", &format!("/v1/groups/{id}"), None, None).await;
+    assert_eq!(code, StatusCode::MISDIRECTED_REQUEST, "{body}");
+    assert_eq!(body["code"], "wrong_replica");
+    let (code, body) = send(
+        &b.app,
+        "POST",
+        &steps,
+        None,
+        Some(r#"{"states": [24, 25, 26], "stimuli": [[0, 0], [0, 0], [0, 0]]}"#),
+    )
+    .await;
+    assert_eq!(code, StatusCode::OK, "{body}");
+    assert_eq!(body["ticks"], serde_json::json!([1, 1, 1]));
+}

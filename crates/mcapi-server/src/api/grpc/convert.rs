@@ -28,6 +28,7 @@ use mcapi_core::{BasisSpec, LearnedParams, Optimism, StimulusRate};
 
 use super::pb;
 use crate::api::extract::create_part;
+use crate::service::groups::{ADVISED, Columns, GroupInfo, MemberStep};
 
 /// Interval of `Watch` when the request leaves it 0.
 pub const DEFAULT_WATCH_INTERVAL: Duration = Duration::from_secs(1);
@@ -1062,6 +1063,163 @@ pub fn values(v: Values) -> pb::Values {
             .map(|x| pb::Point { x })
             .collect(),
     }
+}
+
+// ------------------------------------------------------------------ groups
+
+/// `CreateGroup`: the typed model, the members' configuration, `n` and the
+/// group's seed.
+pub fn create_group(
+    req: pb::CreateGroupRequest,
+) -> Result<(ModelInput, SessionConfig, u64, Option<u64>), ServiceError> {
+    let pb::CreateGroupRequest {
+        model,
+        agent,
+        n,
+        seed,
+    } = req;
+    let agent = agent.map(session_config).transpose()?.unwrap_or_default();
+    let model = model.ok_or_else(|| ServiceError::field("model", "is required"))?;
+    Ok((model_input(model)?, agent, u64::from(n), seed))
+}
+
+/// A group's id: the message's, or the `x-mcapi-session` metadata's; both
+/// must agree when both are given.
+pub fn group_id(message_id: String, metadata_id: Option<&str>) -> Result<String, ServiceError> {
+    match (message_id.is_empty(), metadata_id) {
+        (false, Some(meta)) if meta != message_id => Err(ServiceError::field(
+            "group_id",
+            format!("`{message_id}` does not match the `x-mcapi-session` metadata `{meta}`"),
+        )),
+        (false, _) => Ok(message_id),
+        (true, Some(meta)) if !meta.is_empty() => Ok(meta.to_string()),
+        (true, _) => Err(ServiceError::field(
+            "group_id",
+            "is required (in the message or as `x-mcapi-session` metadata)",
+        )),
+    }
+}
+
+/// A group as the proto says it.
+pub fn group_info(g: GroupInfo) -> pb::GroupInfo {
+    let GroupInfo {
+        id,
+        size,
+        seed,
+        update_mode: mode,
+        stimuli,
+        observation_dim,
+        members,
+    } = g;
+    pb::GroupInfo {
+        group_id: id,
+        size: u32_of(size),
+        seed,
+        update_mode: update_mode(mode).into(),
+        stimuli: u32_of(stimuli),
+        observation_dim: u32_of(observation_dim.unwrap_or(0)),
+        member_ids: members.into_iter().map(Option::unwrap_or_default).collect(),
+    }
+}
+
+/// Little-endian binary64 numbers of a `bytes` column; its length must be
+/// a whole number of them.
+fn le_f64s(field: &str, bytes: &[u8]) -> Result<Vec<f64>, ServiceError> {
+    if bytes.len() % 8 != 0 {
+        return Err(ServiceError::ColumnLength(format!(
+            "`{field}` has {} bytes, not a whole number of 8-byte little-endian numbers",
+            bytes.len()
+        )));
+    }
+    Ok(bytes
+        .chunks_exact(8)
+        .map(|c| f64::from_le_bytes(c.try_into().unwrap_or([0; 8])))
+        .collect())
+}
+
+/// Numbers as a little-endian binary64 `bytes` column.
+fn le_bytes(xs: impl IntoIterator<Item = f64>) -> Vec<u8> {
+    xs.into_iter().flat_map(f64::to_le_bytes).collect()
+}
+
+/// One `StepGroup` message: its group id (possibly empty), its seq and its
+/// columns.
+pub fn group_step(req: pb::GroupStepRequest) -> Result<(String, u64, Columns), ServiceError> {
+    let pb::GroupStepRequest {
+        group_id,
+        seq,
+        states,
+        observations,
+        stimuli,
+        action_taken,
+        mask,
+    } = req;
+    let columns = Columns {
+        mask,
+        states,
+        observations: le_f64s("observations", &observations)?,
+        stimuli: le_f64s("stimuli", &stimuli)?,
+        action_taken,
+    };
+    Ok((group_id, seq, columns))
+}
+
+/// The reply to one `StepGroup` message: the columns of its members' steps,
+/// `n` numbers of drive each; a refused member's entries are
+/// [`ADVISED`]-like placeholders (`u32::MAX`, NaN, 0) and a status.
+pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::GroupStepReply {
+    let m = steps.len();
+    let mut reply = pb::GroupStepReply {
+        seq,
+        actions: Vec::with_capacity(m),
+        drives: Vec::with_capacity(m * n * 8),
+        rewards: Vec::with_capacity(m * 8),
+        policy_versions: Vec::with_capacity(m),
+        statuses: Vec::new(),
+        ticks: Vec::with_capacity(m),
+    };
+    for MemberStep { index, result } in steps {
+        match result {
+            Ok(step) => {
+                let StepOut {
+                    tick,
+                    action: _,
+                    action_index,
+                    drive,
+                    reward,
+                    policy_version,
+                    curiosity: _,
+                } = step;
+                reply.actions.push(u32_of(action_index));
+                reply.drives.extend(le_bytes(drive));
+                reply.rewards.extend(reward.to_le_bytes());
+                reply.policy_versions.push(policy_version);
+                reply.ticks.push(tick);
+            }
+            Err(e) => {
+                reply.actions.push(ADVISED);
+                reply
+                    .drives
+                    .extend(le_bytes(std::iter::repeat_n(f64::NAN, n)));
+                reply.rewards.extend(f64::NAN.to_le_bytes());
+                reply.policy_versions.push(0);
+                reply.ticks.push(0);
+                let pb::StepError {
+                    status,
+                    code,
+                    message,
+                    owner: _,
+                } = crate::api::error::step_error(e);
+                reply.statuses.push(pb::MemberStatus {
+                    index: u32_of(index),
+                    status,
+                    code,
+                    message,
+                });
+            }
+        }
+    }
+    reply
 }
 
 #[cfg(test)]

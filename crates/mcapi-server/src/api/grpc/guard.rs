@@ -25,6 +25,8 @@
 //!   way, and their observations counted as the bytes pass ([`EntryCounter`]):
 //!   more than `max_batch` in one message ends the call with
 //!   RESOURCE_EXHAUSTED (`limit_exceeded`) before it is decoded.
+//!   `StepGroup`'s messages are checked by their length prefix against the
+//!   body limit (a group step carries N × n numbers).
 
 use std::future::Future;
 use std::pin::Pin;
@@ -146,6 +148,7 @@ where
             "Observe" => Method::Observe,
             "Interact" => Method::Interact,
             "InteractBatch" => Method::InteractBatch,
+            "StepGroup" => Method::StepGroup,
             _ => Method::Other,
         };
         match authenticate(&self.cfg.manager, req.headers()) {
@@ -167,12 +170,26 @@ where
                         Ok(req) => req,
                         Err(status) => return Ok(status.into_http()),
                     },
-                    Method::Interact => {
-                        req.map(|body| Body::new(FrameLimit::new(body, cfg.interact_max, None)))
-                    }
+                    Method::Interact => req.map(|body| {
+                        Body::new(FrameLimit::new(body, cfg.interact_max, "an Interact", None))
+                    }),
                     Method::InteractBatch => req.map(|body| {
                         let counter = EntryCounter::new(BATCH_FIELD, cfg.max_batch);
-                        Body::new(FrameLimit::new(body, cfg.interact_max, Some(counter)))
+                        Body::new(FrameLimit::new(
+                            body,
+                            cfg.interact_max,
+                            "an InteractBatch",
+                            Some(counter),
+                        ))
+                    }),
+                    // A group step may be as large as a body (N x n numbers).
+                    Method::StepGroup => req.map(|body| {
+                        Body::new(FrameLimit::new(
+                            body,
+                            cfg.max_body_bytes,
+                            "a StepGroup",
+                            None,
+                        ))
                     }),
                     Method::Other => req,
                 };
@@ -197,6 +214,7 @@ enum Method {
     Observe,
     Interact,
     InteractBatch,
+    StepGroup,
     Other,
 }
 
@@ -294,6 +312,8 @@ fn varint(buf: &mut &[u8]) -> Option<u64> {
 struct FrameLimit {
     inner: Body,
     max: usize,
+    /// The method with its article, as the refusal names it.
+    method: &'static str,
     /// The bytes of the current frame head read so far.
     head: Vec<u8>,
     /// Bytes of the current message still to pass.
@@ -305,10 +325,11 @@ struct FrameLimit {
 }
 
 impl FrameLimit {
-    fn new(inner: Body, max: usize, counter: Option<EntryCounter>) -> Self {
+    fn new(inner: Body, max: usize, method: &'static str, counter: Option<EntryCounter>) -> Self {
         Self {
             inner,
             max,
+            method,
             head: Vec::with_capacity(FRAME_HEAD),
             left: 0,
             counter,
@@ -344,8 +365,8 @@ impl FrameLimit {
                 self.head.clear();
                 if len > self.max {
                     return Err(to_status(ServiceError::LimitExceeded(format!(
-                        "an Interact message has {len} bytes; the limit is {}",
-                        self.max
+                        "{} message has {len} bytes; the limit is {}",
+                        self.method, self.max
                     ))));
                 }
                 if let Some(counter) = &mut self.counter {
@@ -527,7 +548,7 @@ mod tests {
 
     #[test]
     fn frame_limit_follows_heads_across_chunks() {
-        let mut limit = FrameLimit::new(Body::default(), 10, None);
+        let mut limit = FrameLimit::new(Body::default(), 10, "an Interact", None);
         let ok = frame(&[7; 10]);
         let mut stream = ok.clone();
         stream.extend(&ok);
@@ -541,6 +562,10 @@ mod tests {
         let err = limit.scan(&big[..3]).and_then(|()| limit.scan(&big[3..]));
         let status = err.expect_err("over the limit");
         assert_eq!(status.code(), tonic::Code::ResourceExhausted);
+        assert_eq!(
+            status.message(),
+            "an Interact message has 11 bytes; the limit is 10"
+        );
     }
 
     /// Feeds `stream` to a counting frame limit `chunk` bytes at a time.
@@ -548,6 +573,7 @@ mod tests {
         let mut limit = FrameLimit::new(
             Body::default(),
             1 << 20,
+            "an InteractBatch",
             Some(EntryCounter::new(BATCH_FIELD, max)),
         );
         stream.chunks(chunk).try_for_each(|c| limit.scan(c))

@@ -10,7 +10,7 @@
 //!   rate: constant or named; one observation or a batch). `null` is
 //!   allowed exactly where the server reads it as "absent". One file per
 //!   request body: [`model`], [`agent`] (from the parameter tables),
-//!   [`observe`];
+//!   [`observe`], [`groups`];
 //! - the error responses every operation may answer and the API-key
 //!   security scheme ([`responses`]).
 //!
@@ -22,6 +22,7 @@
 pub mod agent;
 mod builders;
 mod continuous;
+mod groups;
 mod model;
 mod observe;
 mod responses;
@@ -32,6 +33,7 @@ use utoipa::openapi::schema::Schema;
 
 use crate::service::Limits;
 use builders::{closed, reference};
+pub use groups::{CreateGroupRequest, GroupStep, GroupStepReply, MemberError};
 pub use observe::{ObserveBatchReply, ObserveReply, ObserveRequest, SseEvent, history_limit};
 pub use responses::{
     BadRequest, BearerAuth, InternalError, MisdirectedRequest, NotFound, PayloadTooLarge,
@@ -71,5 +73,6 @@ pub fn request_schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     out.extend(continuous::schemas(limits));
     out.extend(agent::schemas(limits));
     out.extend(observe::schemas(limits));
+    out.extend(groups::schemas(limits));
     out
 }

@@ -78,6 +78,7 @@ impl SessionManager {
                 model,
                 config: config.clone(),
                 owner: caller.owner(),
+                group: None,
             };
             let bytes = serde_json::to_vec(&record)
                 .map_err(|e| ServiceError::Internal(format!("encoding a session record: {e}")))?;

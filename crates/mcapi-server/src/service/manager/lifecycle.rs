@@ -57,13 +57,22 @@ impl SessionManager {
         // first request: a store of a million sessions starts without
         // needing them all in memory at once.
         // A rebuilt session is pristine: it goes unless an update is due.
-        let keep = |session: SessionRef| match self.evict_after {
+        let keep_entry = |session: SessionRef| match self.evict_after {
             Some(_) => session
                 .still_evictable(cost::estimate(&session.model, &session.config))
                 .map_or(Entry::Resident(session), |stub| {
                     Entry::Evicted(Arc::new(stub))
                 }),
             None => Entry::Resident(session),
+        };
+        // Each member's record names its group: the groups are rebuilt
+        // from them.
+        let members = Mutex::new(Vec::new());
+        let keep = |session: SessionRef| {
+            if let Some(member) = groups::GroupMember::of(&session) {
+                members.lock().push(member);
+            }
+            keep_entry(session)
         };
         let (rebuilt, report) =
             recovery::recover_all(&self.setup, &self.limits, d, placement, keep)?;
@@ -74,6 +83,7 @@ impl SessionManager {
                 "stored sessions of shards this replica does not own are kept in the store, not served"
             );
         }
+        self.register_groups(members.into_inner());
         let mut sessions = self.sessions.write();
         for (id, entry) in rebuilt {
             sessions.insert_entry(id, entry);

@@ -7,6 +7,7 @@
 //! sessions at start.
 
 mod create;
+mod groups;
 mod lifecycle;
 mod lookup;
 mod observe;
@@ -109,6 +110,9 @@ const EVICT_CHUNK: usize = 1024;
 /// The session manager: owns sessions, shared models and the tick pool.
 pub struct SessionManager {
     sessions: RwLock<SessionTable>,
+    /// The session groups (docs/groups.md); a group's members are in
+    /// `sessions`. Taken after `sessions` when both are held.
+    groups: RwLock<groups::GroupTable>,
     /// Builds sessions: shared planning models, seeds, bounded builds.
     setup: Arc<Setup>,
     limits: Limits,
@@ -166,6 +170,7 @@ impl SessionManager {
             .map_err(|e| ServiceError::Internal(format!("starting tick workers: {e}")))?;
         Ok(Self {
             sessions: RwLock::new(SessionTable::default()),
+            groups: RwLock::new(groups::GroupTable::new()),
             panic_observations: std::sync::atomic::AtomicU32::new(0),
             evict_after,
             setup: Arc::new(Setup::new(workers)),
@@ -301,6 +306,7 @@ impl SessionManager {
 
     /// Serves these sessions (a shard moved here).
     pub(super) fn insert_sessions(&self, rebuilt: Vec<SessionRef>) {
+        self.register_groups(rebuilt.iter().filter_map(|s| groups::GroupMember::of(s)));
         let mut sessions = self.sessions.write();
         for session in rebuilt {
             sessions.insert(session.id.clone(), session);
@@ -312,6 +318,7 @@ impl SessionManager {
     /// moved away); their data is the caller's to delete. Returns how many.
     pub(super) fn remove_sessions(&self, prefix: &str) -> usize {
         let ids = self.ids_with_prefix(prefix);
+        self.remove_groups(prefix);
         let mut sessions = self.sessions.write();
         for id in &ids {
             sessions.remove(id);

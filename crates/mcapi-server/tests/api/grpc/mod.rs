@@ -26,6 +26,7 @@ use tonic::{Code, Request, Status};
 
 mod bad_inputs;
 mod batch;
+mod groups;
 mod health;
 mod sessions;
 mod streams;

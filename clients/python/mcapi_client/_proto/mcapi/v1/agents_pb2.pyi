@@ -773,3 +773,97 @@ class History(_message.Message):
     ENTRIES_FIELD_NUMBER: _ClassVar[int]
     entries: _containers.RepeatedCompositeFieldContainer[HistoryEntry]
     def __init__(self, entries: _Optional[_Iterable[_Union[HistoryEntry, _Mapping]]] = ...) -> None: ...
+
+class CreateGroupRequest(_message.Message):
+    __slots__ = ("model", "agent", "n", "seed")
+    MODEL_FIELD_NUMBER: _ClassVar[int]
+    AGENT_FIELD_NUMBER: _ClassVar[int]
+    N_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    model: Model
+    agent: SessionConfig
+    n: int
+    seed: int
+    def __init__(self, model: _Optional[_Union[Model, _Mapping]] = ..., agent: _Optional[_Union[SessionConfig, _Mapping]] = ..., n: _Optional[int] = ..., seed: _Optional[int] = ...) -> None: ...
+
+class GroupInfo(_message.Message):
+    __slots__ = ("group_id", "size", "seed", "update_mode", "stimuli", "observation_dim", "member_ids")
+    GROUP_ID_FIELD_NUMBER: _ClassVar[int]
+    SIZE_FIELD_NUMBER: _ClassVar[int]
+    SEED_FIELD_NUMBER: _ClassVar[int]
+    UPDATE_MODE_FIELD_NUMBER: _ClassVar[int]
+    STIMULI_FIELD_NUMBER: _ClassVar[int]
+    OBSERVATION_DIM_FIELD_NUMBER: _ClassVar[int]
+    MEMBER_IDS_FIELD_NUMBER: _ClassVar[int]
+    group_id: str
+    size: int
+    seed: int
+    update_mode: UpdateMode
+    stimuli: int
+    observation_dim: int
+    member_ids: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, group_id: _Optional[str] = ..., size: _Optional[int] = ..., seed: _Optional[int] = ..., update_mode: _Optional[_Union[UpdateMode, str]] = ..., stimuli: _Optional[int] = ..., observation_dim: _Optional[int] = ..., member_ids: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class GetGroupRequest(_message.Message):
+    __slots__ = ("group_id",)
+    GROUP_ID_FIELD_NUMBER: _ClassVar[int]
+    group_id: str
+    def __init__(self, group_id: _Optional[str] = ...) -> None: ...
+
+class DeleteGroupRequest(_message.Message):
+    __slots__ = ("group_id",)
+    GROUP_ID_FIELD_NUMBER: _ClassVar[int]
+    group_id: str
+    def __init__(self, group_id: _Optional[str] = ...) -> None: ...
+
+class DeleteGroupResponse(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class GroupStepRequest(_message.Message):
+    __slots__ = ("group_id", "seq", "states", "observations", "stimuli", "action_taken", "mask")
+    GROUP_ID_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    STATES_FIELD_NUMBER: _ClassVar[int]
+    OBSERVATIONS_FIELD_NUMBER: _ClassVar[int]
+    STIMULI_FIELD_NUMBER: _ClassVar[int]
+    ACTION_TAKEN_FIELD_NUMBER: _ClassVar[int]
+    MASK_FIELD_NUMBER: _ClassVar[int]
+    group_id: str
+    seq: int
+    states: _containers.RepeatedScalarFieldContainer[int]
+    observations: bytes
+    stimuli: bytes
+    action_taken: _containers.RepeatedScalarFieldContainer[int]
+    mask: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, group_id: _Optional[str] = ..., seq: _Optional[int] = ..., states: _Optional[_Iterable[int]] = ..., observations: _Optional[bytes] = ..., stimuli: _Optional[bytes] = ..., action_taken: _Optional[_Iterable[int]] = ..., mask: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class GroupStepReply(_message.Message):
+    __slots__ = ("seq", "actions", "drives", "rewards", "policy_versions", "statuses", "ticks")
+    SEQ_FIELD_NUMBER: _ClassVar[int]
+    ACTIONS_FIELD_NUMBER: _ClassVar[int]
+    DRIVES_FIELD_NUMBER: _ClassVar[int]
+    REWARDS_FIELD_NUMBER: _ClassVar[int]
+    POLICY_VERSIONS_FIELD_NUMBER: _ClassVar[int]
+    STATUSES_FIELD_NUMBER: _ClassVar[int]
+    TICKS_FIELD_NUMBER: _ClassVar[int]
+    seq: int
+    actions: _containers.RepeatedScalarFieldContainer[int]
+    drives: bytes
+    rewards: bytes
+    policy_versions: _containers.RepeatedScalarFieldContainer[int]
+    statuses: _containers.RepeatedCompositeFieldContainer[MemberStatus]
+    ticks: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, seq: _Optional[int] = ..., actions: _Optional[_Iterable[int]] = ..., drives: _Optional[bytes] = ..., rewards: _Optional[bytes] = ..., policy_versions: _Optional[_Iterable[int]] = ..., statuses: _Optional[_Iterable[_Union[MemberStatus, _Mapping]]] = ..., ticks: _Optional[_Iterable[int]] = ...) -> None: ...
+
+class MemberStatus(_message.Message):
+    __slots__ = ("index", "status", "code", "message")
+    INDEX_FIELD_NUMBER: _ClassVar[int]
+    STATUS_FIELD_NUMBER: _ClassVar[int]
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    index: int
+    status: int
+    code: str
+    message: str
+    def __init__(self, index: _Optional[int] = ..., status: _Optional[int] = ..., code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...

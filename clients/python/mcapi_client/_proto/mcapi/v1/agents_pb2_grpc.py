@@ -85,6 +85,26 @@ class AgentsStub:
                 request_serializer=mcapi_dot_v1_dot_agents__pb2.GetHistoryRequest.SerializeToString,
                 response_deserializer=mcapi_dot_v1_dot_agents__pb2.History.FromString,
                 _registered_method=True)
+        self.CreateGroup = channel.unary_unary(
+                '/mcapi.v1.Agents/CreateGroup',
+                request_serializer=mcapi_dot_v1_dot_agents__pb2.CreateGroupRequest.SerializeToString,
+                response_deserializer=mcapi_dot_v1_dot_agents__pb2.GroupInfo.FromString,
+                _registered_method=True)
+        self.GetGroup = channel.unary_unary(
+                '/mcapi.v1.Agents/GetGroup',
+                request_serializer=mcapi_dot_v1_dot_agents__pb2.GetGroupRequest.SerializeToString,
+                response_deserializer=mcapi_dot_v1_dot_agents__pb2.GroupInfo.FromString,
+                _registered_method=True)
+        self.DeleteGroup = channel.unary_unary(
+                '/mcapi.v1.Agents/DeleteGroup',
+                request_serializer=mcapi_dot_v1_dot_agents__pb2.DeleteGroupRequest.SerializeToString,
+                response_deserializer=mcapi_dot_v1_dot_agents__pb2.DeleteGroupResponse.FromString,
+                _registered_method=True)
+        self.StepGroup = channel.stream_stream(
+                '/mcapi.v1.Agents/StepGroup',
+                request_serializer=mcapi_dot_v1_dot_agents__pb2.GroupStepRequest.SerializeToString,
+                response_deserializer=mcapi_dot_v1_dot_agents__pb2.GroupStepReply.FromString,
+                _registered_method=True)
 
 
 class AgentsServicer:
@@ -169,6 +189,41 @@ class AgentsServicer:
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def CreateGroup(self, request, context):
+        """Creates a group of N sessions of one model and one agent configuration
+        on one shard (docs/groups.md); each member is an ordinary session.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def GetGroup(self, request, context):
+        """A group: its seed, shape and member session ids.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def DeleteGroup(self, request, context):
+        """Deletes every member of a group, then the group.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def StepGroup(self, request_iterator, context):
+        """Steps a group by columns (docs/groups.md, "Stepping"): each message one
+        step of the members it masks, each reply that step's columns, in order.
+        Up to 8 messages are read ahead of the replies; a message that does not
+        fit the group (lengths, mask, seq, a state outside the model, a NaN or
+        too large number) ends the stream with its status; a member that
+        refuses its observation (an action it cannot take, ...) gets a status in
+        the reply and the others go on.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_AgentsServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -221,6 +276,26 @@ def add_AgentsServicer_to_server(servicer, server):
                     servicer.GetHistory,
                     request_deserializer=mcapi_dot_v1_dot_agents__pb2.GetHistoryRequest.FromString,
                     response_serializer=mcapi_dot_v1_dot_agents__pb2.History.SerializeToString,
+            ),
+            'CreateGroup': grpc.unary_unary_rpc_method_handler(
+                    servicer.CreateGroup,
+                    request_deserializer=mcapi_dot_v1_dot_agents__pb2.CreateGroupRequest.FromString,
+                    response_serializer=mcapi_dot_v1_dot_agents__pb2.GroupInfo.SerializeToString,
+            ),
+            'GetGroup': grpc.unary_unary_rpc_method_handler(
+                    servicer.GetGroup,
+                    request_deserializer=mcapi_dot_v1_dot_agents__pb2.GetGroupRequest.FromString,
+                    response_serializer=mcapi_dot_v1_dot_agents__pb2.GroupInfo.SerializeToString,
+            ),
+            'DeleteGroup': grpc.unary_unary_rpc_method_handler(
+                    servicer.DeleteGroup,
+                    request_deserializer=mcapi_dot_v1_dot_agents__pb2.DeleteGroupRequest.FromString,
+                    response_serializer=mcapi_dot_v1_dot_agents__pb2.DeleteGroupResponse.SerializeToString,
+            ),
+            'StepGroup': grpc.stream_stream_rpc_method_handler(
+                    servicer.StepGroup,
+                    request_deserializer=mcapi_dot_v1_dot_agents__pb2.GroupStepRequest.FromString,
+                    response_serializer=mcapi_dot_v1_dot_agents__pb2.GroupStepReply.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -494,6 +569,114 @@ class Agents:
             '/mcapi.v1.Agents/GetHistory',
             mcapi_dot_v1_dot_agents__pb2.GetHistoryRequest.SerializeToString,
             mcapi_dot_v1_dot_agents__pb2.History.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def CreateGroup(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/mcapi.v1.Agents/CreateGroup',
+            mcapi_dot_v1_dot_agents__pb2.CreateGroupRequest.SerializeToString,
+            mcapi_dot_v1_dot_agents__pb2.GroupInfo.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def GetGroup(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/mcapi.v1.Agents/GetGroup',
+            mcapi_dot_v1_dot_agents__pb2.GetGroupRequest.SerializeToString,
+            mcapi_dot_v1_dot_agents__pb2.GroupInfo.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def DeleteGroup(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/mcapi.v1.Agents/DeleteGroup',
+            mcapi_dot_v1_dot_agents__pb2.DeleteGroupRequest.SerializeToString,
+            mcapi_dot_v1_dot_agents__pb2.DeleteGroupResponse.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def StepGroup(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/mcapi.v1.Agents/StepGroup',
+            mcapi_dot_v1_dot_agents__pb2.GroupStepRequest.SerializeToString,
+            mcapi_dot_v1_dot_agents__pb2.GroupStepReply.FromString,
             options,
             channel_credentials,
             insecure,

@@ -1,0 +1,445 @@
+//! Session groups (docs/groups.md): N sessions of one model and one agent
+//! configuration created on one shard in one call, priced and counted
+//! whole; read, deleted and stepped by columns. A step applies each
+//! member's observation through [`SessionManager::observe`], the path of
+//! every observation, all members at once, so their log entries reach the
+//! store's writer together and are made durable by one group commit.
+
+use std::collections::BTreeMap;
+
+use futures_util::future::join_all;
+
+use super::*;
+use crate::service::groups::{
+    Columns, CreateGroup, Group, GroupInfo, GroupTag, MemberStep, member_seed,
+};
+
+/// The groups in memory by id.
+pub(crate) type GroupTable = BTreeMap<String, Arc<Group>>;
+
+/// One member of a group as recovered or imported: what its group is
+/// rebuilt from.
+pub(super) struct GroupMember {
+    tag: GroupTag,
+    id: String,
+    model: Arc<ModelSummary>,
+    mode: UpdateMode,
+    owner: session::Owner,
+    tick_us: u64,
+}
+
+impl GroupMember {
+    /// The member `session` is, if it was created in a group.
+    pub(super) fn of(session: &Session) -> Option<Self> {
+        let tag = session.group.clone()?;
+        Some(Self {
+            tag,
+            id: session.id.clone(),
+            model: Arc::clone(&session.model),
+            mode: session.mode,
+            owner: session.owner,
+            tick_us: cost::estimate(&session.model, &session.config).tick_us,
+        })
+    }
+}
+
+impl SessionManager {
+    /// Creates a group from REST's body (the model as JSON, parsed as
+    /// `POST /v1/sessions` parses it); see [`Self::create_group_parsed`].
+    pub fn create_group(
+        &self,
+        caller: Caller,
+        req: CreateGroup,
+    ) -> Result<GroupInfo, ServiceError> {
+        let CreateGroup {
+            model,
+            agent,
+            n,
+            seed,
+        } = req;
+        let model_text = self.durability.as_ref().map(|_| model.to_string());
+        let input = ModelInput::parse(model)?;
+        self.create_group_from(caller, input, model_text, &agent, n, seed)
+    }
+
+    /// Creates a group from a model already parsed (gRPC's typed `Model`);
+    /// otherwise as [`Self::create_group`].
+    pub fn create_group_parsed(
+        &self,
+        caller: Caller,
+        input: ModelInput,
+        agent: &SessionConfig,
+        n: u64,
+        seed: Option<u64>,
+    ) -> Result<GroupInfo, ServiceError> {
+        let model_text = match &self.durability {
+            Some(_) => Some(input.to_json_text()?),
+            None => None,
+        };
+        self.create_group_from(caller, input, model_text, agent, n, seed)
+    }
+
+    /// Creates a group of `n` sessions of one model and configuration
+    /// (docs/groups.md, "Creating a group"): member i is seeded
+    /// [`member_seed`]`(seed, i)`, every member is on the group's shard. The
+    /// whole group is checked against the limits, the per-session budgets
+    /// and the caller's quota before any member is built, and refused whole;
+    /// with a store, the members' records are committed together before
+    /// any is served. Synchronous and possibly slow: call it off the runtime.
+    fn create_group_from(
+        &self,
+        caller: Caller,
+        input: ModelInput,
+        model_text: Option<String>,
+        agent: &SessionConfig,
+        n: u64,
+        seed: Option<u64>,
+    ) -> Result<GroupInfo, ServiceError> {
+        let n = usize::try_from(n).unwrap_or(usize::MAX);
+        if n == 0 {
+            return Err(ServiceError::field("n", "must be at least 1"));
+        }
+        if n > self.limits.max_group_members {
+            return Err(ServiceError::LimitExceeded(format!(
+                "`n` is {n}; the limit is {} members per group (--max-group-members)",
+                self.limits.max_group_members
+            )));
+        }
+        if agent.seed.is_some() {
+            return Err(ServiceError::field(
+                "agent.seed",
+                "is not taken by a group: its members' seeds derive from the group's `seed`",
+            ));
+        }
+        if agent.curiosity.is_some() {
+            return Err(ServiceError::field(
+                "agent.curiosity",
+                "is not taken by a group: a group step has no column for curiosity signals",
+            ));
+        }
+        let owner = caller.owner();
+        let refused_for_count = |sessions: &SessionTable| {
+            if sessions.len().saturating_add(n) > self.limits.max_sessions {
+                return Some(ServiceError::TooManySessions(self.limits.max_sessions));
+            }
+            let held = sessions.usage(&owner).sessions;
+            if held.saturating_add(n) > self.limits.max_key_sessions {
+                return Some(ServiceError::QuotaExceeded(format!(
+                    "this API key holds {held} sessions; a group of {n} would take it beyond \
+                     its quota of {} (--max-key-sessions)",
+                    self.limits.max_key_sessions
+                )));
+            }
+            None
+        };
+        if let Some(e) = refused_for_count(&self.sessions.read()) {
+            return Err(e);
+        }
+        let seed = seed.unwrap_or_else(|| self.setup.fresh_u64());
+        let member_config = |i: usize| SessionConfig {
+            seed: Some(member_seed(seed, i as u64)),
+            ..agent.clone()
+        };
+        // One member first: its cost prices the group before the others
+        // are built.
+        let first = self.setup.build(&input, &member_config(0), &self.limits)?;
+        let cost = cost::estimate(&first.1, &first.2);
+        let total = SessionCost {
+            bytes: cost.bytes.saturating_mul(n as u64),
+            tick_us: cost.tick_us,
+        };
+        self.limits
+            .check_cost(&cost, self.sessions.read().usage(&owner))?;
+        self.check_group_bytes(&total, &owner, n)?;
+        let mut built = Vec::with_capacity(n);
+        built.push(first);
+        for i in 1..n {
+            built.push(self.setup.build(&input, &member_config(i), &self.limits)?);
+        }
+        let (shard, _guard) = match &self.placement {
+            Some(p) => {
+                let guard = p.mint(self.setup.fresh_u64()).ok_or_else(|| {
+                    ServiceError::Unavailable(format!(
+                        "replica `{}` owns no shard open for new sessions right now; retry (the router sends creates to every replica in turn)",
+                        p.replica()
+                    ))
+                })?;
+                (guard.shard(), Some(guard))
+            }
+            None => ((self.setup.fresh_u64() % SHARDS) as u16, None),
+        };
+        let group_id = format!("s{shard:04x}.g{}", ulid::Ulid::new());
+        let ids: Vec<String> = (0..n)
+            .map(|_| format!("s{shard:04x}.{}", ulid::Ulid::new()))
+            .collect();
+        let tag = |i: usize| GroupTag {
+            group: group_id.clone(),
+            index: i as u32,
+            size: n as u32,
+            seed,
+        };
+        if let (Some(d), Some(model)) = (&self.durability, model_text) {
+            let writes = ids
+                .iter()
+                .zip(&built)
+                .enumerate()
+                .map(|(i, (id, (_, _, config)))| {
+                    let record = durable::SessionRecord {
+                        model: model.clone(),
+                        config: config.clone(),
+                        owner,
+                        group: Some(tag(i)),
+                    };
+                    let bytes = serde_json::to_vec(&record).map_err(|e| {
+                        ServiceError::Internal(format!("encoding a session record: {e}"))
+                    })?;
+                    Ok(Write::Session {
+                        id: Arc::from(id.as_str()),
+                        record: bytes,
+                    })
+                })
+                .collect::<Result<Vec<_>, ServiceError>>()?;
+            d.store
+                .submit(writes)
+                .wait_blocking()
+                .map_err(ServiceError::from)?;
+        }
+        let model = Arc::clone(&built[0].1);
+        let mode = built[0].2.update_mode;
+        let sessions: Vec<SessionRef> = ids
+            .iter()
+            .zip(built)
+            .enumerate()
+            .map(|(i, (id, (learner, summary, config)))| {
+                Arc::new(Session::resume(
+                    id.clone(),
+                    learner,
+                    summary,
+                    config,
+                    self.durability.clone(),
+                    session::Resumed {
+                        owner,
+                        group: Some(tag(i)),
+                        pristine: true,
+                        ..session::Resumed::default()
+                    },
+                ))
+            })
+            .collect();
+        let group = Arc::new(Group {
+            id: group_id.clone(),
+            owner,
+            seed,
+            members: ids.iter().cloned().map(Some).collect(),
+            model,
+            mode,
+            tick_us: cost.tick_us,
+        });
+        {
+            let mut table = self.sessions.write();
+            // Checked again under the lock: concurrent creates see each other.
+            let refused = refused_for_count(&table).or_else(|| {
+                let held = table.usage(&owner);
+                let total_bytes = held.bytes.saturating_add(total.bytes);
+                (total_bytes > self.limits.max_key_bytes).then(|| {
+                    ServiceError::QuotaExceeded(format!(
+                        "this API key's sessions would hold an estimated {total_bytes} bytes \
+                         ({} now, {} for the group's {n} members); its quota is {} \
+                         (--max-key-bytes)",
+                        held.bytes, total.bytes, self.limits.max_key_bytes
+                    ))
+                })
+            });
+            if let Some(e) = refused {
+                drop(table);
+                // Undo the stored records; the client sees the limit.
+                let commits: Vec<_> = sessions.iter().filter_map(|s| s.delete()).collect();
+                for commit in commits {
+                    let _ = commit.wait_blocking();
+                }
+                return Err(e);
+            }
+            for session in &sessions {
+                table.insert(session.id.clone(), Arc::clone(session));
+            }
+            metrics::gauge!("mcapi_sessions").set(table.len() as f64);
+            // Under the session table's lock: a shard move removing this
+            // shard's sessions sees the group with them.
+            self.groups
+                .write()
+                .insert(group_id.clone(), Arc::clone(&group));
+        }
+        tracing::info!(group = %group_id, members = n, "group created");
+        Ok(group.info())
+    }
+
+    /// The group's estimated memory, all members together, against what
+    /// the caller's key may hold.
+    fn check_group_bytes(
+        &self,
+        total: &SessionCost,
+        owner: &session::Owner,
+        n: usize,
+    ) -> Result<(), ServiceError> {
+        let held = self.sessions.read().usage(owner);
+        let sum = held.bytes.saturating_add(total.bytes);
+        if sum > self.limits.max_key_bytes {
+            return Err(ServiceError::QuotaExceeded(format!(
+                "this API key's sessions would hold an estimated {sum} bytes ({} now, {} for the \
+                 group's {n} members); its quota is {} (--max-key-bytes)",
+                held.bytes, total.bytes, self.limits.max_key_bytes
+            )));
+        }
+        Ok(())
+    }
+
+    /// The group with this id if `caller` may see it; another key's group
+    /// is `GroupNotFound`, exactly like a missing one. Clustered, a group
+    /// whose shard is not served here is refused as a session would be.
+    pub fn group_for(&self, caller: Caller, id: &str) -> Result<Arc<Group>, ServiceError> {
+        if let Some(p) = &self.placement {
+            p.check(id).map_err(|e| match ServiceError::from(e) {
+                ServiceError::NotFound(id) => ServiceError::GroupNotFound(id),
+                e => e,
+            })?;
+        }
+        let group = self
+            .groups
+            .read()
+            .get(id)
+            .cloned()
+            .ok_or_else(|| ServiceError::GroupNotFound(id.to_string()))?;
+        if !caller.may_see(group.owner.as_ref()) {
+            return Err(ServiceError::GroupNotFound(id.to_string()));
+        }
+        Ok(group)
+    }
+
+    /// A group: its seed, shape and members.
+    pub fn get_group(&self, caller: Caller, id: &str) -> Result<GroupInfo, ServiceError> {
+        Ok(self.group_for(caller, id)?.info())
+    }
+
+    /// Deletes every member of a group (each as [`Self::delete`] deletes a
+    /// session, its stored data included), then the group. A member
+    /// already deleted on its own is skipped; if a member's deletion fails,
+    /// the group stays with the members not yet deleted, and the error is
+    /// returned (retry).
+    pub async fn delete_group(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
+        let group = self.group_for(caller, id)?;
+        let deletions = group
+            .members
+            .iter()
+            .flatten()
+            .map(|member| self.delete(caller, member));
+        for result in join_all(deletions).await {
+            match result {
+                Ok(()) | Err(ServiceError::NotFound(_)) => {}
+                Err(e) => return Err(e),
+            }
+        }
+        self.groups.write().remove(id);
+        tracing::info!(group = %id, "group deleted");
+        Ok(())
+    }
+
+    /// One step of a group by columns (docs/groups.md, "Stepping"): the
+    /// columns are checked against the group first and the step refused
+    /// whole if they do not fit; then every member stepped observes its
+    /// observation as [`Self::observe`] would apply it alone, all members
+    /// concurrently, and answers its step or its own refusal, in mask
+    /// order. A refused member does not stop the others.
+    pub async fn step_group(
+        &self,
+        caller: Caller,
+        id: &str,
+        columns: Columns,
+    ) -> Result<Vec<MemberStep>, ServiceError> {
+        let group = self.group_for(caller, id)?;
+        let stepped = group.observations(columns)?;
+        // The members share their model and configuration, so one's
+        // estimate prices them all (as `check_message_cost` would, without
+        // a lookup per member).
+        let us = group.tick_us.saturating_mul(stepped.len() as u64);
+        if us / 1000 > self.limits.max_batch_ms {
+            return Err(ServiceError::LimitExceeded(format!(
+                "the step's {} members cost an estimated {} ms in all; the limit per message \
+                 is {} ms (--max-batch-ms): step fewer members per message",
+                stepped.len(),
+                us / 1000,
+                self.limits.max_batch_ms
+            )));
+        }
+        let steps = stepped.into_iter().map(|(index, obs)| {
+            let member = group.members[index].clone();
+            async move {
+                let result = match member {
+                    Some(member) => {
+                        self.observe(caller, &member, vec![obs])
+                            .await
+                            .and_then(|mut steps| {
+                                steps.pop().ok_or_else(|| {
+                                    ServiceError::Internal("observe returned no step".into())
+                                })
+                            })
+                    }
+                    None => Err(ServiceError::NotFound(format!(
+                        "{id}[{index}] (this member could not be recovered from the store)"
+                    ))),
+                };
+                MemberStep { index, result }
+            }
+        });
+        Ok(join_all(steps).await)
+    }
+
+    /// Registers the groups of these sessions (recovered at start, or
+    /// imported with their shard): each session's record names its group,
+    /// size and index.
+    pub(super) fn register_groups(&self, members: impl IntoIterator<Item = GroupMember>) {
+        let mut found: BTreeMap<String, Group> = BTreeMap::new();
+        for GroupMember {
+            tag,
+            id,
+            model,
+            mode,
+            owner,
+            tick_us,
+        } in members
+        {
+            let size = tag.size as usize;
+            let index = tag.index as usize;
+            if index >= size {
+                tracing::warn!(session = %id, group = %tag.group, "a group member's index is beyond its group; ignored");
+                continue;
+            }
+            let group = found.entry(tag.group.clone()).or_insert_with(|| Group {
+                id: tag.group.clone(),
+                owner,
+                seed: tag.seed,
+                members: vec![None; size],
+                model,
+                mode,
+                tick_us,
+            });
+            if let Some(slot) = group.members.get_mut(index) {
+                *slot = Some(id);
+            }
+        }
+        let mut groups = self.groups.write();
+        for (id, group) in found {
+            groups.insert(id, Arc::new(group));
+        }
+    }
+
+    /// Forgets the groups whose id begins with `prefix` (their shard moved
+    /// away with their members).
+    pub(super) fn remove_groups(&self, prefix: &str) {
+        self.groups.write().retain(|id, _| !id.starts_with(prefix));
+    }
+
+    /// Number of groups in memory.
+    pub fn groups_len(&self) -> usize {
+        self.groups.read().len()
+    }
+}
