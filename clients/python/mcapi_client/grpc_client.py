@@ -57,7 +57,7 @@ from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
 from ._sansio import adrive, drive
 from .errors import McapiError, Unavailable
-from .models import ModelLike
+from .models import ModelLike, model_json
 from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
 from .types import (
     ActionRef,
@@ -75,6 +75,8 @@ from .types import (
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
+
+    from .groups import GroupInfo, VectorAgents
 
 __all__ = [
     "GrpcClient",
@@ -455,6 +457,55 @@ class GrpcClient:
         """Creates a session; arguments as :meth:`mcapi_client.Client.create_session`."""
         options = AgentOptions(**agent)
         return drive(self._protocol.create_session(model, options), self._send)
+
+    def create_group(
+        self,
+        model: ModelLike,
+        n: IntLike,
+        **agent: Unpack[AgentKwargs],
+    ) -> VectorAgents:
+        """Creates a group of ``n`` sessions of one model and configuration
+        (``CreateGroup``) and opens its ``StepGroup`` stream.
+
+        Args:
+            model: Every member's model.
+            n: Members, 1 to the server's ``--max-group-members``.
+            agent: Every member's configuration, as
+                :meth:`mcapi_client.Client.create_session` takes it, except
+                ``seed``: it is the group's (member i's is
+                :func:`mcapi_client.groups.member_seed` of it; drawn when
+                absent).
+
+        Needs the ``vector`` extra (numpy).
+        """
+        from . import groups
+
+        seed = agent.pop("seed", None)
+        request = _pb.create_request(model_json(model), AgentOptions(**agent))
+        if not request.HasField("model"):
+            raise ValueError("a group's model must be one the typed gRPC `Model` carries")
+        msg = pb.CreateGroupRequest(model=request.model, agent=request.agent, n=int(n))
+        if seed is not None:
+            msg.seed = int(seed)
+        info = groups.group_info(self._send(Call("CreateGroup", msg)))
+        return groups.VectorAgents(self._stub, info, self._protocol.metadata())
+
+    def get_group(self, group_id: str) -> GroupInfo:
+        """A group: its seed, shape and member session ids (``GetGroup``)."""
+        from . import groups
+
+        reply = self._send(Call("GetGroup", pb.GetGroupRequest(group_id=group_id), group_id))
+        return groups.group_info(reply)
+
+    def vector_agents(self, group_id: str) -> VectorAgents:
+        """Opens a ``StepGroup`` stream on an existing group."""
+        from . import groups
+
+        return groups.VectorAgents(self._stub, self.get_group(group_id), self._protocol.metadata())
+
+    def delete_group(self, group_id: str) -> None:
+        """Deletes every member of a group, then the group (``DeleteGroup``)."""
+        self._send(Call("DeleteGroup", pb.DeleteGroupRequest(group_id=group_id), group_id))
 
     def get_session(self, session_id: str) -> SessionInfo:
         """A session's drive, tick, policy version, model, configuration and statistics."""
