@@ -95,7 +95,7 @@ python-venv: ## the Python client venv (clients/python/.venv) with every extra
 	test -x $(PY_CLIENT)/.venv/bin/python || $(PYTHON) -m venv $(PY_CLIENT)/.venv
 	rm -rf $(PY_CLIENT)/build  # setuptools would pack stale files left there
 	$(PY_CLIENT)/.venv/bin/python -m pip install --quiet --disable-pip-version-check \
-	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[rest,grpc,test,lint,gymnasium,plot,mo]'
+	  -c $(PY_CLIENT)/constraints.txt './$(PY_CLIENT)[rest,grpc,test,lint,gymnasium,plot,mo,vector]'
 
 # The client's lints, as clippy is the server's: ruff's rules and mypy
 # --strict on the package, its examples and tools (pyproject.toml). The

@@ -60,14 +60,16 @@ def test_pipelined_steps_answer_in_order_and_refusals_are_per_member(grpc_client
     with grpc_client.create_group(world, 3, seed=3) as agents:
         seqs = [agents.send([25, 25, 25])]
         seqs.append(agents.send([26, 24, 25], np.zeros((3, 2)), action_taken=[ADVISED, ADVISED, ADVISED]))
-        seqs.append(agents.send([27, 999, 25], np.zeros((3, 2))))
+        # Member 1 names an action the model does not have: its own refusal.
+        seqs.append(agents.send([27, 23, 25], np.zeros((3, 2)), action_taken=[ADVISED, 99, ADVISED]))
         assert agents.pending == 3
         replies = [agents.recv() for _ in seqs]
         assert [r.seq for r in replies] == seqs == [0, 1, 2]
         last = replies[-1]
         assert [e.index for e in last.errors] == [1]
-        assert last.errors[0].code == "unknown_state"
+        assert last.errors[0].code == "unknown_action"
         assert last.actions[1] == ADVISED
+        assert last.drives[1].tolist() == [0.0, 0.0] and last.rewards[1] == 0.0
         # The others went on.
         assert last.ticks[0] == 2 and last.ticks[2] == 2
         # A mask steps some members only.

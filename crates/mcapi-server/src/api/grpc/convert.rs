@@ -1166,7 +1166,8 @@ pub fn group_step(req: pb::GroupStepRequest) -> Result<(String, u64, Columns), S
 
 /// The reply to one `StepGroup` message: the columns of its members' steps,
 /// `n` numbers of drive each; a refused member's entries are
-/// [`ADVISED`]-like placeholders (`u32::MAX`, NaN, 0) and a status.
+/// placeholders (action `u32::MAX`, drive and reward 0, version and tick 0)
+/// and a status: no NaN leaves the server, not even as a marker.
 pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::GroupStepReply {
     let m = steps.len();
     let mut reply = pb::GroupStepReply {
@@ -1200,8 +1201,8 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
                 reply.actions.push(ADVISED);
                 reply
                     .drives
-                    .extend(le_bytes(std::iter::repeat_n(f64::NAN, n)));
-                reply.rewards.extend(f64::NAN.to_le_bytes());
+                    .extend(le_bytes(std::iter::repeat_n(0.0, n)));
+                reply.rewards.extend(0.0f64.to_le_bytes());
                 reply.policy_versions.push(0);
                 reply.ticks.push(0);
                 let pb::StepError {
