@@ -51,6 +51,7 @@ use tonic::transport::Channel;
 mod api_keys;
 mod continuous;
 mod damaged_store;
+mod groups;
 mod restart;
 
 const KEY_A: &str = "durability-key-alpha-0123456789";
