@@ -420,7 +420,7 @@ fn a_group_and_its_stepped_members_survive_a_restart() {
         })
         .expect("manager");
         manager.recover().expect("recovery");
-        manager
+        Arc::new(manager)
     };
     let manager = open();
     let group = manager
@@ -432,7 +432,7 @@ fn a_group_and_its_stepped_members_survive_a_restart() {
             .expect("body"),
         )
         .expect("create");
-    let step = |manager: &SessionManager, first: bool| {
+    let step = |manager: &Arc<SessionManager>, first: bool| {
         rt.block_on(manager.step_group(
             Caller::Anyone,
             &group.id,
@@ -490,7 +490,7 @@ fn a_group_and_its_stepped_members_survive_a_restart() {
 #[ignore = "a measurement, not a check"]
 fn measure_group_steps_against_single_observations() {
     let (group_us, single_us) = measure(
-        &SessionManager::new(Limits::default(), 2).expect("manager"),
+        &Arc::new(SessionManager::new(Limits::default(), 2).expect("manager")),
         1000,
         200,
     );
@@ -505,6 +505,7 @@ fn measure_group_steps_against_single_observations() {
     })
     .expect("manager");
     manager.recover().expect("recovery");
+    let manager = Arc::new(manager);
     let (group_us, single_us) = measure(&manager, 200, 10);
     eprintln!(
         "200 hallway members x 10 ticks, lockstep, durable store (fsync): {group_us:.2} µs per member-observation by group steps, {single_us:.2} µs by single observations"
@@ -513,7 +514,7 @@ fn measure_group_steps_against_single_observations() {
 
 /// (group, single) µs per member-observation of `n` hallway members
 /// stepped `ticks` times each way.
-fn measure(manager: &SessionManager, n: usize, ticks: usize) -> (f64, f64) {
+fn measure(manager: &Arc<SessionManager>, n: usize, ticks: usize) -> (f64, f64) {
     let rt = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -575,14 +576,16 @@ fn measure(manager: &SessionManager, n: usize, ticks: usize) -> (f64, f64) {
 #[test]
 fn a_step_beyond_the_batch_time_budget_is_refused_whole() {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
-    let manager = SessionManager::new(
-        Limits {
-            max_batch_ms: 0,
-            ..Limits::default()
-        },
-        1,
-    )
-    .expect("manager");
+    let manager = Arc::new(
+        SessionManager::new(
+            Limits {
+                max_batch_ms: 0,
+                ..Limits::default()
+            },
+            1,
+        )
+        .expect("manager"),
+    );
     let group = manager
         .create_group(
             Caller::Anyone,

@@ -1199,9 +1199,7 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
             }
             Err(e) => {
                 reply.actions.push(ADVISED);
-                reply
-                    .drives
-                    .extend(le_bytes(std::iter::repeat_n(0.0, n)));
+                reply.drives.extend(le_bytes(std::iter::repeat_n(0.0, n)));
                 reply.rewards.extend(0.0f64.to_le_bytes());
                 reply.policy_versions.push(0);
                 reply.ticks.push(0);

@@ -1,9 +1,11 @@
 //! Session groups (docs/groups.md): N sessions of one model and one agent
 //! configuration created on one shard in one call, priced and counted
 //! whole; read, deleted and stepped by columns. A step applies each
-//! member's observation through [`SessionManager::observe`], the path of
-//! every observation, all members at once, so their log entries reach the
-//! store's writer together and are made durable by one group commit.
+//! member's observation as [`SessionManager::observe`] applies one alone
+//! (the same checks, update and log entry): the cheap members in chunks on
+//! the blocking pool, the others through `observe` itself; their log
+//! entries reach the store's writer together and are made durable by one
+//! group commit before the reply.
 
 use std::collections::BTreeMap;
 
@@ -346,11 +348,20 @@ impl SessionManager {
     /// One step of a group by columns (docs/groups.md, "Stepping"): the
     /// columns are checked against the group first and the step refused
     /// whole if they do not fit; then every member stepped observes its
-    /// observation as [`Self::observe`] would apply it alone, all members
-    /// concurrently, and answers its step or its own refusal, in mask
-    /// order. A refused member does not stop the others.
+    /// observation as [`Self::observe`] would apply it alone and answers
+    /// its step or its own refusal, in mask order. A refused member does
+    /// not stop the others.
+    ///
+    /// Members whose update is cheap (the hallway's takes about a
+    /// microsecond) are applied in chunks of [`STEP_CHUNK`] on the blocking
+    /// pool, with one session lookup each and no task of their own, and
+    /// their commits are awaited together after the last is applied: the
+    /// cost of a member is then its update and little else. The others (an
+    /// evicted member loaded back, an update beyond the inline budget, a
+    /// step while the store refuses writes) take [`Self::observe`]'s path,
+    /// concurrently.
     pub async fn step_group(
-        &self,
+        self: &Arc<Self>,
         caller: Caller,
         id: &str,
         columns: Columns,
@@ -370,8 +381,63 @@ impl SessionManager {
                 self.limits.max_batch_ms
             )));
         }
-        let steps = stepped.into_iter().map(|(index, obs)| {
+        self.panic_if_asked();
+        let m = stepped.len();
+        let indices: Vec<usize> = stepped.iter().map(|(index, _)| *index).collect();
+        let mut results: Vec<Option<Result<StepOut, ServiceError>>> =
+            std::iter::repeat_with(|| None).take(m).collect();
+        let mut slow: Vec<(usize, usize, ObservationIn)> = Vec::new();
+        if self.store_writable().is_ok() {
+            // Held until every commit is awaited, as `observe` holds it: a
+            // shard is not frozen under a step half applied.
+            let _guard = self.enter_shard(id)?;
+            let mut chunks = Vec::with_capacity(m.div_ceil(STEP_CHUNK));
+            let mut members = stepped.into_iter().enumerate();
+            loop {
+                let chunk: Vec<_> = members.by_ref().take(STEP_CHUNK).collect();
+                if chunk.is_empty() {
+                    break;
+                }
+                let (manager, group) = (Arc::clone(self), Arc::clone(&group));
+                chunks.push(tokio::task::spawn_blocking(move || {
+                    manager.apply_members(caller, &group, chunk)
+                }));
+            }
+            let mut applied = Vec::with_capacity(m);
+            for chunk in join_all(chunks).await {
+                let chunk = chunk.map_err(|e| {
+                    ServiceError::Internal(format!("a group step task failed: {e}"))
+                })?;
+                for (pos, index, outcome) in chunk {
+                    match outcome {
+                        Applied::Done(session, observed) => applied.push((pos, session, observed)),
+                        Applied::Refused(e) => results[pos] = Some(Err(e)),
+                        Applied::Elsewhere(obs) => slow.push((pos, index, obs)),
+                    }
+                }
+            }
+            tick::meters().observations.increment(applied.len() as u64);
+            // One group commit holds every entry queued above: the first
+            // wait is the only one that waits.
+            for (pos, session, observed) in applied {
+                let result = observed.durable().await.and_then(|mut steps| {
+                    steps
+                        .pop()
+                        .ok_or_else(|| ServiceError::Internal("observe returned no step".into()))
+                });
+                self.roll_back_if_uncommitted(&session, &result);
+                results[pos] = Some(result);
+            }
+        } else {
+            slow = stepped
+                .into_iter()
+                .enumerate()
+                .map(|(pos, (index, obs))| (pos, index, obs))
+                .collect();
+        }
+        let slow = slow.into_iter().map(|(pos, index, obs)| {
             let member = group.members[index].clone();
+            let group = &group;
             async move {
                 let result = match member {
                     Some(member) => {
@@ -383,14 +449,49 @@ impl SessionManager {
                                 })
                             })
                     }
-                    None => Err(ServiceError::NotFound(format!(
-                        "{id}[{index}] (this member could not be recovered from the store)"
-                    ))),
+                    None => Err(unrecovered(&group.id, index)),
                 };
-                MemberStep { index, result }
+                (pos, result)
             }
         });
-        Ok(join_all(steps).await)
+        for (pos, result) in join_all(slow).await {
+            results[pos] = Some(result);
+        }
+        Ok(group_steps(&group, indices, results))
+    }
+
+    /// Applies a chunk of a group step's members on this (blocking) thread:
+    /// each resident member whose update is cheap, as [`Self::observe`]
+    /// would; the rest are left to its path.
+    fn apply_members(
+        &self,
+        caller: Caller,
+        group: &Group,
+        chunk: Vec<(usize, (usize, ObservationIn))>,
+    ) -> Vec<(usize, usize, Applied)> {
+        chunk
+            .into_iter()
+            .map(|(pos, (index, obs))| {
+                let Some(member) = &group.members[index] else {
+                    return (pos, index, Applied::Refused(unrecovered(&group.id, index)));
+                };
+                let session = match self.resident(member) {
+                    Some(s) if caller.may_see(s.owner.as_ref()) && !s.is_stale() => s,
+                    // Evicted, deleted, or to be rolled back first: as a
+                    // lone observation is.
+                    _ => return (pos, index, Applied::Elsewhere(obs)),
+                };
+                if session.is_failed() {
+                    let e = ServiceError::SessionFailed(session.id.clone());
+                    return (pos, index, Applied::Refused(e));
+                }
+                let outcome = match self.observe_inline(&session, std::slice::from_ref(&obs)) {
+                    Some(observed) => Applied::Done(session, observed),
+                    None => Applied::Elsewhere(obs),
+                };
+                (pos, index, outcome)
+            })
+            .collect()
     }
 
     /// Registers the groups of these sessions (recovered at start, or
@@ -442,4 +543,48 @@ impl SessionManager {
     pub fn groups_len(&self) -> usize {
         self.groups.read().len()
     }
+}
+
+/// Members of a group step applied per task of the blocking pool: enough
+/// that the hand-off (some microseconds) is small beside their updates
+/// (about a microsecond each for the hallway), few enough that a step of
+/// many members is spread over every core.
+const STEP_CHUNK: usize = 512;
+
+/// What became of one member in [`SessionManager::apply_members`].
+enum Applied {
+    /// Applied here; its commit is still to be awaited.
+    Done(SessionRef, session::Observed),
+    /// Refused before anything was applied.
+    Refused(ServiceError),
+    /// Not applied here: it takes [`SessionManager::observe`]'s path.
+    Elsewhere(ObservationIn),
+}
+
+/// A member whose records could not be recovered from the store.
+fn unrecovered(group: &str, index: usize) -> ServiceError {
+    ServiceError::NotFound(format!(
+        "{group}[{index}] (this member could not be recovered from the store)"
+    ))
+}
+
+/// The replies of a group step in mask order, from the members' results.
+fn group_steps(
+    group: &Group,
+    indices: Vec<usize>,
+    results: Vec<Option<Result<StepOut, ServiceError>>>,
+) -> Vec<MemberStep> {
+    indices
+        .into_iter()
+        .zip(results)
+        .map(|(index, result)| MemberStep {
+            index,
+            result: result.unwrap_or_else(|| {
+                Err(ServiceError::Internal(format!(
+                    "{}: a member of the step was neither applied nor refused",
+                    group.id
+                )))
+            }),
+        })
+        .collect()
 }

@@ -13,7 +13,7 @@ impl SessionManager {
         self.panic_observations.store(n, Ordering::Release);
     }
 
-    fn panic_if_asked(&self) {
+    pub(super) fn panic_if_asked(&self) {
         let asked = self
             .panic_observations
             .fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| n.checked_sub(1))
@@ -55,17 +55,26 @@ impl SessionManager {
         // `storage_unavailable` at once and retries.
         self.store_writable()?;
         let result = self.observe_on(&session, batch).await;
-        if let Err(ServiceError::Storage(detail)) = &result {
-            // The observations are applied in memory but not durable, and
-            // the store refuses the session's writes from now on: roll it
-            // back to what is durable before it takes another observation.
-            // Rare, and a few milliseconds of reading: done on this task.
-            tracing::warn!(session = %id, error = %detail, "reloading the session after a failed commit");
-            if let Err(e) = self.reload(&session) {
-                tracing::error!(session = %id, error = %e, "reload failed; the session takes no observations until one succeeds");
+        self.roll_back_if_uncommitted(&session, &result);
+        result
+    }
+
+    /// After a commit of `session` failed, its observations are applied in
+    /// memory but not durable, and the store refuses its writes from now
+    /// on: it is rolled back to what is durable before it takes another
+    /// observation. Rare, and a few milliseconds of reading: done on the
+    /// caller's task.
+    pub(super) fn roll_back_if_uncommitted<T>(
+        &self,
+        session: &SessionRef,
+        result: &Result<T, ServiceError>,
+    ) {
+        if let Err(ServiceError::Storage(detail)) = result {
+            tracing::warn!(session = %session.id, error = %detail, "reloading the session after a failed commit");
+            if let Err(e) = self.reload(session) {
+                tracing::error!(session = %session.id, error = %e, "reload failed; the session takes no observations until one succeeds");
             }
         }
-        result
     }
 
     /// Checks the estimated CPU time of one `InteractBatch` message: `n`
@@ -100,29 +109,13 @@ impl SessionManager {
         session: &SessionRef,
         batch: Vec<ObservationIn>,
     ) -> Result<Vec<StepOut>, ServiceError> {
-        let session = Arc::clone(session);
         let n = batch.len() as u64;
-        // Updates measured to be cheap run here: a hand-off to the pool
-        // would cost more than the update itself.
-        let inline = session.plan_cost_ns().saturating_mul(n) <= self.inline_plan_ns;
-        let out = match session.mode {
-            UpdateMode::Lockstep if inline => {
-                let started = Instant::now();
-                let observed = session.observe(&batch, true);
-                tick::meters()
-                    .tick_seconds
-                    .record(started.elapsed().as_secs_f64());
-                if let Err(e @ ServiceError::Algo(mcapi_core::AlgoError::Numerical(_))) =
-                    &observed.result
-                {
-                    tick::log_plan_error(&session, e);
-                }
-                observed.durable().await?
-            }
-            UpdateMode::Lockstep => {
+        let out = match self.observe_inline(session, &batch) {
+            Some(observed) => observed.durable().await?,
+            None if session.mode == UpdateMode::Lockstep => {
                 let (tx, rx) = oneshot::channel();
                 self.pool.submit(Job::Observe {
-                    session,
+                    session: Arc::clone(session),
                     batch,
                     reply: tx,
                 })?;
@@ -133,43 +126,90 @@ impl SessionManager {
                     .durable()
                     .await?
             }
-            UpdateMode::Async => {
+            None => {
                 // Observing alone recomputes R for every pair and, with a
                 // curiosity channel, learns each signal sample: beyond the
                 // inline budget that runs on the blocking pool.
-                let observe_ns = cost::observe_us(&session.model, &session.config)
-                    .saturating_mul(1000)
-                    .saturating_mul(n);
-                let observed = if observe_ns <= self.inline_plan_ns.max(50_000) {
-                    session.observe(&batch, false)
-                } else {
-                    let session = Arc::clone(&session);
-                    tokio::task::spawn_blocking(move || session.observe(&batch, false))
+                let observing = Arc::clone(session);
+                let observed =
+                    tokio::task::spawn_blocking(move || observing.observe(&batch, false))
                         .await
                         .map_err(|e| {
                             ServiceError::Internal(format!("an observation task failed: {e}"))
-                        })?
-                };
-                if inline && observed.result.is_ok() {
-                    let started = Instant::now();
-                    match session.plan_if_needed() {
-                        Ok(true) => tick::meters()
-                            .tick_seconds
-                            .record(started.elapsed().as_secs_f64()),
-                        Ok(false) => {}
-                        Err(e) => tick::log_plan_error(&session, &e),
-                    }
-                } else if session.try_enqueue()
-                    && let Err(e) = self.pool.submit(Job::Plan(Arc::clone(&session)))
-                {
-                    session.dequeued();
-                    tracing::warn!(session = %session.id, error = %e, "policy update not queued");
-                }
+                        })?;
+                self.plan_after_observe(session, &observed, n);
                 observed.durable().await?
             }
         };
         tick::meters().observations.increment(n);
         Ok(out)
+    }
+
+    /// Applies `batch` to `session` on this thread if its update is cheap
+    /// enough to run here (a hand-off to the pool would cost more than the
+    /// update itself): a lockstep session whose plan fits the inline
+    /// budget, observed and planned; an async session whose observing fits
+    /// it, observed, then planned here or queued for the tick loop. `None`
+    /// when it is not cheap: nothing was applied, and the caller hands it
+    /// to the pool. Never waits for a commit (the [`Observed`] carries it),
+    /// so a group step applies many members and then waits once.
+    pub(super) fn observe_inline(
+        &self,
+        session: &SessionRef,
+        batch: &[ObservationIn],
+    ) -> Option<session::Observed> {
+        let n = batch.len() as u64;
+        match session.mode {
+            UpdateMode::Lockstep => {
+                if session.plan_cost_ns().saturating_mul(n) > self.inline_plan_ns {
+                    return None;
+                }
+                let started = Instant::now();
+                let observed = session.observe(batch, true);
+                tick::meters()
+                    .tick_seconds
+                    .record(started.elapsed().as_secs_f64());
+                if let Err(e @ ServiceError::Algo(mcapi_core::AlgoError::Numerical(_))) =
+                    &observed.result
+                {
+                    tick::log_plan_error(session, e);
+                }
+                Some(observed)
+            }
+            UpdateMode::Async => {
+                let observe_ns = cost::observe_us(&session.model, &session.config)
+                    .saturating_mul(1000)
+                    .saturating_mul(n);
+                if observe_ns > self.inline_plan_ns.max(50_000) {
+                    return None;
+                }
+                let observed = session.observe(batch, false);
+                self.plan_after_observe(session, &observed, n);
+                Some(observed)
+            }
+        }
+    }
+
+    /// An async session's policy update after it observed `n`
+    /// observations: here if it fits the inline budget, else queued for
+    /// the tick loop (once: a session already queued is not queued again).
+    fn plan_after_observe(&self, session: &SessionRef, observed: &session::Observed, n: u64) {
+        let inline = session.plan_cost_ns().saturating_mul(n) <= self.inline_plan_ns;
+        if inline && observed.result.is_ok() {
+            let started = Instant::now();
+            match session.plan_if_needed() {
+                Ok(true) => tick::meters()
+                    .tick_seconds
+                    .record(started.elapsed().as_secs_f64()),
+                Ok(false) => {}
+                Err(e) => tick::log_plan_error(session, &e),
+            }
+        } else if session.try_enqueue()
+            && let Err(e) = self.pool.submit(Job::Plan(Arc::clone(session)))
+        {
+            session.dequeued();
+            tracing::warn!(session = %session.id, error = %e, "policy update not queued");
+        }
     }
 
     /// Value tables of a session.
