@@ -84,8 +84,14 @@ _GRPC = {"VectorAgents", "AsyncVectorAgents"}
 def __getattr__(name: str) -> Any:
     if name not in _GRPC:
         raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    from . import _group_grpc
-
+    try:
+        from . import _group_grpc
+    except ImportError as e:
+        raise ImportError(
+            f"mcapi_client.groups.{name} needs grpcio and protobuf: install the `grpc` extra, "
+            "pip install './clients/python[grpc,vector]' (from the mcapi repository)",
+            name=e.name,
+        ) from e
     value = getattr(_group_grpc, name)
     globals()[name] = value
     return value
