@@ -140,7 +140,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                 stream = agents
                 assert isinstance(stream, VectorAgents)  # gRPC: send and recv
                 for k, r in enumerate(rows):  # one step of each slice in flight
-                    stream.send(sim.states[r], sim.move(r, actions[k]), mask=masks[k])
+                    stimuli = sim.move(r, actions[k])
+                    stream.send(sim.states[r], stimuli, mask=masks[k])
                 sent = 1
                 while True:
                     for k, r in enumerate(rows):
@@ -149,7 +150,8 @@ def main(argv: Sequence[str] | None = None) -> int:
                         done += len(masks[k])
                         group_steps += 1
                         if sent < args.steps:
-                            stream.send(sim.states[r], sim.move(r, step.actions), mask=masks[k])
+                            stimuli = sim.move(r, step.actions)
+                            stream.send(sim.states[r], stimuli, mask=masks[k])
                     t = time.perf_counter()
                     if t - last_report >= args.report_every:
                         print(f"  {(done - last_done) / (t - last_report):10.0f} agent steps/s")
