@@ -18,6 +18,10 @@ action, the drive and the reward.
   of observation vectors) takes ``observation=[x1, ..., xd]`` instead of
   ``state``; ``models.from_gymnasium`` and ``models.from_mo_gymnasium`` make
   one of a ``Box``-observation environment (:mod:`mcapi_client.continuous`).
+- :mod:`mcapi_client.groups`: session groups, N agents of one model stepped
+  by columns (numpy arrays; the ``vector`` extra), from ``create_group`` of
+  any of the four clients; :mod:`mcapi_client.vector_env` drives a Gymnasium
+  vector environment with one.
 - :mod:`mcapi_client.errors`: :class:`McapiError` and its subclasses, one per
   family of the server's stable error codes.
 - Curiosity: ``create_session(..., curiosity=CuriosityConfig(signal_dim=2))``

@@ -19,11 +19,11 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 from urllib.parse import quote
 
 from . import _json
-from ._normalise import as_opt_int
+from ._normalise import as_int, as_opt_int
 from ._sansio import Op, SessionCache
 from .errors import error_for
 from .models import ModelLike, model_json
@@ -39,7 +39,19 @@ from .types import (
     as_observation,
 )
 
-__all__ = ["Request", "RestProtocol", "READY", "headers", "read_reply", "session_path"]
+if TYPE_CHECKING:
+    from .groups import GroupInfo, GroupStep
+    from .types import AgentKwargs
+
+__all__ = [
+    "Request",
+    "RestProtocol",
+    "READY",
+    "headers",
+    "read_reply",
+    "session_path",
+    "group_path",
+]
 
 
 @dataclass(frozen=True, slots=True)
@@ -76,6 +88,11 @@ def session_path(session_id: str, tail: str = "") -> str:
     return f"/v1/sessions/{quote(session_id, safe='')}{tail}"
 
 
+def group_path(group_id: str, tail: str = "") -> str:
+    """``/v1/groups/<id><tail>``, the id one path segment whatever it contains."""
+    return f"/v1/groups/{quote(group_id, safe='')}{tail}"
+
+
 def read_reply(status: int, content: bytes, reason: str) -> Any:
     """The JSON body of a reply (``None`` when empty).
 
@@ -109,6 +126,7 @@ class RestProtocol:
 
     def __init__(self) -> None:
         self._actions: SessionCache[list[str]] = SessionCache()
+        self._groups: SessionCache[GroupInfo] = SessionCache()
 
     def _remember(self, info: SessionInfo) -> SessionInfo:
         self._actions.put(info.id, info.model.actions)
@@ -166,3 +184,64 @@ class RestProtocol:
         if actions is None:
             actions = (yield from self.get_session(session_id)).model.actions
         return _json.history(entries, actions)
+
+    # Session groups (numpy: the `vector` extra, imported when first used).
+
+    def create_group(self, model: ModelLike, n: object, agent: AgentKwargs) -> Op[Request, GroupInfo]:
+        """``POST /v1/groups``; ``agent``'s ``seed`` is the group's."""
+        from . import groups
+
+        rest = agent.copy()
+        seed = as_opt_int(rest.pop("seed", None), "seed")
+        body: dict[str, Any] = {
+            "model": model_json(model),
+            "agent": AgentOptions(**rest).to_json(),
+            "n": as_int(n, "n"),
+        }
+        if seed is not None:
+            body["seed"] = seed
+        reply = yield Request("POST", "/v1/groups", json=body)
+        info = groups.group_info_json(reply)
+        self._groups.put(info.id, info)
+        return info
+
+    def get_group(self, group_id: str) -> Op[Request, GroupInfo]:
+        """``GET /v1/groups/{id}``."""
+        from . import groups
+
+        reply = yield Request("GET", group_path(group_id))
+        info = groups.group_info_json(reply)
+        self._groups.put(info.id, info)
+        return info
+
+    def delete_group(self, group_id: str) -> Op[Request, None]:
+        """``DELETE /v1/groups/{id}``."""
+        yield Request("DELETE", group_path(group_id))
+        self._groups.drop(group_id)
+
+    def group(self, group_id: str) -> Op[Request, GroupInfo]:
+        """The group's shape: remembered, else read (``GET /v1/groups/{id}``)."""
+        info = self._groups.get(group_id)
+        if info is None:
+            info = yield from self.get_group(group_id)
+        return info
+
+    def step_group(
+        self,
+        group_id: str,
+        states: Any,
+        stimuli: Any,
+        observations: Any,
+        action_taken: Any,
+        mask: Any,
+    ) -> Op[Request, GroupStep]:
+        """``POST /v1/groups/{id}/steps``, the columns checked against the
+        group's shape first (read once when not known yet)."""
+        from . import groups
+
+        info = yield from self.group(group_id)
+        columns = groups.check_columns(
+            info, states, stimuli, observations=observations, action_taken=action_taken, mask=mask
+        )
+        reply = yield Request("POST", group_path(group_id, "/steps"), json=groups.step_body(columns))
+        return groups.group_step_json(reply, info.stimuli)

@@ -51,7 +51,7 @@ except ImportError as e:  # pragma: no cover - exercised in a subprocess by test
     ) from e
 
 from . import _pb
-from ._normalise import FloatLike, FloatsLike, IntLike
+from ._normalise import FloatLike, FloatsLike, IntLike, as_int
 from ._pb import ERROR_CODE_TRAILER, SESSION_METADATA, Call, Metadata, rpc_error
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
@@ -76,7 +76,7 @@ from .types import (
 if TYPE_CHECKING:
     from typing_extensions import Unpack
 
-    from .groups import GroupInfo, VectorAgents
+    from .groups import AsyncVectorAgents, GroupInfo, VectorAgents
 
 __all__ = [
     "GrpcClient",
@@ -382,6 +382,19 @@ class Watch:
         self.cancel()
 
 
+def _group_create_call(model: ModelLike, n: IntLike, agent: AgentKwargs) -> Call:
+    """The ``CreateGroup`` call: ``agent`` without ``seed``, which is the group's."""
+    rest = agent.copy()
+    seed = rest.pop("seed", None)
+    request = _pb.create_request(model_json(model), AgentOptions(**rest))
+    if not request.HasField("model"):
+        raise ValueError("a group's model must be one the typed gRPC `Model` carries")
+    msg = pb.CreateGroupRequest(model=request.model, agent=request.agent, n=as_int(n, "n"))
+    if seed is not None:
+        msg.seed = as_int(seed, "seed")
+    return Call("CreateGroup", msg)
+
+
 class GrpcClient:
     """A client of the mcapi gRPC API (service ``mcapi.v1.Agents``).
 
@@ -478,30 +491,23 @@ class GrpcClient:
 
         Needs the ``vector`` extra (numpy).
         """
-        from . import groups
+        from . import _group_grpc
 
-        seed = agent.pop("seed", None)
-        request = _pb.create_request(model_json(model), AgentOptions(**agent))
-        if not request.HasField("model"):
-            raise ValueError("a group's model must be one the typed gRPC `Model` carries")
-        msg = pb.CreateGroupRequest(model=request.model, agent=request.agent, n=int(n))
-        if seed is not None:
-            msg.seed = int(seed)
-        info = groups.group_info(self._send(Call("CreateGroup", msg)))
-        return groups.VectorAgents(self._stub, info, self._protocol.metadata())
+        info = _group_grpc.group_info(self._send(_group_create_call(model, n, agent)))
+        return _group_grpc.VectorAgents(self._stub, info, self._protocol.metadata())
 
     def get_group(self, group_id: str) -> GroupInfo:
         """A group: its seed, shape and member session ids (``GetGroup``)."""
-        from . import groups
+        from . import _group_grpc
 
         reply = self._send(Call("GetGroup", pb.GetGroupRequest(group_id=group_id), group_id))
-        return groups.group_info(reply)
+        return _group_grpc.group_info(reply)
 
     def vector_agents(self, group_id: str) -> VectorAgents:
         """Opens a ``StepGroup`` stream on an existing group."""
-        from . import groups
+        from . import _group_grpc
 
-        return groups.VectorAgents(self._stub, self.get_group(group_id), self._protocol.metadata())
+        return _group_grpc.VectorAgents(self._stub, self.get_group(group_id), self._protocol.metadata())
 
     def delete_group(self, group_id: str) -> None:
         """Deletes every member of a group, then the group (``DeleteGroup``)."""
@@ -868,6 +874,39 @@ class AsyncGrpcClient:
         """Creates a session; arguments as :meth:`mcapi_client.Client.create_session`."""
         options = AgentOptions(**agent)
         return await adrive(self._protocol.create_session(model, options), self._send)
+
+    async def create_group(
+        self,
+        model: ModelLike,
+        n: IntLike,
+        **agent: Unpack[AgentKwargs],
+    ) -> AsyncVectorAgents:
+        """Creates a group of ``n`` sessions and opens its ``StepGroup``
+        stream; arguments as :meth:`GrpcClient.create_group`. Needs the
+        ``vector`` extra (numpy)."""
+        from . import _group_grpc
+
+        info = _group_grpc.group_info(await self._send(_group_create_call(model, n, agent)))
+        return _group_grpc.AsyncVectorAgents(self._stub, info, self._protocol.metadata())
+
+    async def get_group(self, group_id: str) -> GroupInfo:
+        """A group: its seed, shape and member session ids (``GetGroup``)."""
+        from . import _group_grpc
+
+        reply = await self._send(Call("GetGroup", pb.GetGroupRequest(group_id=group_id), group_id))
+        return _group_grpc.group_info(reply)
+
+    async def vector_agents(self, group_id: str) -> AsyncVectorAgents:
+        """Opens a ``StepGroup`` stream on an existing group (awaited: it reads
+        the group first)."""
+        from . import _group_grpc
+
+        info = await self.get_group(group_id)
+        return _group_grpc.AsyncVectorAgents(self._stub, info, self._protocol.metadata())
+
+    async def delete_group(self, group_id: str) -> None:
+        """Deletes every member of a group, then the group (``DeleteGroup``)."""
+        await self._send(Call("DeleteGroup", pb.DeleteGroupRequest(group_id=group_id), group_id))
 
     async def get_session(self, session_id: str) -> SessionInfo:
         """A session's details; see :meth:`GrpcClient.get_session`."""

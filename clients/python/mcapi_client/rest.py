@@ -33,7 +33,7 @@ except ImportError as e:  # pragma: no cover - exercised in a subprocess by test
     ) from e
 
 from ._normalise import FloatsLike, IntLike
-from ._protocol import READY, Request, RestProtocol, read_reply
+from ._protocol import READY, Request, RestProtocol, group_path, read_reply
 from ._protocol import headers as request_headers
 from ._sansio import adrive, drive
 from .errors import McapiError, Timeout, TransportError, WrongReplica
@@ -55,6 +55,8 @@ from .types import (
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
+
+    from .groups import AsyncRestVectorAgents, GroupInfo, GroupStep, RestVectorAgents
 
 __all__ = ["Client", "AsyncClient", "DEFAULT_URL", "ModelLike"]
 
@@ -266,6 +268,72 @@ class Client:
         """
         return drive(self._protocol.history(session_id, limit), self._send)
 
+    # -- session groups (the `vector` extra: numpy) --
+
+    def create_group(
+        self, model: ModelLike, n: IntLike, **agent: Unpack[AgentKwargs]
+    ) -> RestVectorAgents:
+        """Creates a group of ``n`` sessions of one model and configuration
+        (``POST /v1/groups``); returns the object that steps it.
+
+        Args:
+            model: Every member's model.
+            n: Members, 1 to the server's ``--max-group-members``.
+            agent: Every member's configuration, as :meth:`create_session`
+                takes it, except ``seed``: it is the group's (member i's is
+                :func:`mcapi_client.groups.member_seed` of it; drawn when
+                absent).
+
+        Needs the ``vector`` extra (numpy).
+        """
+        info = drive(self._protocol.create_group(model, n, agent), self._send)
+        return self._vector_agents(info)
+
+    def get_group(self, group_id: str) -> GroupInfo:
+        """A group: its seed, shape and member session ids (``GET /v1/groups/{id}``)."""
+        return drive(self._protocol.get_group(group_id), self._send)
+
+    def vector_agents(self, group_id: str) -> RestVectorAgents:
+        """The object that steps an existing group (it reads the group first)."""
+        return self._vector_agents(self.get_group(group_id))
+
+    def _vector_agents(self, info: GroupInfo) -> RestVectorAgents:
+        from .groups import RestVectorAgents
+
+        path = group_path(info.id, "/steps")
+        return RestVectorAgents(info, lambda body: self._send(Request("POST", path, json=body)))
+
+    def delete_group(self, group_id: str) -> None:
+        """Deletes every member of a group, then the group (``DELETE /v1/groups/{id}``)."""
+        drive(self._protocol.delete_group(group_id), self._send)
+
+    def step_group(
+        self,
+        group_id: str,
+        states: Any = None,
+        stimuli: Any = None,
+        *,
+        observations: Any = None,
+        action_taken: Any = None,
+        mask: Any = None,
+    ) -> GroupStep:
+        """One step of a group's members (``POST /v1/groups/{id}/steps``): the
+        columns of :meth:`mcapi_client.groups.VectorAgents.send`, checked
+        against the group's shape (read once if this client has not seen the
+        group), and the same :class:`~mcapi_client.groups.GroupStep` of numpy
+        arrays as over gRPC: a refused member is in ``errors``, its ``null``
+        entries as the gRPC placeholders (action
+        :data:`~mcapi_client.groups.ADVISED`, a drive row of 0, reward 0).
+
+        Raises:
+            ValueError: A column does not fit the group; nothing was sent.
+            McapiError: The server refused the step whole (``unknown_state``,
+                ``stimulus_too_large``, ``not_found``...), or a stimulus is
+                not finite (``non_finite_number``: JSON cannot carry it).
+        """
+        op = self._protocol.step_group(group_id, states, stimuli, observations, action_taken, mask)
+        return drive(op, self._send)
+
 
 class AsyncClient:
     """An asyncio client of the mcapi REST API, with the methods of :class:`Client`.
@@ -398,3 +466,47 @@ class AsyncClient:
         """Recent ticks, oldest first; see :meth:`Client.history`."""
         return await adrive(self._protocol.history(session_id, limit), self._send)
 
+    # -- session groups (the `vector` extra: numpy) --
+
+    async def create_group(
+        self, model: ModelLike, n: IntLike, **agent: Unpack[AgentKwargs]
+    ) -> AsyncRestVectorAgents:
+        """Creates a group; see :meth:`Client.create_group`."""
+        info = await adrive(self._protocol.create_group(model, n, agent), self._send)
+        return self._vector_agents(info)
+
+    async def get_group(self, group_id: str) -> GroupInfo:
+        """A group: its seed, shape and member session ids."""
+        return await adrive(self._protocol.get_group(group_id), self._send)
+
+    async def vector_agents(self, group_id: str) -> AsyncRestVectorAgents:
+        """The object that steps an existing group (it reads the group first)."""
+        return self._vector_agents(await self.get_group(group_id))
+
+    def _vector_agents(self, info: GroupInfo) -> AsyncRestVectorAgents:
+        from .groups import AsyncRestVectorAgents
+
+        path = group_path(info.id, "/steps")
+
+        async def send(body: dict[str, Any]) -> Any:
+            return await self._send(Request("POST", path, json=body))
+
+        return AsyncRestVectorAgents(info, send)
+
+    async def delete_group(self, group_id: str) -> None:
+        """Deletes every member of a group, then the group."""
+        await adrive(self._protocol.delete_group(group_id), self._send)
+
+    async def step_group(
+        self,
+        group_id: str,
+        states: Any = None,
+        stimuli: Any = None,
+        *,
+        observations: Any = None,
+        action_taken: Any = None,
+        mask: Any = None,
+    ) -> GroupStep:
+        """One step of a group's members; see :meth:`Client.step_group`."""
+        op = self._protocol.step_group(group_id, states, stimuli, observations, action_taken, mask)
+        return await adrive(op, self._send)

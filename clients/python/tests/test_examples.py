@@ -50,6 +50,32 @@ def test_hallway_stream(server: Server, examples_path: Path, capsys: pytest.Capt
     assert re.search(r"^ +\d+ ticks/s$", out, re.MULTILINE), "rate lines while running"
 
 
+@pytest.mark.parametrize(
+    "args",
+    [["--in-flight", "2"], ["--in-flight", "3"], ["--in-flight", "1"], ["--transport", "rest"]],
+)
+def test_hallway_group(
+    args: list[str], server: Server, examples_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    pytest.importorskip("numpy", reason="the vector extra is not installed")
+    from mcapi_client import Client
+
+    with Client(server.http_url) as c:
+        before = {s.id for s in c.iter_sessions()}
+    common = ["--target", server.grpc_target, "--url", server.http_url, "--agents", "64", "--steps", "300"]
+    out = _run("hallway_group", [*common, "--report-every", "0.1", *args], capsys)
+    final = re.search(
+        r"64 agents x 300 steps in [\d.]+ s: (\d+) agent steps/s, (\d+) group steps/s; "
+        r"visits: food (\d+), rest (\d+)",
+        out,
+    )
+    assert final, out
+    rate, group_rate, food, rest = map(int, final.groups())
+    assert rate > group_rate > 0 and food > 64 and rest > 64, out
+    with Client(server.http_url) as c:
+        assert {s.id for s in c.iter_sessions()} == before, "the group was deleted"
+
+
 def test_frozenlake(server: Server, examples_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     pytest.importorskip("gymnasium", reason="the gymnasium extra is not installed")
     out = _run("frozenlake", ["--url", server.http_url, "--steps", "1500", "--window", "500"], capsys)

@@ -78,10 +78,36 @@ def test_pipelined_steps_answer_in_order_and_refusals_are_per_member(grpc_client
     grpc_client.delete_group(agents.info.id)
 
 
-def test_a_step_that_does_not_fit_the_group_ends_the_stream(grpc_client: GrpcClient) -> None:
+def test_columns_that_do_not_fit_are_refused_before_sending(grpc_client: GrpcClient) -> None:
+    with grpc_client.create_group(models.hallway(), 2, seed=5) as agents:
+        agents.step([25, 25])
+        bad = [
+            (([25, 25, 25], np.zeros((3, 2))), {}, "`states` has 3 entries; 2 expected"),
+            (([25, 25], np.zeros((2, 3))), {}, "`stimuli` must have shape (2, 2)"),
+            (([25, -1], np.zeros((2, 2))), {}, "`states` holds -1"),
+            (([25.0, 26.0], np.zeros((2, 2))), {}, "`states` must hold integers"),
+            (([25], np.zeros((1, 2))), {"mask": [1, 0]}, "`mask` must be strictly increasing"),
+            (([25], np.zeros((1, 2))), {"mask": [2]}, "`mask` names member 2; the group has 2"),
+            (([25, 25], np.zeros((2, 2))), {"action_taken": [0]}, "`action_taken` has 1 entries"),
+            (([25, 25],), {"observations": np.zeros((2, 1))}, "pass `states`, not `observations`"),
+        ]
+        for args, kw, message in bad:
+            with pytest.raises(ValueError) as err:
+                agents.step(*args, **kw)
+            assert message in str(err.value)
+        assert agents.pending == 0
+        # Nothing was sent: the stream goes on at the next seq.
+        ok = agents.step([26, 24], np.zeros((2, 2)))
+        assert ok.seq == 1 and ok.ticks.tolist() == [1, 1]
+
+
+def test_a_step_the_server_refuses_whole_ends_the_stream(grpc_client: GrpcClient) -> None:
     with grpc_client.create_group(models.hallway(), 2, seed=5) as agents:
         agents.step([25, 25])
         with pytest.raises(McapiError) as err:
-            agents.step([25, 25, 25], np.zeros((3, 2)))
-        assert err.value.code == "column_length"
+            agents.step([25, 50], np.zeros((2, 2)))  # the hallway has 50 states
+        assert (err.value.code, err.value.grpc_code) == ("unknown_state", "INVALID_ARGUMENT")
+    # Nothing of it was applied.
+    ticks = [grpc_client.get_session(m).tick for m in agents.info.members]
+    assert ticks == [0, 0]
     grpc_client.delete_group(agents.info.id)

@@ -14,9 +14,9 @@ from pathlib import Path
 import pytest
 
 import mcapi_client
-from mcapi_client import continuous, errors, grpc_client, models, rest, types
+from mcapi_client import continuous, errors, groups, grpc_client, models, rest, types, vector_env
 
-PUBLIC_MODULES = [mcapi_client, continuous, errors, grpc_client, models, rest, types]
+PUBLIC_MODULES = [mcapi_client, continuous, errors, groups, grpc_client, models, rest, types, vector_env]
 
 
 def test_typed_marker_and_stub_types_are_shipped() -> None:
@@ -173,6 +173,21 @@ def test_grpc_without_httpx_and_rest_without_grpc() -> None:
         assert out.split() == ["False", "False", "True"], blocked
 
 
+def test_rest_groups_without_grpc() -> None:
+    """Groups over REST need numpy only; the gRPC stream names its extra."""
+    out = _python(
+        "from mcapi_client import Client, groups, vector_env\n"
+        "print(groups.RestVectorAgents.__name__, vector_env.VectorEnvAdapter.__name__)\n"
+        "print('mcapi_client._group_grpc' in sys.modules)\n"
+        "try:\n"
+        "    groups.VectorAgents\n"
+        "except ImportError as e:\n"
+        "    print('[grpc,vector]' in str(e))\n",
+        blocked=("grpc", "google.protobuf"),
+    )
+    assert out.split() == ["RestVectorAgents", "VectorEnvAdapter", "False", "True"]
+
+
 def test_the_extras_hold_the_transports() -> None:
     """A plain install has httpx (REST); grpcio and protobuf come with
     `grpc`; `all` is everything the examples use."""
@@ -185,7 +200,8 @@ def test_the_extras_hold_the_transports() -> None:
     assert by_extra[""] == {"httpx"}, "a plain install can talk REST"
     assert "rest" not in by_extra, "`rest` is an empty extra, kept for old commands"
     assert by_extra["grpc"] == {"grpcio", "protobuf"}
-    assert by_extra["all"] == {"mcapi-agents-client[grpc,gymnasium,mo,plot]"}
+    assert by_extra["vector"] == {"numpy"}, "session groups' columns"
+    assert by_extra["all"] == {"mcapi-agents-client[grpc,gymnasium,mo,plot,vector]"}
 
 
 @pytest.mark.parametrize("name", ["Client", "AsyncClient", "GrpcClient", "AsyncGrpcClient", "AsyncWatch"])
