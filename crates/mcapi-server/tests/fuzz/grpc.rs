@@ -18,10 +18,10 @@ use crate::json::{absurd_number, arb_json, body, create_bases};
 
 /// Sends raw bytes as one gRPC message.
 #[derive(Clone, Default)]
-struct RawCodec;
+pub(crate) struct RawCodec;
 
-struct RawEncoder;
-struct RawDecoder;
+pub(crate) struct RawEncoder;
+pub(crate) struct RawDecoder;
 
 impl tonic::codec::Encoder for RawEncoder {
     type Item = Vec<u8>;
@@ -159,7 +159,7 @@ fn fuzz_grpc(method: &str, bytes: Vec<u8>) -> Result<(), TestCaseError> {
 }
 
 /// Byte-level changes to an encoding.
-fn mutate_bytes(valid: Vec<u8>) -> impl Strategy<Value = Vec<u8>> {
+pub(crate) fn mutate_bytes(valid: Vec<u8>) -> impl Strategy<Value = Vec<u8>> {
     let len = valid.len().max(1);
     prop::collection::vec((0..len, any::<u8>(), 0u8..4), 1..6).prop_map(move |edits| {
         let mut b = valid.clone();

@@ -1,6 +1,7 @@
-//! Generative fuzzing of the two routes that take client data in bulk:
+//! Generative fuzzing of the routes that take client data in bulk:
 //! creating a session and observing, over REST (the real router,
-//! in-process) and gRPC (the real service, over a socket). Inputs are
+//! in-process) and gRPC (the real service, over a socket), and creating
+//! and stepping session groups ([`groups`]). Inputs are
 //! structured: random JSON values; valid create and observe bodies with
 //! 1-4 mutations (absurd numbers, wrong types, long strings, huge arrays,
 //! deep nesting, deleted and unknown keys); raw bytes; and for gRPC random
@@ -19,7 +20,7 @@
 //! `make test`); `make fuzz` runs many more. `FUZZ_SEED` replays a run.
 //!
 //! A test binary of its own (it measures its own resident memory). One
-//! module per concern: [`rest`], [`grpc`], the JSON generators [`json`],
+//! module per concern: [`rest`], [`grpc`], [`groups`], the JSON generators [`json`],
 //! and [`checks`] (the fuzzer's own checks); the shared environment (the
 //! server, the seed, the runner, the memory budget) is here.
 // These tests still send the deprecated `model_json` (accepted for one
@@ -39,6 +40,7 @@ use serde_json::json;
 use tokio::runtime::Runtime;
 
 mod checks;
+mod groups;
 mod grpc;
 mod json;
 mod rest;
