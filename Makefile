@@ -4,7 +4,7 @@ CARGO ?= cargo
 
 .DEFAULT_GOAL := test
 
-.PHONY: help check generate test lint-docker check-links fmt-check clippy unit build release bench bench-server figures peers clean \
+.PHONY: help check generate test lint-docker check-links fmt-check clippy unit build release bench bench-server bench-vector figures peers clean \
 	python-venv python-lint python-test e2e contract fuzz checks container-base container-test container-bench \
 	k8s-validate k8s-configmap readme-test
 
@@ -187,6 +187,13 @@ bench: ## criterion benches of the core tick
 # part of `make test`.
 bench-server: release ## every row of BENCHMARKS.md §8 (about 12 min)
 	bash benches/server.sh
+
+# Vectorised stepping (benches/vector.sh, BENCHMARKS.md §13): one Python
+# process drives 10,000 hallway agents by StepGroup, InteractBatch and REST,
+# server on core 0, client on core 1. About 4 minutes; QUICK=1 for short
+# windows. Not part of `make test`.
+bench-vector: release python-venv ## vectorised stepping, every path (about 4 min)
+	bash benches/vector.sh
 
 # The numpy peer of the tick benchmark (creates its own venv).
 peers: ## the numpy peer of the tick benchmark
