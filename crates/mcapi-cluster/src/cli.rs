@@ -283,6 +283,8 @@ fn run_haproxy(args: &HaproxyArgs) -> Result<()> {
         admin_bind: args.admin_bind.clone(),
         backends,
         resolvers: args.resolvers,
+        spare: Vec::new(),
+        expose_listeners: false,
     };
     write_router(&out_dir, &map, &spec)?;
     if let Some(name) = &args.configmap {

@@ -44,6 +44,7 @@ use tonic::transport::Channel;
 mod kubernetes;
 mod local;
 mod replicas;
+mod router;
 mod shard_moves;
 
 fn mcapi(args: &[&str]) -> Output {

@@ -73,6 +73,17 @@ const MANAGED_FLAGS: [&str; 5] = ["--http", "--grpc", "--data-dir", "--shard-map
 /// A Unix socket's path must fit `sockaddr_un.sun_path` (108 bytes with its NUL).
 const MAX_SOCKET_PATH: usize = 107;
 
+/// How a running router takes new replicas.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum RouterUpdate {
+    /// Servers added through the Runtime API: HAProxy keeps running.
+    Runtime,
+    /// HAProxy in master-worker mode, reloaded (SIGUSR2): a new worker
+    /// takes the listening sockets over and the old one finishes what it
+    /// has, but closes its clients' idle connections.
+    Reload,
+}
+
 /// `mcapi cluster local`.
 #[derive(Debug, Args)]
 pub struct LocalArgs {
@@ -97,6 +108,12 @@ pub struct LocalArgs {
     /// Seconds a replica may take to drain after SIGTERM before SIGKILL (1 to 300).
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=300))]
     pub drain_timeout_secs: u64,
+    /// How the router learns of replicas added by `rebalance`: `runtime`
+    /// (the Runtime API, HAProxy keeps running) or `reload` (a
+    /// master-worker reload). Only for measuring one against the other:
+    /// `reload` may leave requests without an answer (docs/cluster.md).
+    #[arg(long, hide = true, value_enum, default_value_t = RouterUpdate::Runtime)]
+    pub router_update: RouterUpdate,
     /// Extra `mcapi serve` flags for every replica, after `--` (e.g. `-- --workers 2`).
     #[arg(last = true)]
     pub serve_args: Vec<String>,
