@@ -1,7 +1,9 @@
 //! HAProxy (2.6, Debian's `haproxy`) as the router (docs/cluster.md):
 //! `mcapi cluster haproxy-config` writes `haproxy.cfg` and the HAProxy map
 //! file `shards.map` from a shard map; [`set_owner`] flips one shard live
-//! through the Runtime API (`set map` on the stats socket), with no reload.
+//! through the Runtime API (`set map` on the stats socket), with no reload,
+//! and [`add_backend`] puts a joining replica behind the running router
+//! (`add server` into backends declared spare), with no restart either.
 //!
 //! - REST: the shard is the first five characters of the fourth path field
 //!   (`/v1/sessions/s03a7.01JD…/observations`, `/v1/groups/s03a7.g01JD…/steps`:

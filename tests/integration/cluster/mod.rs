@@ -42,6 +42,7 @@ use serde_json::{Value, json};
 use tonic::transport::Channel;
 
 mod kubernetes;
+mod leases;
 mod local;
 mod replicas;
 mod router;

@@ -53,6 +53,77 @@ impl Tally {
     }
 }
 
+/// One GET over a kept-alive HTTP/1.1 connection, opened if there is
+/// none, with no retry of any kind (as Python's `http.client` does, unlike
+/// reqwest, which sends a request again on a pooled connection that
+/// closed before it was written). `Err` when no answer came; the
+/// connection is then dropped.
+async fn raw_get(
+    conn: &mut Option<tokio::io::BufReader<tokio::net::TcpStream>>,
+    addr: &str,
+    path: &str,
+) -> Result<u16, String> {
+    use tokio::io::{AsyncBufReadExt, AsyncReadExt, AsyncWriteExt};
+    let result = async {
+        if conn.is_none() {
+            let stream = tokio::net::TcpStream::connect(addr)
+                .await
+                .map_err(|e| format!("connect: {e}"))?;
+            *conn = Some(tokio::io::BufReader::new(stream));
+        }
+        let c = conn.as_mut().ok_or("no connection")?;
+        c.get_mut()
+            .write_all(format!("GET {path} HTTP/1.1\r\nHost: mcapi\r\n\r\n").as_bytes())
+            .await
+            .map_err(|e| format!("write: {e}"))?;
+        let mut status = 0u16;
+        let mut length = 0usize;
+        let mut keep = true;
+        loop {
+            let mut line = String::new();
+            let n = c
+                .read_line(&mut line)
+                .await
+                .map_err(|e| format!("read: {e}"))?;
+            if n == 0 {
+                return Err("the connection closed without a response".to_string());
+            }
+            let l = line.trim_end().to_ascii_lowercase();
+            if status == 0 {
+                status = l
+                    .split_whitespace()
+                    .nth(1)
+                    .and_then(|s| s.parse().ok())
+                    .ok_or(format!("a bad status line {line:?}"))?;
+            } else if l.is_empty() {
+                break;
+            } else if let Some(v) = l.strip_prefix("content-length:") {
+                length = v.trim().parse().map_err(|_| "a bad length".to_string())?;
+            } else if l == "connection: close" {
+                keep = false;
+            }
+        }
+        let mut body = vec![0u8; length];
+        c.read_exact(&mut body)
+            .await
+            .map_err(|e| format!("body: {e}"))?;
+        Ok((status, keep))
+    }
+    .await;
+    match result {
+        Ok((status, keep)) => {
+            if !keep {
+                *conn = None;
+            }
+            Ok(status)
+        }
+        Err(e) => {
+            *conn = None;
+            Err(e)
+        }
+    }
+}
+
 /// Asks the supervisor for `n` replicas as `rebalance` does (its request
 /// file, then SIGHUP), without moving shards, and waits until it says they
 /// run behind the router.
@@ -106,21 +177,30 @@ async fn load_while_replicas_join(how: &str) -> Tally {
     }
     let haproxy_pid = cluster.pid("haproxy").expect("haproxy runs");
 
-    // Six drivers (four over REST on kept-alive connections, two over
-    // gRPC), each reading its sessions in turn without pause.
+    // Six drivers, each reading its sessions in turn without pause: two
+    // over REST with reqwest, two over raw kept-alive HTTP/1.1 connections
+    // without retries, two over gRPC.
     let stop = Arc::new(AtomicBool::new(false));
     let mut drivers = Vec::new();
+    let router_addr = format!("127.0.0.1:{}", cluster.http);
     for d in 0..6usize {
+        let router_addr = router_addr.clone();
         let mine: Vec<String> = ids.iter().skip(d).step_by(6).cloned().collect();
         let (client, base, stop) = (client.clone(), base.clone(), stop.clone());
         let mut grpc = grpc.clone();
         drivers.push(tokio::spawn(async move {
             let mut t = Tally::default();
+            let mut raw = None;
             let deadline = Instant::now() + Duration::from_secs(60);
             while !stop.load(Ordering::Relaxed) && Instant::now() < deadline {
                 for id in &mine {
                     t.sent += 1;
-                    if d < 4 {
+                    if (2..4).contains(&d) {
+                        match raw_get(&mut raw, &router_addr, &format!("/v1/sessions/{id}")).await {
+                            Ok(status) => *t.answered.entry(status.to_string()).or_default() += 1,
+                            Err(e) => t.miss(format!("raw HTTP/1.1: {e}")),
+                        }
+                    } else if d < 2 {
                         let url = format!("{base}/v1/sessions/{id}");
                         match client.get(&url).send().await {
                             Ok(r) => {
@@ -144,15 +224,17 @@ async fn load_while_replicas_join(how: &str) -> Tally {
                             Ok(_) => *t.answered.entry("grpc ok".into()).or_default() += 1,
                             // A status from a replica or the router is an
                             // answer; a broken transport is not.
-                            Err(s) if s.code() == tonic::Code::Unknown
-                                || (s.code() == tonic::Code::Unavailable
-                                    && s.metadata().get("x-mcapi-error-code").is_none()) =>
+                            Err(s)
+                                if s.code() == tonic::Code::Unknown
+                                    || (s.code() == tonic::Code::Unavailable
+                                        && s.metadata().get("x-mcapi-error-code").is_none()) =>
                             {
                                 t.miss(format!("gRPC: {s:?}"));
                             }
                             Err(s) => {
-                                *t.answered.entry(format!("grpc {:?}", s.code())).or_default() +=
-                                    1;
+                                *t.answered
+                                    .entry(format!("grpc {:?}", s.code()))
+                                    .or_default() += 1;
                             }
                         }
                     }
@@ -244,12 +326,25 @@ async fn replicas_join_and_shards_move_without_a_request_left_unanswered() {
 
 /// The same load with a master-worker reload of HAProxy instead: a
 /// measurement, not a check (`-- --ignored` runs it), kept to compare the
-/// two ways (docs/cluster.md gives the numbers).
+/// ways (docs/cluster.md gives the numbers).
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-#[ignore = "a measurement of the reload that the Runtime API replaced"]
+#[ignore = "a measurement of a reload, which the Runtime API replaced"]
 async fn measure_a_reloaded_router() {
     if !haproxy_or_skip("measure_a_reloaded_router") {
         return;
     }
     load_while_replicas_join("reload").await;
+}
+
+/// The same load with HAProxy stopped and started again, as `cluster
+/// local` did before: requests go unanswered (the measurement shows the
+/// test can see what it guards against).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+#[ignore = "a measurement of the restart that the Runtime API replaced"]
+async fn measure_a_restarted_router() {
+    if !haproxy_or_skip("measure_a_restarted_router") {
+        return;
+    }
+    let tally = load_while_replicas_join("restart").await;
+    assert!(tally.unanswered > 0, "a restart cut nothing? {tally:?}");
 }

@@ -23,10 +23,12 @@
 //!
 //! `mcapi cluster rebalance --replicas N` writes `rebalance.json` and sends
 //! the supervisor SIGHUP: it starts the missing replicas (`--joining`: they
-//! own nothing yet), writes the router's configuration with them and starts
-//! HAProxy again (clients reconnect), and records `replicas` in
-//! `cluster.json`; the rebalance then moves shards to them live
-//! ([`crate::mover`]).
+//! own nothing yet), adds them to the running HAProxy through its Runtime
+//! API (their backends were declared, empty, from the start: HAProxy 2.6
+//! cannot add a backend at run time), writes the router's configuration
+//! with them, and records `replicas` in `cluster.json`; the rebalance then
+//! moves shards to them live ([`crate::mover`]). HAProxy is never
+//! restarted for it: a restart cut the requests in flight.
 //!
 //! Children run in their own process group, so a terminal's Ctrl-C reaches
 //! only the supervisor, which stops them in order; on Linux each child also
@@ -82,6 +84,10 @@ pub enum RouterUpdate {
     /// takes the listening sockets over and the old one finishes what it
     /// has, but closes its clients' idle connections.
     Reload,
+    /// HAProxy stopped and started again, as `cluster local` once did:
+    /// every connection is cut, and connections are refused until it
+    /// listens again. Kept to show what the Runtime API avoids.
+    Restart,
 }
 
 /// `mcapi cluster local`.
@@ -109,9 +115,9 @@ pub struct LocalArgs {
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=300))]
     pub drain_timeout_secs: u64,
     /// How the router learns of replicas added by `rebalance`: `runtime`
-    /// (the Runtime API, HAProxy keeps running) or `reload` (a
-    /// master-worker reload). Only for measuring one against the other:
-    /// `reload` may leave requests without an answer (docs/cluster.md).
+    /// (the Runtime API, HAProxy keeps running), `reload` (a master-worker
+    /// reload) or `restart`. Only for measuring them against each other
+    /// (docs/cluster.md gives the numbers).
     #[arg(long, hide = true, value_enum, default_value_t = RouterUpdate::Runtime)]
     pub router_update: RouterUpdate,
     /// Extra `mcapi serve` flags for every replica, after `--` (e.g. `-- --workers 2`).

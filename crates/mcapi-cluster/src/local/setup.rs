@@ -144,7 +144,9 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
         name: ROUTER.into(),
         program: haproxy,
         args: match args.router_update {
-            RouterUpdate::Runtime => vec!["-db".into(), "-f".into(), haproxy_cfg.clone().into()],
+            RouterUpdate::Runtime | RouterUpdate::Restart => {
+                vec!["-db".into(), "-f".into(), haproxy_cfg.clone().into()]
+            }
             // The master stays in the foreground and re-executes itself on
             // SIGUSR2, handing the listeners to the new worker.
             RouterUpdate::Reload => vec![

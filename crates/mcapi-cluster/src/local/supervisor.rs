@@ -292,6 +292,14 @@ impl Cluster {
                 }
                 tracing::info!(replicas = want, "replicas started; the router reloaded");
             }
+            RouterUpdate::Restart => {
+                tracing::info!(
+                    replicas = want,
+                    "replicas started; starting the router again with them"
+                );
+                self.stop(router..router + 1, Duration::from_secs(10)).await;
+                self.start(router..router + 1, ready_timeout).await?;
+            }
         }
         self.state.replicas = want;
         self.write_state();
