@@ -157,6 +157,9 @@ struct Inner {
     /// The lease of each frozen shard (`None`: frozen without a deadline,
     /// which only [`Placement::set_state`] does).
     leases: Vec<Option<Lease>>,
+    /// The last lease that ran out on each shard: a late commit of it is
+    /// told so precisely, whenever it comes.
+    expired: Vec<Option<Lease>>,
 }
 
 impl Inner {
@@ -178,7 +181,7 @@ impl Inner {
         let state = self.state_at(shard, now);
         if state != self.states[i] {
             self.states[i] = state;
-            self.leases[i] = None;
+            self.expired[i] = self.leases[i].take();
         }
         state
     }
@@ -195,7 +198,9 @@ impl Inner {
 pub enum CommitRefused {
     /// The shard is not frozen here (its lease expired and it is served
     /// again, or it was thawed, or this replica restarted).
-    #[error("shard {shard} is {state} on replica `{replica}`, not frozen: {why}; nothing was committed, move it again")]
+    #[error(
+        "shard {shard} is {state} on replica `{replica}`, not frozen: {why}; nothing was committed, move it again"
+    )]
     NotFrozen {
         /// The shard's key.
         shard: String,
@@ -207,7 +212,9 @@ pub enum CommitRefused {
         why: String,
     },
     /// Frozen, but by another freeze than the one named.
-    #[error("shard {shard} is frozen on replica `{replica}` by another freeze (token {found}, not {token}); nothing was committed")]
+    #[error(
+        "shard {shard} is frozen on replica `{replica}` by another freeze (token {found}, not {token}); nothing was committed"
+    )]
     OtherFreeze {
         /// The shard's key.
         shard: String,
@@ -272,6 +279,7 @@ impl Placement {
                 map,
                 states,
                 leases: vec![None; SHARDS],
+                expired: vec![None; SHARDS],
             }),
             in_flight: (0..SHARDS).map(|_| AtomicU32::new(0)).collect(),
             next_token: AtomicU64::new(clock | 1),
@@ -398,8 +406,8 @@ impl Placement {
         let mut inner = self.inner.write();
         let now = Instant::now();
         let i = usize::from(shard) % SHARDS;
-        let lease = inner.leases[i];
         let state = inner.settle(shard, now);
+        let lease = inner.leases[i].or(inner.expired[i]);
         match (state, lease) {
             (ShardState::Frozen, Some(l)) if l.token == token => {}
             (ShardState::Frozen, Some(l)) => {
@@ -660,7 +668,10 @@ mod tests {
         assert!(matches!(p.check(&id), Err(PlacementError::ShardFrozen(_))));
         assert!(!p.expire(s, lease.token), "not before its deadline");
         let again = p.freeze(s, Duration::from_millis(40)).expect("renewed");
-        assert_eq!(again.token, lease.token, "a repeated freeze keeps its token");
+        assert_eq!(
+            again.token, lease.token,
+            "a repeated freeze keeps its token"
+        );
         std::thread::sleep(Duration::from_millis(60));
         // Served again at the deadline, before any timer ran.
         assert_eq!(p.state(s), ShardState::Owned);
@@ -672,7 +683,10 @@ mod tests {
         let PlacementError::MoveConflict(text) = e else {
             panic!("a move conflict")
         };
-        assert!(text.contains("the lease of its freeze (40 ms) expired"), "{text}");
+        assert!(
+            text.contains("the lease of its freeze (40 ms) expired"),
+            "{text}"
+        );
         assert_eq!(p.epoch(), 1, "nothing committed");
         assert_eq!(p.state(s), ShardState::Owned);
         assert!(!p.expire(s, lease.token), "thawed already");
@@ -684,7 +698,10 @@ mod tests {
             .expect_err("another token");
         assert!(e.to_string().contains("by another freeze"), "{e}");
         assert!(p.commit(t, lease.token, &names[0], 2).is_err(), "to itself");
-        assert!(p.commit(t, lease.token, &names[1], 1).is_err(), "an old epoch");
+        assert!(
+            p.commit(t, lease.token, &names[1], 1).is_err(),
+            "an old epoch"
+        );
         p.commit(t, lease.token, &names[1], 2).expect("committed");
         assert_eq!(p.state(t), ShardState::Foreign);
         assert_eq!(p.epoch(), 2);

@@ -70,7 +70,7 @@ async fn a_dead_movers_freeze_ends_with_its_lease_and_a_half_move_is_finished() 
     let data = cluster.dir.to_str().expect("utf-8").to_string();
     let client = http_client();
     let base = cluster.base();
-    let (code, _, replica, body) = call(
+    let (code, replica, _, body) = call(
         &client,
         reqwest::Method::POST,
         &format!("{base}/v1/sessions"),
@@ -223,7 +223,7 @@ async fn a_dead_movers_freeze_ends_with_its_lease_and_a_half_move_is_finished() 
     let out = cli(&["move", "--data-dir", &data, "--shard", &shard, "--to", to]);
     assert!(out.contains("already"), "{out}");
     assert!(cli(&["status", "--data-dir", &data]).contains("none is frozen or half-moved"));
-    let (code, _, replica, body) = call(
+    let (code, replica, _, body) = call(
         &client,
         reqwest::Method::POST,
         &observe,

@@ -225,9 +225,11 @@ async fn load_while_replicas_join(how: &str) -> Tally {
                             // A status from a replica or the router is an
                             // answer; a broken transport is not.
                             Err(s)
-                                if s.code() == tonic::Code::Unknown
-                                    || (s.code() == tonic::Code::Unavailable
-                                        && s.metadata().get("x-mcapi-error-code").is_none()) =>
+                                if matches!(
+                                    s.code(),
+                                    tonic::Code::Unknown | tonic::Code::Cancelled
+                                ) || (s.code() == tonic::Code::Unavailable
+                                    && s.metadata().get("x-mcapi-error-code").is_none()) =>
                             {
                                 t.miss(format!("gRPC: {s:?}"));
                             }

@@ -619,14 +619,24 @@ async fn a_freeze_ends_with_its_lease_and_a_late_commit_is_refused() {
     let (code, all) = send(&a.app, "GET", "/admin/shards", Some(KEY), None).await;
     assert_eq!(code, StatusCode::OK, "{all}");
     assert_eq!(all["shards"][usize::from(shard)]["state"], "frozen");
-    assert!(all["shards"][usize::from(shard)]["lease_ms"].is_u64(), "{all}");
+    assert!(
+        all["shards"][usize::from(shard)]["lease_ms"].is_u64(),
+        "{all}"
+    );
     assert_eq!(all["shards"][usize::from(shard)]["sessions"], 1);
 
     tokio::time::sleep(std::time::Duration::from_millis(450)).await;
     let (code, body) = send(&a.app, "POST", &observe, None, Some(LATER)).await;
     assert_eq!(code, StatusCode::OK, "served again after the lease: {body}");
     assert_eq!(body["tick"], 1, "{body}");
-    let (code, status) = send(&a.app, "GET", &format!("/admin/shards/{key}"), Some(KEY), None).await;
+    let (code, status) = send(
+        &a.app,
+        "GET",
+        &format!("/admin/shards/{key}"),
+        Some(KEY),
+        None,
+    )
+    .await;
     assert_eq!(code, StatusCode::OK);
     assert_eq!(status["state"], "owned", "{status}");
     assert!(status.get("lease_ms").is_none(), "{status}");
@@ -637,7 +647,10 @@ async fn a_freeze_ends_with_its_lease_and_a_late_commit_is_refused() {
     assert_eq!(code, StatusCode::CONFLICT, "{body}");
     assert_eq!(body["code"], "move_conflict");
     let msg = body["message"].as_str().expect("message");
-    assert!(msg.contains("the lease of its freeze (300 ms) expired"), "{msg}");
+    assert!(
+        msg.contains("the lease of its freeze (300 ms) expired"),
+        "{msg}"
+    );
     assert_eq!(a.manager.shard_status(shard).expect("status").epoch, 1);
     let (code, body) = send(&a.app, "POST", &observe, None, Some(LATER)).await;
     assert_eq!(code, StatusCode::OK, "still served here: {body}");
