@@ -556,6 +556,21 @@ mod tests {
         );
         assert!(!cfg.contains("resolvers"));
 
+        // Spare names: their two backends, empty, for `add server` later;
+        // a spare name that is a replica already is not declared twice.
+        spec.spare = ["mcapi-5", "mcapi-1"]
+            .map(|n| ReplicaName::parse(n).expect("name"))
+            .to_vec();
+        let cfg = config(&map, &spec).expect("config");
+        assert!(
+            cfg.contains("\nbackend be_rest_mcapi-5\n  option httpchk GET /readyz\n"),
+            "{cfg}"
+        );
+        assert!(cfg.contains("\nbackend be_grpc_mcapi-5\n"), "{cfg}");
+        assert!(!cfg.contains("server mcapi-5"), "{cfg}");
+        assert_eq!(cfg.matches("\nbackend be_rest_mcapi-1\n").count(), 1);
+        spec.spare.clear();
+
         // Kubernetes: names followed through DNS, and the ConfigMap.
         spec.resolvers = true;
         spec.admin_bind = Some("127.0.0.1:9999".into());
