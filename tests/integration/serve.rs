@@ -257,3 +257,70 @@ fn loadgen_bin() -> std::path::PathBuf {
     );
     bin
 }
+
+/// SIGTERM is a drain: a request the server accepted before it (here, one
+/// whose body is still arriving) is answered in full, and only then does
+/// the server exit, cleanly; connections made after it are refused, since
+/// the listeners close first. What a replica leaving a cluster relies on:
+/// the router stops sending it requests, and those it has get answers.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn sigterm_answers_the_request_in_flight_before_exiting() {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let data = tempfile::tempdir().expect("data dir");
+    let logs = tempfile::tempdir().expect("log dir");
+    let mut server = Server::start(&Launch::new(data.path(), &[]), logs.path().join("s.log")).await;
+    let client = crate::common::http_client();
+    let created: serde_json::Value = client
+        .post(format!("{}/v1/sessions", server.base()))
+        .json(&serde_json::json!({"model": {"preset": "hallway"}}))
+        .send()
+        .await
+        .expect("create")
+        .json()
+        .await
+        .expect("json");
+    let id = created["id"].as_str().expect("id").to_string();
+
+    // Headers and half the body, then SIGTERM, then the rest.
+    let body = br#"{"state": 25}"#;
+    let mut conn = tokio::net::TcpStream::connect(("127.0.0.1", server.http))
+        .await
+        .expect("connect");
+    let head = format!(
+        "POST /v1/sessions/{id}/observations HTTP/1.1\r\nHost: mcapi\r\n\
+         Content-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    conn.write_all(head.as_bytes()).await.expect("head");
+    conn.write_all(&body[..5]).await.expect("half the body");
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    crate::common::signal(server.pid(), "-TERM");
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    assert!(
+        tokio::net::TcpStream::connect(("127.0.0.1", server.http))
+            .await
+            .is_err(),
+        "a connection after SIGTERM is refused"
+    );
+    conn.write_all(&body[5..])
+        .await
+        .expect("the rest of the body");
+    let mut answer = Vec::new();
+    tokio::time::timeout(Duration::from_secs(10), conn.read_to_end(&mut answer))
+        .await
+        .expect("answered within 10 s")
+        .expect("read");
+    let answer = String::from_utf8_lossy(&answer);
+    assert!(
+        answer.starts_with("HTTP/1.1 200"),
+        "the request in flight at SIGTERM is answered: {answer}"
+    );
+    assert!(answer.contains("\"tick\":0"), "{answer}");
+    // Exited already, or about to: a second SIGTERM changes nothing.
+    let status = tokio::task::block_in_place(|| server.terminate());
+    assert!(
+        status.success(),
+        "clean exit: {status}; log:\n{}",
+        server.log_text()
+    );
+}

@@ -28,8 +28,27 @@ pub enum ClusterCommand {
     /// source (docs/cluster.md).
     Move(MoveArgs),
     /// Add replicas to a running `mcapi cluster local` and move to them,
-    /// live, the shards the rendezvous plan gives them.
+    /// live, the shards the rendezvous plan gives them (first finishing
+    /// what dead movers left half done).
     Rebalance(RebalanceArgs),
+    /// Show a running `mcapi cluster local`'s replicas and every shard not
+    /// plainly served by its map's owner: frozen (with the lease left),
+    /// half-moved, being imported, not released.
+    Status(StatusArgs),
+}
+
+/// The lease of a freeze, in milliseconds: a shard frozen by a mover that
+/// died is served by its source again after this.
+fn lease_parser() -> clap::builder::RangedU64ValueParser<u64> {
+    clap::value_parser!(u64).range(100..=600_000)
+}
+
+/// `mcapi cluster status`.
+#[derive(Debug, Args)]
+pub struct StatusArgs {
+    /// The running `mcapi cluster local`'s directory.
+    #[arg(long, default_value = "./cluster")]
+    pub data_dir: PathBuf,
 }
 
 /// `mcapi cluster move`.
@@ -44,6 +63,10 @@ pub struct MoveArgs {
     /// The replica to move it to (one the cluster runs).
     #[arg(long)]
     pub to: String,
+    /// The freeze's lease (ms, 100 to 600000): past it without a commit,
+    /// the source serves the shard again by itself and refuses the commit.
+    #[arg(long, default_value_t = crate::mover::DEFAULT_LEASE_MS, value_parser = lease_parser())]
+    pub freeze_lease_ms: u64,
 }
 
 /// `mcapi cluster rebalance`.
@@ -55,6 +78,9 @@ pub struct RebalanceArgs {
     /// Replicas after it (at least those running; at most 64).
     #[arg(long, value_parser = clap::value_parser!(u16).range(1..=crate::local::MAX_LOCAL_REPLICAS as i64))]
     pub replicas: u16,
+    /// Each freeze's lease (ms, 100 to 600000), as for `move`.
+    #[arg(long, default_value_t = crate::mover::DEFAULT_LEASE_MS, value_parser = lease_parser())]
+    pub freeze_lease_ms: u64,
 }
 
 /// `mcapi cluster plan`.
@@ -139,6 +165,7 @@ where
         ClusterCommand::Local(args) => crate::local::run(&args, stop),
         ClusterCommand::Move(args) => run_move(&args),
         ClusterCommand::Rebalance(args) => run_rebalance(&args),
+        ClusterCommand::Status(args) => run_status(&args),
     }
 }
 
@@ -150,7 +177,8 @@ fn run_move(args: &MoveArgs) -> Result<()> {
     let to = ReplicaName::parse(&args.to).map_err(|e| anyhow::anyhow!("--to: {e}"))?;
     let dir = std::fs::canonicalize(&args.data_dir)
         .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
-    let mover = crate::mover::Mover::open(&dir)?;
+    let mut mover = crate::mover::Mover::open(&dir)?;
+    mover.set_lease_ms(args.freeze_lease_ms);
     match mover.move_shard(shard, &to)? {
         Some(r) => println!("{}", crate::mover::report_line(&r)),
         None => println!(
@@ -166,7 +194,7 @@ fn run_rebalance(args: &RebalanceArgs) -> Result<()> {
     let dir = std::fs::canonicalize(&args.data_dir)
         .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
     let started = std::time::Instant::now();
-    let reports = crate::mover::rebalance(&dir, usize::from(args.replicas))?;
+    let reports = crate::mover::rebalance(&dir, usize::from(args.replicas), args.freeze_lease_ms)?;
     let mut pauses: Vec<f64> = reports
         .iter()
         .map(|r| r.pause.as_secs_f64() * 1e3)
@@ -188,6 +216,40 @@ fn run_rebalance(args: &RebalanceArgs) -> Result<()> {
         pct(0.99),
         pauses.last().copied().unwrap_or(0.0)
     );
+    Ok(())
+}
+
+fn run_status(args: &StatusArgs) -> Result<()> {
+    let dir = std::fs::canonicalize(&args.data_dir)
+        .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
+    let st = crate::mover::status(&dir)?;
+    let mut out = format!(
+        "shard map epoch {} ({}): {} replicas\n",
+        st.map.epoch(),
+        dir.join(crate::local::MAP_FILE).display(),
+        st.map.replicas().len()
+    );
+    for (name, listing) in &st.replicas {
+        match listing {
+            Ok(l) => {
+                let owned = l.shards.iter().filter(|s| s.state == "owned").count();
+                let sessions: usize = l.shards.iter().map(|s| s.sessions).sum();
+                out.push_str(&format!(
+                    "  {name:<10} epoch {:<5} owns {owned:>4} shards, {sessions} sessions in memory\n",
+                    l.epoch
+                ));
+            }
+            Err(e) => out.push_str(&format!("  {name:<10} not answering: {e}\n")),
+        }
+    }
+    if st.findings.is_empty() {
+        out.push_str("every shard is served by its map's owner; none is frozen or half-moved\n");
+    } else {
+        for (shard, f) in &st.findings {
+            out.push_str(&format!("  {} {f}\n", mcapi_shards::shard_key(*shard)));
+        }
+    }
+    print!("{out}");
     Ok(())
 }
 
@@ -283,6 +345,8 @@ fn run_haproxy(args: &HaproxyArgs) -> Result<()> {
         admin_bind: args.admin_bind.clone(),
         backends,
         resolvers: args.resolvers,
+        spare: Vec::new(),
+        expose_listeners: false,
     };
     write_router(&out_dir, &map, &spec)?;
     if let Some(name) = &args.configmap {

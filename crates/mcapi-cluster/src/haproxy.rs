@@ -1,7 +1,9 @@
 //! HAProxy (2.6, Debian's `haproxy`) as the router (docs/cluster.md):
 //! `mcapi cluster haproxy-config` writes `haproxy.cfg` and the HAProxy map
 //! file `shards.map` from a shard map; [`set_owner`] flips one shard live
-//! through the Runtime API (`set map` on the stats socket), with no reload.
+//! through the Runtime API (`set map` on the stats socket), with no reload,
+//! and [`add_backend`] puts a joining replica behind the running router
+//! (`add server` into backends declared spare), with no restart either.
 //!
 //! - REST: the shard is the first five characters of the fourth path field
 //!   (`/v1/sessions/s03a7.01JD…/observations`, `/v1/groups/s03a7.g01JD…/steps`:
@@ -109,6 +111,18 @@ pub struct RouterSpec {
     /// address when it changes; a server has no address, and is down, until
     /// its name resolves. For Kubernetes pod names (`deploy/k8s/`).
     pub resolvers: bool,
+    /// Replicas that may join later (`cluster local`'s `mcapi-k` up to its
+    /// most): each gets its two backends, empty, so that joining is a few
+    /// Runtime API commands ([`add_backend`]) and never a restart or a
+    /// reload of HAProxy. HAProxy 2.6 can add a server to a backend at run
+    /// time but not a backend, and `use_backend` finds a replica's backend
+    /// by name, so the backends must exist from the start.
+    pub spare: Vec<ReplicaName>,
+    /// Let a new HAProxy process take the listening sockets over from the
+    /// old one (`expose-fd listeners` on the Runtime API socket, for a
+    /// master-worker reload). Only for measuring a reload against the
+    /// Runtime API (`cluster local --router-update reload`).
+    pub expose_listeners: bool,
 }
 
 /// The `resolvers` section of a router that follows DNS names.
@@ -226,7 +240,7 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
          # and write the same line into {map_path} (or into what it is made\n\
          # from, such as a Kubernetes ConfigMap) so a reload keeps it.\n\
          global\n\
-         \x20 stats socket {socket} mode 600 level admin\n\
+         \x20 stats socket {socket} mode 600 level admin{expose}\n\
          {admin_tcp}\
          \x20 stats timeout 30s\n\
          \n\
@@ -257,6 +271,11 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
         rest = spec.rest_bind,
         grpc = spec.grpc_bind,
         resolvers = if spec.resolvers { RESOLVERS } else { "" },
+        expose = if spec.expose_listeners {
+            " expose-fd listeners"
+        } else {
+            ""
+        },
     ));
     // The map's replicas, then any other backend (a replica joining the
     // cluster, owning no shard yet), by name.
@@ -278,24 +297,8 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
     } else {
         ""
     };
-    let rest_server = |b: &Backend| format!("  server {} {} check{dns}\n", b.replica, b.rest);
-    // gRPC servers are checked on their replica's REST port, over HTTP/1.1.
-    let grpc_server = |b: &Backend| {
-        let (host, port) = b.rest.rsplit_once(':').unwrap_or((b.rest.as_str(), "0"));
-        let same_host = b.grpc.rsplit_once(':').map(|(h, _)| h) == Some(host);
-        let addr = if same_host {
-            String::new()
-        } else {
-            format!(
-                " addr {}",
-                host.trim_start_matches('[').trim_end_matches(']')
-            )
-        };
-        format!(
-            "  server {} {} proto h2 check{addr} port {port} check-proto h1{dns}\n",
-            b.replica, b.grpc
-        )
-    };
+    let rest_server = |b: &Backend| format!("  server {}{dns}\n", rest_server_args(b));
+    let grpc_server = |b: &Backend| format!("  server {}{dns}\n", grpc_server_args(b));
     for b in &backends {
         c.push_str(&format!(
             "\nbackend be_rest_{}\n  {check}{}",
@@ -306,6 +309,20 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
             "\nbackend be_grpc_{}\n  {check}{}",
             b.replica,
             grpc_server(b)
+        ));
+    }
+    // Empty until the replica joins ([`add_backend`]); a spare name that
+    // is also a backend above is not declared twice.
+    let mut spare: Vec<&ReplicaName> = spec
+        .spare
+        .iter()
+        .filter(|r| !backends.iter().any(|b| &b.replica == *r))
+        .collect();
+    spare.sort();
+    spare.dedup();
+    for r in spare {
+        c.push_str(&format!(
+            "\nbackend be_rest_{r}\n  {check}\nbackend be_grpc_{r}\n  {check}"
         ));
     }
     c.push_str(&format!(
@@ -321,6 +338,30 @@ pub fn config(map: &ShardMap, spec: &RouterSpec) -> Result<String, String> {
         c.push_str(&grpc_server(b));
     }
     Ok(c)
+}
+
+/// A replica's REST server line after `server`: its name, address and check.
+fn rest_server_args(b: &Backend) -> String {
+    format!("{} {} check", b.replica, b.rest)
+}
+
+/// A replica's gRPC server line after `server`: h2, checked on the
+/// replica's REST port over HTTP/1.1 (at the REST host if it differs).
+fn grpc_server_args(b: &Backend) -> String {
+    let (host, port) = b.rest.rsplit_once(':').unwrap_or((b.rest.as_str(), "0"));
+    let same_host = b.grpc.rsplit_once(':').map(|(h, _)| h) == Some(host);
+    let addr = if same_host {
+        String::new()
+    } else {
+        format!(
+            " addr {}",
+            host.trim_start_matches('[').trim_end_matches(']')
+        )
+    };
+    format!(
+        "{} {} proto h2 check{addr} port {port} check-proto h1",
+        b.replica, b.grpc
+    )
 }
 
 fn path_text(p: &Path) -> Result<String, String> {
@@ -383,6 +424,58 @@ pub fn set_owner(
     }
 }
 
+/// The check settings of the configuration's `default-server`, which a
+/// server added at run time does not inherit.
+const DYNAMIC_CHECK: &str = "inter 2s fall 2 rise 1";
+
+/// Puts a joining replica behind the running router, live: its servers in
+/// its own two (spare) backends and in the round-robin ones, then their
+/// health checks and traffic enabled. HAProxy is neither restarted nor
+/// reloaded, so no connection of a client is touched (a restart cut every
+/// connection and refused new ones until the new process listened). A
+/// server HAProxy already has (it was restarted with a configuration
+/// naming the replica) is left as it is. The caller also writes the
+/// configuration naming the replica, so that a restarted HAProxy keeps it.
+pub fn add_backend(socket: &Path, b: &Backend) -> std::io::Result<()> {
+    let r = &b.replica;
+    let servers = [
+        (format!("be_rest_{r}"), rest_server_args(b)),
+        (format!("be_grpc_{r}"), grpc_server_args(b)),
+        ("be_rest_any".to_string(), rest_server_args(b)),
+        ("be_grpc_any".to_string(), grpc_server_args(b)),
+    ];
+    let mut added = Vec::new();
+    for (backend, args) in &servers {
+        // `args` starts with the server's name.
+        let command = format!("add server {backend}/{args} {DYNAMIC_CHECK}");
+        let answer = runtime_command(socket, &command)?;
+        let answer = answer.trim();
+        if answer.starts_with("New server registered") {
+            added.push(backend);
+        } else if !answer.starts_with("Already exists a server") {
+            return Err(std::io::Error::other(format!(
+                "HAProxy refused `{command}`: {answer}"
+            )));
+        }
+    }
+    // A server added at run time starts in maintenance, its check off.
+    for backend in added {
+        for command in [
+            format!("enable health {backend}/{r}"),
+            format!("enable server {backend}/{r}"),
+        ] {
+            let answer = runtime_command(socket, &command)?;
+            if !answer.trim().is_empty() {
+                return Err(std::io::Error::other(format!(
+                    "HAProxy refused `{command}`: {}",
+                    answer.trim()
+                )));
+            }
+        }
+    }
+    Ok(())
+}
+
 /// Writes `haproxy.cfg` and the HAProxy map file `shards.map` into
 /// `out_dir` (`haproxy-config`, and `cluster local` on every start).
 pub(crate) fn write_router(
@@ -432,6 +525,8 @@ mod tests {
             admin_bind: None,
             backends: vec![Backend::parse("mcapi-0=127.0.0.1:1,127.0.0.2:2").expect("b")],
             resolvers: false,
+            spare: Vec::new(),
+            expose_listeners: false,
         };
         let e = config(&map, &spec).expect_err("mcapi-1 has no address");
         assert!(e.contains("mcapi-1"), "{e}");
@@ -460,6 +555,21 @@ mod tests {
             "a gRPC address on another host than REST: checked at the REST host"
         );
         assert!(!cfg.contains("resolvers"));
+
+        // Spare names: their two backends, empty, for `add server` later;
+        // a spare name that is a replica already is not declared twice.
+        spec.spare = ["mcapi-5", "mcapi-1"]
+            .map(|n| ReplicaName::parse(n).expect("name"))
+            .to_vec();
+        let cfg = config(&map, &spec).expect("config");
+        assert!(
+            cfg.contains("\nbackend be_rest_mcapi-5\n  option httpchk GET /readyz\n"),
+            "{cfg}"
+        );
+        assert!(cfg.contains("\nbackend be_grpc_mcapi-5\n"), "{cfg}");
+        assert!(!cfg.contains("server mcapi-5"), "{cfg}");
+        assert_eq!(cfg.matches("\nbackend be_rest_mcapi-1\n").count(), 1);
+        spec.spare.clear();
 
         // Kubernetes: names followed through DNS, and the ConfigMap.
         spec.resolvers = true;

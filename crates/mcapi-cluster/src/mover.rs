@@ -5,11 +5,16 @@
 //! replicas never call each other), writes the shard map file (the commit
 //! point of a move) and flips HAProxy's map through its Runtime API.
 //!
-//! A move that fails before the map file is written is undone: the source
-//! is thawed (it serves the shard again) and the target's copy deleted.
-//! One that fails after it is finished by running the same `move` again
-//! (the map then already names the target: the remaining steps are done).
-//! One mover at a time per data directory (`move.lock`, flock).
+//! The commit point is the source's `commit`: it gives the shard to the
+//! target at the next epoch only while the freeze's lease runs (a source
+//! whose lease expired serves the shard again and refuses it); the map file
+//! is written right after. A move that fails before the commit is undone:
+//! the source is thawed (it serves the shard again; had the mover died, the
+//! lease would thaw it) and the target's copy deleted. One that fails after
+//! it is finished by running `move` or `rebalance` again: the map names the
+//! target, or the source says it gave the shard away, and the remaining
+//! steps are done. One mover at a time per data directory (`move.lock`,
+//! flock).
 
 use std::collections::BTreeMap;
 use std::io::{Read, Write};
@@ -20,7 +25,7 @@ use std::time::{Duration, Instant};
 
 use anyhow::{Context, Result, anyhow, bail};
 
-use mcapi_shards::moves::{Manifest, ShardData, ShardStatus};
+use mcapi_shards::moves::{Manifest, ReplicaShards, ShardData, ShardStatus};
 use mcapi_shards::{ReplicaName, ShardMap, shard_key};
 
 use crate::files::write_atomic;
@@ -125,6 +130,10 @@ pub struct MoveReport {
     pub epoch: u64,
 }
 
+/// A freeze's lease when `--freeze-lease-ms` is not given (ms), the
+/// replicas' own default.
+pub const DEFAULT_LEASE_MS: u64 = 30_000;
+
 /// A running local cluster as the mover sees it.
 pub struct Mover {
     dir: PathBuf,
@@ -132,6 +141,8 @@ pub struct Mover {
     replicas: BTreeMap<String, String>,
     socket: PathBuf,
     router_map: PathBuf,
+    /// The lease of each freeze (ms).
+    lease_ms: u64,
     _lock: std::fs::File,
 }
 
@@ -166,10 +177,17 @@ impl Mover {
             replicas: BTreeMap::new(),
             socket: state.admin_socket.clone(),
             router_map: dir.join("router").join("shards.map"),
+            lease_ms: DEFAULT_LEASE_MS,
             _lock: lock,
         };
         mover.refresh(&state);
         Ok(mover)
+    }
+
+    /// The lease each freeze of this mover asks for (ms; the replicas
+    /// refuse one outside 100 to 600000).
+    pub fn set_lease_ms(&mut self, ms: u64) {
+        self.lease_ms = ms;
     }
 
     fn refresh(&mut self, state: &State) {
@@ -221,13 +239,56 @@ impl Mover {
         serde_json::from_slice(&body).context("a shard status that is not JSON")
     }
 
+    /// Every shard of a replica (`GET /admin/shards`).
+    fn all_shards(&self, replica: &ReplicaName) -> Result<ReplicaShards> {
+        let body = self.call(replica, "GET", "/admin/shards", &[])?;
+        serde_json::from_slice(&body).context("a shard listing that is not JSON")
+    }
+
+    /// A move whose source committed (it gave the shard to `owner` at an
+    /// epoch above the map's) but whose mover died before writing the map
+    /// file: writes it and finishes. `None` when `from` did not commit.
+    fn finish_committed(
+        &self,
+        shard: u16,
+        from: &ReplicaName,
+        map: &ShardMap,
+    ) -> Result<Option<ReplicaName>> {
+        let st = self.status(from, shard)?;
+        if st.state != "foreign" || st.owner == from.as_str() || st.epoch <= map.epoch() {
+            return Ok(None);
+        }
+        let owner = ReplicaName::parse(&st.owner).map_err(anyhow::Error::msg)?;
+        let epoch = map.epoch() + 1;
+        if st.epoch != epoch {
+            bail!(
+                "{}: {from} gave the shard to {owner} at epoch {}, but the map is at epoch {}:                  the map file changed since; fix it by hand",
+                shard_key(shard),
+                st.epoch,
+                map.epoch()
+            );
+        }
+        tracing::warn!(shard = %shard_key(shard), %from, to = %owner, epoch, "a move past its commit point: writing the map and finishing it");
+        let next = map.with_owner(shard, &owner, epoch)?;
+        write_atomic(&self.dir.join(MAP_FILE), &next.to_text())?;
+        self.finish(shard, &owner, &next, None)?;
+        Ok(Some(owner))
+    }
+
     /// Moves one shard to `to`, live. Already there: finishes what a
     /// failed earlier move left (activation, router, release), if anything.
     pub fn move_shard(&self, shard: u16, to: &ReplicaName) -> Result<Option<MoveReport>> {
         let started = Instant::now();
-        let map = self.map()?;
-        let from = map.owner(shard).clone();
+        let mut map = self.map()?;
+        let mut from = map.owner(shard).clone();
         let key = shard_key(shard);
+        if &from != to
+            && self.addr(&from).is_ok()
+            && self.finish_committed(shard, &from, &map)?.is_some()
+        {
+            map = self.map()?;
+            from = map.owner(shard).clone();
+        }
         if &from == to {
             return self.finish(shard, to, &map, None).map(|_| None);
         }
@@ -256,7 +317,12 @@ impl Mover {
         // 3: frozen; nothing changes the shard from here on.
         let frozen_at = Instant::now();
         let frozen: ShardStatus = self
-            .call(&from, "POST", &format!("{base}/freeze"), &[])
+            .call(
+                &from,
+                "POST",
+                &format!("{base}/freeze?lease_ms={}", self.lease_ms),
+                &[],
+            )
             .and_then(|b| serde_json::from_slice(&b).context("a freeze answer that is not JSON"))
             .map_err(undo)?;
         // 4: the delta, made durable on the target.
@@ -272,19 +338,26 @@ impl Mover {
         drop(delta_data);
         self.call(to, "POST", &format!("{base}/import?begin=false"), &delta)
             .map_err(undo)?;
-        // The source must still be the process that froze the shard: one
-        // restarted since serves the shard unfrozen from its map.
-        let now = self.status(&from, shard).map_err(undo)?;
-        if now.boot != frozen.boot || now.state != "frozen" {
-            return Err(undo(anyhow!(
-                "{from} restarted or thawed the shard during the move ({})",
-                now.state
-            )));
-        }
-        // 5: the commit point.
+        // 5: the commit point. The source gives the shard away only if
+        // the freeze is still its own (same process, same token) and its
+        // lease has not run out: otherwise it may have served requests the
+        // target does not have, and the move is undone.
+        let token = frozen
+            .freeze_token
+            .ok_or_else(|| undo(anyhow!("{from} answered the freeze without a token")))?;
         let epoch = map.epoch() + 1;
+        self.call(
+            &from,
+            "POST",
+            &format!("{base}/commit?epoch={epoch}&owner={to}&token={token}"),
+            &[],
+        )
+        .map_err(undo)?;
+        // From here on the move is finished by a rerun, never undone.
         let next = map.with_owner(shard, to, epoch)?;
-        write_atomic(&self.dir.join(MAP_FILE), &next.to_text()).map_err(undo)?;
+        write_atomic(&self.dir.join(MAP_FILE), &next.to_text()).with_context(|| {
+            format!("{key} is committed to {to} but the map was not written: run the move again")
+        })?;
         // 6-7: served by the target, routed there, dropped at the source.
         let pause = self.finish(shard, to, &next, Some(frozen_at))?;
         let report = MoveReport {
@@ -347,8 +420,10 @@ impl Mover {
             let Ok(st) = self.status(&replica, shard) else {
                 continue;
             };
-            // A frozen source, or leftovers of the shard in a store.
-            if st.state == "frozen" || st.state == "foreign" {
+            // The committed source, or leftovers of the shard in a store.
+            // Never a frozen replica: only its commit, which checks the
+            // freeze's lease, may give the shard away.
+            if st.state == "foreign" {
                 self.call(
                     &replica,
                     "POST",
@@ -358,6 +433,201 @@ impl Mover {
             }
         }
         Ok(pause)
+    }
+}
+
+/// What a replica's listing says of a shard that is not plainly served
+/// by the map's owner.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Finding {
+    /// Frozen on `replica`, served again there in `lease_ms` at most.
+    Frozen {
+        /// The replica.
+        replica: String,
+        /// Lease left.
+        lease_ms: Option<u64>,
+    },
+    /// `replica` gave the shard to `to` (the source's commit), but the map
+    /// file still names `replica`: half-moved, past its commit point.
+    Committed {
+        /// The source.
+        replica: String,
+        /// The new owner.
+        to: String,
+    },
+    /// The map names `replica`, which still imports it: half-moved, past
+    /// its commit point (activation pending).
+    Activating {
+        /// The target.
+        replica: String,
+    },
+    /// `replica` imports a shard the map does not give it: a move in
+    /// progress or an undone one's leftover.
+    Importing {
+        /// The replica.
+        replica: String,
+    },
+    /// `replica` no longer owns the shard but still holds its sessions in
+    /// memory (the release step is pending).
+    NotReleased {
+        /// The replica.
+        replica: String,
+        /// Sessions still held.
+        sessions: usize,
+    },
+}
+
+impl std::fmt::Display for Finding {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            Self::Frozen { replica, lease_ms } => match lease_ms {
+                Some(ms) => write!(f, "frozen on {replica}, its lease ends in {ms} ms"),
+                None => write!(f, "frozen on {replica}, without a lease"),
+            },
+            Self::Committed { replica, to } => write!(
+                f,
+                "half-moved: {replica} gave it to {to} but the map still names {replica} (run `move` or `rebalance` again)"
+            ),
+            Self::Activating { replica } => write!(
+                f,
+                "half-moved: the map names {replica}, which has not activated it yet (run `move` or `rebalance` again)"
+            ),
+            Self::Importing { replica } => write!(f, "being imported by {replica}"),
+            Self::NotReleased { replica, sessions } => write!(
+                f,
+                "{replica} no longer owns it but still holds {sessions} of its sessions (run `move` or `rebalance` again)"
+            ),
+        }
+    }
+}
+
+/// What `mcapi cluster status` found: each replica's listing (or why it
+/// did not answer) and the shards that are not plainly served.
+pub struct ClusterStatus {
+    /// The map file.
+    pub map: ShardMap,
+    /// Each replica's listing, or the error reaching it.
+    pub replicas: Vec<(String, Result<ReplicaShards, String>)>,
+    /// Shard by shard, what is not plain.
+    pub findings: Vec<(u16, Finding)>,
+}
+
+/// Compares each replica's listing with the map file.
+pub fn findings(map: &ShardMap, listings: &[&ReplicaShards]) -> Vec<(u16, Finding)> {
+    let mut out = Vec::new();
+    for l in listings {
+        for (s, line) in (0..mcapi_shards::SHARDS as u16).zip(&l.shards) {
+            let named = map.owner(s).as_str() == l.replica;
+            let replica = l.replica.clone();
+            let finding = match line.state.as_str() {
+                "frozen" => Some(Finding::Frozen {
+                    replica,
+                    lease_ms: line.lease_ms,
+                }),
+                "importing" if named => Some(Finding::Activating { replica }),
+                "importing" => Some(Finding::Importing { replica }),
+                "foreign" if named && line.owner != l.replica => Some(Finding::Committed {
+                    replica,
+                    to: line.owner.clone(),
+                }),
+                "foreign" if line.sessions > 0 => Some(Finding::NotReleased {
+                    replica,
+                    sessions: line.sessions,
+                }),
+                _ => None,
+            };
+            if let Some(f) = finding {
+                out.push((s, f));
+            }
+        }
+    }
+    out.sort_by_key(|(s, _)| *s);
+    out
+}
+
+/// `mcapi cluster status`: asks every replica of the running cluster of
+/// `dir` for its shards (no lock: it changes nothing).
+pub fn status(dir: &Path) -> Result<ClusterStatus> {
+    let state = read_state(dir)?;
+    let key = std::fs::read_to_string(dir.join(ADMIN_KEY_FILE))
+        .with_context(|| format!("reading {}", dir.join(ADMIN_KEY_FILE).display()))?
+        .trim()
+        .to_string();
+    let path = dir.join(MAP_FILE);
+    let map = ShardMap::read(&path).with_context(|| format!("shard map {}", path.display()))?;
+    let mut replicas = Vec::new();
+    for p in &state.processes {
+        let Some(addr) = &p.http else { continue };
+        let listing = http_call(addr, "GET", "/admin/shards", &key, &[])
+            .and_then(|a| {
+                if a.status != 200 {
+                    bail!("{} {}", a.status, a.text());
+                }
+                serde_json::from_slice::<ReplicaShards>(&a.body)
+                    .context("a shard listing that is not JSON")
+            })
+            .map_err(|e| format!("{e:#}"));
+        replicas.push((p.name.clone(), listing));
+    }
+    let listings: Vec<&ReplicaShards> = replicas
+        .iter()
+        .filter_map(|(_, l)| l.as_ref().ok())
+        .collect();
+    let findings = findings(&map, &listings);
+    Ok(ClusterStatus {
+        map,
+        replicas,
+        findings,
+    })
+}
+
+impl Mover {
+    /// Finishes or undoes what dead movers left, before a rebalance plans:
+    /// a frozen shard is thawed (this mover holds the lock, so no move is
+    /// running), a move past its commit point is finished, and an import
+    /// the map does not give is deleted.
+    pub fn repair(&self) -> Result<usize> {
+        let mut listings = Vec::new();
+        for name in self.replicas.keys() {
+            let Ok(r) = ReplicaName::parse(name) else {
+                continue;
+            };
+            match self.all_shards(&r) {
+                Ok(l) => listings.push(l),
+                Err(e) => {
+                    tracing::warn!(replica = %r, error = %format!("{e:#}"), "no shard listing: not repaired");
+                }
+            }
+        }
+        let refs: Vec<&ReplicaShards> = listings.iter().collect();
+        let map = self.map()?;
+        let mut repaired = 0;
+        for (shard, finding) in findings(&map, &refs) {
+            let base = format!("/admin/shards/{}", shard_key(shard));
+            let parse = |n: &str| ReplicaName::parse(n).map_err(anyhow::Error::msg);
+            tracing::warn!(shard = %shard_key(shard), finding = %finding, "repairing");
+            match &finding {
+                Finding::Frozen { replica, .. } => {
+                    self.call(&parse(replica)?, "POST", &format!("{base}/thaw"), &[])?;
+                }
+                Finding::Committed { replica, .. } => {
+                    let map = self.map()?;
+                    self.finish_committed(shard, &parse(replica)?, &map)?;
+                }
+                Finding::Activating { replica } | Finding::NotReleased { replica, .. } => {
+                    let map = self.map()?;
+                    let owner = map.owner(shard).clone();
+                    if replica != owner.as_str() || matches!(finding, Finding::Activating { .. }) {
+                        self.finish(shard, &owner, &map, None)?;
+                    }
+                }
+                Finding::Importing { replica } => {
+                    self.call(&parse(replica)?, "POST", &format!("{base}/abort"), &[])?;
+                }
+            }
+            repaired += 1;
+        }
+        Ok(repaired)
     }
 }
 
@@ -392,7 +662,7 @@ pub fn report_line(r: &MoveReport) -> String {
 /// `mcapi cluster rebalance`: asks the supervisor for `n` replicas, waits
 /// until it runs them behind the router, then moves every shard the plan
 /// gives to another replica, one at a time.
-pub fn rebalance(dir: &Path, n: usize) -> Result<Vec<MoveReport>> {
+pub fn rebalance(dir: &Path, n: usize, lease_ms: u64) -> Result<Vec<MoveReport>> {
     let state = read_state(dir)?;
     let running = state.replicas;
     if n < running {
@@ -425,6 +695,11 @@ pub fn rebalance(dir: &Path, n: usize) -> Result<Vec<MoveReport>> {
     }
     let mut mover = Mover::open(dir)?;
     mover.refresh(&read_state(dir)?);
+    mover.set_lease_ms(lease_ms);
+    let repaired = mover.repair()?;
+    if repaired > 0 {
+        eprintln!("repaired {repaired} shards that earlier moves left half done");
+    }
     let map = mover.map()?;
     let names = mcapi_shards::plan::ordinal_names("mcapi", n).map_err(anyhow::Error::msg)?;
     let planned = mcapi_shards::plan::plan(&names, Some(&map))?.map;

@@ -17,4 +17,7 @@ pub mod placement;
 pub mod plan;
 
 pub use map::{MapError, ReplicaName, SHARDS, ShardMap, parse_shard, shard_key, shard_of_id};
-pub use placement::{Placement, PlacementError, ShardFrozen, ShardState, WrongReplica};
+pub use placement::{
+    CommitRefused, Lease, Placement, PlacementError, ShardFrozen, ShardState, WrongReplica,
+    state_name,
+};

@@ -113,4 +113,39 @@ pub struct ShardStatus {
     pub sessions: usize,
     /// A number drawn when this process started: a mover sees a restart.
     pub boot: u64,
+    /// A frozen shard's lease left, in milliseconds: it is served here
+    /// again after that unless its move commits first.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lease_ms: Option<u64>,
+    /// A frozen shard's freeze token, which the move's commit presents.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub freeze_token: Option<u64>,
+}
+
+/// Every shard of one replica at once (`GET /admin/shards`): what
+/// `mcapi cluster status` compares with the map file.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ReplicaShards {
+    /// The replica.
+    pub replica: String,
+    /// The epoch of its map.
+    pub epoch: u64,
+    /// [`ShardStatus::boot`].
+    pub boot: u64,
+    /// Shard by shard, `s0000` first.
+    pub shards: Vec<ShardLine>,
+}
+
+/// One shard in [`ReplicaShards`].
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct ShardLine {
+    /// `owned`, `frozen`, `importing` or `foreign`.
+    pub state: String,
+    /// Its owner in the replica's map.
+    pub owner: String,
+    /// Sessions of it in the replica's memory.
+    pub sessions: usize,
+    /// A frozen shard's lease left, in milliseconds.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub lease_ms: Option<u64>,
 }

@@ -6,7 +6,10 @@
 //! Each shard is in one state (docs/cluster.md, "Shard states"):
 //! - `Owned`: served here; new sessions are minted only in owned shards.
 //! - `Frozen`: owned, but being handed over: refused with 503 and
-//!   `Retry-After` (gRPC UNAVAILABLE) until the move ends.
+//!   `Retry-After` (gRPC UNAVAILABLE) until the move ends. A freeze made by
+//!   [`Placement::freeze`] holds a lease: once its deadline passes without
+//!   a [`Placement::commit`], the shard is `Owned` again by itself, so a
+//!   mover that died mid-move does not leave it refusing requests.
 //! - `Importing`: being received from its owner: not served yet (421
 //!   naming the owner of the map).
 //! - `Foreign`: another replica's: 421 naming it (gRPC UNAVAILABLE).
@@ -19,7 +22,8 @@
 //! until none is in flight before it reads the shard's last changes.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU32, Ordering};
+use std::sync::atomic::{AtomicU32, AtomicU64, Ordering};
+use std::time::{Duration, Instant};
 
 use parking_lot::RwLock;
 
@@ -101,6 +105,28 @@ pub struct Placement {
     inner: RwLock<Inner>,
     /// Requests changing each shard now ([`ShardGuard`]).
     in_flight: Vec<AtomicU32>,
+    /// The next freeze's token. Starts from the clock, so a restarted
+    /// replica does not hand out the tokens of its former life again.
+    next_token: AtomicU64,
+}
+
+/// A freeze's lease: the shard is frozen until `until`, then served again
+/// unless the move committed with `token` before.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Lease {
+    /// What a commit must present: this freeze and no other.
+    pub token: u64,
+    /// When the shard is served again by itself.
+    pub until: Instant,
+    /// The lease's length as asked for.
+    pub length: Duration,
+}
+
+impl Lease {
+    /// Time left at `now` (zero once expired).
+    pub fn left(&self, now: Instant) -> Duration {
+        self.until.saturating_duration_since(now)
+    }
 }
 
 /// A request changing a shard, counted while it lives (see
@@ -128,6 +154,87 @@ impl Drop for ShardGuard {
 struct Inner {
     map: ShardMap,
     states: Vec<ShardState>,
+    /// The lease of each frozen shard (`None`: frozen without a deadline,
+    /// which only [`Placement::set_state`] does).
+    leases: Vec<Option<Lease>>,
+    /// The last lease that ran out on each shard: a late commit of it is
+    /// told so precisely, whenever it comes.
+    expired: Vec<Option<Lease>>,
+}
+
+impl Inner {
+    /// A shard's state at `now`: a frozen shard whose lease has expired is
+    /// owned, whether or not its timer has run yet. Every decision reads
+    /// the state through this, so the deadline is exact.
+    fn state_at(&self, shard: u16, now: Instant) -> ShardState {
+        let i = usize::from(shard) % SHARDS;
+        match (self.states[i], self.leases[i]) {
+            (ShardState::Frozen, Some(lease)) if now >= lease.until => ShardState::Owned,
+            (state, _) => state,
+        }
+    }
+
+    /// Writes what [`Inner::state_at`] says back (an expired freeze is
+    /// owned), so a write starts from the state in force.
+    fn settle(&mut self, shard: u16, now: Instant) -> ShardState {
+        let i = usize::from(shard) % SHARDS;
+        let state = self.state_at(shard, now);
+        if state != self.states[i] {
+            self.states[i] = state;
+            self.expired[i] = self.leases[i].take();
+        }
+        state
+    }
+
+    fn set(&mut self, shard: u16, state: ShardState) {
+        let i = usize::from(shard) % SHARDS;
+        self.states[i] = state;
+        self.leases[i] = None;
+    }
+}
+
+/// Why a commit is refused: the freeze it names is not in force.
+#[derive(Debug, Clone, PartialEq, Eq, Error)]
+pub enum CommitRefused {
+    /// The shard is not frozen here (its lease expired and it is served
+    /// again, or it was thawed, or this replica restarted).
+    #[error(
+        "shard {shard} is {state} on replica `{replica}`, not frozen: {why}; nothing was committed, move it again"
+    )]
+    NotFrozen {
+        /// The shard's key.
+        shard: String,
+        /// Its state here.
+        state: &'static str,
+        /// The replica.
+        replica: String,
+        /// What most likely happened.
+        why: String,
+    },
+    /// Frozen, but by another freeze than the one named.
+    #[error(
+        "shard {shard} is frozen on replica `{replica}` by another freeze (token {found}, not {token}); nothing was committed"
+    )]
+    OtherFreeze {
+        /// The shard's key.
+        shard: String,
+        /// The replica.
+        replica: String,
+        /// The token presented.
+        token: u64,
+        /// The token of the freeze in force.
+        found: u64,
+    },
+}
+
+/// A state's name, as the admin routes and the operator tool spell it.
+pub fn state_name(s: ShardState) -> &'static str {
+    match s {
+        ShardState::Owned => "owned",
+        ShardState::Frozen => "frozen",
+        ShardState::Importing => "importing",
+        ShardState::Foreign => "foreign",
+    }
 }
 
 impl Placement {
@@ -163,10 +270,19 @@ impl Placement {
                 }
             })
             .collect();
+        let clock = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(1, |d| d.as_nanos() as u64);
         Ok(Self {
             replica,
-            inner: RwLock::new(Inner { map, states }),
+            inner: RwLock::new(Inner {
+                map,
+                states,
+                leases: vec![None; SHARDS],
+                expired: vec![None; SHARDS],
+            }),
             in_flight: (0..SHARDS).map(|_| AtomicU32::new(0)).collect(),
+            next_token: AtomicU64::new(clock | 1),
         })
     }
 
@@ -182,32 +298,160 @@ impl Placement {
 
     /// Shards in the `Owned` state.
     pub fn owned_count(&self) -> usize {
-        self.inner
-            .read()
-            .states
-            .iter()
-            .filter(|s| **s == ShardState::Owned)
+        let inner = self.inner.read();
+        let now = Instant::now();
+        (0..SHARDS as u16)
+            .filter(|&s| inner.state_at(s, now) == ShardState::Owned)
             .count()
     }
 
-    /// A shard's state.
+    /// A shard's state (a freeze whose lease expired is `Owned`).
     pub fn state(&self, shard: u16) -> ShardState {
-        self.inner.read().states[usize::from(shard) % SHARDS]
+        self.inner.read().state_at(shard, Instant::now())
     }
 
-    /// Sets a shard's state (a shard move drives this).
+    /// Every shard's state and, when frozen, its lease, with the owner in
+    /// this replica's map: what the operator's status shows.
+    pub fn states(&self) -> Vec<(ShardState, Option<Lease>, ReplicaName)> {
+        let inner = self.inner.read();
+        let now = Instant::now();
+        (0..SHARDS as u16)
+            .map(|s| {
+                let state = inner.state_at(s, now);
+                let lease = if state == ShardState::Frozen {
+                    inner.leases[usize::from(s)]
+                } else {
+                    None
+                };
+                (state, lease, inner.map.owner(s).clone())
+            })
+            .collect()
+    }
+
+    /// Sets a shard's state (a shard move drives this); a freeze set so
+    /// has no lease.
     pub fn set_state(&self, shard: u16, state: ShardState) {
-        self.inner.write().states[usize::from(shard) % SHARDS] = state;
+        self.inner.write().set(shard, state);
     }
 
     /// Sets a shard's state if it is `from` now; returns the state found.
     pub fn swap_state(&self, shard: u16, from: &[ShardState], to: ShardState) -> ShardState {
         let mut inner = self.inner.write();
-        let now = inner.states[usize::from(shard) % SHARDS];
+        let now = inner.settle(shard, Instant::now());
         if from.contains(&now) {
-            inner.states[usize::from(shard) % SHARDS] = to;
+            inner.set(shard, to);
         }
         now
+    }
+
+    /// Freezes an owned shard for `lease` (a frozen one: its lease starts
+    /// again, with the same token, so a repeated call changes nothing
+    /// else). Returns the lease, or the state found if the shard is
+    /// neither owned nor frozen here.
+    pub fn freeze(&self, shard: u16, lease: Duration) -> Result<Lease, ShardState> {
+        let mut inner = self.inner.write();
+        let now = Instant::now();
+        let i = usize::from(shard) % SHARDS;
+        let token = match (inner.settle(shard, now), inner.leases[i]) {
+            (ShardState::Frozen, Some(held)) => held.token,
+            (ShardState::Owned | ShardState::Frozen, _) => {
+                self.next_token.fetch_add(2, Ordering::Relaxed)
+            }
+            (other, _) => return Err(other),
+        };
+        let held = Lease {
+            token,
+            until: now.checked_add(lease).unwrap_or(now),
+            length: lease,
+        };
+        inner.states[i] = ShardState::Frozen;
+        inner.leases[i] = Some(held);
+        Ok(held)
+    }
+
+    /// The lease of a frozen shard, if it has one in force.
+    pub fn lease(&self, shard: u16) -> Option<Lease> {
+        let inner = self.inner.read();
+        if inner.state_at(shard, Instant::now()) == ShardState::Frozen {
+            inner.leases[usize::from(shard) % SHARDS]
+        } else {
+            None
+        }
+    }
+
+    /// The lease's end (the timer a freeze starts): if the freeze of
+    /// `token` is still there and past its deadline, the shard is owned
+    /// again. Returns whether this call thawed it.
+    pub fn expire(&self, shard: u16, token: u64) -> bool {
+        let mut inner = self.inner.write();
+        let i = usize::from(shard) % SHARDS;
+        let ours = inner.states[i] == ShardState::Frozen
+            && inner.leases[i].is_some_and(|l| l.token == token);
+        ours && inner.settle(shard, Instant::now()) == ShardState::Owned
+    }
+
+    /// The commit point of a move on its source: the shard, frozen by the
+    /// freeze of `token` whose lease has not expired, is `owner`'s from
+    /// `epoch` on (`Foreign` here, 421 naming `owner`). Checked and done
+    /// under the one lock that the lease's expiry also takes, so exactly
+    /// one of the two happens: a move whose lease ran out cannot commit,
+    /// and a committed shard is never served here again.
+    pub fn commit(
+        &self,
+        shard: u16,
+        token: u64,
+        owner: &ReplicaName,
+        epoch: u64,
+    ) -> Result<(), PlacementError> {
+        let mut inner = self.inner.write();
+        let now = Instant::now();
+        let i = usize::from(shard) % SHARDS;
+        let state = inner.settle(shard, now);
+        let lease = inner.leases[i].or(inner.expired[i]);
+        match (state, lease) {
+            (ShardState::Frozen, Some(l)) if l.token == token => {}
+            (ShardState::Frozen, Some(l)) => {
+                return Err(PlacementError::MoveConflict(
+                    CommitRefused::OtherFreeze {
+                        shard: shard_key(shard),
+                        replica: self.replica.to_string(),
+                        token,
+                        found: l.token,
+                    }
+                    .to_string(),
+                ));
+            }
+            (state, _) => {
+                let why = match lease {
+                    Some(l) if l.token == token && now >= l.until => format!(
+                        "the lease of its freeze ({} ms) expired {} ms ago",
+                        l.length.as_millis(),
+                        now.saturating_duration_since(l.until).as_millis()
+                    ),
+                    _ if state == ShardState::Owned => {
+                        "its freeze ended (its lease expired, it was thawed, or this replica restarted)"
+                            .to_string()
+                    }
+                    _ => "it is not this replica's to give".to_string(),
+                };
+                return Err(PlacementError::MoveConflict(
+                    CommitRefused::NotFrozen {
+                        shard: shard_key(shard),
+                        state: state_name(state),
+                        replica: self.replica.to_string(),
+                        why,
+                    }
+                    .to_string(),
+                ));
+            }
+        }
+        if owner == &self.replica {
+            return Err(PlacementError::MoveConflict(format!(
+                "shard {} cannot be committed to its own replica `{owner}`",
+                shard_key(shard)
+            )));
+        }
+        Self::set_owner_in(&mut inner, shard, owner, epoch, ShardState::Foreign)
     }
 
     /// Records a move's end: `shard` is `owner`'s from `epoch` on, which
@@ -221,6 +465,17 @@ impl Placement {
         state: ShardState,
     ) -> Result<(), PlacementError> {
         let mut inner = self.inner.write();
+        inner.settle(shard, Instant::now());
+        Self::set_owner_in(&mut inner, shard, owner, epoch, state)
+    }
+
+    fn set_owner_in(
+        inner: &mut Inner,
+        shard: u16,
+        owner: &ReplicaName,
+        epoch: u64,
+        state: ShardState,
+    ) -> Result<(), PlacementError> {
         if epoch <= inner.map.epoch() {
             return Err(PlacementError::MoveConflict(format!(
                 "epoch {epoch} is not above this replica's shard map epoch {}; another move came first (re-read the map and plan again)",
@@ -232,7 +487,7 @@ impl Placement {
             .with_owner(shard, owner, epoch)
             .map_err(|e| PlacementError::MoveConflict(e.to_string()))?;
         inner.map = map;
-        inner.states[usize::from(shard) % SHARDS] = state;
+        inner.set(shard, state);
         Ok(())
     }
 
@@ -291,7 +546,7 @@ impl Placement {
         let Some(shard) = shard_of_id(id) else {
             return Err(PlacementError::NotFound(id.to_string()));
         };
-        match inner.states[usize::from(shard)] {
+        match inner.state_at(shard, Instant::now()) {
             ShardState::Owned => Ok(()),
             ShardState::Frozen => Err(PlacementError::ShardFrozen(ShardFrozen {
                 shard: shard_key(shard),
@@ -320,8 +575,9 @@ impl Placement {
     }
 
     fn mint_in(inner: &Inner, pick: u64) -> Option<u16> {
+        let now = Instant::now();
         let owned: Vec<u16> = (0..SHARDS as u16)
-            .filter(|&s| inner.states[usize::from(s)] == ShardState::Owned)
+            .filter(|&s| inner.state_at(s, now) == ShardState::Owned)
             .collect();
         if owned.is_empty() {
             return None;
@@ -398,6 +654,63 @@ mod tests {
             p.set_state(s, ShardState::Frozen);
         }
         assert_eq!(p.mint_shard(3), None);
+    }
+
+    #[test]
+    fn a_freeze_ends_with_its_lease_and_a_late_commit_is_refused() {
+        let (map, names) = two();
+        let mine = map.shards_of(&names[0]);
+        let (s, t) = (mine[0], mine[1]);
+        let p = Placement::new(map, names[0].clone()).expect("placement");
+        let id = format!("{}.01JDX4", shard_key(s));
+        let lease = p.freeze(s, Duration::from_millis(40)).expect("owned");
+        assert_eq!(p.state(s), ShardState::Frozen);
+        assert!(matches!(p.check(&id), Err(PlacementError::ShardFrozen(_))));
+        assert!(!p.expire(s, lease.token), "not before its deadline");
+        let again = p.freeze(s, Duration::from_millis(40)).expect("renewed");
+        assert_eq!(
+            again.token, lease.token,
+            "a repeated freeze keeps its token"
+        );
+        std::thread::sleep(Duration::from_millis(60));
+        // Served again at the deadline, before any timer ran.
+        assert_eq!(p.state(s), ShardState::Owned);
+        assert!(p.check(&id).is_ok());
+        assert!(p.mint_shard(0).is_some());
+        let e = p
+            .commit(s, lease.token, &names[1], 2)
+            .expect_err("the lease expired");
+        let PlacementError::MoveConflict(text) = e else {
+            panic!("a move conflict")
+        };
+        assert!(
+            text.contains("the lease of its freeze (40 ms) expired"),
+            "{text}"
+        );
+        assert_eq!(p.epoch(), 1, "nothing committed");
+        assert_eq!(p.state(s), ShardState::Owned);
+        assert!(!p.expire(s, lease.token), "thawed already");
+
+        // In time, with its own token: the shard is the new owner's.
+        let lease = p.freeze(t, Duration::from_secs(30)).expect("owned");
+        let e = p
+            .commit(t, lease.token + 2, &names[1], 2)
+            .expect_err("another token");
+        assert!(e.to_string().contains("by another freeze"), "{e}");
+        assert!(p.commit(t, lease.token, &names[0], 2).is_err(), "to itself");
+        assert!(
+            p.commit(t, lease.token, &names[1], 1).is_err(),
+            "an old epoch"
+        );
+        p.commit(t, lease.token, &names[1], 2).expect("committed");
+        assert_eq!(p.state(t), ShardState::Foreign);
+        assert_eq!(p.epoch(), 2);
+        assert!(!p.expire(t, lease.token), "a committed shard never thaws");
+        assert!(
+            p.commit(t, lease.token, &names[1], 3).is_err(),
+            "committed once"
+        );
+        assert!(p.freeze(t, Duration::from_secs(1)).is_err(), "not owned");
     }
 
     #[test]

@@ -21,7 +21,9 @@
 //!
 //! One module per concern: [`replicas`] (behind HAProxy, and the maps they
 //! refuse), [`local`] (`mcapi cluster local`), [`kubernetes`] (the committed
-//! ConfigMap), [`shard_moves`] (live moves); the helpers they share (the
+//! ConfigMap), [`shard_moves`] (live moves), [`router`] (no request left
+//! unanswered while replicas join), [`leases`] (a dead mover's freeze and
+//! half-done move); the helpers they share (the
 //! router, replicas, a local cluster, a driven session) are here.
 
 use crate::common;
@@ -42,8 +44,10 @@ use serde_json::{Value, json};
 use tonic::transport::Channel;
 
 mod kubernetes;
+mod leases;
 mod local;
 mod replicas;
+mod router;
 mod shard_moves;
 
 fn mcapi(args: &[&str]) -> Output {

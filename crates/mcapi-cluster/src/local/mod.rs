@@ -23,10 +23,12 @@
 //!
 //! `mcapi cluster rebalance --replicas N` writes `rebalance.json` and sends
 //! the supervisor SIGHUP: it starts the missing replicas (`--joining`: they
-//! own nothing yet), writes the router's configuration with them and starts
-//! HAProxy again (clients reconnect), and records `replicas` in
-//! `cluster.json`; the rebalance then moves shards to them live
-//! ([`crate::mover`]).
+//! own nothing yet), adds them to the running HAProxy through its Runtime
+//! API (their backends were declared, empty, from the start: HAProxy 2.6
+//! cannot add a backend at run time), writes the router's configuration
+//! with them, and records `replicas` in `cluster.json`; the rebalance then
+//! moves shards to them live ([`crate::mover`]). HAProxy is never
+//! restarted for it: a restart cut the requests in flight.
 //!
 //! Children run in their own process group, so a terminal's Ctrl-C reaches
 //! only the supervisor, which stops them in order; on Linux each child also
@@ -73,6 +75,21 @@ const MANAGED_FLAGS: [&str; 5] = ["--http", "--grpc", "--data-dir", "--shard-map
 /// A Unix socket's path must fit `sockaddr_un.sun_path` (108 bytes with its NUL).
 const MAX_SOCKET_PATH: usize = 107;
 
+/// How a running router takes new replicas.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+pub enum RouterUpdate {
+    /// Servers added through the Runtime API: HAProxy keeps running.
+    Runtime,
+    /// HAProxy in master-worker mode, reloaded (SIGUSR2): a new worker
+    /// takes the listening sockets over and the old one finishes what it
+    /// has, but closes its clients' idle connections.
+    Reload,
+    /// HAProxy stopped and started again, as `cluster local` once did:
+    /// every connection is cut, and connections are refused until it
+    /// listens again. Kept to show what the Runtime API avoids.
+    Restart,
+}
+
 /// `mcapi cluster local`.
 #[derive(Debug, Args)]
 pub struct LocalArgs {
@@ -97,6 +114,12 @@ pub struct LocalArgs {
     /// Seconds a replica may take to drain after SIGTERM before SIGKILL (1 to 300).
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=300))]
     pub drain_timeout_secs: u64,
+    /// How the router learns of replicas added by `rebalance`: `runtime`
+    /// (the Runtime API, HAProxy keeps running), `reload` (a master-worker
+    /// reload) or `restart`. Only for measuring them against each other
+    /// (docs/cluster.md gives the numbers).
+    #[arg(long, hide = true, value_enum, default_value_t = RouterUpdate::Runtime)]
+    pub router_update: RouterUpdate,
     /// Extra `mcapi serve` flags for every replica, after `--` (e.g. `-- --workers 2`).
     #[arg(last = true)]
     pub serve_args: Vec<String>,

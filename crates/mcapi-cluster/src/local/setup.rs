@@ -17,7 +17,7 @@ use super::process::{Process, Run, alive};
 use super::state::State;
 use super::{
     ADMIN_KEY_FILE, DEFAULT_REPLICAS, LocalArgs, MANAGED_FLAGS, MAP_FILE, MAX_LOCAL_REPLICAS,
-    MAX_SOCKET_PATH, ROUTER, STATE_FILE,
+    MAX_SOCKET_PATH, ROUTER, RouterUpdate, STATE_FILE,
 };
 use crate::files::write_atomic;
 use crate::haproxy::write_router;
@@ -36,6 +36,7 @@ pub(super) struct Setup {
     pub(super) processes: Vec<Process>,
     pub(super) ready_timeout: Duration,
     pub(super) drain_timeout: Duration,
+    pub(super) router_update: RouterUpdate,
 }
 
 pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
@@ -117,6 +118,14 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
         processes.push(template.process(name, http, grpc, true));
     }
     let router_dir = dir.join("router");
+    // Every name a rebalance may add (`mcapi-k` up to the most this runs)
+    // has its backends from the start: joining is then a Runtime API
+    // call, never a restart of the router.
+    let spare = ordinal_names("mcapi", MAX_LOCAL_REPLICAS)
+        .map_err(anyhow::Error::msg)?
+        .into_iter()
+        .filter(|n| !map.has_replica(n))
+        .collect();
     let spec = RouterSpec {
         rest_bind: args.http.to_string(),
         grpc_bind: args.grpc.to_string(),
@@ -125,6 +134,8 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
         admin_bind: None,
         backends,
         resolvers: false,
+        spare,
+        expose_listeners: args.router_update == RouterUpdate::Reload,
     };
     write_router(&router_dir, &map, &spec)?;
     check_router(&haproxy, &router_dir.join("haproxy.cfg"))?;
@@ -132,7 +143,19 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
     processes.push(Process {
         name: ROUTER.into(),
         program: haproxy,
-        args: vec!["-db".into(), "-f".into(), haproxy_cfg.clone().into()],
+        args: match args.router_update {
+            RouterUpdate::Runtime | RouterUpdate::Restart => {
+                vec!["-db".into(), "-f".into(), haproxy_cfg.clone().into()]
+            }
+            // The master stays in the foreground and re-executes itself on
+            // SIGUSR2, handing the listeners to the new worker.
+            RouterUpdate::Reload => vec![
+                "-W".into(),
+                "-db".into(),
+                "-f".into(),
+                haproxy_cfg.clone().into(),
+            ],
+        },
         env: Vec::new(),
         log: dir.join("logs").join(format!("{ROUTER}.log")),
         ports: None,
@@ -153,6 +176,7 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
         processes,
         ready_timeout: Duration::from_secs(args.ready_timeout_secs),
         drain_timeout: Duration::from_secs(args.drain_timeout_secs),
+        router_update: args.router_update,
     })
 }
 

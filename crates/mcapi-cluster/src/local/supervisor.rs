@@ -15,10 +15,10 @@ use mcapi_shards::plan::ordinal_names;
 use super::process::{Backoff, Event, Process, Run, send_signal};
 use super::setup::{ReplicaTemplate, Setup, check_router, free_ports};
 use super::state::State;
-use super::{MAP_FILE, MAX_LOCAL_REPLICAS, REQUEST_FILE, STATE_FILE};
+use super::{MAP_FILE, MAX_LOCAL_REPLICAS, REQUEST_FILE, RouterUpdate, STATE_FILE};
 use crate::files::write_atomic;
 use crate::haproxy::write_router;
-use crate::haproxy::{Backend, RouterSpec};
+use crate::haproxy::{Backend, RouterSpec, add_backend};
 use crate::probe::http_ok;
 
 /// The processes, stopped (SIGKILL) if dropped while any still runs: an
@@ -30,6 +30,7 @@ pub(super) struct Cluster {
     pub(super) dir: PathBuf,
     pub(super) state_file: PathBuf,
     pub(super) state: State,
+    pub(super) router_update: RouterUpdate,
 }
 
 impl Drop for Cluster {
@@ -202,7 +203,10 @@ impl Cluster {
     /// A rebalance's request (`rebalance.json`, then SIGHUP): starts the
     /// replicas up to the number asked for (`--joining`: owning nothing
     /// until shards move to them), writes the router's configuration with
-    /// them and starts HAProxy again, then records `replicas`.
+    /// them and adds them to the running HAProxy through its Runtime API,
+    /// then records `replicas`. HAProxy is not restarted: a restart cut
+    /// the requests in flight and refused connections until it listened
+    /// again.
     pub(super) async fn grow(&mut self, ready_timeout: Duration) -> Result<()> {
         #[derive(Deserialize)]
         struct Request {
@@ -244,18 +248,59 @@ impl Cluster {
         self.start(have..want, ready_timeout).await?;
         let map = ShardMap::read(&self.dir.join(MAP_FILE))
             .with_context(|| format!("shard map {}", self.dir.join(MAP_FILE).display()))?;
+        // The configuration names them from now on (a restarted HAProxy
+        // keeps them); they are no longer spare.
+        self.spec
+            .spare
+            .retain(|n| !names[have..].iter().any(|m| m == n));
         write_router(&self.dir.join("router"), &map, &self.spec)?;
         let router = self.processes.len() - 1;
         check_router(
             &self.processes[router].program,
             &self.dir.join("router").join("haproxy.cfg"),
         )?;
-        tracing::info!(
-            replicas = want,
-            "replicas started; starting the router again with them"
-        );
-        self.stop(router..router + 1, Duration::from_secs(10)).await;
-        self.start(router..router + 1, ready_timeout).await?;
+        match self.router_update {
+            RouterUpdate::Runtime => {
+                for b in &self.spec.backends[have..] {
+                    match add_backend(&self.state.admin_socket, b) {
+                        Ok(()) => {}
+                        // Not running (restarting after an exit): it reads
+                        // the configuration just written when it starts.
+                        Err(e)
+                            if matches!(
+                                e.kind(),
+                                std::io::ErrorKind::NotFound
+                                    | std::io::ErrorKind::ConnectionRefused
+                            ) =>
+                        {
+                            tracing::warn!(replica = %b.replica, error = %e, "the router's Runtime API does not answer; it takes the replica from its configuration when it starts");
+                        }
+                        Err(e) => {
+                            return Err(anyhow::Error::new(e)
+                                .context(format!("adding {} to the router", b.replica)));
+                        }
+                    }
+                }
+                tracing::info!(
+                    replicas = want,
+                    "replicas started and added to the running router (Runtime API, no restart)"
+                );
+            }
+            RouterUpdate::Reload => {
+                if let Some(pid) = self.processes[router].pid() {
+                    send_signal(pid, libc::SIGUSR2);
+                }
+                tracing::info!(replicas = want, "replicas started; the router reloaded");
+            }
+            RouterUpdate::Restart => {
+                tracing::info!(
+                    replicas = want,
+                    "replicas started; starting the router again with them"
+                );
+                self.stop(router..router + 1, Duration::from_secs(10)).await;
+                self.start(router..router + 1, ready_timeout).await?;
+            }
+        }
         self.state.replicas = want;
         self.write_state();
         tracing::info!(
@@ -288,6 +333,7 @@ pub(super) async fn supervise(setup: Setup, signal: impl Future<Output = ()> + S
         processes,
         ready_timeout,
         drain_timeout,
+        router_update,
     } = setup;
     let replicas = processes.len().saturating_sub(1);
     let mut cluster = Cluster {
@@ -305,6 +351,7 @@ pub(super) async fn supervise(setup: Setup, signal: impl Future<Output = ()> + S
             replicas,
             processes: Vec::new(),
         },
+        router_update,
     };
     tokio::pin!(signal);
     let started = tokio::select! {

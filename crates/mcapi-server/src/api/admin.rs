@@ -5,10 +5,13 @@
 //! bytes (`application/octet-stream`), everything else as JSON.
 //!
 //! ```text
+//! GET  /admin/shards                                 every shard's state here (cluster status)
 //! GET  /admin/shards/{shard}                         status
 //! POST /admin/shards/{shard}/export                  body: a manifest (empty: the whole shard)
-//! POST /admin/shards/{shard}/freeze                  503 to clients from now on
+//! POST /admin/shards/{shard}/freeze?lease_ms=L       503 to clients for L ms at most (default 30000)
 //! POST /admin/shards/{shard}/thaw                    served here again
+//! POST /admin/shards/{shard}/commit?epoch=E&owner=R&token=T
+//!                                                    R's from E, if the freeze T's lease still runs
 //! POST /admin/shards/{shard}/import?begin=true|false body: shard data
 //! POST /admin/shards/{shard}/abort                   the import's copy deleted
 //! POST /admin/shards/{shard}/activate?epoch=E        served here from epoch E
@@ -28,7 +31,7 @@ use serde::Deserialize;
 use crate::api::error::ApiError;
 use crate::api::extract::AppState;
 use crate::service::ServiceError;
-use crate::service::shards::{Manifest, ShardData, parse_shard};
+use crate::service::shards::{Manifest, ShardData, freeze_lease, parse_shard};
 use mcapi_shards::ReplicaName;
 
 /// Largest request body of an admin route: one shard's data.
@@ -39,6 +42,7 @@ pub const MAX_ADMIN_BODY: usize = 1 << 30;
 /// server buffer a shard-sized body.
 pub fn routes() -> Router<AppState> {
     Router::new()
+        .route("/admin/shards", get(all_shards))
         .route("/admin/shards/{shard}", get(status))
         .route("/admin/shards/{shard}/{step}", post(step))
 }
@@ -73,12 +77,30 @@ async fn status(
     Ok(Json(state.manager.shard_status(shard)?).into_response())
 }
 
+async fn all_shards(
+    State(state): State<AppState>,
+    headers: HeaderMap,
+) -> Result<Response, ApiError> {
+    admit(&state, &headers)?;
+    let all = state.manager.off_runtime(|m| m.all_shards()).await?;
+    Ok(Json(all).into_response())
+}
+
 /// The query of a step.
 #[derive(Debug, Deserialize)]
 struct StepQuery {
     begin: Option<bool>,
     epoch: Option<u64>,
     owner: Option<String>,
+    lease_ms: Option<u64>,
+    token: Option<u64>,
+}
+
+fn owner_of(q: &StepQuery) -> Result<ReplicaName, ServiceError> {
+    q.owner
+        .as_deref()
+        .ok_or_else(|| ServiceError::field("owner", "is required"))
+        .and_then(|o| ReplicaName::parse(o).map_err(|e| ServiceError::field("owner", e)))
 }
 
 /// Decodes a postcard body whole: an empty body is the default, and bytes
@@ -158,8 +180,19 @@ async fn step(
                 .map_err(|e| ServiceError::Internal(format!("encoding shard data: {e}")))?;
             octets(bytes)
         }
-        "freeze" => Json(manager.freeze_shard(shard).await?).into_response(),
+        "freeze" => {
+            let lease = freeze_lease(q.lease_ms)?;
+            Json(manager.freeze_shard(shard, lease).await?).into_response()
+        }
         "thaw" => Json(manager.thaw_shard(shard)?).into_response(),
+        "commit" => {
+            let epoch = epoch_of(&q)?;
+            let owner = owner_of(&q)?;
+            let token = q
+                .token
+                .ok_or_else(|| ServiceError::field("token", "is required (the freeze's)"))?;
+            Json(manager.commit_shard(shard, token, &owner, epoch)?).into_response()
+        }
         "import" => {
             let data: ShardData = decode(&body, "shard data")?;
             let n = manager
@@ -180,17 +213,13 @@ async fn step(
         }
         "release" => {
             let epoch = epoch_of(&q)?;
-            let owner = q
-                .owner
-                .as_deref()
-                .ok_or_else(|| ServiceError::field("owner", "is required"))
-                .and_then(|o| ReplicaName::parse(o).map_err(|e| ServiceError::field("owner", e)))?;
+            let owner = owner_of(&q)?;
             let n = manager.release_shard(shard, &owner, epoch).await?;
             Json(serde_json::json!({ "deleted": n })).into_response()
         }
         other => {
             return Err(ServiceError::UnknownRoute(format!(
-                "POST /admin/shards/{{shard}}/{}: the steps are export, freeze, thaw, import, abort, activate, release",
+                "POST /admin/shards/{{shard}}/{}: the steps are export, freeze, thaw, commit, import, abort, activate, release",
                 other.escape_debug()
             ))
             .into());

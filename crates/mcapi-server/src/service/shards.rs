@@ -10,11 +10,18 @@
 //!    received is committed to the target's store before the call returns;
 //! 3. source [`SessionManager::freeze_shard`]: requests for the shard get
 //!    503 `shard_moving` from now on, and the call returns once no request
-//!    that changes the shard is still running;
+//!    that changes the shard is still running. The freeze holds a lease
+//!    (`lease_ms`, [`DEFAULT_FREEZE_LEASE`]): if the move has not committed
+//!    when it runs out, the source serves the shard again by itself, so a
+//!    mover that died does not leave it refusing requests;
 //! 4. source [`SessionManager::export_shard`] with the manifest of step 1:
 //!    the delta (new sessions, log tails, sessions replaced by a newer
 //!    snapshot, deleted ids); target [`SessionManager::import_shard`];
-//! 5. the mover writes the new map (epoch + 1): the commit point;
+//! 5. the commit point: source [`SessionManager::commit_shard`] gives the
+//!    shard to the target at epoch + 1, only if the freeze's lease is
+//!    still running (else 409 `move_conflict`: the source serves the shard
+//!    again and the move must start over); then the mover writes the new
+//!    map (epoch + 1);
 //! 6. target [`SessionManager::activate_shard`]: the shard's sessions are
 //!    rebuilt from the target's store and served (`Owned`) at the new epoch;
 //! 7. the router's map is flipped; source [`SessionManager::release_shard`]:
@@ -34,24 +41,43 @@ use super::error::{RecoveryError, ServiceError};
 use super::manager::SessionManager;
 use super::recovery;
 pub use mcapi_shards::moves::{Manifest, MovedSession, ShardData, ShardStatus};
-use mcapi_shards::{Placement, ReplicaName, ShardState, shard_key};
+pub use mcapi_shards::moves::{ReplicaShards, ShardLine};
+use mcapi_shards::{Placement, ReplicaName, SHARDS, ShardState, shard_key, state_name};
 use mcapi_store::{StoredSession, Write};
 
 /// Longest wait for the requests changing a shard to end once it is frozen.
 pub const FREEZE_DRAIN: Duration = Duration::from_secs(10);
 
+/// A freeze's lease when the mover names none: a move's freeze lasts
+/// milliseconds (the delta and two admin calls), so 30 s is ample for a
+/// slow disk, and a dead mover's shard refuses requests for 30 s at most.
+pub const DEFAULT_FREEZE_LEASE: Duration = Duration::from_secs(30);
+/// The shortest lease (ms): below this, the delta's own round trips could
+/// not fit, and every move would fail.
+pub const MIN_FREEZE_LEASE_MS: u64 = 100;
+/// The longest lease (ms): a shard left frozen longer by a dead mover is
+/// an outage, not a move.
+pub const MAX_FREEZE_LEASE_MS: u64 = 600_000;
+
+/// A lease asked for in milliseconds, checked against its bounds.
+pub fn freeze_lease(ms: Option<u64>) -> Result<Duration, ServiceError> {
+    match ms {
+        None => Ok(DEFAULT_FREEZE_LEASE),
+        Some(ms) if (MIN_FREEZE_LEASE_MS..=MAX_FREEZE_LEASE_MS).contains(&ms) => {
+            Ok(Duration::from_millis(ms))
+        }
+        Some(ms) => Err(ServiceError::field(
+            "lease_ms",
+            format!(
+                "must be between {MIN_FREEZE_LEASE_MS} and {MAX_FREEZE_LEASE_MS} (10 minutes), not {ms}"
+            ),
+        )),
+    }
+}
+
 /// Most log entries one session may bring in a move (a session's log
 /// between snapshots is `--snapshot-every` long, at most a few thousand).
 pub const MAX_MOVE_ENTRIES: usize = 1 << 20;
-
-fn state_name(s: ShardState) -> &'static str {
-    match s {
-        ShardState::Owned => "owned",
-        ShardState::Frozen => "frozen",
-        ShardState::Importing => "importing",
-        ShardState::Foreign => "foreign",
-    }
-}
 
 /// Parses a shard key from a path (`s03a7`).
 pub fn parse_shard(key: &str) -> Result<u16, ServiceError> {
@@ -108,6 +134,39 @@ impl SessionManager {
             epoch: map.epoch(),
             sessions: self.ids_with_prefix(&prefix).len(),
             boot: boot_id(),
+            lease_ms: p.lease(shard).map(|l| ms(l.left(Instant::now()))),
+            freeze_token: p.lease(shard).map(|l| l.token),
+        })
+    }
+
+    /// Every shard here at once: state, owner in this replica's map,
+    /// sessions in memory and a freeze's lease left (`mcapi cluster
+    /// status`). One pass over the sessions, not one per shard.
+    pub fn all_shards(&self) -> Result<ReplicaShards, ServiceError> {
+        let (p, _) = self.move_parts()?;
+        let mut counts = vec![0usize; SHARDS];
+        for id in self.ids_with_prefix("s") {
+            if let Some(s) = mcapi_shards::shard_of_id(&id) {
+                counts[usize::from(s)] += 1;
+            }
+        }
+        let now = Instant::now();
+        let shards = p
+            .states()
+            .into_iter()
+            .zip(counts)
+            .map(|((state, lease, owner), sessions)| ShardLine {
+                state: state_name(state).into(),
+                owner: owner.to_string(),
+                sessions,
+                lease_ms: lease.map(|l| ms(l.left(now))),
+            })
+            .collect();
+        Ok(ReplicaShards {
+            replica: p.replica().to_string(),
+            epoch: p.epoch(),
+            boot: boot_id(),
+            shards,
         })
     }
 
@@ -188,28 +247,74 @@ impl SessionManager {
         Ok(data)
     }
 
-    /// Step 3: freezes an owned shard and waits until no request changing
-    /// it runs ([`FREEZE_DRAIN`] at most; then it is served again and the
-    /// step fails with 503). Frozen already: a no-op.
-    pub async fn freeze_shard(&self, shard: u16) -> Result<ShardStatus, ServiceError> {
+    /// Step 3: freezes an owned shard for `lease` and waits until no
+    /// request changing it runs ([`FREEZE_DRAIN`] at most, and never past
+    /// the lease; then it is served again and the step fails with 503).
+    /// Frozen already: its lease starts again. When the lease runs out
+    /// before [`SessionManager::commit_shard`], the shard is served here
+    /// again: exactly at the deadline for every request (the state is read
+    /// against the clock), and a timer logs it and settles the state.
+    pub async fn freeze_shard(
+        &self,
+        shard: u16,
+        lease: Duration,
+    ) -> Result<ShardStatus, ServiceError> {
         let (p, _) = self.move_parts()?;
-        let found = p.swap_state(shard, &[ShardState::Owned], ShardState::Frozen);
-        if !matches!(found, ShardState::Owned | ShardState::Frozen) {
-            self.expect_state(p, shard, &[ShardState::Owned], "freeze")?;
-        }
+        let held = match p.freeze(shard, lease) {
+            Ok(held) => held,
+            Err(_) => {
+                self.expect_state(p, shard, &[ShardState::Owned], "freeze")?;
+                return Err(ServiceError::MoveConflict(format!(
+                    "freeze: shard {} changed state during the call; retry",
+                    shard_key(shard)
+                )));
+            }
+        };
         let started = Instant::now();
+        let drain_until = started + FREEZE_DRAIN.min(lease);
         while p.in_flight(shard) > 0 {
-            if started.elapsed() >= FREEZE_DRAIN {
+            if Instant::now() >= drain_until {
                 p.swap_state(shard, &[ShardState::Frozen], ShardState::Owned);
                 return Err(ServiceError::Unavailable(format!(
-                    "shard {}: requests still running {} s after the freeze; the shard is served again, retry the move",
+                    "shard {}: requests still running {} ms after the freeze; the shard is served again, retry the move",
                     shard_key(shard),
-                    FREEZE_DRAIN.as_secs()
+                    started.elapsed().as_millis()
                 )));
             }
             tokio::time::sleep(Duration::from_millis(1)).await;
         }
-        tracing::info!(shard = %shard_key(shard), drained_us = started.elapsed().as_micros() as u64, "shard frozen");
+        let timer = Arc::clone(p);
+        tokio::spawn(async move {
+            tokio::time::sleep_until(tokio::time::Instant::from_std(held.until)).await;
+            if timer.expire(shard, held.token) {
+                tracing::warn!(
+                    shard = %shard_key(shard),
+                    lease_ms = ms(held.length),
+                    "the freeze's lease expired before its move committed: the shard is served here again"
+                );
+            }
+        });
+        tracing::info!(shard = %shard_key(shard), drained_us = started.elapsed().as_micros() as u64, lease_ms = ms(lease), "shard frozen");
+        self.shard_status(shard)
+    }
+
+    /// Step 5 on the source, the commit point: the shard, frozen by the
+    /// freeze of `token` whose lease is still running, is `owner`'s from
+    /// `epoch` on; it answers 421 naming `owner` here from now on, and its
+    /// sessions stay in memory and store until [`SessionManager::release_shard`].
+    /// Refused (409) once the lease has expired, whatever the mover
+    /// believes: the source may have served writes since, which the target
+    /// does not have, so the move must start over.
+    pub fn commit_shard(
+        &self,
+        shard: u16,
+        token: u64,
+        owner: &ReplicaName,
+        epoch: u64,
+    ) -> Result<ShardStatus, ServiceError> {
+        let (p, _) = self.move_parts()?;
+        p.commit(shard, token, owner, epoch)?;
+        tracing::info!(shard = %shard_key(shard), %owner, epoch, "shard committed to its new owner: answered with 421 here from now on");
         self.shard_status(shard)
     }
 
@@ -482,6 +587,10 @@ impl SessionManager {
     }
 }
 
+fn ms(d: Duration) -> u64 {
+    u64::try_from(d.as_millis()).unwrap_or(u64::MAX)
+}
+
 /// A number drawn once per process (what [`ShardStatus::boot`] reports).
 pub fn boot_id() -> u64 {
     use std::sync::OnceLock;
@@ -549,5 +658,23 @@ mod tests {
         assert!(parse_shard("s0400").is_err());
         assert!(parse_shard("s00012").is_err());
         assert!(parse_shard("S0001").is_err());
+    }
+
+    #[test]
+    fn a_lease_is_bounded_with_a_precise_message() {
+        assert_eq!(freeze_lease(None).ok(), Some(DEFAULT_FREEZE_LEASE));
+        assert_eq!(
+            freeze_lease(Some(100)).ok(),
+            Some(Duration::from_millis(100))
+        );
+        assert!(freeze_lease(Some(MAX_FREEZE_LEASE_MS)).is_ok());
+        for bad in [0, 99, MAX_FREEZE_LEASE_MS + 1, u64::MAX] {
+            let e = freeze_lease(Some(bad)).expect_err("out of bounds");
+            let text = e.to_string();
+            assert!(
+                text.contains("lease_ms") && text.contains(&format!("not {bad}")),
+                "{text}"
+            );
+        }
     }
 }

@@ -358,7 +358,10 @@ async fn a_shard_moves_whole_with_what_was_acknowledged_before_the_freeze() {
     .await;
     ids.push(body["id"].as_str().expect("id").to_string());
     // 3: frozen: refused with 503, nothing done.
-    a.manager.freeze_shard(shard).await.expect("freeze");
+    a.manager
+        .freeze_shard(shard, mcapi_server::service::shards::DEFAULT_FREEZE_LEASE)
+        .await
+        .expect("freeze");
     let (code, body) = send(
         &a.app,
         "POST",
@@ -507,7 +510,10 @@ async fn a_group_moves_with_its_shard() {
         .import_shard(shard, snapshot, true)
         .await
         .expect("import");
-    a.manager.freeze_shard(shard).await.expect("freeze");
+    a.manager
+        .freeze_shard(shard, mcapi_server::service::shards::DEFAULT_FREEZE_LEASE)
+        .await
+        .expect("freeze");
     let (code, body) = send(&a.app, "GET", &format!("/v1/groups/{id}"), None, None).await;
     assert_eq!(code, StatusCode::SERVICE_UNAVAILABLE, "{body}");
     assert_eq!(body["code"], "shard_moving");
@@ -541,4 +547,138 @@ async fn a_group_moves_with_its_shard() {
     .await;
     assert_eq!(code, StatusCode::OK, "{body}");
     assert_eq!(body["ticks"], serde_json::json!([1, 1, 1]));
+}
+
+/// A freeze holds a lease: a mover that never commits leaves the shard
+/// refusing writes only until the lease ends, after which the source
+/// serves it again by itself and refuses the late commit (the target must
+/// not serve a shard whose source took writes after the copy); a lease
+/// out of bounds is refused before anything is frozen; a commit in time
+/// gives the shard away at the new epoch for good.
+#[tokio::test]
+async fn a_freeze_ends_with_its_lease_and_a_late_commit_is_refused() {
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let names = ordinal_names("mcapi", 2).expect("names");
+    let base = plan(&names, None).expect("plan").map;
+    let shard = base.shards_of(&names[0])[0];
+    let owners: Vec<ReplicaName> = (0..1024u16)
+        .map(|s| names[usize::from(s != shard)].clone())
+        .collect();
+    let map = ShardMap::from_owners(1, &owners).expect("map");
+    let a = replica(&map, "mcapi-0", &tmp.path().join("a"), Some(KEY));
+    let key = shard_key(shard);
+    let (code, body) = send(
+        &a.app,
+        "POST",
+        "/v1/sessions",
+        None,
+        Some(r#"{"model": {"preset": "hallway"}}"#),
+    )
+    .await;
+    assert_eq!(code, StatusCode::CREATED, "{body}");
+    let id = body["id"].as_str().expect("id").to_string();
+    let observe = format!("/v1/sessions/{id}/observations");
+
+    // Bounds, with the value and the limits in the message.
+    for bad in ["0", "99", "600001", "18446744073709551615"] {
+        let (code, body) = send(
+            &a.app,
+            "POST",
+            &format!("/admin/shards/{key}/freeze?lease_ms={bad}"),
+            Some(KEY),
+            None,
+        )
+        .await;
+        assert_eq!(code, StatusCode::BAD_REQUEST, "{bad}: {body}");
+        let msg = body["message"].as_str().expect("message");
+        assert!(
+            msg.contains("lease_ms") && msg.contains("between 100 and 600000") && msg.contains(bad),
+            "{msg}"
+        );
+    }
+    let (code, body) = send(&a.app, "POST", &observe, None, Some(r#"{"state": 25}"#)).await;
+    assert_eq!(code, StatusCode::OK, "nothing was frozen: {body}");
+
+    // A short lease, no commit.
+    let (code, frozen) = send(
+        &a.app,
+        "POST",
+        &format!("/admin/shards/{key}/freeze?lease_ms=300"),
+        Some(KEY),
+        None,
+    )
+    .await;
+    assert_eq!(code, StatusCode::OK, "{frozen}");
+    assert_eq!(frozen["state"], "frozen");
+    let lease = frozen["lease_ms"].as_u64().expect("lease_ms");
+    assert!((1..=300).contains(&lease), "{frozen}");
+    let token = frozen["freeze_token"].as_u64().expect("token");
+    let (code, body) = send(&a.app, "POST", &observe, None, Some(LATER)).await;
+    assert_eq!(code, StatusCode::SERVICE_UNAVAILABLE, "{body}");
+    assert_eq!(body["code"], "shard_moving");
+    let (code, all) = send(&a.app, "GET", "/admin/shards", Some(KEY), None).await;
+    assert_eq!(code, StatusCode::OK, "{all}");
+    assert_eq!(all["shards"][usize::from(shard)]["state"], "frozen");
+    assert!(
+        all["shards"][usize::from(shard)]["lease_ms"].is_u64(),
+        "{all}"
+    );
+    assert_eq!(all["shards"][usize::from(shard)]["sessions"], 1);
+
+    tokio::time::sleep(std::time::Duration::from_millis(450)).await;
+    let (code, body) = send(&a.app, "POST", &observe, None, Some(LATER)).await;
+    assert_eq!(code, StatusCode::OK, "served again after the lease: {body}");
+    assert_eq!(body["tick"], 1, "{body}");
+    let (code, status) = send(
+        &a.app,
+        "GET",
+        &format!("/admin/shards/{key}"),
+        Some(KEY),
+        None,
+    )
+    .await;
+    assert_eq!(code, StatusCode::OK);
+    assert_eq!(status["state"], "owned", "{status}");
+    assert!(status.get("lease_ms").is_none(), "{status}");
+
+    // The commit of that freeze comes too late: refused, nothing changed.
+    let commit = format!("/admin/shards/{key}/commit?epoch=2&owner=mcapi-1&token={token}");
+    let (code, body) = send(&a.app, "POST", &commit, Some(KEY), None).await;
+    assert_eq!(code, StatusCode::CONFLICT, "{body}");
+    assert_eq!(body["code"], "move_conflict");
+    let msg = body["message"].as_str().expect("message");
+    assert!(
+        msg.contains("the lease of its freeze (300 ms) expired"),
+        "{msg}"
+    );
+    assert_eq!(a.manager.shard_status(shard).expect("status").epoch, 1);
+    let (code, body) = send(&a.app, "POST", &observe, None, Some(LATER)).await;
+    assert_eq!(code, StatusCode::OK, "still served here: {body}");
+
+    // A fresh freeze commits in time: 421 naming the new owner from then
+    // on, at the new epoch; the lease's end changes nothing any more.
+    let (code, frozen) = send(
+        &a.app,
+        "POST",
+        &format!("/admin/shards/{key}/freeze?lease_ms=300"),
+        Some(KEY),
+        None,
+    )
+    .await;
+    assert_eq!(code, StatusCode::OK, "{frozen}");
+    let token2 = frozen["freeze_token"].as_u64().expect("token");
+    assert_ne!(token2, token, "a new freeze, a new token");
+    let stale = format!("/admin/shards/{key}/commit?epoch=2&owner=mcapi-1&token={token}");
+    let (code, body) = send(&a.app, "POST", &stale, Some(KEY), None).await;
+    assert_eq!(code, StatusCode::CONFLICT, "the old freeze's token: {body}");
+    let commit = format!("/admin/shards/{key}/commit?epoch=2&owner=mcapi-1&token={token2}");
+    let (code, body) = send(&a.app, "POST", &commit, Some(KEY), None).await;
+    assert_eq!(code, StatusCode::OK, "{body}");
+    assert_eq!(body["state"], "foreign");
+    assert_eq!(body["owner"], "mcapi-1");
+    assert_eq!(body["epoch"], 2);
+    tokio::time::sleep(std::time::Duration::from_millis(450)).await;
+    let (code, body) = send(&a.app, "POST", &observe, None, Some(LATER)).await;
+    assert_eq!(code, StatusCode::MISDIRECTED_REQUEST, "{body}");
+    assert_eq!(body["code"], "wrong_replica");
 }
