@@ -100,6 +100,7 @@ impl SessionManager {
         session: &SessionRef,
         batch: Vec<ObservationIn>,
     ) -> Result<Vec<StepOut>, ServiceError> {
+        let session_ref = session;
         let session = Arc::clone(session);
         let n = batch.len() as u64;
         // Updates measured to be cheap run here: a hand-off to the pool
@@ -168,6 +169,17 @@ impl SessionManager {
                 observed.durable().await?
             }
         };
+        // A replayed reply stands only if what it replays is still the
+        // session's state: a commit of it that failed meanwhile rolls the
+        // observation back.
+        if out.iter().any(|s| s.replayed) && !session_ref.replays_stand() {
+            return Err(ServiceError::Unavailable(format!(
+                "session `{}` is being reloaded from its last durable state after a storage \
+                 failure; retry",
+                session_ref.id
+            )));
+        }
+        // Replays count as observations: they are priced as such, too.
         tick::meters().observations.increment(n);
         Ok(out)
     }
