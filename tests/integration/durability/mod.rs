@@ -52,6 +52,7 @@ mod api_keys;
 mod continuous;
 mod damaged_store;
 mod restart;
+mod seq;
 
 const KEY_A: &str = "durability-key-alpha-0123456789";
 const KEY_B: &str = "durability-key-bravo-9876543210";
