@@ -57,7 +57,10 @@ async fn resend(client: &reqwest::Client, url: &str, sent: &[(Value, String)], w
         let resp = client.post(url).json(body).send().await.expect("observe");
         assert_eq!(resp.status().as_u16(), 200, "{when}: seq {seq}");
         let again = resp.text().await.expect("body");
-        assert!(again.contains(r#""replayed":true"#), "{when}: seq {seq}: {again}");
+        assert!(
+            again.contains(r#""replayed":true"#),
+            "{when}: seq {seq}: {again}"
+        );
         assert_eq!(
             &again.replace(r#","replayed":true"#, ""),
             first,
@@ -67,7 +70,14 @@ async fn resend(client: &reqwest::Client, url: &str, sent: &[(Value, String)], w
 }
 
 async fn tick_and_next(client: &reqwest::Client, base: &str, id: &str) -> (Value, Value) {
-    let (status, info) = rest(client, Method::GET, &format!("{base}/v1/sessions/{id}"), None, None).await;
+    let (status, info) = rest(
+        client,
+        Method::GET,
+        &format!("{base}/v1/sessions/{id}"),
+        None,
+        None,
+    )
+    .await;
     assert_eq!(status, 200, "{info}");
     (info["tick"].clone(), info["next_seq"].clone())
 }
@@ -81,7 +91,13 @@ async fn a_seq_resent_after_kill_9_is_replayed_and_applies_nothing() {
     let launch = Launch::new(data.path(), &["--snapshot-every", "25"]);
     let mut server = Server::start(&launch, log_path(&logs, "first")).await;
     let client = http_client();
-    let id = rest_create(&client, &server.base(), None, json!({"seed": 33, "epsilon": 0.2})).await;
+    let id = rest_create(
+        &client,
+        &server.base(),
+        None,
+        json!({"seed": 33, "epsilon": 0.2}),
+    )
+    .await;
     let url = |base: &str| format!("{base}/v1/sessions/{id}/observations");
     let sent = send(&client, &url(&server.base()), 40).await;
     server.kill9();
@@ -98,9 +114,24 @@ async fn a_seq_resent_after_kill_9_is_replayed_and_applies_nothing() {
     let mut other = sent[39].0.clone();
     other["stimulus"] = json!([6.0, 6.0]);
     let (status, body) = rest(&client, Method::POST, &url(&base), None, Some(&other)).await;
-    assert_eq!((status, body["code"].as_str()), (409, Some("seq_conflict")), "{body}");
-    let (status, body) = rest(&client, Method::POST, &url(&base), None, Some(&json!({"state": 3, "stimulus": [0, 0], "seq": 41}))).await;
-    assert_eq!((status, body["expected_seq"].clone()), (409, json!(40)), "{body}");
+    assert_eq!(
+        (status, body["code"].as_str()),
+        (409, Some("seq_conflict")),
+        "{body}"
+    );
+    let (status, body) = rest(
+        &client,
+        Method::POST,
+        &url(&base),
+        None,
+        Some(&json!({"state": 3, "stimulus": [0, 0], "seq": 41})),
+    )
+    .await;
+    assert_eq!(
+        (status, body["expected_seq"].clone()),
+        (409, json!(40)),
+        "{body}"
+    );
     assert!(server.terminate().success());
 }
 
@@ -126,13 +157,22 @@ async fn a_seq_resent_to_an_evicted_session_is_replayed() {
             .text()
             .await
             .expect("text");
-        if metrics.lines().any(|l| l.starts_with("mcapi_sessions_evicted ") && !l.ends_with(" 0")) {
+        if metrics
+            .lines()
+            .any(|l| l.starts_with("mcapi_sessions_evicted ") && !l.ends_with(" 0"))
+        {
             break;
         }
-        assert!(std::time::Instant::now() < deadline, "not evicted within 20 s");
+        assert!(
+            std::time::Instant::now() < deadline,
+            "not evicted within 20 s"
+        );
         tokio::time::sleep(std::time::Duration::from_millis(200)).await;
     }
     resend(&client, &url, &sent, "evicted").await;
-    assert_eq!(tick_and_next(&client, &base, &id).await, (json!(29), json!(30)));
+    assert_eq!(
+        tick_and_next(&client, &base, &id).await,
+        (json!(29), json!(30))
+    );
     assert!(server.terminate().success());
 }

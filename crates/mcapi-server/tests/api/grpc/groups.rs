@@ -309,7 +309,11 @@ async fn a_group_is_read_its_members_are_sessions_and_deleting_it_deletes_them()
     assert_eq!(reply.statuses[0].index, 2);
     assert_eq!(reply.statuses[0].code, "not_found");
     assert_eq!(reply.actions[2], u32::MAX);
-    assert_eq!(f64s(&reply.rewards)[2], 0.0, "a refused member's placeholder is 0, never NaN");
+    assert_eq!(
+        f64s(&reply.rewards)[2],
+        0.0,
+        "a refused member's placeholder is 0, never NaN"
+    );
     assert_eq!(reply.ticks[..2], [20, 20]);
     drop(tx);
     client
