@@ -9,8 +9,8 @@
 //! - a batch may replay a prefix and apply the rest; its seqs are
 //!   consecutive, all or none;
 //! - a `seq` that is no integer below 2^64 is a precise 400;
-//! - replays survive eviction and a restart (the ring, its digests and
-//!   replies are in the snapshot and the log).
+//! - replays survive eviction, a restart and a shard move (the ring, its
+//!   digests and replies are in the snapshot and the log).
 //!
 //! gRPC's are in `grpc::seq`.
 
@@ -469,4 +469,80 @@ fn replays_survive_eviction_and_restart() {
     let store = Arc::new(Store::open(data.path()).expect("reopen"));
     let manager = durable(store);
     check(&manager, "restarted");
+}
+
+/// A session moved to another replica replays there: the window travels
+/// in the snapshot and the log tail a shard move carries.
+#[test]
+fn replays_survive_a_shard_move() {
+    use mcapi_shards::moves::Manifest;
+    use mcapi_shards::plan::{ordinal_names, plan};
+    use mcapi_shards::{Placement, ReplicaName, ShardMap};
+
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let tmp = tempfile::tempdir().expect("tempdir");
+    let names = ordinal_names("mcapi", 2).expect("names");
+    // mcapi-0 owns one shard only, so the session it creates is there.
+    let shard = plan(&names, None).expect("plan").map.shards_of(&names[0])[0];
+    let owners: Vec<ReplicaName> = (0..1024u16)
+        .map(|s| names[usize::from(s != shard)].clone())
+        .collect();
+    let map = ShardMap::from_owners(1, &owners).expect("map");
+    let replica = |name: &str, dir: &str| {
+        let placement = Arc::new(
+            Placement::new(map.clone(), ReplicaName::parse(name).expect("name"))
+                .expect("placement"),
+        );
+        let manager = SessionManager::with_options(ManagerOptions {
+            placement: Some(placement),
+            store: Some(Arc::new(Store::open(&tmp.path().join(dir)).expect("store"))),
+            snapshot_every: 5,
+            ..ManagerOptions::new(Limits::default(), 1)
+        })
+        .expect("manager");
+        manager.recover().expect("recover");
+        manager
+    };
+    let (a, b) = (replica("mcapi-0", "a"), replica("mcapi-1", "b"));
+    let agent: SessionConfig =
+        serde_json::from_value(json!({"seed": 21, "history": 4})).expect("agent");
+    let id = a
+        .create(
+            Caller::Anyone,
+            CreateSession {
+                model: json!({"preset": "hallway"}),
+                agent,
+            },
+        )
+        .expect("create")
+        .id;
+    let mut state = 25;
+    let mut steps = Vec::new();
+    for seq in 0..8u64 {
+        let obs = observation(state, seq);
+        let step = rt
+            .block_on(a.observe(Caller::Anyone, &id, vec![obs.clone()]))
+            .expect("observe")
+            .remove(0);
+        state = next_state(state, step.action_index as u64);
+        steps.push((obs, step));
+    }
+    // The move: snapshot, then (frozen) the delta, then the target serves.
+    let snapshot = a.export_shard(shard, None).expect("snapshot");
+    let manifest = snapshot.manifest(&Manifest::default());
+    rt.block_on(b.import_shard(shard, snapshot, true))
+        .expect("import");
+    rt.block_on(a.freeze_shard(shard)).expect("freeze");
+    let delta = a.export_shard(shard, Some(&manifest)).expect("delta");
+    rt.block_on(b.import_shard(shard, delta, false))
+        .expect("delta import");
+    assert_eq!(b.activate_shard(shard, 2).expect("activate"), 1);
+    for (seq, (obs, step)) in steps.iter().enumerate().skip(4) {
+        let got = rt
+            .block_on(b.observe(Caller::Anyone, &id, vec![obs.clone()]))
+            .unwrap_or_else(|e| panic!("replay of {seq} on the target: {e}"));
+        assert_bit_identical(&got[0], &replayed(step), &format!("moved: seq {seq}"));
+    }
+    let info = b.get(Caller::Anyone, &id).expect("get");
+    assert_eq!((info.tick, info.next_seq), (7, 8), "nothing applied");
 }
