@@ -36,6 +36,7 @@ __all__ = [
     "QuotaExceeded",
     "SessionFailed",
     "MoveConflict",
+    "SequenceRefused",
     "Unavailable",
     "TransportError",
     "WrongReplica",
@@ -121,6 +122,14 @@ class MoveConflict(McapiError):
     """A shard-move step that does not fit the shard's state on the replica,
     or whose epoch is not above the replica's (HTTP 409, gRPC
     FAILED_PRECONDITION, ``move_conflict``); nothing was done."""
+
+
+class SequenceRefused(McapiError):
+    """An observation's ``seq`` does not fit the session (HTTP 409, gRPC
+    FAILED_PRECONDITION): beyond the next one (``seq_gap``), older than the
+    replay window (``seq_expired``) or applied with other content
+    (``seq_conflict``); nothing was applied (docs/sessions.md, "Delivery
+    guarantees")."""
 
 
 class NotFound(McapiError):
@@ -215,6 +224,9 @@ ERROR_CODES: Final[dict[str, tuple[type[McapiError], int]]] = {
     "unauthenticated": (Unauthenticated, 401),
     "forbidden": (Forbidden, 403),
     "move_conflict": (MoveConflict, 409),
+    "seq_gap": (SequenceRefused, 409),
+    "seq_expired": (SequenceRefused, 409),
+    "seq_conflict": (SequenceRefused, 409),
     "not_found": (NotFound, 404),
     "unknown_route": (UnknownRoute, 404),
     "method_not_allowed": (UnknownRoute, 405),

@@ -44,6 +44,10 @@ pub struct LoadgenArgs {
     /// Skip the open-loop run at a fraction of the peak rate.
     #[arg(long)]
     pub no_paced: bool,
+    /// The REST scenario's observations carry `seq` (exactly-once
+    /// delivery), to measure what it costs against the same run without.
+    #[arg(long)]
+    pub seq: bool,
     /// The open-loop run's rate as a fraction of the closed-loop peak.
     #[arg(long, default_value_t = 0.5)]
     pub paced_fraction: f64,

@@ -9,6 +9,9 @@ use mcapi_proto as pb;
 pub(crate) struct Hallway {
     state: usize,
     started: bool,
+    /// The `seq` of the next observation, when observations carry one
+    /// (`--seq`: exactly-once delivery, docs/sessions.md).
+    seq: Option<u64>,
 }
 
 impl Hallway {
@@ -21,6 +24,15 @@ impl Hallway {
         Self {
             state: Self::START,
             started: false,
+            seq: None,
+        }
+    }
+
+    /// This world with its observations numbered from seq 0 (REST only).
+    pub(crate) fn numbered(self, numbered: bool) -> Self {
+        Self {
+            seq: numbered.then_some(0),
+            ..self
         }
     }
 
@@ -35,11 +47,18 @@ impl Hallway {
 
     /// The next observation as JSON (no stimulus on the first).
     pub(crate) fn json(&self) -> String {
+        let seq = self
+            .seq
+            .map(|n| format!(r#","seq":{n}"#))
+            .unwrap_or_default();
         if self.started {
             let [a, b] = self.stimulus();
-            format!(r#"{{"state":{},"stimulus":[{a:?},{b:?}]}}"#, self.state)
+            format!(
+                r#"{{"state":{},"stimulus":[{a:?},{b:?}]{seq}}}"#,
+                self.state
+            )
         } else {
-            format!(r#"{{"state":{}}}"#, self.state)
+            format!(r#"{{"state":{}{seq}}}"#, self.state)
         }
     }
 
@@ -65,6 +84,7 @@ impl Hallway {
             _ => self.state,
         };
         self.started = true;
+        self.seq = self.seq.map(|n| n + 1);
     }
 }
 
@@ -76,6 +96,10 @@ mod tests {
     fn hallway_moves_and_stimuli() {
         let mut w = Hallway::new();
         assert_eq!(w.json(), r#"{"state":25}"#);
+        let mut n = Hallway::new().numbered(true);
+        assert_eq!(n.json(), r#"{"state":25,"seq":0}"#);
+        n.advance(2);
+        assert_eq!(n.json(), r#"{"state":25,"stimulus":[0.0,0.0],"seq":1}"#);
         for _ in 0..15 {
             w.advance(0);
         }

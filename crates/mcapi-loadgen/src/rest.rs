@@ -59,7 +59,10 @@ pub(crate) async fn rest_scenario(
                         .iter()
                         .skip(w)
                         .step_by(connections)
-                        .map(|id| (format!("/v1/sessions/{id}/observations"), Hallway::new()))
+                        .map(|id| {
+                            let world = Hallway::new().numbered(args.seq);
+                            (format!("/v1/sessions/{id}/observations"), world)
+                        })
                         .collect();
                     let load = Observe {
                         sessions,

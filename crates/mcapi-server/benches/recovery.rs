@@ -94,6 +94,7 @@ fn main() -> anyhow::Result<()> {
                                     action_taken: None,
                                     signal: None,
                                     signal_source: None,
+                                    seq: None,
                                 });
                                 first = false;
                                 // Moves right then left along the hallway; the

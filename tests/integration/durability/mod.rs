@@ -53,6 +53,7 @@ mod continuous;
 mod damaged_store;
 mod groups;
 mod restart;
+mod seq;
 
 const KEY_A: &str = "durability-key-alpha-0123456789";
 const KEY_B: &str = "durability-key-bravo-9876543210";

@@ -353,6 +353,8 @@ fn error_event(e: &ServiceError) -> Event {
     let body = ErrorBody {
         code: code.to_string(),
         message: public_message(e, status),
+        expected_seq: None,
+        oldest_seq: None,
     };
     json_event("error", &body).unwrap_or_else(|_| Event::default().event("error").data("{}"))
 }

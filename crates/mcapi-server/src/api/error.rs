@@ -57,6 +57,12 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
         ServiceError::SequenceOutOfOrder(_) => {
             (H::BAD_REQUEST, G::InvalidArgument, "sequence_out_of_order")
         }
+        // FAILED_PRECONDITION: the session's state refuses the request as
+        // it is (a different seq or content may be right); not to be
+        // retried unchanged.
+        ServiceError::SeqGap { .. } => (H::CONFLICT, G::FailedPrecondition, "seq_gap"),
+        ServiceError::SeqExpired { .. } => (H::CONFLICT, G::FailedPrecondition, "seq_expired"),
+        ServiceError::SeqConflict(_) => (H::CONFLICT, G::FailedPrecondition, "seq_conflict"),
         ServiceError::UnknownRoute(_) => (H::NOT_FOUND, G::Unimplemented, "unknown_route"),
         ServiceError::MethodNotAllowed(_) => (
             H::METHOD_NOT_ALLOWED,
@@ -168,13 +174,29 @@ fn capped(mut message: String) -> String {
     message
 }
 
-/// The JSON error body: `{"code", "message"}`.
+/// The JSON error body: `{"code", "message"}`, and for the sequence
+/// errors the seq a client resumes from.
 #[derive(Debug, Serialize, serde::Deserialize, utoipa::ToSchema)]
 pub struct ErrorBody {
     /// Stable snake_case code.
     pub code: String,
     /// Human-readable message naming the field.
     pub message: String,
+    /// `seq_gap`: the seq the session takes next.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expected_seq: Option<u64>,
+    /// `seq_expired`: the oldest seq the session can still replay.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub oldest_seq: Option<u64>,
+}
+
+/// The seq details of an error: `(expected_seq, oldest_seq)`.
+fn seq_details(e: &ServiceError) -> (Option<u64>, Option<u64>) {
+    match e {
+        ServiceError::SeqGap { expected, .. } => (Some(*expected), None),
+        ServiceError::SeqExpired { oldest, .. } => (None, Some(*oldest)),
+        _ => (None, None),
+    }
 }
 
 /// A REST error response.
@@ -190,9 +212,12 @@ impl From<ServiceError> for ApiError {
 impl IntoResponse for ApiError {
     fn into_response(self) -> Response {
         let (status, _, code) = classify(&self.0);
+        let (expected_seq, oldest_seq) = seq_details(&self.0);
         let body = ErrorBody {
             code: code.to_string(),
             message: public_message(&self.0, status),
+            expected_seq,
+            oldest_seq,
         };
         let mut response = (status, Json(body)).into_response();
         if status == StatusCode::UNAUTHORIZED {
@@ -223,8 +248,25 @@ pub fn to_status(e: ServiceError) -> tonic::Status {
             status.metadata_mut().insert(name, v);
         }
     }
+    let (expected_seq, oldest_seq) = seq_details(&e);
+    for (name, seq) in [
+        (EXPECTED_SEQ_TRAILER, expected_seq),
+        (OLDEST_SEQ_TRAILER, oldest_seq),
+    ] {
+        if let Some(Ok(v)) = seq.map(|s| s.to_string().parse()) {
+            status.metadata_mut().insert(name, v);
+        }
+    }
     status
 }
+
+/// gRPC trailer of `seq_gap`: the seq the session takes next (REST:
+/// `expected_seq` in the body).
+pub const EXPECTED_SEQ_TRAILER: &str = "x-mcapi-expected-seq";
+
+/// gRPC trailer of `seq_expired`: the oldest seq the session can replay
+/// (REST: `oldest_seq` in the body).
+pub const OLDEST_SEQ_TRAILER: &str = "x-mcapi-oldest-seq";
 
 /// An `InteractBatch` entry's error: what [`to_status`] would end an
 /// `Interact` stream with, as a message.

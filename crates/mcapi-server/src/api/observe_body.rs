@@ -143,6 +143,7 @@ struct Fields {
     action_taken: Option<Option<ActionRef>>,
     signal: Option<Option<Vec<f64>>>,
     signal_source: Option<Option<usize>>,
+    seq: Option<Option<u64>>,
 }
 
 impl Fields {
@@ -153,6 +154,7 @@ impl Fields {
             && self.action_taken.is_none()
             && self.signal.is_none()
             && self.signal_source.is_none()
+            && self.seq.is_none()
     }
 
     /// Reads the value of `key`; false for a key that is not a field.
@@ -184,6 +186,7 @@ impl Fields {
                     map.next_value_seed(Nullable(Index))?,
                 )?;
             }
+            "seq" => once(&mut self.seq, map.next_value_seed(Nullable(Seq))?)?,
             _ => return Ok(false),
         }
         Ok(true)
@@ -197,6 +200,7 @@ impl Fields {
             action_taken: self.action_taken.flatten(),
             signal: self.signal.flatten(),
             signal_source: self.signal_source.flatten(),
+            seq: self.seq.flatten(),
         })
     }
 }
@@ -356,6 +360,41 @@ impl Visitor<'_> for Index {
     }
 }
 
+/// A `seq`: an integer below 2^64, also written as a float with no
+/// fractional part, as the slow reader's rewrite reads it; anything else
+/// goes to the slow reader, whose message names the field and the range.
+struct Seq;
+
+impl<'de> DeserializeSeed<'de> for Seq {
+    type Value = u64;
+
+    fn deserialize<D: Deserializer<'de>>(self, d: D) -> Result<u64, D::Error> {
+        d.deserialize_any(self)
+    }
+}
+
+impl Visitor<'_> for Seq {
+    type Value = u64;
+
+    fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str("a non-negative integer")
+    }
+
+    fn visit_u64<E: de::Error>(self, v: u64) -> Result<u64, E> {
+        Ok(v)
+    }
+
+    fn visit_f64<E: de::Error>(self, v: f64) -> Result<u64, E> {
+        // 2^64, exact in f64.
+        const TWO_64: f64 = 18_446_744_073_709_551_616.0;
+        if v.fract() == 0.0 && (0.0..TWO_64).contains(&v) {
+            Ok(v as u64)
+        } else {
+            Err(no())
+        }
+    }
+}
+
 /// An action by index (as [`Index`] reads it) or by name.
 struct Action;
 
@@ -486,6 +525,7 @@ mod tests {
                 action_taken: Some(ActionRef::Name("left".into())),
                 signal: None,
                 signal_source: None,
+                seq: None,
             })
         );
         assert_eq!(
@@ -500,6 +540,7 @@ mod tests {
                     action_taken: None,
                     signal: None,
                     signal_source: None,
+                    seq: None,
                 },
                 ObservationIn {
                     state: Some(2),
@@ -508,6 +549,7 @@ mod tests {
                     action_taken: Some(ActionRef::Index(1)),
                     signal: Some(vec![1.0]),
                     signal_source: None,
+                    seq: None,
                 },
             ])
         );
@@ -524,6 +566,7 @@ mod tests {
                 action_taken: None,
                 signal: None,
                 signal_source: None,
+                seq: None,
             })
         );
         assert!(matches!(
@@ -566,6 +609,23 @@ mod tests {
                 "malformed observation: invalid type: null",
             ),
             (b"", "malformed JSON body"),
+            (
+                br#"{"state": 1, "seq": -1}"#,
+                "`seq` must be an integer from 0 to 18446744073709551615 (the observation's index in the session's stream), not the negative number -1",
+            ),
+            (
+                br#"{"state": 1, "seq": 2.5}"#,
+                "`seq` must be an integer from 0 to 18446744073709551615 (the observation's index in the session's stream), not the fractional number 2.5",
+            ),
+            (
+                br#"{"state": 1, "seq": 18446744073709551616}"#,
+                "not 18446744073709552000, beyond 2^64 - 1",
+            ),
+            (br#"{"state": 1, "seq": "3"}"#, "not the string \"3\""),
+            (
+                br#"{"observations": [{"state": 1, "seq": true}]}"#,
+                "not the boolean true",
+            ),
         ] {
             assert!(fast(body).is_none(), "{}", String::from_utf8_lossy(body));
             let e = parse(body).expect_err("refused").to_string();
@@ -581,6 +641,18 @@ mod tests {
         assert!(matches!(
             parse(br#"{"state": 1, "state": 2}"#),
             Ok(ObserveBody::One(ObservationIn { state: Some(2), .. }))
+        ));
+        // An integral float is the integer, as for every number.
+        assert!(matches!(
+            parse(br#"{"state": 1, "seq": 7.0}"#),
+            Ok(ObserveBody::One(ObservationIn { seq: Some(7), .. }))
+        ));
+        assert!(matches!(
+            fast(br#"{"state": 1, "seq": 18446744073709551615}"#),
+            Some(ObserveBody::One(ObservationIn {
+                seq: Some(u64::MAX),
+                ..
+            }))
         ));
         assert!(fast(br#"{"st\u0061te": 4}"#).is_none());
         assert!(matches!(
@@ -626,6 +698,7 @@ mod tests {
             Just("action_taken"),
             Just("signal"),
             Just("signal_source"),
+            Just("seq"),
             Just("observations"),
             Just("other"),
         ]

@@ -9,8 +9,8 @@ use utoipa::OpenApi;
 use crate::api::error::ErrorBody;
 use crate::api::schemas::{
     BadRequest, BearerAuth, GroupStepReply, InternalError, MemberError, MisdirectedRequest,
-    NotFound, ObserveBatchReply, PayloadTooLarge, SseEvent, TooManyRequests, Unauthorized,
-    Unavailable, request_schemas,
+    NotFound, ObserveBatchReply, PayloadTooLarge, SeqConflict, SseEvent, TooManyRequests,
+    Unauthorized, Unavailable, request_schemas,
 };
 use crate::service::Limits;
 use crate::service::groups::GroupInfo;
@@ -44,7 +44,7 @@ use crate::service::groups::GroupInfo;
     ),
     components(
         schemas(ErrorBody, ObserveBatchReply, SseEvent, GroupInfo, GroupStepReply, MemberError),
-        responses(BadRequest, Unauthorized, NotFound, MisdirectedRequest, PayloadTooLarge, TooManyRequests, InternalError, Unavailable)
+        responses(BadRequest, Unauthorized, NotFound, SeqConflict, MisdirectedRequest, PayloadTooLarge, TooManyRequests, InternalError, Unavailable)
     ),
     modifiers(&BearerAuth),
     security(("api_key" = []), ()),

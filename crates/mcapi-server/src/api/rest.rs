@@ -19,8 +19,8 @@ use crate::api::extract::{AppState, Auth, JsonBody, query};
 use crate::api::observe_body::ObserveBody;
 use crate::api::schemas::{
     BadRequest, CreateGroupRequest, GroupStep, GroupStepReply, InternalError, MisdirectedRequest,
-    NotFound, ObserveBatchReply, ObserveReply, ObserveRequest, PayloadTooLarge, TooManyRequests,
-    Unauthorized, Unavailable,
+    NotFound, ObserveBatchReply, ObserveReply, ObserveRequest, PayloadTooLarge, SeqConflict,
+    TooManyRequests, Unauthorized, Unavailable,
 };
 use crate::service::budget::ResponsePermit;
 use crate::service::groups::{ADVISED, Columns, CreateGroup, GroupInfo};
@@ -200,6 +200,8 @@ pub(crate) async fn delete_session(
 /// Report an observation (or a batch under `observations`) and get the next
 /// action. The first observation of a session carries only the state; each
 /// later one the state the agent arrived in and the stimulus it received.
+/// With `seq`, an observation already applied is answered with its recorded
+/// reply (`replayed: true`) instead of being applied twice.
 #[utoipa::path(post, path = "/v1/sessions/{id}/observations", tag = "observations", operation_id = "observe",
     params(("id" = String, Path, description = "The session's id, as `POST /v1/sessions` returned it.")),
     request_body = ObserveRequest,
@@ -209,6 +211,7 @@ pub(crate) async fn delete_session(
         (status = 400, response = BadRequest),
         (status = 401, response = Unauthorized),
         (status = 404, response = NotFound),
+        (status = 409, response = SeqConflict),
         (status = 421, response = MisdirectedRequest),
         (status = 413, response = PayloadTooLarge),
         (status = 500, response = InternalError),

@@ -25,8 +25,10 @@ pub const NS_PER_OP: f64 = 1.0;
 /// small vectors).
 const FIXED_BYTES: u64 = 4096;
 
-/// Bytes of one history-ring tick besides its vectors.
-const RING_TICK_BYTES: u64 = 64 + 16;
+/// Bytes of one history-ring tick besides its vectors: the entry (80,
+/// its reply's policy version and the observation's digest included, which
+/// replays of `seq` need) and its allocation's overhead.
+const RING_TICK_BYTES: u64 = 80 + 16;
 
 /// Gauss–Seidel sweeps the planner allows before its dense fallback (see
 /// `algo::lstdq`).

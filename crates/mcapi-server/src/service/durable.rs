@@ -16,12 +16,21 @@
 //! rebuilt by replaying every entry, plans included, and the advised action
 //! of each entry must come out again, bit for bit.
 //!
+//! Each entry also keeps the digest of the observation as the client sent
+//! it, and each snapshot's history entry the digest and the whole reply
+//! (its policy version), so an observation resent with its `seq` after a
+//! restart, an eviction or a shard move is answered with the reply it got
+//! first, and a different one with the same seq is refused
+//! (docs/sessions.md, "Delivery guarantees").
+//!
 //! Snapshots and log entries are postcard, a format without field names, so
-//! each record begins with a byte naming its encoding: [`RECORD_V4`] for
-//! what this version writes, [`RECORD_V3`] for the log entries before
-//! continuous worlds (snapshots are the same in both), [`RECORD_V2`] for
+//! each record begins with a byte naming its encoding: [`RECORD_V5`] for
+//! what this version writes, [`RECORD_V4`] for the records before sequence
+//! numbers (no digest, and history entries without their policy version:
+//! they cannot be replayed), [`RECORD_V3`] for the log entries before
+//! continuous worlds (snapshots are the same as in V4), [`RECORD_V2`] for
 //! records written under store format 2 (which the store tags when it
-//! upgrades the file). All three decode.
+//! upgrades the file). All four decode.
 
 use serde::{Deserialize, Serialize};
 
@@ -33,6 +42,9 @@ use super::error::{DecodeError, DecodeFault, ServiceError};
 use super::wire::TickCuriosity;
 
 /// The encoding byte of the records this version writes.
+pub const RECORD_V5: u8 = 5;
+
+/// The encoding byte of records written before sequence numbers.
 pub const RECORD_V4: u8 = 4;
 
 /// The encoding byte of records written before continuous worlds.
@@ -76,6 +88,42 @@ pub struct LogEntry {
     pub policy_version: u64,
     /// The raw curiosity signal and its source, if the observation had one.
     pub signal: Option<(u32, Vec<f64>)>,
+    /// `history::digest` of the observation as the client sent it (what
+    /// `seq_conflict` compares); 0 in entries written before it was kept.
+    pub digest: u64,
+}
+
+/// A log entry as [`RECORD_V4`] wrote it (no digest).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct LogEntryV4 {
+    state: u32,
+    observation: Option<Vec<f64>>,
+    planned_before: bool,
+    stimulus: Option<Vec<f64>>,
+    taken: Option<u32>,
+    advised: u32,
+    lstdq_error: f64,
+    policy_version: u64,
+    signal: Option<(u32, Vec<f64>)>,
+}
+
+impl From<LogEntryV4> for LogEntry {
+    /// Its digest is unknown (0): a resent observation of it is not
+    /// compared.
+    fn from(e: LogEntryV4) -> Self {
+        Self {
+            state: e.state,
+            observation: e.observation,
+            planned_before: e.planned_before,
+            stimulus: e.stimulus,
+            taken: e.taken,
+            advised: e.advised,
+            lstdq_error: e.lstdq_error,
+            policy_version: e.policy_version,
+            signal: e.signal,
+            digest: 0,
+        }
+    }
 }
 
 /// A log entry as [`RECORD_V3`] wrote it (no observation).
@@ -104,6 +152,7 @@ impl From<LogEntryV3> for LogEntry {
             lstdq_error: e.lstdq_error,
             policy_version: e.policy_version,
             signal: e.signal,
+            digest: 0,
         }
     }
 }
@@ -157,6 +206,13 @@ pub struct SnapshotRecord {
     pub history: Vec<TickRecord>,
 }
 
+/// A snapshot as [`RECORD_V3`] and [`RECORD_V4`] wrote it.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+struct SnapshotRecordV4 {
+    learner: LearnerSnapshot,
+    history: Vec<TickRecordV4>,
+}
+
 /// A snapshot as format 2 wrote it.
 #[derive(Debug, Clone, Serialize, Deserialize)]
 struct SnapshotRecordV2 {
@@ -176,6 +232,24 @@ pub struct TickRecord {
     pub(super) lstdq_error: f64,
     pub(super) stimulus: Option<Vec<f64>>,
     pub(super) curiosity: Option<TickCuriosity>,
+    /// The reply's policy version and the observation's digest; absent for
+    /// entries restored from a [`RECORD_V4`] snapshot (not replayable).
+    pub(super) reply: Option<(u64, u64)>,
+    /// The entry of the session's first observation (not a tick).
+    pub(super) first: bool,
+}
+
+/// A history entry as [`RECORD_V3`] and [`RECORD_V4`] kept it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+struct TickRecordV4 {
+    tick: u64,
+    state: usize,
+    action: usize,
+    drive: Vec<f64>,
+    reward: f64,
+    lstdq_error: f64,
+    stimulus: Option<Vec<f64>>,
+    curiosity: Option<TickCuriosity>,
 }
 
 /// A history entry as format 2 kept it (no stimulus).
@@ -189,15 +263,15 @@ struct TickRecordV2 {
     lstdq_error: f64,
 }
 
-/// Encodes a log entry or snapshot: [`RECORD_V4`], then postcard.
+/// Encodes a log entry or snapshot: [`RECORD_V5`], then postcard.
 pub fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
-    postcard::to_extend(value, vec![RECORD_V4])
+    postcard::to_extend(value, vec![RECORD_V5])
         .map_err(|e| ServiceError::Internal(format!("encoding a record: {e}")))
 }
 
 fn split<'a>(bytes: &'a [u8], what: &str) -> Result<(u8, &'a [u8]), DecodeError> {
     let fault = match bytes.split_first() {
-        Some((&v, rest)) if (RECORD_V2..=RECORD_V4).contains(&v) => return Ok((v, rest)),
+        Some((&v, rest)) if (RECORD_V2..=RECORD_V5).contains(&v) => return Ok((v, rest)),
         Some((&v, _)) => DecodeFault::Version(v),
         None => DecodeFault::Empty,
     };
@@ -231,6 +305,7 @@ pub fn decode_entry(bytes: &[u8], what: &str) -> Result<LogEntry, DecodeError> {
             .into())
         }
         (RECORD_V3, rest) => postcard_decode::<LogEntryV3>(rest, what).map(LogEntry::from),
+        (RECORD_V4, rest) => postcard_decode::<LogEntryV4>(rest, what).map(LogEntry::from),
         (_, rest) => postcard_decode(rest, what),
     }
 }
@@ -254,6 +329,30 @@ pub fn decode_snapshot(bytes: &[u8], what: &str) -> Result<SnapshotRecord, Decod
                         lstdq_error: t.lstdq_error,
                         stimulus: None,
                         curiosity: None,
+                        reply: None,
+                        first: false,
+                    })
+                    .collect(),
+            })
+        }
+        (RECORD_V3 | RECORD_V4, rest) => {
+            let s: SnapshotRecordV4 = postcard_decode(rest, what)?;
+            Ok(SnapshotRecord {
+                learner: s.learner,
+                history: s
+                    .history
+                    .into_iter()
+                    .map(|t| TickRecord {
+                        tick: t.tick,
+                        state: t.state,
+                        action: t.action,
+                        drive: t.drive,
+                        reward: t.reward,
+                        lstdq_error: t.lstdq_error,
+                        stimulus: t.stimulus,
+                        curiosity: t.curiosity,
+                        reply: None,
+                        first: false,
                     })
                     .collect(),
             })
@@ -278,6 +377,7 @@ mod tests {
             lstdq_error: 0.25,
             policy_version: 9,
             signal,
+            digest: 0x1234_5678_9abc_def0,
         }
     }
 
@@ -285,11 +385,11 @@ mod tests {
     fn log_entries_round_trip_exactly() {
         for e in [entry(None), entry(Some((1, vec![0.5, -2.0])))] {
             let bytes = encode(&e).expect("encode");
-            assert_eq!(bytes[0], RECORD_V4);
+            assert_eq!(bytes[0], RECORD_V5);
             assert_eq!(decode_entry(&bytes, "entry").expect("decode"), e);
             assert!(decode_entry(&bytes[..bytes.len() - 3], "entry").is_err());
         }
-        assert!(encode(&entry(None)).expect("encode").len() < 48);
+        assert!(encode(&entry(None)).expect("encode").len() < 56);
         // A continuous world's entry keeps its f64 observation bit for bit.
         let continuous = LogEntry {
             state: 0,
@@ -310,6 +410,27 @@ mod tests {
     }
 
     #[test]
+    fn entries_before_sequence_numbers_decode_without_a_digest() {
+        let e = entry(Some((1, vec![0.5])));
+        let old = LogEntryV4 {
+            state: e.state,
+            observation: e.observation.clone(),
+            planned_before: e.planned_before,
+            stimulus: e.stimulus.clone(),
+            taken: e.taken,
+            advised: e.advised,
+            lstdq_error: e.lstdq_error,
+            policy_version: e.policy_version,
+            signal: e.signal.clone(),
+        };
+        let bytes = postcard::to_extend(&old, vec![RECORD_V4]).expect("encode");
+        assert_eq!(
+            decode_entry(&bytes, "entry").expect("decode"),
+            LogEntry { digest: 0, ..e }
+        );
+    }
+
+    #[test]
     fn entries_before_continuous_worlds_decode() {
         let old = LogEntryV3 {
             state: 7,
@@ -323,7 +444,10 @@ mod tests {
         let bytes = postcard::to_extend(&old, vec![RECORD_V3]).expect("encode");
         assert_eq!(
             decode_entry(&bytes, "entry").expect("decode"),
-            entry(Some((1, vec![0.5])))
+            LogEntry {
+                digest: 0,
+                ..entry(Some((1, vec![0.5])))
+            }
         );
     }
 
@@ -339,7 +463,13 @@ mod tests {
         };
         let mut bytes = vec![RECORD_V2];
         bytes.extend(postcard::to_stdvec(&old).expect("encode"));
-        assert_eq!(decode_entry(&bytes, "entry").expect("decode"), entry(None));
+        assert_eq!(
+            decode_entry(&bytes, "entry").expect("decode"),
+            LogEntry {
+                digest: 0,
+                ..entry(None)
+            }
+        );
         bytes[0] = 9;
         let err = decode_entry(&bytes, "entry").expect_err("version 9");
         assert!(
@@ -396,6 +526,57 @@ mod tests {
         let bytes = encode(&new).expect("encode");
         let back = decode_snapshot(&bytes, "snapshot").expect("decode");
         assert_eq!(back.history, new.history);
+    }
+
+    /// A snapshot before sequence numbers decodes, its history entries
+    /// without a reply (they cannot be replayed); this version's keeps the
+    /// reply, the digest and the first observation's entry.
+    #[test]
+    fn v4_snapshots_decode_and_v5_keeps_the_reply() {
+        use std::sync::Arc;
+
+        use mcapi_core::{Agent, AgentParams, Basis, PlanningModel};
+        let preset = mcapi_core::model::hallway();
+        let params = AgentParams::default().check(2, 5).expect("params");
+        let ctx = Arc::new(PlanningModel::new(preset.model, Basis::Indicator));
+        let agent = Agent::new(ctx, params);
+        let tick = TickRecordV4 {
+            tick: 1,
+            state: 4,
+            action: 2,
+            drive: vec![0.6, 0.8],
+            reward: 0.5,
+            lstdq_error: 0.125,
+            stimulus: Some(vec![1.0, 0.0]),
+            curiosity: None,
+        };
+        let old = SnapshotRecordV4 {
+            learner: LearnerSnapshot::Plain(agent.snapshot()),
+            history: vec![tick.clone()],
+        };
+        let bytes = postcard::to_extend(&old, vec![RECORD_V4]).expect("encode");
+        let snap = decode_snapshot(&bytes, "snapshot").expect("decode");
+        assert_eq!(snap.history[0].reply, None);
+        assert_eq!(RingTick::from(&snap.history[0]).replay(&[]), None);
+        let actions: Vec<String> = ["left", "right", "stay"].map(String::from).to_vec();
+        let first = RingTick::new(0, 3, 1, &[0.6, 0.8], None, None, 0.0, 0.0, None, None)
+            .with_reply(1, 77)
+            .as_first();
+        let new = SnapshotRecord {
+            learner: LearnerSnapshot::Plain(agent.snapshot()),
+            history: vec![TickRecord::from(&first)],
+        };
+        let back = decode_snapshot(&encode(&new).expect("encode"), "snapshot").expect("decode");
+        assert_eq!(back.history, new.history);
+        let ring = RingTick::from(&back.history[0]);
+        assert_eq!(ring, first);
+        assert!(ring.is_first() && ring.matches(77) && !ring.matches(78));
+        let step = ring.replay(&actions).expect("replayable");
+        assert_eq!(
+            (step.tick, step.action.as_str(), step.policy_version),
+            (0, "right", 1)
+        );
+        assert!(step.replayed);
     }
 
     /// The learned variant is appended: the tags of the stored variants do

@@ -37,6 +37,42 @@ pub enum ServiceError {
     /// one; nothing was applied, and the stream ends.
     #[error("{0}")]
     SequenceOutOfOrder(String),
+    /// An observation's `seq` is beyond the session's next one: some
+    /// observation before it never arrived (docs/sessions.md, "Delivery
+    /// guarantees"); nothing was applied.
+    #[error(
+        "`seq` is {got}, but the session has applied {expected} observations: the next one must \
+         have seq {expected} (send the missing ones first); nothing was applied"
+    )]
+    SeqGap {
+        /// The seq the session takes next.
+        expected: u64,
+        /// The seq the observation carried.
+        got: u64,
+    },
+    /// An observation's `seq` was applied, but its reply has left the
+    /// session's replay window (its history ring); nothing was applied.
+    #[error(
+        "`seq` {got} was applied, but it is older than the session's replay window, which begins \
+         at seq {oldest} (the window is the session's history ring, `agent.history` \
+         observations); nothing was applied"
+    )]
+    SeqExpired {
+        /// The oldest seq the session can replay (its next seq when it can
+        /// replay none).
+        oldest: u64,
+        /// The seq the observation carried.
+        got: u64,
+    },
+    /// An observation resent with an applied `seq` whose content (state or
+    /// observation, stimulus, action taken, signal) differs from what was
+    /// applied with that seq; nothing was applied.
+    #[error(
+        "an observation with seq {0} was applied with other content (state or observation, \
+         stimulus, action_taken or signal); a resent observation must be the same; nothing was \
+         applied"
+    )]
+    SeqConflict(u64),
     /// No such route (REST).
     #[error("no route for {0}")]
     UnknownRoute(String),

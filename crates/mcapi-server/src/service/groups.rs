@@ -235,6 +235,7 @@ impl Group {
                         .map(|&a| ActionRef::Index(a as usize)),
                     signal: None,
                     signal_source: None,
+                    seq: None,
                 };
                 (member, obs)
             })

@@ -1,11 +1,21 @@
 //! The history ring of a session: its recent ticks (drive, reward, state,
 //! LSTDQ error, curiosity), compact in memory, as the API shows them
 //! ([`HistoryEntry`]) and as a snapshot keeps them ([`TickRecord`]).
+//!
+//! The ring is also the window of exactly-once delivery (docs/sessions.md,
+//! "Delivery guarantees"): each entry keeps everything its reply carried
+//! (the policy version besides what the history shows) and a digest of the
+//! observation that made it, so an observation sent again with its `seq`
+//! is answered with the recorded reply, and one whose content differs is
+//! told apart. A session's first observation carries no stimulus and is no
+//! tick; its entry rides in the ring too (history reads skip it) until a
+//! tick pushes it out, so seq 0 is replayable while it is in the window.
 
 use std::collections::VecDeque;
 
 use super::durable::TickRecord;
-use super::wire::{HistoryEntry, TickCuriosity};
+use super::wire::{HistoryEntry, ObservationIn, StepOut, TickCuriosity};
+use mcapi_core::spec::ActionRef;
 
 /// One tick of the history ring as kept in memory: D and the stimulus in
 /// one allocation and the curiosity part boxed (plain sessions have none),
@@ -21,10 +31,18 @@ pub struct RingTick {
     /// D, then the stimulus if there was one, then the known fraction of a
     /// learned model (docs/algorithm.md §8) if [`KNOWN_FLAG`] is set.
     values: Box<[f64]>,
-    /// Components of D in `values`, and [`KNOWN_FLAG`].
+    /// Components of D in `values`, and [`KNOWN_FLAG`], [`FIRST_FLAG`],
+    /// [`REPLAYABLE_FLAG`].
     drive_len: u32,
     /// What only some sessions have, boxed so the others pay one pointer.
     extra: Option<Box<Extra>>,
+    /// The policy version the reply reported (valid with
+    /// [`REPLAYABLE_FLAG`]).
+    policy_version: u64,
+    /// [`digest`] of the observation; 0 when unknown (an entry rebuilt
+    /// from a log written before digests were kept), which any content
+    /// matches.
+    digest: u64,
 }
 
 /// The part of a tick only some sessions have.
@@ -39,6 +57,80 @@ enum Extra {
 /// Set in `RingTick::drive_len` when the last of `values` is the known
 /// fraction of a learned model (D has at most a few dozen components).
 const KNOWN_FLAG: u32 = 1 << 31;
+
+/// Set in `RingTick::drive_len` for the entry of a session's first
+/// observation: not a tick (no stimulus), kept only so that seq 0 can be
+/// replayed; history reads skip it.
+const FIRST_FLAG: u32 = 1 << 30;
+
+/// Set in `RingTick::drive_len` when the entry holds its whole reply (its
+/// policy version): entries restored from a snapshot written before
+/// sequence numbers do not, and cannot be replayed.
+const REPLAYABLE_FLAG: u32 = 1 << 29;
+
+/// The flags of `RingTick::drive_len`.
+const FLAGS: u32 = KNOWN_FLAG | FIRST_FLAG | REPLAYABLE_FLAG;
+
+/// A 64-bit FNV-1a digest of an observation's content (state or
+/// observation vector, stimulus, action taken, signal and its source; not
+/// `seq`), over the f64 bits, so a resent observation can be told from a
+/// different one with the same seq (`seq_conflict`). Fast, no dependency,
+/// not cryptographic: it guards against client mistakes, not forgery (a
+/// client can only conflict with its own session). Never 0, which stands
+/// for "unknown".
+pub fn digest(obs: &ObservationIn) -> u64 {
+    const PRIME: u64 = 0x0000_0100_0000_01b3;
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut eat = |x: u64| {
+        for b in x.to_le_bytes() {
+            h = (h ^ u64::from(b)).wrapping_mul(PRIME);
+        }
+    };
+    // Each field is tagged and length-prefixed, so no two different
+    // observations feed the same words.
+    let numbers = |tag: u64, xs: Option<&[f64]>, eat: &mut dyn FnMut(u64)| match xs {
+        None => eat(tag),
+        Some(xs) => {
+            eat(tag | 1 << 32);
+            eat(xs.len() as u64);
+            for x in xs {
+                eat(x.to_bits());
+            }
+        }
+    };
+    match obs.state {
+        None => eat(1),
+        Some(s) => {
+            eat(2);
+            eat(s as u64);
+        }
+    }
+    numbers(3, obs.observation.as_deref(), &mut eat);
+    numbers(4, obs.stimulus.as_deref(), &mut eat);
+    match &obs.action_taken {
+        None => eat(5),
+        Some(ActionRef::Index(a)) => {
+            eat(6);
+            eat(*a as u64);
+        }
+        Some(ActionRef::Name(name)) => {
+            eat(7);
+            eat(name.len() as u64);
+            for b in name.bytes() {
+                eat(u64::from(b));
+            }
+        }
+    }
+    numbers(8, obs.signal.as_deref(), &mut eat);
+    match obs.signal_source {
+        None => eat(9),
+        Some(s) => {
+            eat(10);
+            eat(s as u64);
+        }
+    }
+    h.max(1)
+}
 
 /// State and action indices fit u32: the model indexes pairs with u32.
 fn index32(i: usize) -> u32 {
@@ -83,9 +175,68 @@ impl RingTick {
                 .chain(xi_cur)
                 .chain(known_fraction)
                 .collect(),
-            drive_len: (index32(drive.len()) & !KNOWN_FLAG) | flag,
+            drive_len: (index32(drive.len()) & !FLAGS) | flag,
             extra: curiosity.map(|c| Box::new(Extra::Curiosity(c))),
+            policy_version: 0,
+            digest: 0,
         }
+    }
+
+    /// This entry with the rest of its reply and its observation's
+    /// [`digest`] (0: unknown): it can then be replayed.
+    pub fn with_reply(mut self, policy_version: u64, digest: u64) -> Self {
+        self.policy_version = policy_version;
+        self.digest = digest;
+        self.drive_len |= REPLAYABLE_FLAG;
+        self
+    }
+
+    /// This entry as the one of a session's first observation (not a
+    /// tick: history reads skip it).
+    pub fn as_first(mut self) -> Self {
+        self.drive_len |= FIRST_FLAG;
+        self
+    }
+
+    /// Whether this is the entry of a session's first observation.
+    pub fn is_first(&self) -> bool {
+        self.drive_len & FIRST_FLAG != 0
+    }
+
+    /// The seq of the observation that made this entry: its tick (the
+    /// first observation, seq 0, has tick 0; every later one is a tick).
+    pub fn seq(&self) -> u64 {
+        self.tick
+    }
+
+    /// The reply as it was sent, marked `replayed`; `None` if this entry
+    /// does not hold it all.
+    pub fn replay(&self, actions: &[String]) -> Option<StepOut> {
+        if self.drive_len & REPLAYABLE_FLAG == 0 {
+            return None;
+        }
+        let e = self.entry();
+        Some(StepOut {
+            tick: e.tick,
+            action: actions.get(e.action)?.clone(),
+            action_index: e.action,
+            drive: e.drive,
+            reward: e.reward,
+            policy_version: self.policy_version,
+            curiosity: e.curiosity,
+            replayed: true,
+        })
+    }
+
+    /// Whether `digest` is the digest of this entry's observation (or the
+    /// entry does not know its own).
+    pub fn matches(&self, digest: u64) -> bool {
+        self.digest == 0 || self.digest == digest
+    }
+
+    /// The policy version and digest, if this entry is replayable.
+    pub fn reply(&self) -> Option<(u64, u64)> {
+        (self.drive_len & REPLAYABLE_FLAG != 0).then_some((self.policy_version, self.digest))
     }
 
     /// This tick with a continuous world's observation (such a session
@@ -106,7 +257,8 @@ impl RingTick {
     /// [`TickRecord`] does not hold it; a learned snapshot keeps it aside).
     pub fn with_known_fraction(self, known_fraction: Option<f64>) -> Self {
         let e = self.entry();
-        Self::new(
+        let flags = self.drive_len & (FIRST_FLAG | REPLAYABLE_FLAG);
+        let mut tick = Self::new(
             e.tick,
             e.state,
             e.action,
@@ -117,7 +269,11 @@ impl RingTick {
             e.lstdq_error,
             e.curiosity,
             known_fraction,
-        )
+        );
+        tick.drive_len |= flags;
+        tick.policy_version = self.policy_version;
+        tick.digest = self.digest;
+        tick
     }
 
     /// The entry readers get.
@@ -125,7 +281,7 @@ impl RingTick {
         let known_fraction = self.known_fraction();
         let end = self.values.len() - usize::from(known_fraction.is_some());
         let (drive, stimulus) =
-            self.values[..end].split_at(((self.drive_len & !KNOWN_FLAG) as usize).min(end));
+            self.values[..end].split_at(((self.drive_len & !FLAGS) as usize).min(end));
         HistoryEntry {
             tick: self.tick,
             state: self.state as usize,
@@ -149,7 +305,7 @@ impl RingTick {
 
 impl From<&TickRecord> for RingTick {
     fn from(t: &TickRecord) -> Self {
-        Self::new(
+        let tick = Self::new(
             t.tick,
             t.state,
             t.action,
@@ -160,7 +316,12 @@ impl From<&TickRecord> for RingTick {
             t.lstdq_error,
             t.curiosity,
             None,
-        )
+        );
+        let tick = match t.reply {
+            Some((policy_version, digest)) => tick.with_reply(policy_version, digest),
+            None => tick,
+        };
+        if t.first { tick.as_first() } else { tick }
     }
 }
 
@@ -190,6 +351,8 @@ impl From<&RingTick> for TickRecord {
             lstdq_error,
             stimulus,
             curiosity,
+            reply: t.reply(),
+            first: t.is_first(),
         }
     }
 }
@@ -220,8 +383,10 @@ mod tests {
 
     #[test]
     fn ring_ticks_are_compact_and_give_back_their_entries() {
-        // D and ξ in one allocation; the curiosity part boxed.
-        assert!(std::mem::size_of::<RingTick>() <= 64);
+        // D and ξ in one allocation; the curiosity part boxed; the reply's
+        // policy version and the observation's digest (exactly-once
+        // delivery) are the 16 bytes past 64.
+        assert!(std::mem::size_of::<RingTick>() <= 80);
         let curious = RingTick::new(
             7,
             3,
@@ -261,7 +426,7 @@ mod tests {
             None,
             Some(0.375),
         );
-        assert!(std::mem::size_of::<RingTick>() <= 64);
+        assert!(std::mem::size_of::<RingTick>() <= 80);
         let e = learned.entry();
         assert_eq!(
             (e.drive, e.stimulus),
@@ -285,7 +450,7 @@ mod tests {
             None,
         )
         .with_observation(&[0.25, -3.0]);
-        assert!(std::mem::size_of::<RingTick>() <= 64);
+        assert!(std::mem::size_of::<RingTick>() <= 80);
         let e = continuous.entry();
         assert_eq!(e.observation, Some(vec![0.25, -3.0]));
         assert_eq!(e.curiosity, None);

@@ -295,22 +295,21 @@ pub fn replay(
             learner.plan()?;
         }
         learner.set_advised_action(entry.advised as usize)?;
-        if entry.stimulus.is_some() {
-            let tick = RingTick::new(
-                out.tick,
-                0,
-                entry.advised as usize,
-                learner.drive().vector(),
-                entry.stimulus.as_deref(),
-                None,
-                out.reward,
-                entry.lstdq_error,
-                None,
-                None,
-            )
-            .with_observation(x);
-            push_tick(history, history_cap, tick);
-        }
+        let tick = RingTick::new(
+            out.tick,
+            0,
+            entry.advised as usize,
+            learner.drive().vector(),
+            entry.stimulus.as_deref(),
+            None,
+            out.reward,
+            entry.lstdq_error,
+            None,
+            None,
+        )
+        .with_reply(entry.policy_version, entry.digest)
+        .with_observation(x);
+        push_ring(history, history_cap, tick, entry);
         return Ok(());
     }
     let obs = mcapi_core::Observation {
@@ -324,23 +323,33 @@ pub fn replay(
         .map(|(source, x)| (*source as usize, x.as_slice()));
     let out = learner.observe(&obs, signal)?;
     learner.set_advised_action(entry.advised as usize)?;
-    if entry.stimulus.is_some() {
-        let tick = RingTick::new(
-            out.tick,
-            obs.state,
-            entry.advised as usize,
-            learner.drive().vector(),
-            entry.stimulus.as_deref(),
-            out.xi_cur,
-            out.reward,
-            entry.lstdq_error,
-            out.curiosity,
-            learner.known_fraction(),
-        );
-        push_tick(history, history_cap, tick);
-    }
+    let tick = RingTick::new(
+        out.tick,
+        obs.state,
+        entry.advised as usize,
+        learner.drive().vector(),
+        entry.stimulus.as_deref(),
+        out.xi_cur.filter(|_| entry.stimulus.is_some()),
+        out.reward,
+        entry.lstdq_error,
+        out.curiosity,
+        learner.known_fraction(),
+    )
+    .with_reply(entry.policy_version, entry.digest);
+    push_ring(history, history_cap, tick, entry);
     learner.resume_policy_version(entry.policy_version);
     Ok(())
+}
+
+/// Pushes a replayed observation's ring entry as the live path did: the
+/// first observation (no stimulus) as the entry seq 0 is replayed from.
+fn push_ring(history: &mut VecDeque<RingTick>, cap: usize, tick: RingTick, entry: &LogEntry) {
+    let tick = if entry.stimulus.is_none() {
+        tick.as_first()
+    } else {
+        tick
+    };
+    push_tick(history, cap, tick);
 }
 
 /// A recovered learner: `base` (built from the session record) resumed from

@@ -17,7 +17,7 @@ use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
 use super::groups::GroupTag;
-use super::history::{RingTick, push_tick};
+use super::history::{self, RingTick, push_tick};
 use super::learner::Learner;
 use super::wire::{HistoryEntry, ModelSummary, ObservationIn, SessionCost, StepOut};
 
@@ -63,15 +63,40 @@ pub struct Durability {
 pub struct Observed {
     /// One reply per observation, or the error that stopped the batch.
     pub result: Result<Vec<StepOut>, ServiceError>,
-    /// Resolves once the applied observations are durable.
+    /// Resolves once the applied observations are durable (for a batch of
+    /// replays only: once everything queued before them is).
     pub commit: Option<Commit>,
+    /// Every observation was a replay: the commit awaited carries none of
+    /// this session's writes, so its failure is not this session's.
+    pub replay_only: bool,
 }
 
 impl Observed {
+    /// A refusal before anything was applied.
+    fn refused(e: ServiceError) -> Self {
+        Self {
+            result: Err(e),
+            commit: None,
+            replay_only: false,
+        }
+    }
+
     /// Waits for durability, then hands back the replies.
     pub async fn durable(self) -> Result<Vec<StepOut>, ServiceError> {
         if let Some(commit) = self.commit {
-            commit.wait().await.map_err(ServiceError::from)?;
+            match commit.wait().await {
+                Ok(()) => {}
+                // Nothing of this session was in the failed commit: the
+                // replies stand, but whether the observations they replay
+                // are durable is not known yet.
+                Err(e) if self.replay_only => {
+                    return Err(ServiceError::Unavailable(format!(
+                        "the store could not confirm that the replayed observations are durable \
+                         ({e}); retry"
+                    )));
+                }
+                Err(e) => return Err(e.into()),
+            }
         }
         self.result
     }
@@ -292,47 +317,53 @@ impl Session {
     pub fn observe(&self, batch: &[ObservationIn], plan: bool) -> Observed {
         let mut st = self.state.lock();
         if st.deleted {
-            return Observed {
-                result: Err(ServiceError::NotFound(self.id.clone())),
-                commit: None,
-            };
+            return Observed::refused(ServiceError::NotFound(self.id.clone()));
         }
         if self.is_failed() {
-            return Observed {
-                result: Err(ServiceError::SessionFailed(self.id.clone())),
-                commit: None,
-            };
+            return Observed::refused(ServiceError::SessionFailed(self.id.clone()));
         }
         if self.stale.load(Ordering::Acquire) {
-            return Observed {
-                result: Err(ServiceError::Unavailable(format!(
-                    "session `{}` is being reloaded from its last durable state after a storage failure; retry",
-                    self.id
-                ))),
-                commit: None,
-            };
+            return Observed::refused(ServiceError::Unavailable(format!(
+                "session `{}` is being reloaded from its last durable state after a storage failure; retry",
+                self.id
+            )));
         }
         if st.deleting {
+            return Observed::refused(ServiceError::Unavailable(format!(
+                "session `{}` is being deleted; retry",
+                self.id
+            )));
+        }
+        // Observations already applied (by `seq`) are answered from the
+        // history ring and not applied again; a refused seq refuses the
+        // whole batch before anything is applied.
+        let mut out = match st.replays(batch) {
+            Ok(replies) => replies,
+            Err(e) => return Observed::refused(e),
+        };
+        let start = out.len();
+        if start == batch.len() {
+            // Replays only: nothing changes. The replies are sent once what
+            // they replay is durable: everything queued before them is,
+            // once a commit queued after it returns.
             return Observed {
-                result: Err(ServiceError::Unavailable(format!(
-                    "session `{}` is being deleted; retry",
-                    self.id
-                ))),
-                commit: None,
+                result: Ok(out),
+                commit: self.durability.as_ref().map(|d| d.store.submit(Vec::new())),
+                replay_only: true,
             };
         }
         self.pristine.store(false, Ordering::Release);
         let started = Instant::now();
-        let mut out = Vec::with_capacity(batch.len());
+        out.reserve(batch.len() - start);
         let mut log = Vec::new();
         let log_to = self.durability.as_ref().map(|_| &mut log);
         // The observations applied before a panic stay applied and logged:
         // the log then holds a consistent prefix, which a restart recovers.
         let cap = self.history_cap;
         let result = self.guarded(&mut st, Update::Observe, |st| {
-            st.apply_all(batch, plan, cap, &mut out, log_to)
+            st.apply_all(batch, start, plan, cap, &mut out, log_to)
         });
-        if !out.is_empty() {
+        if out.len() > start {
             self.last_observed_ns.store(clock_ns(), Ordering::Relaxed);
         }
         let commit = match &self.durability {
@@ -341,12 +372,30 @@ impl Session {
         };
         drop(st);
         if plan {
-            self.record_plan_cost(started, out.len());
+            self.record_plan_cost(started, out.len() - start);
         }
         Observed {
             result: result.map(|()| out),
             commit,
+            replay_only: false,
         }
+    }
+
+    /// Whether replies replayed from this session still stand once their
+    /// wait for durability is over: no commit of it failed meanwhile (the
+    /// observations they replay would be rolled back).
+    pub fn replays_stand(&self) -> bool {
+        !self.is_stale()
+            && self
+                .durability
+                .as_ref()
+                .is_none_or(|d| !d.store.is_broken(&self.id))
+    }
+
+    /// The `seq` the next observation takes (docs/sessions.md, "Delivery
+    /// guarantees").
+    pub fn next_seq(&self) -> u64 {
+        self.state.lock().next_seq()
     }
 
     /// Marks the session stale after a failed commit: no observation is
@@ -556,11 +605,14 @@ impl Session {
         self.queued.store(false, Ordering::Release);
     }
 
-    /// The most recent `limit` history entries, oldest first.
+    /// The most recent `limit` history entries, oldest first (ticks only:
+    /// the entry of the first observation, kept for replays, is none).
     pub fn history(&self, limit: usize) -> Vec<HistoryEntry> {
         let st = self.state.lock();
-        let skip = st.history.len().saturating_sub(limit);
-        st.history.iter().skip(skip).map(RingTick::entry).collect()
+        let ticks = st.history.iter().filter(|t| !t.is_first());
+        let first = usize::from(st.history.front().is_some_and(RingTick::is_first));
+        let skip = (st.history.len() - first).saturating_sub(limit);
+        ticks.skip(skip).map(RingTick::entry).collect()
     }
 }
 
@@ -588,6 +640,86 @@ pub struct Resumed {
 }
 
 impl SessionState {
+    /// The `seq` of the next observation: how many were applied (the
+    /// first observation, which carries no stimulus, has tick 0 and every
+    /// later one is a tick).
+    pub fn next_seq(&self) -> u64 {
+        match self.learner.advised_action() {
+            Some(_) => self.learner.tick().saturating_add(1),
+            None => 0,
+        }
+    }
+
+    /// Checks the seqs of `batch` (docs/sessions.md, "Delivery
+    /// guarantees") and returns the recorded replies of its observations
+    /// already applied: a prefix of the batch, as a batch's seqs are
+    /// consecutive. Every refusal comes before anything is applied.
+    fn replays(&self, batch: &[ObservationIn]) -> Result<Vec<StepOut>, ServiceError> {
+        let Some(first) = batch.first().and_then(|o| o.seq) else {
+            if let Some(i) = batch.iter().position(|o| o.seq.is_some()) {
+                return Err(ServiceError::field(
+                    &format!("observations[{i}].seq"),
+                    "is given, but `observations[0].seq` is not: in a batch, every observation \
+                     carries a seq or none does",
+                ));
+            }
+            return Ok(Vec::new());
+        };
+        for (i, obs) in batch.iter().enumerate().skip(1) {
+            let want = first.checked_add(i as u64);
+            if obs.seq != want {
+                let want = want.map_or_else(|| "beyond 2^64 - 1".to_owned(), |w| w.to_string());
+                let got = obs
+                    .seq
+                    .map_or_else(|| "missing".to_owned(), |s| s.to_string());
+                return Err(ServiceError::field(
+                    &format!("observations[{i}].seq"),
+                    format!(
+                        "is {got}, expected {want}: the seqs of a batch are consecutive, from \
+                         `observations[0].seq` ({first})"
+                    ),
+                ));
+            }
+        }
+        let next = self.next_seq();
+        if first > next {
+            return Err(ServiceError::SeqGap {
+                expected: next,
+                got: first,
+            });
+        }
+        let replayed = usize::try_from(next - first).map_or(batch.len(), |n| n.min(batch.len()));
+        if replayed == 0 {
+            return Ok(Vec::new());
+        }
+        // The window: the ring's replayable entries, which hold consecutive
+        // seqs (entries restored from a record before sequence numbers sit
+        // in front of them and cannot be replayed).
+        let oldest = self
+            .history
+            .iter()
+            .find(|t| t.reply().is_some())
+            .map_or(next, RingTick::seq);
+        let front = self.history.front().map_or(next, RingTick::seq);
+        let actions = self.learner.actions();
+        let mut out = Vec::with_capacity(replayed);
+        for (obs, seq) in batch[..replayed].iter().zip(first..) {
+            let entry = usize::try_from(seq.wrapping_sub(front))
+                .ok()
+                .filter(|_| seq >= oldest)
+                .and_then(|i| self.history.get(i))
+                .filter(|t| t.seq() == seq);
+            let Some(step) = entry.and_then(|t| t.replay(actions)) else {
+                return Err(ServiceError::SeqExpired { oldest, got: seq });
+            };
+            if entry.is_some_and(|t| !t.matches(history::digest(obs))) {
+                return Err(ServiceError::SeqConflict(seq));
+            }
+            out.push(step);
+        }
+        Ok(out)
+    }
+
     /// A snapshot of the session; `None` for a continuous world's, which
     /// takes none (its log is replayed whole).
     fn snapshot_write(&mut self, id: &str) -> Result<Option<Write>, ServiceError> {
@@ -634,19 +766,22 @@ impl SessionState {
         d.store.submit(writes)
     }
 
+    /// Applies `batch[start..]` (those before `start` were replays).
     fn apply_all(
         &mut self,
         batch: &[ObservationIn],
+        start: usize,
         plan: bool,
         history_cap: usize,
         out: &mut Vec<StepOut>,
         mut log: Option<&mut Vec<LogEntry>>,
     ) -> Result<(), ServiceError> {
-        for (i, obs) in batch.iter().enumerate() {
+        for (i, obs) in batch.iter().enumerate().skip(start) {
             // The action whose pair this observation updates, resolved now.
             let advised_before = self.learner.advised_action();
             let planned_before = std::mem::take(&mut self.planned_since_log);
-            match self.apply(obs, plan, history_cap) {
+            let digest = history::digest(obs);
+            match self.apply(obs, digest, plan, history_cap) {
                 Ok(Applied {
                     step,
                     taken,
@@ -670,6 +805,7 @@ impl SessionState {
                                 .signal
                                 .as_ref()
                                 .map(|x| (obs.signal_source.unwrap_or(0) as u32, x.clone())),
+                            digest,
                         });
                     }
                     if let Some(e) = plan_failed {
@@ -706,6 +842,7 @@ impl SessionState {
     fn apply(
         &mut self,
         obs: &ObservationIn,
+        digest: u64,
         plan: bool,
         history_cap: usize,
     ) -> Result<Applied, ServiceError> {
@@ -799,25 +936,29 @@ impl SessionState {
         let plan_failed = planned.and_then(Result::err);
         let learner = &self.learner;
         let drive = learner.drive().vector().to_vec();
-        if obs.stimulus.is_some() {
-            let tick = RingTick::new(
-                observed.tick,
-                obs.state.unwrap_or(0),
-                action,
-                &drive,
-                obs.stimulus.as_deref(),
-                observed.xi_cur,
-                observed.reward,
-                learner.lstdq_error(),
-                observed.curiosity,
-                learner.known_fraction(),
-            );
-            let tick = match &obs.observation {
-                Some(x) => tick.with_observation(x),
-                None => tick,
-            };
-            push_tick(&mut self.history, history_cap, tick);
-        }
+        // Every applied observation enters the ring with its whole reply,
+        // the first one (no stimulus, no tick) too: the ring is the window
+        // of replays (docs/sessions.md, "Delivery guarantees").
+        let first = obs.stimulus.is_none();
+        let tick = RingTick::new(
+            observed.tick,
+            obs.state.unwrap_or(0),
+            action,
+            &drive,
+            obs.stimulus.as_deref(),
+            observed.xi_cur.filter(|_| !first),
+            observed.reward,
+            learner.lstdq_error(),
+            observed.curiosity,
+            learner.known_fraction(),
+        )
+        .with_reply(learner.policy_version(), digest);
+        let tick = match &obs.observation {
+            Some(x) => tick.with_observation(x),
+            None => tick,
+        };
+        let tick = if first { tick.as_first() } else { tick };
+        push_tick(&mut self.history, history_cap, tick);
         Ok(Applied {
             step: StepOut {
                 tick: observed.tick,
@@ -827,6 +968,7 @@ impl SessionState {
                 reward: observed.reward,
                 policy_version: learner.policy_version(),
                 curiosity: observed.curiosity,
+                replayed: false,
             },
             taken: action_taken,
             plan_failed,

@@ -12,6 +12,7 @@ pub(super) fn obs(state: usize, stimulus: Option<Vec<f64>>) -> ObservationIn {
         action_taken: None,
         signal: None,
         signal_source: None,
+        seq: None,
     }
 }
 

@@ -184,6 +184,102 @@ pub struct ObservationIn {
     /// The signal's source (e.g. 0 = book, 1 = music); default 0.
     #[serde(default)]
     pub signal_source: Option<usize>,
+    /// The observation's 0-based index in the session's stream of applied
+    /// observations (the first has seq 0), for exactly-once delivery
+    /// (docs/sessions.md, "Delivery guarantees"): an observation resent
+    /// with a seq already applied is answered with its recorded reply and
+    /// not applied again. Absent: applied as it comes (at least once).
+    #[serde(default, deserialize_with = "seq_field::deserialize")]
+    pub seq: Option<u64>,
+}
+
+/// Reads `seq` with a message that says what it must be: serde's own
+/// ("invalid value: integer `-1`, expected u64") names neither the field
+/// nor the range.
+mod seq_field {
+    use std::fmt;
+
+    use serde::Deserializer;
+    use serde::de::{self, Visitor};
+
+    pub(super) fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Option<u64>, D::Error> {
+        d.deserialize_option(Seq)
+    }
+
+    struct Seq;
+
+    fn refused<E: de::Error>(what: impl fmt::Display) -> E {
+        E::custom(format_args!(
+            "`seq` must be an integer from 0 to {} (the observation's index in the \
+             session's stream), not {what}",
+            u64::MAX
+        ))
+    }
+
+    impl<'de> Visitor<'de> for Seq {
+        type Value = Option<u64>;
+
+        fn expecting(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+            f.write_str("`seq`, an integer from 0 to 2^64 - 1")
+        }
+
+        fn visit_none<E: de::Error>(self) -> Result<Self::Value, E> {
+            Ok(None)
+        }
+
+        fn visit_unit<E: de::Error>(self) -> Result<Self::Value, E> {
+            Ok(None)
+        }
+
+        fn visit_some<D: Deserializer<'de>>(self, d: D) -> Result<Self::Value, D::Error> {
+            d.deserialize_any(self)
+        }
+
+        fn visit_u64<E: de::Error>(self, v: u64) -> Result<Self::Value, E> {
+            Ok(Some(v))
+        }
+
+        fn visit_i64<E: de::Error>(self, v: i64) -> Result<Self::Value, E> {
+            u64::try_from(v)
+                .map(Some)
+                .map_err(|_| refused(format_args!("the negative number {v}")))
+        }
+
+        fn visit_f64<E: de::Error>(self, v: f64) -> Result<Self::Value, E> {
+            // 2^64, exact in f64. An integral float below it (`3.0`) is the
+            // integer, as JSON Schema reads numbers everywhere in the API.
+            const TWO_64: f64 = 18_446_744_073_709_551_616.0;
+            if v < 0.0 {
+                Err(refused(format_args!("the negative number {v}")))
+            } else if v.fract() != 0.0 || !v.is_finite() {
+                Err(refused(format_args!("the fractional number {v}")))
+            } else if v >= TWO_64 {
+                Err(refused(format_args!("{v}, beyond 2^64 - 1")))
+            } else {
+                Ok(Some(v as u64))
+            }
+        }
+
+        fn visit_str<E: de::Error>(self, v: &str) -> Result<Self::Value, E> {
+            let mut shown: String = v.chars().take(32).collect();
+            if shown.len() < v.len() {
+                shown.push_str("...");
+            }
+            Err(refused(format_args!("the string {shown:?}")))
+        }
+
+        fn visit_bool<E: de::Error>(self, v: bool) -> Result<Self::Value, E> {
+            Err(refused(format_args!("the boolean {v}")))
+        }
+
+        fn visit_seq<A: de::SeqAccess<'de>>(self, _: A) -> Result<Self::Value, A::Error> {
+            Err(refused("an array"))
+        }
+
+        fn visit_map<A: de::MapAccess<'de>>(self, _: A) -> Result<Self::Value, A::Error> {
+            Err(refused("an object"))
+        }
+    }
 }
 
 /// The curiosity channel at one tick (docs/algorithm.md §7).
@@ -217,6 +313,12 @@ pub struct StepOut {
     /// The curiosity channel at this tick, for a session with one.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub curiosity: Option<TickCuriosity>,
+    /// `true` when the observation carried a `seq` already applied: this
+    /// is the reply it got then, bit for bit, and nothing was applied now
+    /// (docs/sessions.md, "Delivery guarantees"). Absent otherwise, so a
+    /// replayed body differs from the first one by this field alone.
+    #[serde(default, skip_serializing_if = "std::ops::Not::not")]
+    pub replayed: bool,
 }
 
 /// One tick of the history ring.
@@ -264,6 +366,11 @@ pub struct SessionInfo {
     pub drive: Vec<f64>,
     /// Policy updates applied.
     pub policy_version: u64,
+    /// The `seq` the session's next observation takes: how many it has
+    /// applied (`tick + 1` once it has observed). A client resuming
+    /// exactly-once delivery after a crash sends from here
+    /// (docs/sessions.md, "Delivery guarantees").
+    pub next_seq: u64,
     /// The agent's current state, once it has observed one.
     pub state: Option<usize>,
     /// The model.

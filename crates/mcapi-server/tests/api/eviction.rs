@@ -96,6 +96,7 @@ fn observation(state: usize, first: bool) -> ObservationIn {
         action_taken: None,
         signal: None,
         signal_source: None,
+        seq: None,
     }
 }
 

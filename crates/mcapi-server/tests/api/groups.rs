@@ -560,6 +560,7 @@ fn measure(manager: &Arc<SessionManager>, n: usize, ticks: usize) -> (f64, f64) 
                 action_taken: None,
                 signal: None,
                 signal_source: None,
+                seq: None,
             };
             let step = rt
                 .block_on(manager.observe(Caller::Anyone, id, vec![obs]))

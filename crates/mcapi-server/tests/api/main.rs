@@ -20,6 +20,7 @@ mod panics;
 mod parity;
 mod responses;
 mod rest;
+mod seq;
 mod shard_move;
 mod storage_failures;
 

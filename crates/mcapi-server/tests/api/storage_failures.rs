@@ -40,6 +40,7 @@ fn a_failed_commit_rolls_the_session_back_and_a_retry_applies_once() {
         action_taken: None,
         signal: None,
         signal_source: None,
+        seq: None,
     };
     let store = Arc::new(Store::open(data.path()).expect("store"));
     let manager = open(Arc::clone(&store));
@@ -140,6 +141,7 @@ fn observation(state: usize, first: bool) -> mcapi_server::service::ObservationI
         action_taken: None,
         signal: None,
         signal_source: None,
+        seq: None,
     }
 }
 

@@ -267,6 +267,7 @@ fn grpc_observe_bodies(ids: Vec<String>) -> impl Strategy<Value = Vec<u8>> {
                     2 => prop::collection::vec(-0.5f64..1.5, 2..=2),
                     1 => prop::collection::vec(any::<f64>(), 0..80),
                 ],
+                prop::option::of(prop_oneof![3 => 0u64..8, 1 => any::<u64>()]),
             ),
             0..6,
         ),
@@ -278,18 +279,21 @@ fn grpc_observe_bodies(ids: Vec<String>) -> impl Strategy<Value = Vec<u8>> {
                 observations: obs
                     .into_iter()
                     .map(
-                        |(state, stimulus, action, signal, source, observation)| pb::Observation {
-                            session_id: if foreign {
-                                "s0000.x".into()
-                            } else {
-                                String::new()
-                            },
-                            state,
-                            stimulus: stimulus.map(|values| pb::Stimulus { values }),
-                            action_taken: action.map(pb::observation::ActionTaken::ActionIndex),
-                            signal,
-                            signal_source: source,
-                            observation,
+                        |(state, stimulus, action, signal, source, observation, seq)| {
+                            pb::Observation {
+                                session_id: if foreign {
+                                    "s0000.x".into()
+                                } else {
+                                    String::new()
+                                },
+                                state,
+                                stimulus: stimulus.map(|values| pb::Stimulus { values }),
+                                action_taken: action.map(pb::observation::ActionTaken::ActionIndex),
+                                signal,
+                                signal_source: source,
+                                observation,
+                                seq,
+                            }
                         },
                     )
                     .collect(),

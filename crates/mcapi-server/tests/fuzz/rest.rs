@@ -45,7 +45,8 @@ pub(crate) async fn rest_call(
     (status, value)
 }
 
-/// The response contract: no server error but 503, errors `{"code","message"}`.
+/// The response contract: no server error but 503, errors `{"code","message"}`
+/// (`seq_gap` adds `expected_seq`, `seq_expired` `oldest_seq`, a number each).
 pub(crate) fn check_response(
     what: &str,
     input: &[u8],
@@ -60,8 +61,20 @@ pub(crate) fn check_response(
     );
     if status >= 400 {
         let obj = body.as_object();
+        let detail = match body["code"].as_str() {
+            Some("seq_gap") => Some("expected_seq"),
+            Some("seq_expired") => Some("oldest_seq"),
+            _ => None,
+        };
         prop_assert!(
-            obj.is_some_and(|o| o.len() == 2 && o["code"].is_string() && o["message"].is_string()),
+            obj.is_some_and(|o| {
+                o["code"].is_string()
+                    && o["message"].is_string()
+                    && match detail {
+                        None => o.len() == 2,
+                        Some(d) => o.len() == 3 && o[d].is_u64(),
+                    }
+            }),
             "{what}: error body {body} is not {{\"code\",\"message\"}} (input {})",
             shown()
         );

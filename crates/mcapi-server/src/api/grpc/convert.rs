@@ -408,6 +408,7 @@ pub fn observation(
         signal,
         signal_source,
         observation,
+        seq,
     } = obs;
     let id = session_id(id, default_id)?;
     let action_taken = match action_taken {
@@ -434,6 +435,7 @@ pub fn observation(
             // has at least one component.
             signal: (!signal.is_empty()).then_some(signal),
             signal_source: signal_source.map(|s| s as usize),
+            seq,
         },
     ))
 }
@@ -898,6 +900,7 @@ pub fn session_info(info: SessionInfo) -> pb::SessionInfo {
         tick,
         drive,
         policy_version,
+        next_seq,
         state,
         model,
         agent,
@@ -910,6 +913,7 @@ pub fn session_info(info: SessionInfo) -> pb::SessionInfo {
         tick,
         drive,
         policy_version,
+        next_seq,
         state: state.map(|s| s as u64),
         model: Some(model_summary(model)),
         agent: Some(effective_config(agent)),
@@ -958,6 +962,7 @@ pub fn step(s: StepOut) -> pb::Step {
         reward,
         policy_version,
         curiosity,
+        replayed,
     } = s;
     pb::Step {
         tick,
@@ -967,6 +972,7 @@ pub fn step(s: StepOut) -> pb::Step {
         reward,
         policy_version,
         curiosity: curiosity.map(tick_curiosity),
+        replayed,
     }
 }
 
@@ -1190,6 +1196,8 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
                     reward,
                     policy_version,
                     curiosity: _,
+                    // Group steps carry no seqs: nothing is replayed.
+                    replayed: _,
                 } = step;
                 reply.actions.push(u32_of(action_index));
                 reply.drives.extend(le_bytes(drive));
@@ -1246,6 +1254,7 @@ mod tests {
                 signal: vec![],
                 signal_source: None,
                 observation: vec![],
+                seq: None,
             },
             None,
         )
@@ -1261,6 +1270,7 @@ mod tests {
                 signal: vec![0.5, 1.0],
                 signal_source: Some(1),
                 observation: vec![],
+                seq: None,
             },
             None,
         )

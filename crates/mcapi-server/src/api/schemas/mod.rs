@@ -37,7 +37,7 @@ pub use groups::{CreateGroupRequest, GroupStep, GroupStepReply, MemberError};
 pub use observe::{ObserveBatchReply, ObserveReply, ObserveRequest, SseEvent, history_limit};
 pub use responses::{
     BadRequest, BearerAuth, InternalError, MisdirectedRequest, NotFound, PayloadTooLarge,
-    TooManyRequests, Unauthorized, Unavailable,
+    SeqConflict, TooManyRequests, Unauthorized, Unavailable,
 };
 
 /// Every request-body schema, by component name, for these limits.

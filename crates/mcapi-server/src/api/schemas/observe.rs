@@ -94,9 +94,23 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             "the signal's source, below the channel's `max_sources` (limit); default 0",
         ),
     )
+    .property(
+        "seq",
+        integer(
+            0,
+            U64_MAX,
+            true,
+            "the observation's 0-based index in the session's stream of applied observations \
+             (the first has seq 0), for exactly-once delivery: one resent with a seq already \
+             applied gets its recorded reply with `replayed: true` and is not applied again; \
+             one beyond the next seq is refused (409 `seq_gap`). In a batch, every observation \
+             carries one, consecutive, or none does. Absent: applied as it comes",
+        ),
+    )
     .examples([
         json!({"state": 26, "stimulus": [0.0, 0.0]}),
         json!({"observation": [0.31, 0.72], "stimulus": [0.0, 1.0]}),
+        json!({"state": 27, "stimulus": [1.0, 0.0], "seq": 12}),
     ]);
     let batch = closed("A batch of observations, applied in order.")
         .property(

@@ -115,6 +115,15 @@ error_responses! {
         "session_failed",
         "session `s0001.01J0000000000000000000000` failed while applying an update and is quarantined; its state is not served. Delete it and create it again"
     );
+    /// 409 of an observation.
+    SeqConflict = (
+        "An observation's `seq` does not fit the session (docs/sessions.md, \"Delivery \
+         guarantees\"): `seq_gap`, beyond the next seq (`expected_seq` in the body names it); \
+         `seq_expired`, applied but older than the replay window (`oldest_seq` names its \
+         start); `seq_conflict`, applied with other content. Nothing was applied.",
+        "seq_gap",
+        "`seq` is 7, but the session has applied 5 observations: the next one must have seq 5 (send the missing ones first); nothing was applied"
+    );
     /// 421.
     MisdirectedRequest = (
         "Clustered replicas only (docs/cluster.md): the session's shard belongs to another \

@@ -141,6 +141,17 @@ impl SessionManager {
                 observed.durable().await?
             }
         };
+        // A replayed reply stands only if what it replays is still the
+        // session's state: a commit of it that failed meanwhile rolls the
+        // observation back.
+        if out.iter().any(|s| s.replayed) && !session.replays_stand() {
+            return Err(ServiceError::Unavailable(format!(
+                "session `{}` is being reloaded from its last durable state after a storage \
+                 failure; retry",
+                session.id
+            )));
+        }
+        // Replays count as observations: they are priced as such, too.
         tick::meters().observations.increment(n);
         Ok(out)
     }

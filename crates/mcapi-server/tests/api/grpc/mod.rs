@@ -28,6 +28,7 @@ mod bad_inputs;
 mod batch;
 mod groups;
 mod health;
+mod seq;
 mod sessions;
 mod streams;
 

@@ -441,7 +441,7 @@ class ContinuousStats(_message.Message):
     def __init__(self, clipped: _Optional[int] = ..., samples: _Optional[int] = ..., slots: _Optional[int] = ..., updates: _Optional[int] = ..., rebuilds: _Optional[int] = ..., basis_builds: _Optional[int] = ...) -> None: ...
 
 class SessionInfo(_message.Message):
-    __slots__ = ("id", "tick", "drive", "policy_version", "state", "model", "agent", "stats", "curiosity", "cost")
+    __slots__ = ("id", "tick", "drive", "policy_version", "state", "model", "agent", "stats", "curiosity", "cost", "next_seq")
     ID_FIELD_NUMBER: _ClassVar[int]
     TICK_FIELD_NUMBER: _ClassVar[int]
     DRIVE_FIELD_NUMBER: _ClassVar[int]
@@ -452,6 +452,7 @@ class SessionInfo(_message.Message):
     STATS_FIELD_NUMBER: _ClassVar[int]
     CURIOSITY_FIELD_NUMBER: _ClassVar[int]
     COST_FIELD_NUMBER: _ClassVar[int]
+    NEXT_SEQ_FIELD_NUMBER: _ClassVar[int]
     id: str
     tick: int
     drive: _containers.RepeatedScalarFieldContainer[float]
@@ -462,7 +463,8 @@ class SessionInfo(_message.Message):
     stats: SessionStats
     curiosity: CuriosityInfo
     cost: SessionCost
-    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., policy_version: _Optional[int] = ..., state: _Optional[int] = ..., model: _Optional[_Union[ModelSummary, _Mapping]] = ..., agent: _Optional[_Union[EffectiveConfig, _Mapping]] = ..., stats: _Optional[_Union[SessionStats, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ..., cost: _Optional[_Union[SessionCost, _Mapping]] = ...) -> None: ...
+    next_seq: int
+    def __init__(self, id: _Optional[str] = ..., tick: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., policy_version: _Optional[int] = ..., state: _Optional[int] = ..., model: _Optional[_Union[ModelSummary, _Mapping]] = ..., agent: _Optional[_Union[EffectiveConfig, _Mapping]] = ..., stats: _Optional[_Union[SessionStats, _Mapping]] = ..., curiosity: _Optional[_Union[CuriosityInfo, _Mapping]] = ..., cost: _Optional[_Union[SessionCost, _Mapping]] = ..., next_seq: _Optional[int] = ...) -> None: ...
 
 class SessionCost(_message.Message):
     __slots__ = ("bytes", "tick_us")
@@ -563,7 +565,7 @@ class Stimulus(_message.Message):
     def __init__(self, values: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class Observation(_message.Message):
-    __slots__ = ("session_id", "state", "stimulus", "action_name", "action_index", "signal", "signal_source", "observation")
+    __slots__ = ("session_id", "state", "stimulus", "action_name", "action_index", "signal", "signal_source", "observation", "seq")
     SESSION_ID_FIELD_NUMBER: _ClassVar[int]
     STATE_FIELD_NUMBER: _ClassVar[int]
     STIMULUS_FIELD_NUMBER: _ClassVar[int]
@@ -572,6 +574,7 @@ class Observation(_message.Message):
     SIGNAL_FIELD_NUMBER: _ClassVar[int]
     SIGNAL_SOURCE_FIELD_NUMBER: _ClassVar[int]
     OBSERVATION_FIELD_NUMBER: _ClassVar[int]
+    SEQ_FIELD_NUMBER: _ClassVar[int]
     session_id: str
     state: int
     stimulus: Stimulus
@@ -580,10 +583,11 @@ class Observation(_message.Message):
     signal: _containers.RepeatedScalarFieldContainer[float]
     signal_source: int
     observation: _containers.RepeatedScalarFieldContainer[float]
-    def __init__(self, session_id: _Optional[str] = ..., state: _Optional[int] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., action_name: _Optional[str] = ..., action_index: _Optional[int] = ..., signal: _Optional[_Iterable[float]] = ..., signal_source: _Optional[int] = ..., observation: _Optional[_Iterable[float]] = ...) -> None: ...
+    seq: int
+    def __init__(self, session_id: _Optional[str] = ..., state: _Optional[int] = ..., stimulus: _Optional[_Union[Stimulus, _Mapping]] = ..., action_name: _Optional[str] = ..., action_index: _Optional[int] = ..., signal: _Optional[_Iterable[float]] = ..., signal_source: _Optional[int] = ..., observation: _Optional[_Iterable[float]] = ..., seq: _Optional[int] = ...) -> None: ...
 
 class Step(_message.Message):
-    __slots__ = ("tick", "action", "action_index", "drive", "reward", "policy_version", "curiosity")
+    __slots__ = ("tick", "action", "action_index", "drive", "reward", "policy_version", "curiosity", "replayed")
     TICK_FIELD_NUMBER: _ClassVar[int]
     ACTION_FIELD_NUMBER: _ClassVar[int]
     ACTION_INDEX_FIELD_NUMBER: _ClassVar[int]
@@ -591,6 +595,7 @@ class Step(_message.Message):
     REWARD_FIELD_NUMBER: _ClassVar[int]
     POLICY_VERSION_FIELD_NUMBER: _ClassVar[int]
     CURIOSITY_FIELD_NUMBER: _ClassVar[int]
+    REPLAYED_FIELD_NUMBER: _ClassVar[int]
     tick: int
     action: str
     action_index: int
@@ -598,7 +603,8 @@ class Step(_message.Message):
     reward: float
     policy_version: int
     curiosity: TickCuriosity
-    def __init__(self, tick: _Optional[int] = ..., action: _Optional[str] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., policy_version: _Optional[int] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ...) -> None: ...
+    replayed: bool
+    def __init__(self, tick: _Optional[int] = ..., action: _Optional[str] = ..., action_index: _Optional[int] = ..., drive: _Optional[_Iterable[float]] = ..., reward: _Optional[float] = ..., policy_version: _Optional[int] = ..., curiosity: _Optional[_Union[TickCuriosity, _Mapping]] = ..., replayed: _Optional[bool] = ...) -> None: ...
 
 class ObservationBatch(_message.Message):
     __slots__ = ("observations",)
