@@ -532,7 +532,8 @@ fn replays_survive_a_shard_move() {
     let manifest = snapshot.manifest(&Manifest::default());
     rt.block_on(b.import_shard(shard, snapshot, true))
         .expect("import");
-    rt.block_on(a.freeze_shard(shard)).expect("freeze");
+    rt.block_on(a.freeze_shard(shard, mcapi_server::service::shards::DEFAULT_FREEZE_LEASE))
+        .expect("freeze");
     let delta = a.export_shard(shard, Some(&manifest)).expect("delta");
     rt.block_on(b.import_shard(shard, delta, false))
         .expect("delta import");
