@@ -75,7 +75,7 @@ from .errors import (
     UnknownRoute,
     WrongReplica,
 )
-from .retry import DEFAULT_RETRY, RetryPolicy
+from .retry import DEFAULT_RETRY, RetryCounter, RetryPolicy
 from .types import (
     AGENT_OPTIONS,
     AgentConfig,
@@ -180,6 +180,7 @@ __all__ = [
     "Timeout",
     "InternalError",
     "RetryPolicy",
+    "RetryCounter",
     "DEFAULT_RETRY",
     "AgentConfig",
     "AgentKwargs",

@@ -38,7 +38,7 @@ from ._protocol import headers as request_headers
 from ._sansio import adrive, drive
 from .errors import McapiError, Timeout, TransportError, WrongReplica
 from .models import ModelLike
-from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
+from .retry import DEFAULT_RETRY, Attempts, RetryCounter, RetryPolicy
 from .types import (
     ActionRef,
     AgentKwargs,
@@ -80,6 +80,10 @@ def _retry_after(response: httpx.Response | None) -> float | None:
         return None
 
 
+def _what(request: Request) -> str:
+    return f"{request.method} {request.path}"
+
+
 def _transport_error(e: httpx.HTTPError, url: str) -> McapiError:
     if isinstance(e, httpx.TimeoutException):
         return Timeout(f"{url}: {e or type(e).__name__}", code="timeout")
@@ -95,8 +99,16 @@ class Client:
         timeout: Seconds per request (or an ``httpx.Timeout``).
         headers: Extra headers for every request.
         transport: An httpx transport (tests, proxies, retries).
-        retry: Which refusals to retry and for how long (a cluster's 421
-            and 503s, see :mod:`mcapi_client.retry`); ``None``: never.
+        retry: Which failures to retry and for how long (a cluster's 421
+            and 503s; for numbered observations also a lost answer, see
+            :mod:`mcapi_client.retry`); ``None``: never.
+        exactly_once: Number each session's observations (``seq``) so that
+            a resend after a lost answer is applied once (see the README's
+            "Delivery"); ``False``: send them unnumbered, at least once.
+
+    Attributes:
+        retries: The retries made so far, by reason
+            (:class:`~mcapi_client.RetryCounter`).
 
     Every method raises a :class:`~mcapi_client.McapiError` subclass on
     failure. Use as a context manager, or call :meth:`close`.
@@ -111,8 +123,10 @@ class Client:
         headers: Mapping[str, str] | None = None,
         transport: httpx.BaseTransport | None = None,
         retry: RetryPolicy | None = DEFAULT_RETRY,
+        exactly_once: bool = True,
     ) -> None:
         self.retry = retry
+        self.retries = RetryCounter()
         self.base_url = base_url.rstrip("/")
         self._http = httpx.Client(
             base_url=self.base_url,
@@ -120,7 +134,7 @@ class Client:
             timeout=timeout,
             transport=transport,
         )
-        self._protocol = RestProtocol()
+        self._protocol = RestProtocol(exactly_once)
 
     def close(self) -> None:
         """Closes the connection pool."""
@@ -133,18 +147,21 @@ class Client:
         self.close()
 
     def _send(self, request: Request) -> Any:
-        attempts = Attempts(self.retry, time.monotonic())
+        attempts = Attempts(self.retry, time.monotonic(), self.retries, _what(request))
         while True:
+            response: httpx.Response | None = None
             try:
                 response = self._http.request(
                     request.method, request.path, params=request.params, json=request.json
                 )
-            except httpx.HTTPError as e:
-                raise _transport_error(e, self.base_url + request.path) from e
-            try:
                 return _reply(response)
+            except httpx.HTTPError as e:
+                err = _transport_error(e, self.base_url + request.path)
+                wait = attempts.next_wait(err, time.monotonic(), None, request.resend)
+                if wait is None:
+                    raise err from e
             except McapiError as e:
-                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response))
+                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response), request.resend)
                 if wait is None:
                     raise
             time.sleep(wait)
@@ -277,6 +294,10 @@ class AsyncClient:
         headers: Extra headers for every request.
         transport: An httpx async transport.
         retry: As :class:`Client`'s.
+        exactly_once: As :class:`Client`'s.
+
+    Attributes:
+        retries: The retries made so far, by reason.
 
     Use as ``async with AsyncClient(...) as mc:``, or call :meth:`aclose`.
     """
@@ -290,8 +311,10 @@ class AsyncClient:
         headers: Mapping[str, str] | None = None,
         transport: httpx.AsyncBaseTransport | None = None,
         retry: RetryPolicy | None = DEFAULT_RETRY,
+        exactly_once: bool = True,
     ) -> None:
         self.retry = retry
+        self.retries = RetryCounter()
         self.base_url = base_url.rstrip("/")
         self._http = httpx.AsyncClient(
             base_url=self.base_url,
@@ -299,7 +322,7 @@ class AsyncClient:
             timeout=timeout,
             transport=transport,
         )
-        self._protocol = RestProtocol()
+        self._protocol = RestProtocol(exactly_once)
 
     async def aclose(self) -> None:
         """Closes the connection pool."""
@@ -312,18 +335,21 @@ class AsyncClient:
         await self.aclose()
 
     async def _send(self, request: Request) -> Any:
-        attempts = Attempts(self.retry, time.monotonic())
+        attempts = Attempts(self.retry, time.monotonic(), self.retries, _what(request))
         while True:
+            response: httpx.Response | None = None
             try:
                 response = await self._http.request(
                     request.method, request.path, params=request.params, json=request.json
                 )
-            except httpx.HTTPError as e:
-                raise _transport_error(e, self.base_url + request.path) from e
-            try:
                 return _reply(response)
+            except httpx.HTTPError as e:
+                err = _transport_error(e, self.base_url + request.path)
+                wait = attempts.next_wait(err, time.monotonic(), None, request.resend)
+                if wait is None:
+                    raise err from e
             except McapiError as e:
-                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response))
+                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response), request.resend)
                 if wait is None:
                     raise
             await asyncio.sleep(wait)
