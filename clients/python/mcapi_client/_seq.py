@@ -171,7 +171,11 @@ def numbered(
     """
     n = len(encoded)
     if seqs is None or n == 0 or given is not None:
-        reply = yield request(given is not None)
+        try:
+            reply = yield request(given is not None)
+        except SequenceRefused as e:
+            e.seq = given
+            raise
         if given is not None and seqs is not None:
             seqs.answered(session_id, given, n)
         return reply

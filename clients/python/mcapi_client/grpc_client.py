@@ -684,6 +684,7 @@ class GrpcClient:
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> Step:
         """Reports one observation (unary ``Observe``) and returns the next
         action; arguments as :meth:`mcapi_client.Client.observe`.
@@ -692,7 +693,7 @@ class GrpcClient:
         call set-up per tick.
         """
         obs = Observation(
-            state, stimulus, action_taken, signal, signal_source, observation=observation
+            state, stimulus, action_taken, signal, signal_source, observation=observation, seq=seq
         )
         return drive(self._protocol.observe(session_id, obs), self._send)
 
@@ -1127,10 +1128,11 @@ class AsyncGrpcClient:
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> Step:
         """Reports one observation (unary ``Observe``); see :meth:`GrpcClient.observe`."""
         obs = Observation(
-            state, stimulus, action_taken, signal, signal_source, observation=observation
+            state, stimulus, action_taken, signal, signal_source, observation=observation, seq=seq
         )
         return await adrive(self._protocol.observe(session_id, obs), self._send)
 

@@ -226,6 +226,7 @@ class Client:
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> Step:
         """Reports one observation and returns the next action.
 
@@ -245,9 +246,17 @@ class Client:
                 ``step.curiosity``). Not on the first observation.
             signal_source: The signal's source, e.g. 0 = book, 1 = music
                 (server default 0); only with ``signal``.
+            observation: A continuous world's observation vector, instead
+                of ``state``.
+            seq: The observation's seq, sent as given; leave out to let the
+                client number observations (the default, see the README's
+                "Delivery").
+
+        A step whose observation was resent after a lost answer, and had been
+        applied, is the recorded one, with ``replayed`` set.
         """
         obs = Observation(
-            state, stimulus, action_taken, signal, signal_source, observation=observation
+            state, stimulus, action_taken, signal, signal_source, observation=observation, seq=seq
         )
         return drive(self._protocol.observe(session_id, obs), self._send)
 
@@ -401,10 +410,11 @@ class AsyncClient:
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> Step:
         """Reports one observation; see :meth:`Client.observe`."""
         obs = Observation(
-            state, stimulus, action_taken, signal, signal_source, observation=observation
+            state, stimulus, action_taken, signal, signal_source, observation=observation, seq=seq
         )
         return await adrive(self._protocol.observe(session_id, obs), self._send)
 
