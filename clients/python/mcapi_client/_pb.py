@@ -855,6 +855,11 @@ def rpc_error(e: BaseException) -> McapiError:
     return err
 
 
+def from_server(e: BaseException) -> bool:
+    """Whether a failed RPC's error came from mcapi (its trailer names the code)."""
+    return any(key == ERROR_CODE_TRAILER for key, _ in _call(e, "trailing_metadata") or ())
+
+
 def _call(e: BaseException, method: str) -> Any:
     fn = getattr(e, method, None)
     return fn() if callable(fn) else None

@@ -58,7 +58,7 @@ from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
 from ._sansio import adrive, drive
 from ._seq import Sequences
-from .errors import McapiError, Unavailable
+from .errors import McapiError, TransportError, Unavailable
 from .models import ModelLike, model_json
 from .retry import DEFAULT_RETRY, Attempts, RetryCounter, RetryPolicy
 from .types import (
@@ -105,6 +105,18 @@ def _channel_options(options: Sequence[tuple[str, Any]]) -> list[tuple[str, Any]
 
 def _stream_ended() -> Unavailable:
     return Unavailable("the server ended the stream before replying", code="stream_closed")
+
+
+def _stream_error(e: grpc.RpcError) -> McapiError:
+    """The error of a broken ``Interact`` stream. One the server did not send
+    (no ``x-mcapi-error-code`` trailer) is the connection's: grpc.aio reports
+    a stream cut while it writes as ``INTERNAL`` ("Internal error from
+    Core"); it is a ``transport_error``, after which a numbered stream is
+    reopened."""
+    err = rpc_error(e)
+    if err.code not in ("transport_error", "timeout", "cancelled") and not _pb.from_server(e):
+        return TransportError(err.message, code="transport_error", grpc_code=err.grpc_code)
+    return err
 
 
 def _batch(
@@ -345,7 +357,7 @@ class Interaction(_Stream):
             except StopIteration:
                 err = _stream_ended()
             except grpc.RpcError as e:
-                err, cause = rpc_error(e), e
+                err, cause = _stream_error(e), e
             else:
                 self._answered()
                 return _pb.step(msg)
@@ -852,7 +864,7 @@ class AsyncInteraction(_Stream):
             try:
                 msg = await self._call.read()
             except grpc.RpcError as e:
-                err, cause = rpc_error(e), e
+                err, cause = _stream_error(e), e
             else:
                 if msg is not grpc.aio.EOF:
                     self._answered()
