@@ -8,13 +8,15 @@ from __future__ import annotations
 
 import dataclasses
 import random
+import re
 import socket
 import threading
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
-from conftest import CLIENT_KINDS, Server, open_client, run_async
+from conftest import CLIENT_KINDS, Server, open_client, run_async, serve_help, start_server
 
 from mcapi_client import (
     AsyncGrpcClient,
@@ -357,3 +359,34 @@ def test_what_the_count_believes_after_a_failure() -> None:
     assert seqs.take("s", 1) == (True, 4)
     seqs.failed("s", 4, 1, error_for("unknown_state", "x"))  # refused, nothing applied
     assert seqs.next_seq("s") == 4
+
+
+def test_an_interact_stream_resumes_across_a_server_restart(tmp_path: Path) -> None:
+    """The server stops (SIGTERM) with observations in flight and comes back
+    on the same ports and data: the stream is reopened, the observations
+    resent, each applied once."""
+    if not re.search(r"^\s*-\s*redb\b", serve_help(), re.MULTILINE):
+        pytest.skip("this mcapi binary has no durable store (--store redb)")
+    walk = _walk(40)
+    first = start_server(tmp_path)
+    ports = (int(first.http_url.rsplit(":", 1)[1]), int(first.grpc_target.rsplit(":", 1)[1]))
+    servers = [first]
+    policy = RetryPolicy(deadline=30.0, initial_backoff=0.05, max_backoff=0.5)
+    try:
+        with GrpcClient(first.grpc_target, retry=policy) as mc:
+            sid = mc.create_session(WORLD, seed=14).id
+            with mc.interact(sid) as stream:
+                steps = [stream.step(o.state, o.stimulus, o.action_taken) for o in walk[:20]]
+                for o in walk[20:30]:
+                    stream.send(o.state, o.stimulus, o.action_taken)
+                first.stop()
+                servers.append(start_server(tmp_path, ports=ports))
+                steps += list(stream)
+                steps += [stream.step(o.state, o.stimulus, o.action_taken) for o in walk[30:]]
+            assert mc.retries.total >= 1, mc.retries
+            info = mc.get_session(sid)
+            assert (info.tick, info.next_seq) == (len(walk) - 1, len(walk))
+        assert steps == _twin(servers[-1], walk, seed=14)
+    finally:
+        for s in servers:
+            s.stop()
