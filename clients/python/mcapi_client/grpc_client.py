@@ -108,7 +108,7 @@ def _stream_ended() -> Unavailable:
 
 
 def _stream_error(e: grpc.RpcError) -> McapiError:
-    """The error of a broken ``Interact`` stream. One the server did not send
+    """The error of a broken ``Interact`` stream or numbered ``Observe``. One the server did not send
     (no ``x-mcapi-error-code`` trailer) is the connection's: grpc.aio reports
     a stream cut while it writes as ``INTERNAL`` ("Internal error from
     Core"); it is a ``transport_error``, after which a numbered stream is
@@ -591,7 +591,7 @@ class GrpcClient:
             try:
                 return method(call.request, metadata=metadata, timeout=self._timeout)
             except grpc.RpcError as e:
-                err: McapiError = rpc_error(e)
+                err: McapiError = _stream_error(e) if call.resend else rpc_error(e)
                 wait = attempts.next_wait(err, time.monotonic(), resend=call.resend)
                 if wait is None:
                     raise err from e
@@ -1078,7 +1078,7 @@ class AsyncGrpcClient:
             try:
                 return await method(call.request, metadata=metadata, timeout=self._timeout)
             except grpc.RpcError as e:
-                err: McapiError = rpc_error(e)
+                err: McapiError = _stream_error(e) if call.resend else rpc_error(e)
                 wait = attempts.next_wait(err, time.monotonic(), resend=call.resend)
                 if wait is None:
                     raise err from e

@@ -207,9 +207,12 @@ def test_after_a_lost_answer_the_same_observation_is_applied_once(
         assert mc.get_session(sid).next_seq == 4
 
 
-def test_grpc_observe_resent_after_a_cut_connection(server: Server, grpc_proxy: CutProxy) -> None:
+@pytest.mark.parametrize("kind", ["grpc", "async-grpc"])
+def test_grpc_observe_resent_after_a_cut_connection(
+    kind: str, server: Server, grpc_proxy: CutProxy
+) -> None:
     walk = _walk(2)
-    with GrpcClient(_via(server, grpc=grpc_proxy).grpc_target, retry=FAST) as mc:
+    with open_client(kind, _via(server, grpc=grpc_proxy), retry=FAST) as mc:
         sid = mc.create_session(WORLD, seed=8).id
         steps = [mc.observe(sid, 25)]
         # A reply's frames (a step is more than 30 bytes; window updates,
