@@ -7,6 +7,7 @@ connection after the server has applied the request."""
 from __future__ import annotations
 
 import dataclasses
+import logging
 import random
 import re
 import socket
@@ -151,8 +152,9 @@ def _twin(server: Server, walk: list[Observation], seed: int) -> list[Step]:
 
 @pytest.mark.parametrize("kind", ["rest", "async-rest"])
 def test_a_resend_after_a_cut_connection_is_replayed_not_applied(
-    kind: str, server: Server, http_proxy: CutProxy
+    kind: str, server: Server, http_proxy: CutProxy, caplog: pytest.LogCaptureFixture
 ) -> None:
+    caplog.set_level(logging.DEBUG, logger="mcapi_client")
     walk = _walk(3)
     with open_client(kind, _via(server, http=http_proxy), retry=FAST) as mc:
         sid = mc.create_session(WORLD, seed=5).id
@@ -163,6 +165,9 @@ def test_a_resend_after_a_cut_connection_is_replayed_not_applied(
         assert http_proxy.cut_done == 1
         assert step.replayed and step.tick == 2
         assert mc.retries.total == 1 and mc.retries["transport_error"] == 1
+        retried = [r.getMessage() for r in caplog.records if r.name == "mcapi_client"]
+        assert len(retried) == 1 and "retry 1 of POST" in retried[0], retried
+        assert "transport_error" in retried[0]
         info = mc.get_session(sid)
         assert (info.tick, info.next_seq) == (2, 3)  # applied once
         steps.append(step)
