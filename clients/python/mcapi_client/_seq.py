@@ -33,10 +33,11 @@ observations ``[seq, seq + n)`` it carried:
   reads ``next_seq`` again.
 
 A session must have one numbering writer: a client that observes a session
-also stepped elsewhere (another client, a group, ``InteractBatch``) at the
-same time would number its observations from a stale count. The clients
-forget a session's count whenever they step it unnumbered, so it is read
-again before its next numbered observation.
+also stepped elsewhere (another client, a group) at the same time would
+number its observations from a stale count (refused as ``seq_conflict``
+unless the content happens to match). A client's own ``InteractBatch``
+steps are unnumbered and make it forget the count of each session they
+step, so it is read again before that session's next numbered observation.
 """
 
 from __future__ import annotations
