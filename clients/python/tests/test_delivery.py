@@ -398,3 +398,19 @@ def test_an_interact_stream_resumes_across_a_server_restart(tmp_path: Path) -> N
     finally:
         for s in servers:
             s.stop()
+
+
+def test_interact_batch_steps_make_the_client_read_the_count_again(server: Server) -> None:
+    """InteractBatch is unnumbered; the next numbered observe of a session
+    it stepped reads next_seq, so it is neither a conflict nor a replay."""
+    walk = _walk(3)
+    with GrpcClient(server.grpc_target) as mc:
+        sid = mc.create_session(WORLD, seed=15).id
+        mc.observe(sid, 25)
+        with mc.interact_batch() as stream:
+            (result,) = stream.step([(sid, walk[1])])
+        assert isinstance(result, Step) and result.tick == 1
+        o = walk[2]
+        step = mc.observe(sid, o.state, o.stimulus, o.action_taken)
+        assert step.tick == 2 and not step.replayed
+        assert mc.get_session(sid).next_seq == 3
