@@ -28,6 +28,12 @@ action, the drive and the reward.
   adds a ``curiosity`` stimulus the server computes from raw ``signal=``
   samples sent with observations; see :class:`CuriosityConfig`,
   :class:`TickCuriosity` and :class:`CuriosityInfo`.
+- Delivery: the clients number each session's observations (``seq``) and
+  send them again after a lost answer or a broken ``interact`` stream; the
+  server applies each once and replays its recorded reply
+  (``step.replayed``). ``exactly_once=False`` turns the numbering off;
+  ``retry=`` (:class:`RetryPolicy`) sets the retries, and
+  ``client.retries`` (:class:`RetryCounter`) counts them.
 - Agent options: the keywords of ``create_session`` (``seed``, ``eta``,
   ``curiosity``, ...) are those of :class:`AgentKwargs`, one per parameter
   of the server, named in order by :data:`AGENT_OPTIONS`.
@@ -69,6 +75,7 @@ from .errors import (
     NotFound,
     PayloadTooLarge,
     QuotaExceeded,
+    SequenceRefused,
     SessionFailed,
     Timeout,
     TooManySessions,
@@ -79,7 +86,7 @@ from .errors import (
     UnknownRoute,
     WrongReplica,
 )
-from .retry import DEFAULT_RETRY, RetryPolicy
+from .retry import DEFAULT_RETRY, RetryCounter, RetryPolicy
 from .types import (
     AGENT_OPTIONS,
     AgentConfig,
@@ -178,12 +185,14 @@ __all__ = [
     "QuotaExceeded",
     "SessionFailed",
     "MoveConflict",
+    "SequenceRefused",
     "Unavailable",
     "TransportError",
     "WrongReplica",
     "Timeout",
     "InternalError",
     "RetryPolicy",
+    "RetryCounter",
     "DEFAULT_RETRY",
     "AgentConfig",
     "AgentKwargs",

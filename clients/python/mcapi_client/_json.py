@@ -89,6 +89,7 @@ def step(d: Json) -> Step:
         reward=float(d["reward"]),
         policy_version=int(d["policy_version"]),
         curiosity=tick_curiosity(d.get("curiosity")),
+        replayed=d.get("replayed") is True,
     )
 
 
@@ -221,6 +222,7 @@ def session_info(d: Json) -> SessionInfo:
             if d.get("cost") is None
             else SessionCost(bytes=int(d["cost"]["bytes"]), tick_us=int(d["cost"]["tick_us"]))
         ),
+        next_seq=None if d.get("next_seq") is None else int(d["next_seq"]),
     )
 
 

@@ -24,8 +24,16 @@ from ._normalise import as_float, as_opt_int
 from ._params import AGENT_KINDS, AGENT_OPTIONS
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._sansio import Op, SessionCache
+from ._seq import Sequences, numbered
 from .continuous import ContinuousModel
-from .errors import McapiError, Timeout, TransportError, WrongReplica, error_for
+from .errors import (
+    McapiError,
+    SequenceRefused,
+    Timeout,
+    TransportError,
+    WrongReplica,
+    error_for,
+)
 from .models import ModelLike, model_json
 from .types import (
     ActionRef,
@@ -63,6 +71,12 @@ ERROR_CODE_TRAILER = "x-mcapi-error-code"
 
 OWNER_TRAILER = "x-mcapi-owner"
 """Trailer naming the replica that owns a misdirected session's shard."""
+
+EXPECTED_SEQ_TRAILER = "x-mcapi-expected-seq"
+"""Trailer of a ``seq_gap``: the seq the session expects next."""
+
+OLDEST_SEQ_TRAILER = "x-mcapi-oldest-seq"
+"""Trailer of a ``seq_expired``: the oldest seq the session still replays."""
 
 Metadata = tuple[tuple[str, str], ...]
 
@@ -527,6 +541,8 @@ def observation_message(obs: Observation, session_id: str = "") -> pb.Observatio
         msg.signal.extend(check_signal(obs.signal))
     if obs.signal_source is not None:
         msg.signal_source = _unsigned(obs.signal_source, "signal_source", 32)
+    if obs.seq is not None:
+        msg.seq = obs.seq
     return msg
 
 
@@ -636,6 +652,7 @@ def step(m: pb.Step) -> Step:
         reward=m.reward,
         policy_version=m.policy_version,
         curiosity=tick_curiosity(m.curiosity) if m.HasField("curiosity") else None,
+        replayed=m.replayed,
     )
 
 
@@ -705,6 +722,7 @@ def session_info(m: pb.SessionInfo) -> SessionInfo:
             if m.HasField("cost")
             else None
         ),
+        next_seq=m.next_seq,
     )
 
 
@@ -810,11 +828,16 @@ def rpc_error(e: BaseException) -> McapiError:
     message = _call(e, "details") or str(e)
     stable = None
     owner = None
+    seqs: dict[str, int] = {}
     for key, value in _call(e, "trailing_metadata") or ():
         if key == ERROR_CODE_TRAILER:
             stable = value if isinstance(value, str) else value.decode()
         elif key == OWNER_TRAILER:
             owner = value if isinstance(value, str) else value.decode()
+        elif key in (EXPECTED_SEQ_TRAILER, OLDEST_SEQ_TRAILER):
+            text = value if isinstance(value, str) else value.decode()
+            if text.isdigit():
+                seqs[key] = int(text)
     if stable is None:
         # No answer from mcapi itself: the network or the client gave up.
         if name == "UNAVAILABLE":
@@ -826,7 +849,15 @@ def rpc_error(e: BaseException) -> McapiError:
     err = error_for(stable, message, grpc_code=name)
     if isinstance(err, WrongReplica):
         err.owner = owner
+    if isinstance(err, SequenceRefused):
+        err.expected_seq = seqs.get(EXPECTED_SEQ_TRAILER)
+        err.oldest_seq = seqs.get(OLDEST_SEQ_TRAILER)
     return err
+
+
+def from_server(e: BaseException) -> bool:
+    """Whether a failed RPC's error came from mcapi (its trailer names the code)."""
+    return any(key == ERROR_CODE_TRAILER for key, _ in _call(e, "trailing_metadata") or ())
 
 
 def _call(e: BaseException, method: str) -> Any:
@@ -840,6 +871,10 @@ def watch_ends(err: McapiError, seen: int, cancelled: bool) -> bool:
     return cancelled or err.code == "cancelled" or (seen > 0 and err.code == "not_found")
 
 
+def _set_seq(msg: pb.Observation, seq: int) -> None:
+    msg.seq = seq
+
+
 @dataclass(frozen=True, slots=True)
 class Call:
     """One unary RPC to make.
@@ -849,11 +884,14 @@ class Call:
         request: The request message.
         session_id: The session it concerns, sent as ``x-mcapi-session``
             metadata; ``None`` for calls of no one session.
+        resend: Safe to send again after a lost answer (numbered
+            observations): retried on :data:`~mcapi_client.retry.RESEND_CODES` too.
     """
 
     rpc: str
     request: Any
     session_id: str | None = None
+    resend: bool = False
 
 
 class GrpcProtocol:
@@ -861,11 +899,12 @@ class GrpcProtocol:
     (states, action names) per session that the value tables and history
     entries need."""
 
-    def __init__(self, api_key: str | None) -> None:
+    def __init__(self, api_key: str | None, exactly_once: bool = False) -> None:
         self._auth: Metadata = (
             (("authorization", f"Bearer {api_key}"),) if api_key is not None else ()
         )
         self._shapes: SessionCache[tuple[int, list[str]]] = SessionCache()
+        self.seqs: Sequences | None = Sequences() if exactly_once else None
 
     def metadata(self, session_id: str | None = None) -> Metadata:
         """The metadata of a call: the session (routers read it), the API key."""
@@ -873,14 +912,16 @@ class GrpcProtocol:
             return self._auth
         return ((SESSION_METADATA, session_id), *self._auth)
 
-    def _remember(self, info: SessionInfo) -> SessionInfo:
+    def _remember(self, info: SessionInfo, created: bool = False) -> SessionInfo:
         self._shapes.put(info.id, (info.model.states, info.model.actions))
+        if self.seqs is not None:
+            self.seqs.learn(info.id, info.next_seq, force=created)
         return info
 
     def create_session(self, model: ModelLike, agent: AgentOptions) -> Op[Call, SessionInfo]:
         """``CreateSession``: the model travels typed (:func:`create_request`)."""
         reply = yield Call("CreateSession", create_request(model_json(model), agent))
-        return self._remember(session_info(reply))
+        return self._remember(session_info(reply), created=True)
 
     def get_session(self, session_id: str) -> Op[Call, SessionInfo]:
         """``GetSession``."""
@@ -896,20 +937,37 @@ class GrpcProtocol:
         """``DeleteSession``."""
         yield Call("DeleteSession", pb.DeleteSessionRequest(session_id=session_id), session_id)
         self._shapes.drop(session_id)
+        if self.seqs is not None:
+            self.seqs.forget(session_id)
 
     def observe(self, session_id: str, obs: Observation) -> Op[Call, Step]:
-        """``Observe`` with one observation."""
-        request = pb.ObserveRequest(session_id=session_id, observations=[observation_message(obs)])
-        reply = yield Call("Observe", request, session_id)
-        return step(reply.steps[0])
+        """``Observe`` with one observation, numbered (see
+        :func:`mcapi_client._seq.numbered`)."""
+        return step((yield from self._observe(session_id, [obs])).steps[0])
 
     def observe_batch(
         self, session_id: str, obs: Iterable[ObservationLike]
     ) -> Op[Call, list[Step]]:
-        """``Observe`` with a batch."""
-        request = pb.ObserveRequest(session_id=session_id, observations=observations(obs))
-        reply = yield Call("Observe", request, session_id)
+        """``Observe`` with a batch, numbered consecutively (unless its
+        observations carry their own seqs)."""
+        reply = yield from self._observe(session_id, [as_observation(o) for o in obs])
         return [step(s) for s in reply.steps]
+
+    def _observe(self, session_id: str, obs: list[Observation]) -> Op[Call, Any]:
+        request = pb.ObserveRequest(
+            session_id=session_id, observations=[observation_message(o) for o in obs]
+        )
+        return (
+            yield from numbered(
+                self.seqs,
+                session_id,
+                request.observations,
+                next((o.seq for o in obs if o.seq is not None), None),
+                _set_seq,
+                lambda resend: Call("Observe", request, session_id, resend),
+                lambda: self.get_session(session_id),
+            )
+        )
 
     def values(self, session_id: str, include: str | Iterable[str] | None) -> Op[Call, Values]:
         """``GetValues``, then the session when its shape is not known yet."""

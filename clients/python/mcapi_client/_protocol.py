@@ -25,7 +25,8 @@ from urllib.parse import quote
 from . import _json
 from ._normalise import as_int, as_opt_int
 from ._sansio import Op, SessionCache
-from .errors import error_for
+from ._seq import Sequences, numbered
+from .errors import SequenceRefused, error_for
 from .models import ModelLike, model_json
 from .types import (
     AgentOptions,
@@ -63,12 +64,15 @@ class Request:
         path: The path under the base URL, its session id percent-encoded.
         params: The query parameters, if any.
         json: The JSON body, plain Python values only; ``None``: no body.
+        resend: Safe to send again after a lost answer (numbered
+            observations): retried on :data:`~mcapi_client.retry.RESEND_CODES` too.
     """
 
     method: str
     path: str
     params: dict[str, str | int] | None = None
     json: Any = None
+    resend: bool = False
 
 
 READY = Request("GET", "/readyz")
@@ -108,7 +112,19 @@ def read_reply(status: int, content: bytes, reason: str) -> Any:
         body = None
     code, message = _json.error_fields(body)
     text = content.decode("utf-8", errors="replace")
-    raise error_for(code, message or text or reason, status=status)
+    err = error_for(code, message or text or reason, status=status)
+    if isinstance(err, SequenceRefused) and isinstance(body, dict):
+        err.expected_seq = _opt_seq(body.get("expected_seq"))
+        err.oldest_seq = _opt_seq(body.get("oldest_seq"))
+    raise err
+
+
+def _opt_seq(value: object) -> int | None:
+    return value if type(value) is int else None
+
+
+def _set_seq(obs: dict[str, object], seq: int) -> None:
+    obs["seq"] = seq
 
 
 def _list_params(after: str | None, limit: object) -> dict[str, str | int]:
@@ -122,21 +138,26 @@ def _list_params(after: str | None, limit: object) -> dict[str, str | int]:
 
 
 class RestProtocol:
-    """The REST calls as operations, and the action names per session they need."""
+    """The REST calls as operations, the action names per session they need
+    and, with ``exactly_once``, the seq of each session's next observation
+    (:mod:`mcapi_client._seq`)."""
 
-    def __init__(self) -> None:
+    def __init__(self, exactly_once: bool = False) -> None:
         self._actions: SessionCache[list[str]] = SessionCache()
         self._groups: SessionCache[GroupInfo] = SessionCache()
+        self.seqs: Sequences | None = Sequences() if exactly_once else None
 
-    def _remember(self, info: SessionInfo) -> SessionInfo:
+    def _remember(self, info: SessionInfo, created: bool = False) -> SessionInfo:
         self._actions.put(info.id, info.model.actions)
+        if self.seqs is not None:
+            self.seqs.learn(info.id, info.next_seq, force=created)
         return info
 
     def create_session(self, model: ModelLike, agent: AgentOptions) -> Op[Request, SessionInfo]:
         """``POST /v1/sessions``."""
         body = {"model": model_json(model), "agent": agent.to_json()}
         reply = yield Request("POST", "/v1/sessions", json=body)
-        return self._remember(_json.session_info(reply))
+        return self._remember(_json.session_info(reply), created=True)
 
     def get_session(self, session_id: str) -> Op[Request, SessionInfo]:
         """``GET /v1/sessions/{id}``."""
@@ -152,19 +173,43 @@ class RestProtocol:
         """``DELETE /v1/sessions/{id}``."""
         yield Request("DELETE", session_path(session_id))
         self._actions.drop(session_id)
+        if self.seqs is not None:
+            self.seqs.forget(session_id)
 
     def observe(self, session_id: str, observation: Observation) -> Op[Request, Step]:
-        """``POST /v1/sessions/{id}/observations`` with one observation."""
+        """``POST /v1/sessions/{id}/observations`` with one observation,
+        numbered (see :func:`mcapi_client._seq.numbered`)."""
         body = observation.to_json()
-        reply = yield Request("POST", session_path(session_id, "/observations"), json=body)
+        path = session_path(session_id, "/observations")
+        reply = yield from numbered(
+            self.seqs,
+            session_id,
+            (body,),
+            observation.seq,
+            _set_seq,
+            lambda resend: Request("POST", path, json=body, resend=resend),
+            lambda: self.get_session(session_id),
+        )
         return _json.step(reply)
 
     def observe_batch(
         self, session_id: str, observations: Iterable[ObservationLike]
     ) -> Op[Request, list[Step]]:
-        """``POST /v1/sessions/{id}/observations`` with a batch."""
-        body = {"observations": [as_observation(o).to_json() for o in observations]}
-        reply = yield Request("POST", session_path(session_id, "/observations"), json=body)
+        """``POST /v1/sessions/{id}/observations`` with a batch, numbered
+        consecutively (unless its observations carry their own seqs)."""
+        obs = [as_observation(o) for o in observations]
+        body = {"observations": [o.to_json() for o in obs]}
+        path = session_path(session_id, "/observations")
+        given = next((o.seq for o in obs if o.seq is not None), None)
+        reply = yield from numbered(
+            self.seqs,
+            session_id,
+            body["observations"],
+            given,
+            _set_seq,
+            lambda resend: Request("POST", path, json=body, resend=resend),
+            lambda: self.get_session(session_id),
+        )
         return [_json.step(s) for s in reply["steps"]]
 
     def values(self, session_id: str, include: str | Iterable[str] | None) -> Op[Request, Values]:

@@ -26,6 +26,8 @@ from __future__ import annotations
 from collections.abc import Awaitable, Callable, Generator
 from typing import Any, Generic, TypeVar
 
+from .errors import McapiError
+
 __all__ = ["Op", "drive", "adrive", "SessionCache"]
 
 R = TypeVar("R")
@@ -37,11 +39,18 @@ Op = Generator[R, Any, T]
 
 
 def drive(op: Generator[R, Any, T], send: Callable[[R], Any]) -> T:
-    """Runs ``op`` to its result, ``send`` doing each request's I/O (blocking)."""
+    """Runs ``op`` to its result, ``send`` doing each request's I/O (blocking).
+    A request's :class:`~mcapi_client.McapiError` is thrown into ``op`` (which
+    may handle it, as numbered observations do, or let it through)."""
     try:
         request = next(op)
         while True:
-            request = op.send(send(request))
+            try:
+                reply = send(request)
+            except McapiError as e:
+                request = op.throw(e)
+            else:
+                request = op.send(reply)
     except StopIteration as done:
         result: T = done.value
         return result
@@ -50,11 +59,17 @@ def drive(op: Generator[R, Any, T], send: Callable[[R], Any]) -> T:
 
 
 async def adrive(op: Generator[R, Any, T], send: Callable[[R], Awaitable[Any]]) -> T:
-    """Runs ``op`` to its result, awaiting ``send`` for each request's I/O."""
+    """Runs ``op`` to its result, awaiting ``send`` for each request's I/O
+    (errors thrown into ``op`` as by :func:`drive`)."""
     try:
         request = next(op)
         while True:
-            request = op.send(await send(request))
+            try:
+                reply = await send(request)
+            except McapiError as e:
+                request = op.throw(e)
+            else:
+                request = op.send(reply)
     except StopIteration as done:
         result: T = done.value
         return result

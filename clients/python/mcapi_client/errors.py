@@ -129,7 +129,18 @@ class SequenceRefused(McapiError):
     FAILED_PRECONDITION): beyond the next one (``seq_gap``), older than the
     replay window (``seq_expired``) or applied with other content
     (``seq_conflict``); nothing was applied (docs/sessions.md, "Delivery
-    guarantees")."""
+    guarantees"). Never retried.
+
+    Attributes:
+        expected_seq: For ``seq_gap``, the seq the session expects next (REST
+            ``expected_seq``, gRPC trailer ``x-mcapi-expected-seq``).
+        oldest_seq: For ``seq_expired``, the oldest seq still replayed.
+        seq: The first seq the refused request carried, when a client numbered it.
+    """
+
+    expected_seq: int | None = None
+    oldest_seq: int | None = None
+    seq: int | None = None
 
 
 class NotFound(McapiError):

@@ -32,9 +32,10 @@ numbers may be numpy scalars and vectors numpy arrays.
 from __future__ import annotations
 
 import asyncio
+import collections
 import queue
 import time
-from collections.abc import AsyncIterator, Iterable, Iterator, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Iterable, Iterator, Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any
 
@@ -56,9 +57,10 @@ from ._pb import ERROR_CODE_TRAILER, SESSION_METADATA, Call, Metadata, rpc_error
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
 from ._sansio import adrive, drive
-from .errors import McapiError, Unavailable
+from ._seq import Sequences
+from .errors import McapiError, TransportError, Unavailable
 from .models import ModelLike, model_json
-from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
+from .retry import DEFAULT_RETRY, Attempts, RetryCounter, RetryPolicy
 from .types import (
     ActionRef,
     AgentKwargs,
@@ -105,6 +107,31 @@ def _stream_ended() -> Unavailable:
     return Unavailable("the server ended the stream before replying", code="stream_closed")
 
 
+def _stream_error(e: grpc.RpcError) -> McapiError:
+    """The error of a broken ``Interact`` stream or numbered ``Observe``. One the server did not send
+    (no ``x-mcapi-error-code`` trailer) is the connection's: grpc.aio reports
+    a stream cut while it writes as ``INTERNAL`` ("Internal error from
+    Core"); it is a ``transport_error``, after which a numbered stream is
+    reopened."""
+    err = rpc_error(e)
+    if err.code not in ("transport_error", "timeout", "cancelled") and not _pb.from_server(e):
+        return TransportError(err.message, code="transport_error", grpc_code=err.grpc_code)
+    return err
+
+
+def _batch(
+    entries: Iterable[tuple[str, ObservationLike]], seqs: Sequences | None
+) -> pb.ObservationBatch:
+    """An ``InteractBatch`` message. Its observations are not numbered (at
+    least once): the client forgets the count of each session in it, to read
+    it again before that session's next numbered observation."""
+    msg = _pb.observation_batch(entries)
+    if seqs is not None:
+        for obs in msg.observations:
+            seqs.forget(obs.session_id)
+    return msg
+
+
 class _Closing:
     """How every request stream here ends, blocking or asyncio: the request
     iterator is ended once (``None`` in the outbox), then the call is
@@ -129,13 +156,74 @@ class _Closing:
 
 
 class _Stream(_Closing):
-    """What both ``Interact`` streams count and check, with no I/O."""
+    """What both ``Interact`` streams count, number and check, with no I/O.
 
-    def __init__(self, session_id: str) -> None:
+    With the client's ``exactly_once`` (the default), each observation sent
+    takes the session's next seq, and the observations whose steps have not
+    arrived yet are kept: when the stream breaks (``UNAVAILABLE``, a reset
+    connection, a server restarting, a stream ended without its replies),
+    it is opened again and they are sent again, from the first unanswered
+    one, within the retry policy's deadline; the server replays those it had
+    already applied (``Step.replayed``) and applies the others, once.
+    """
+
+    def __init__(
+        self,
+        stub: pb_grpc.AgentsStub,
+        session_id: str,
+        metadata: Metadata,
+        seqs: Sequences | None,
+        retry: RetryPolicy | None,
+        counter: RetryCounter | None,
+    ) -> None:
         super().__init__()
         self.session_id = session_id
+        self._stub = stub
+        self._metadata = metadata
+        self._seqs = seqs
+        self._retry = retry
+        self._counter = counter
+        self._unacked: collections.deque[pb.Observation] = collections.deque()
         self._sent = 0
         self._received = 0
+
+    def _number(self, msg: pb.Observation) -> None:
+        """Gives ``msg`` the session's next seq, if the client numbers observations."""
+        if self._seqs is not None:
+            _, first = self._seqs.take(self.session_id, 1)
+            if first is not None:
+                msg.seq = first
+
+    def _resumable(self) -> bool:
+        return self._seqs is not None and all(m.HasField("seq") for m in self._unacked)
+
+    def _attempts(self) -> Attempts:
+        return Attempts(self._retry, time.monotonic(), self._counter, f"Interact {self.session_id}")
+
+    def _answered(self) -> None:
+        self._received += 1
+        msg = self._unacked.popleft()
+        if self._seqs is not None and msg.HasField("seq"):
+            self._seqs.answered(self.session_id, msg.seq, 1)
+
+    def _failed(self, err: McapiError) -> None:
+        """The stream failed for good: what the client now knows of the
+        session's count (see :mod:`mcapi_client._seq`)."""
+        if self._seqs is None or not self._unacked:
+            return
+        first = self._unacked[0]
+        if first.HasField("seq"):
+            self._seqs.failed(self.session_id, first.seq, len(self._unacked), err)
+        else:
+            self._seqs.forget(self.session_id)
+
+    def close(self) -> None:
+        """Ends the stream: no more observations, unreceived steps are dropped
+        (the session's count is then read again before its next numbered
+        observation: those may or may not have been applied)."""
+        if not self._closed and self._unacked and self._seqs is not None:
+            self._seqs.forget(self.session_id)
+        super().close()
 
     @property
     def pending(self) -> int:
@@ -165,6 +253,10 @@ class _Stream(_Closing):
 class Interaction(_Stream):
     """One ``Interact`` stream: observations in, one step out per observation, in order.
 
+    A broken stream is reopened and its unanswered observations resent,
+    transparently, when the client numbers observations (see the README's
+    "Delivery"); each reopening counts in ``client.retries``.
+
     Get one from :meth:`GrpcClient.interact` and use it as a context manager.
     :meth:`step` sends an observation and waits for its reply (a simulation
     loop); :meth:`send` only queues one, and iterating yields the replies to
@@ -182,14 +274,38 @@ class Interaction(_Stream):
     before it stay applied.
     """
 
-    def __init__(self, stub: pb_grpc.AgentsStub, session_id: str, metadata: Metadata) -> None:
-        super().__init__(session_id)
-        self._outbox: queue.SimpleQueue[pb.Observation | None] = queue.SimpleQueue()
-        self._call = stub.Interact(self._requests(), metadata=metadata)
+    def __init__(
+        self,
+        stub: pb_grpc.AgentsStub,
+        session_id: str,
+        metadata: Metadata,
+        seqs: Sequences | None = None,
+        retry: RetryPolicy | None = None,
+        counter: RetryCounter | None = None,
+        learn: Callable[[], object] | None = None,
+    ) -> None:
+        super().__init__(stub, session_id, metadata, seqs, retry, counter)
+        self._learn = learn
+        # Before the first observation of a session whose count is not known.
+        self._learning = seqs is not None and not seqs.take(session_id, 0)[0]
+        self._open()
 
-    def _requests(self) -> Iterator[pb.Observation]:
+    def _open(self) -> None:
+        outbox: queue.SimpleQueue[pb.Observation | None] = queue.SimpleQueue()
+        for msg in self._unacked:
+            outbox.put(msg)
+        self._outbox = outbox
+        self._call = self._stub.Interact(self._requests(outbox), metadata=self._metadata)
+
+    def _reopen(self) -> None:
+        self._outbox.put(None)
+        self._call.cancel()
+        self._open()
+
+    @staticmethod
+    def _requests(outbox: queue.SimpleQueue[pb.Observation | None]) -> Iterator[pb.Observation]:
         while True:
-            msg = self._outbox.get()
+            msg = outbox.get()
             if msg is None:
                 return
             yield msg
@@ -218,22 +334,45 @@ class Interaction(_Stream):
             observation: A continuous world's observation vector, instead
                 of ``state``.
         """
-        self._outbox.put(
-            self._message(state, stimulus, action_taken, signal, signal_source, observation)
-        )
+        msg = self._message(state, stimulus, action_taken, signal, signal_source, observation)
+        if self._learning:
+            if self._learn is not None:
+                self._learn()  # the session's next_seq (or its error)
+            self._learning = False
+        self._number(msg)
+        self._unacked.append(msg)
+        self._outbox.put(msg)
         self._sent += 1
 
     def recv(self) -> Step:
-        """Waits for the step of the oldest observation not yet answered."""
+        """Waits for the step of the oldest observation not yet answered
+        (reopening a broken stream, see :class:`Interaction`)."""
         self._expect_reply()
-        try:
-            msg = next(self._call)
-        except StopIteration:
-            raise _stream_ended() from None
-        except grpc.RpcError as e:
-            raise rpc_error(e) from e
-        self._received += 1
-        return _pb.step(msg)
+        attempts: Attempts | None = None
+        while True:
+            cause: BaseException | None = None
+            err: McapiError
+            try:
+                msg = next(self._call)
+            except StopIteration:
+                err = _stream_ended()
+            except grpc.RpcError as e:
+                err, cause = _stream_error(e), e
+            else:
+                self._answered()
+                return _pb.step(msg)
+            if attempts is None:
+                attempts = self._attempts()
+            wait = (
+                attempts.next_wait(err, time.monotonic(), resend=True)
+                if self._resumable() and not self._closed
+                else None
+            )
+            if wait is None:
+                self._failed(err)
+                raise err from cause
+            time.sleep(wait)
+            self._reopen()
 
     def step(
         self,
@@ -300,8 +439,11 @@ class BatchInteraction(_Closing):
     server shutting down) raises.
     """
 
-    def __init__(self, stub: pb_grpc.AgentsStub, metadata: Metadata) -> None:
+    def __init__(
+        self, stub: pb_grpc.AgentsStub, metadata: Metadata, seqs: Sequences | None = None
+    ) -> None:
         super().__init__()
+        self._seqs = seqs
         self._outbox: queue.SimpleQueue[pb.ObservationBatch | None] = queue.SimpleQueue()
         self._call = stub.InteractBatch(self._requests(), metadata=metadata)
 
@@ -324,7 +466,7 @@ class BatchInteraction(_Closing):
         """
         if self._closed:
             raise RuntimeError("this interaction is closed")
-        self._outbox.put(_pb.observation_batch(entries))
+        self._outbox.put(_batch(entries, self._seqs))
         try:
             msg = next(self._call)
         except StopIteration:
@@ -404,9 +546,17 @@ class GrpcClient:
         timeout: Seconds per unary call (streams have none).
         credentials: TLS channel credentials; plaintext when ``None``.
         options: Extra channel options, e.g. ``[("grpc.max_receive_message_length", n)]``.
-        retry: Which refusals of unary calls to retry and for how long (a
+        retry: Which failures of unary calls to retry and for how long (a
             cluster's ``wrong_replica``, ``shard_moving``, ``unavailable``;
-            see :mod:`mcapi_client.retry`); ``None``: never.
+            for numbered observations also a lost answer and a broken
+            ``interact`` stream; see :mod:`mcapi_client.retry`); ``None``: never.
+        exactly_once: Number each session's observations (``seq``) so that
+            a resend after a lost answer is applied once (see the README's
+            "Delivery"); ``False``: unnumbered, at least once.
+
+    Attributes:
+        retries: The retries made so far, by reason
+            (:class:`~mcapi_client.RetryCounter`).
 
     Offers the REST client's operations, with the same results. Use as a
     context manager, or call :meth:`close`.
@@ -421,9 +571,11 @@ class GrpcClient:
         credentials: grpc.ChannelCredentials | None = None,
         options: Sequence[tuple[str, Any]] = (),
         retry: RetryPolicy | None = DEFAULT_RETRY,
+        exactly_once: bool = True,
     ) -> None:
         self.target = target
         self.retry = retry
+        self.retries = RetryCounter()
         opts = _channel_options(options)
         self._channel = (
             grpc.secure_channel(target, credentials, options=opts)
@@ -432,7 +584,7 @@ class GrpcClient:
         )
         self._stub = pb_grpc.AgentsStub(self._channel)  # type: ignore[no-untyped-call]
         self._timeout = timeout
-        self._protocol = _pb.GrpcProtocol(api_key)
+        self._protocol = _pb.GrpcProtocol(api_key, exactly_once)
 
     def close(self) -> None:
         """Closes the channel (and with it any open stream)."""
@@ -447,13 +599,13 @@ class GrpcClient:
     def _send(self, call: Call) -> Any:
         method = getattr(self._stub, call.rpc)
         metadata = self._protocol.metadata(call.session_id)
-        attempts = Attempts(self.retry, time.monotonic())
+        attempts = Attempts(self.retry, time.monotonic(), self.retries, call.rpc)
         while True:
             try:
                 return method(call.request, metadata=metadata, timeout=self._timeout)
             except grpc.RpcError as e:
-                err: McapiError = rpc_error(e)
-                wait = attempts.next_wait(err, time.monotonic())
+                err: McapiError = _stream_error(e) if call.resend else rpc_error(e)
+                wait = attempts.next_wait(err, time.monotonic(), resend=call.resend)
                 if wait is None:
                     raise err from e
             time.sleep(wait)
@@ -550,6 +702,7 @@ class GrpcClient:
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> Step:
         """Reports one observation (unary ``Observe``) and returns the next
         action; arguments as :meth:`mcapi_client.Client.observe`.
@@ -558,7 +711,7 @@ class GrpcClient:
         call set-up per tick.
         """
         obs = Observation(
-            state, stimulus, action_taken, signal, signal_source, observation=observation
+            state, stimulus, action_taken, signal, signal_source, observation=observation, seq=seq
         )
         return drive(self._protocol.observe(session_id, obs), self._send)
 
@@ -584,13 +737,23 @@ class GrpcClient:
         return drive(self._protocol.history(session_id, limit), self._send)
 
     def interact(self, session_id: str) -> Interaction:
-        """Opens an ``Interact`` stream on a session; see :class:`Interaction`."""
-        return Interaction(self._stub, session_id, self._protocol.metadata(session_id))
+        """Opens an ``Interact`` stream on a session; see :class:`Interaction`.
+        For a session this client has neither created nor read, its
+        ``next_seq`` is read before the first observation (numbered by default)."""
+        return Interaction(
+            self._stub,
+            session_id,
+            self._protocol.metadata(session_id),
+            self._protocol.seqs,
+            self.retry,
+            self.retries,
+            lambda: self.get_session(session_id),
+        )
 
     def interact_batch(self) -> BatchInteraction:
         """Opens an ``InteractBatch`` stream (several sessions per message);
-        see :class:`BatchInteraction`."""
-        return BatchInteraction(self._stub, self._protocol.metadata())
+        see :class:`BatchInteraction`. Its observations are not numbered."""
+        return BatchInteraction(self._stub, self._protocol.metadata(), self._protocol.seqs)
 
     def watch(self, session_id: str, interval: FloatLike = 1.0) -> Watch:
         """Snapshots of a session every ``interval`` seconds (0.01 to 3600),
@@ -618,20 +781,64 @@ class AsyncInteraction(_Stream):
                 stream.send(obs.state, obs.stimulus)
             steps = [s async for s in stream]
 
-    Errors end the stream as in :class:`Interaction`.
+    Errors end the stream, and a broken stream is reopened, as in
+    :class:`Interaction`. For a session this client has neither created nor
+    read, the stream reads the session's ``next_seq`` before its first
+    observation goes out.
     """
 
-    def __init__(self, stub: pb_grpc.AgentsStub, session_id: str, metadata: Metadata) -> None:
-        super().__init__(session_id)
-        self._outbox: asyncio.Queue[pb.Observation | None] = asyncio.Queue()
-        self._call = stub.Interact(self._requests(), metadata=metadata)
+    def __init__(
+        self,
+        stub: pb_grpc.AgentsStub,
+        session_id: str,
+        metadata: Metadata,
+        seqs: Sequences | None = None,
+        retry: RetryPolicy | None = None,
+        counter: RetryCounter | None = None,
+        learn: Callable[[], Awaitable[object]] | None = None,
+    ) -> None:
+        super().__init__(stub, session_id, metadata, seqs, retry, counter)
+        self._learn = learn
+        # Observations are numbered once the session's count is known.
+        self._learning = seqs is not None and not seqs.take(session_id, 0)[0]
+        self._learn_error: McapiError | None = None
+        self._open()
 
-    async def _requests(self) -> AsyncIterator[pb.Observation]:
+    def _open(self) -> None:
+        outbox: asyncio.Queue[pb.Observation | None] = asyncio.Queue()
+        for msg in self._unacked:
+            outbox.put_nowait(msg)
+        self._outbox = outbox
+        self._call = self._stub.Interact(self._requests(outbox), metadata=self._metadata)
+
+    def _reopen(self) -> None:
+        self._outbox.put_nowait(None)
+        self._call.cancel()
+        self._open()
+
+    async def _requests(
+        self, outbox: asyncio.Queue[pb.Observation | None]
+    ) -> AsyncIterator[pb.Observation]:
         while True:
-            msg = await self._outbox.get()
+            msg = await outbox.get()
             if msg is None:
                 return
+            if self._learning:
+                try:
+                    await self._number_all()
+                except McapiError as e:
+                    self._learn_error = e
+                    return  # ends the stream: recv raises the error
             yield msg
+
+    async def _number_all(self) -> None:
+        """Reads the session's count, then numbers every observation sent so far."""
+        if self._learn is not None:
+            await self._learn()
+        self._learning = False
+        for m in self._unacked:
+            if not m.HasField("seq"):
+                self._number(m)
 
     def send(
         self,
@@ -645,22 +852,42 @@ class AsyncInteraction(_Stream):
     ) -> None:
         """Queues one observation without waiting for its step (not awaited);
         arguments as :meth:`Interaction.send`."""
-        self._outbox.put_nowait(
-            self._message(state, stimulus, action_taken, signal, signal_source, observation)
-        )
+        msg = self._message(state, stimulus, action_taken, signal, signal_source, observation)
+        if not self._learning:
+            self._number(msg)
+        self._unacked.append(msg)
+        self._outbox.put_nowait(msg)
         self._sent += 1
 
     async def recv(self) -> Step:
-        """Waits for the step of the oldest observation not yet answered."""
+        """Waits for the step of the oldest observation not yet answered
+        (reopening a broken stream, see :class:`Interaction`)."""
         self._expect_reply()
-        try:
-            msg = await self._call.read()
-        except grpc.RpcError as e:
-            raise rpc_error(e) from e
-        if msg is grpc.aio.EOF:
-            raise _stream_ended()
-        self._received += 1
-        return _pb.step(msg)
+        attempts: Attempts | None = None
+        while True:
+            cause: BaseException | None = None
+            err: McapiError
+            try:
+                msg = await self._call.read()
+            except grpc.RpcError as e:
+                err, cause = _stream_error(e), e
+            else:
+                if msg is not grpc.aio.EOF:
+                    self._answered()
+                    return _pb.step(msg)
+                err = self._learn_error or _stream_ended()
+            if attempts is None:
+                attempts = self._attempts()
+            wait = (
+                attempts.next_wait(err, time.monotonic(), resend=True)
+                if self._learn_error is None and self._resumable() and not self._closed
+                else None
+            )
+            if wait is None:
+                self._failed(err)
+                raise err from cause
+            await asyncio.sleep(wait)
+            self._reopen()
 
     async def step(
         self,
@@ -707,8 +934,11 @@ class AsyncBatchInteraction(_Closing):
             results = await stream.step([(a, (25,)), (b, (3,))])
     """
 
-    def __init__(self, stub: pb_grpc.AgentsStub, metadata: Metadata) -> None:
+    def __init__(
+        self, stub: pb_grpc.AgentsStub, metadata: Metadata, seqs: Sequences | None = None
+    ) -> None:
         super().__init__()
+        self._seqs = seqs
         self._outbox: asyncio.Queue[pb.ObservationBatch | None] = asyncio.Queue()
         self._call = stub.InteractBatch(self._requests(), metadata=metadata)
 
@@ -725,7 +955,7 @@ class AsyncBatchInteraction(_Closing):
         """Sends one message and returns its results; see :meth:`BatchInteraction.step`."""
         if self._closed:
             raise RuntimeError("this interaction is closed")
-        self._outbox.put_nowait(_pb.observation_batch(entries))
+        self._outbox.put_nowait(_batch(entries, self._seqs))
         try:
             msg = await self._call.read()
         except grpc.RpcError as e:
@@ -799,6 +1029,10 @@ class AsyncGrpcClient:
         credentials: TLS channel credentials; plaintext when ``None``.
         options: Extra channel options.
         retry: As :class:`GrpcClient`'s.
+        exactly_once: As :class:`GrpcClient`'s.
+
+    Attributes:
+        retries: The retries made so far, by reason.
 
     Create it inside the event loop that uses it (``grpc.aio`` channels
     belong to one loop), as ``async with AsyncGrpcClient(...) as mc:``, or
@@ -817,9 +1051,11 @@ class AsyncGrpcClient:
         credentials: grpc.ChannelCredentials | None = None,
         options: Sequence[tuple[str, Any]] = (),
         retry: RetryPolicy | None = DEFAULT_RETRY,
+        exactly_once: bool = True,
     ) -> None:
         self.target = target
         self.retry = retry
+        self.retries = RetryCounter()
         opts = _channel_options(options)
         self._channel = (
             grpc.aio.secure_channel(target, credentials, options=opts)
@@ -828,7 +1064,7 @@ class AsyncGrpcClient:
         )
         self._stub = pb_grpc.AgentsStub(self._channel)  # type: ignore[no-untyped-call]
         self._timeout = timeout
-        self._protocol = _pb.GrpcProtocol(api_key)
+        self._protocol = _pb.GrpcProtocol(api_key, exactly_once)
 
     async def aclose(self) -> None:
         """Closes the channel (and with it any open stream)."""
@@ -843,13 +1079,13 @@ class AsyncGrpcClient:
     async def _send(self, call: Call) -> Any:
         method = getattr(self._stub, call.rpc)
         metadata = self._protocol.metadata(call.session_id)
-        attempts = Attempts(self.retry, time.monotonic())
+        attempts = Attempts(self.retry, time.monotonic(), self.retries, call.rpc)
         while True:
             try:
                 return await method(call.request, metadata=metadata, timeout=self._timeout)
             except grpc.RpcError as e:
-                err: McapiError = rpc_error(e)
-                wait = attempts.next_wait(err, time.monotonic())
+                err: McapiError = _stream_error(e) if call.resend else rpc_error(e)
+                wait = attempts.next_wait(err, time.monotonic(), resend=call.resend)
                 if wait is None:
                     raise err from e
             await asyncio.sleep(wait)
@@ -943,10 +1179,11 @@ class AsyncGrpcClient:
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> Step:
         """Reports one observation (unary ``Observe``); see :meth:`GrpcClient.observe`."""
         obs = Observation(
-            state, stimulus, action_taken, signal, signal_source, observation=observation
+            state, stimulus, action_taken, signal, signal_source, observation=observation, seq=seq
         )
         return await adrive(self._protocol.observe(session_id, obs), self._send)
 
@@ -968,11 +1205,20 @@ class AsyncGrpcClient:
 
     def interact(self, session_id: str) -> AsyncInteraction:
         """Opens an ``Interact`` stream on a session; see :class:`AsyncInteraction`."""
-        return AsyncInteraction(self._stub, session_id, self._protocol.metadata(session_id))
+        return AsyncInteraction(
+            self._stub,
+            session_id,
+            self._protocol.metadata(session_id),
+            self._protocol.seqs,
+            self.retry,
+            self.retries,
+            lambda: self.get_session(session_id),
+        )
 
     def interact_batch(self) -> AsyncBatchInteraction:
-        """Opens an ``InteractBatch`` stream; see :class:`AsyncBatchInteraction`."""
-        return AsyncBatchInteraction(self._stub, self._protocol.metadata())
+        """Opens an ``InteractBatch`` stream; see :class:`AsyncBatchInteraction`.
+        Its observations are not numbered."""
+        return AsyncBatchInteraction(self._stub, self._protocol.metadata(), self._protocol.seqs)
 
     def watch(self, session_id: str, interval: FloatLike = 1.0) -> AsyncWatch:
         """Snapshots of a session every ``interval`` seconds (0.01 to 3600),

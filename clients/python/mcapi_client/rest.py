@@ -38,7 +38,7 @@ from ._protocol import headers as request_headers
 from ._sansio import adrive, drive
 from .errors import McapiError, Timeout, TransportError, WrongReplica
 from .models import ModelLike
-from .retry import DEFAULT_RETRY, Attempts, RetryPolicy
+from .retry import DEFAULT_RETRY, Attempts, RetryCounter, RetryPolicy
 from .types import (
     ActionRef,
     AgentKwargs,
@@ -82,6 +82,10 @@ def _retry_after(response: httpx.Response | None) -> float | None:
         return None
 
 
+def _what(request: Request) -> str:
+    return f"{request.method} {request.path}"
+
+
 def _transport_error(e: httpx.HTTPError, url: str) -> McapiError:
     if isinstance(e, httpx.TimeoutException):
         return Timeout(f"{url}: {e or type(e).__name__}", code="timeout")
@@ -97,8 +101,16 @@ class Client:
         timeout: Seconds per request (or an ``httpx.Timeout``).
         headers: Extra headers for every request.
         transport: An httpx transport (tests, proxies, retries).
-        retry: Which refusals to retry and for how long (a cluster's 421
-            and 503s, see :mod:`mcapi_client.retry`); ``None``: never.
+        retry: Which failures to retry and for how long (a cluster's 421
+            and 503s; for numbered observations also a lost answer, see
+            :mod:`mcapi_client.retry`); ``None``: never.
+        exactly_once: Number each session's observations (``seq``) so that
+            a resend after a lost answer is applied once (see the README's
+            "Delivery"); ``False``: send them unnumbered, at least once.
+
+    Attributes:
+        retries: The retries made so far, by reason
+            (:class:`~mcapi_client.RetryCounter`).
 
     Every method raises a :class:`~mcapi_client.McapiError` subclass on
     failure. Use as a context manager, or call :meth:`close`.
@@ -113,8 +125,10 @@ class Client:
         headers: Mapping[str, str] | None = None,
         transport: httpx.BaseTransport | None = None,
         retry: RetryPolicy | None = DEFAULT_RETRY,
+        exactly_once: bool = True,
     ) -> None:
         self.retry = retry
+        self.retries = RetryCounter()
         self.base_url = base_url.rstrip("/")
         self._http = httpx.Client(
             base_url=self.base_url,
@@ -122,7 +136,7 @@ class Client:
             timeout=timeout,
             transport=transport,
         )
-        self._protocol = RestProtocol()
+        self._protocol = RestProtocol(exactly_once)
 
     def close(self) -> None:
         """Closes the connection pool."""
@@ -135,18 +149,21 @@ class Client:
         self.close()
 
     def _send(self, request: Request) -> Any:
-        attempts = Attempts(self.retry, time.monotonic())
+        attempts = Attempts(self.retry, time.monotonic(), self.retries, _what(request))
         while True:
+            response: httpx.Response | None = None
             try:
                 response = self._http.request(
                     request.method, request.path, params=request.params, json=request.json
                 )
-            except httpx.HTTPError as e:
-                raise _transport_error(e, self.base_url + request.path) from e
-            try:
                 return _reply(response)
+            except httpx.HTTPError as e:
+                err = _transport_error(e, self.base_url + request.path)
+                wait = attempts.next_wait(err, time.monotonic(), None, request.resend)
+                if wait is None:
+                    raise err from e
             except McapiError as e:
-                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response))
+                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response), request.resend)
                 if wait is None:
                     raise
             time.sleep(wait)
@@ -211,6 +228,7 @@ class Client:
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> Step:
         """Reports one observation and returns the next action.
 
@@ -230,9 +248,17 @@ class Client:
                 ``step.curiosity``). Not on the first observation.
             signal_source: The signal's source, e.g. 0 = book, 1 = music
                 (server default 0); only with ``signal``.
+            observation: A continuous world's observation vector, instead
+                of ``state``.
+            seq: The observation's seq, sent as given; leave out to let the
+                client number observations (the default, see the README's
+                "Delivery").
+
+        A step whose observation was resent after a lost answer, and had been
+        applied, is the recorded one, with ``replayed`` set.
         """
         obs = Observation(
-            state, stimulus, action_taken, signal, signal_source, observation=observation
+            state, stimulus, action_taken, signal, signal_source, observation=observation, seq=seq
         )
         return drive(self._protocol.observe(session_id, obs), self._send)
 
@@ -345,6 +371,10 @@ class AsyncClient:
         headers: Extra headers for every request.
         transport: An httpx async transport.
         retry: As :class:`Client`'s.
+        exactly_once: As :class:`Client`'s.
+
+    Attributes:
+        retries: The retries made so far, by reason.
 
     Use as ``async with AsyncClient(...) as mc:``, or call :meth:`aclose`.
     """
@@ -358,8 +388,10 @@ class AsyncClient:
         headers: Mapping[str, str] | None = None,
         transport: httpx.AsyncBaseTransport | None = None,
         retry: RetryPolicy | None = DEFAULT_RETRY,
+        exactly_once: bool = True,
     ) -> None:
         self.retry = retry
+        self.retries = RetryCounter()
         self.base_url = base_url.rstrip("/")
         self._http = httpx.AsyncClient(
             base_url=self.base_url,
@@ -367,7 +399,7 @@ class AsyncClient:
             timeout=timeout,
             transport=transport,
         )
-        self._protocol = RestProtocol()
+        self._protocol = RestProtocol(exactly_once)
 
     async def aclose(self) -> None:
         """Closes the connection pool."""
@@ -380,18 +412,21 @@ class AsyncClient:
         await self.aclose()
 
     async def _send(self, request: Request) -> Any:
-        attempts = Attempts(self.retry, time.monotonic())
+        attempts = Attempts(self.retry, time.monotonic(), self.retries, _what(request))
         while True:
+            response: httpx.Response | None = None
             try:
                 response = await self._http.request(
                     request.method, request.path, params=request.params, json=request.json
                 )
-            except httpx.HTTPError as e:
-                raise _transport_error(e, self.base_url + request.path) from e
-            try:
                 return _reply(response)
+            except httpx.HTTPError as e:
+                err = _transport_error(e, self.base_url + request.path)
+                wait = attempts.next_wait(err, time.monotonic(), None, request.resend)
+                if wait is None:
+                    raise err from e
             except McapiError as e:
-                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response))
+                wait = attempts.next_wait(e, time.monotonic(), _retry_after(response), request.resend)
                 if wait is None:
                     raise
             await asyncio.sleep(wait)
@@ -443,10 +478,11 @@ class AsyncClient:
         signal: FloatsLike | None = None,
         signal_source: IntLike | None = None,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> Step:
         """Reports one observation; see :meth:`Client.observe`."""
         obs = Observation(
-            state, stimulus, action_taken, signal, signal_source, observation=observation
+            state, stimulus, action_taken, signal, signal_source, observation=observation, seq=seq
         )
         return await adrive(self._protocol.observe(session_id, obs), self._send)
 

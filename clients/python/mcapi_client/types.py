@@ -14,10 +14,11 @@ belongs is a ``TypeError``.
 
 from __future__ import annotations
 
+import copy
 import difflib
 import math
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, SupportsIndex, Union, cast
 
 from ._inputs import (
@@ -175,6 +176,10 @@ class Step:
         policy_version: Policy updates applied so far.
         curiosity: The curiosity channel at this tick; ``None`` for a
             session without one.
+        replayed: ``True`` when the server answered a resent observation
+            (same ``seq``) with the reply it recorded when it applied it:
+            nothing was applied this time. Not compared: a replayed step
+            equals the original one.
     """
 
     tick: int
@@ -184,6 +189,7 @@ class Step:
     reward: float
     policy_version: int
     curiosity: TickCuriosity | None = None
+    replayed: bool = field(default=False, compare=False)
 
 
 @dataclass(frozen=True, slots=True)
@@ -498,6 +504,8 @@ class SessionInfo:
             without one.
         cost: The session's estimated memory and per-observation CPU time
             (``None`` from a server that does not report it).
+        next_seq: The ``seq`` of the session's next observation: how many
+            it has applied (``None`` from a server without sequence numbers).
     """
 
     id: str
@@ -510,6 +518,7 @@ class SessionInfo:
     stats: SessionStats
     curiosity: CuriosityInfo | None = None
     cost: SessionCost | None = None
+    next_seq: int | None = None
 
     def drive_by_stimulus(self) -> dict[str, float]:
         """The drive keyed by stimulus name, e.g. ``{"food": 0.6, "rest": 0.8}``."""
@@ -653,6 +662,10 @@ class Observation:
             the server's default is 0. Only with a ``signal``.
         observation: The observation vector of a continuous world (one float
             per dimension of its space), instead of ``state``.
+        seq: The observation's index in the session's stream of applied
+            observations (docs/sessions.md, "Delivery guarantees"). Leave it
+            ``None``: the clients number observations themselves (see the
+            README's "Delivery"); one given here is sent as it is.
     """
 
     state: int | None
@@ -661,6 +674,7 @@ class Observation:
     signal: list[float] | None
     signal_source: int | None
     observation: list[float] | None
+    seq: int | None
 
     def __init__(
         self,
@@ -671,6 +685,7 @@ class Observation:
         signal_source: IntLike | None = None,
         *,
         observation: FloatsLike | None = None,
+        seq: IntLike | None = None,
     ) -> None:
         if (state is None) == (observation is None):
             raise TypeError(
@@ -690,6 +705,16 @@ class Observation:
         )
         object.__setattr__(self, "signal", as_opt_floats(signal, "signal"))
         object.__setattr__(self, "signal_source", as_opt_int(signal_source, "signal_source"))
+        n = as_opt_int(seq, "seq")
+        if n is not None and not 0 <= n < 1 << 64:
+            raise error_for("bad_request", f"`seq` must be an integer from 0 to 2^64 - 1, not {n}")
+        object.__setattr__(self, "seq", n)
+
+    def with_seq(self, seq: int | None) -> Observation:
+        """This observation with another ``seq``."""
+        out = copy.copy(self)
+        object.__setattr__(out, "seq", seq)
+        return out
 
     def to_json(self) -> dict[str, object]:
         """The observation as the REST API takes it."""
@@ -706,15 +731,19 @@ class Observation:
             out["signal"] = _finite("signal", check_signal(self.signal))
         if self.signal_source is not None:
             out["signal_source"] = self.signal_source
+        if self.seq is not None:
+            out["seq"] = self.seq
         return out
 
 
 ObservationLike = Union[Observation, Mapping[str, object], tuple[Any, ...]]
 """What batch methods accept per observation: an :class:`Observation`, a
 mapping with ``state``/``stimulus``/``action_taken``/``signal``/``signal_source``
-keys, or a tuple ``(state, stimulus[, action_taken[, signal[, signal_source]]])``."""
+(and ``seq``) keys, or a tuple ``(state, stimulus[, action_taken[, signal[, signal_source]]])``."""
 
-_OBSERVATION_KEYS = {"state", "stimulus", "action_taken", "signal", "signal_source", "observation"}
+_OBSERVATION_KEYS = {
+    "state", "stimulus", "action_taken", "signal", "signal_source", "observation", "seq"
+}
 
 
 def as_observation(obs: ObservationLike) -> Observation:
@@ -732,6 +761,7 @@ def as_observation(obs: ObservationLike) -> Observation:
             action_taken=obs.get("action_taken"),  # type: ignore[arg-type]
             signal=obs.get("signal"),  # type: ignore[arg-type]
             signal_source=obs.get("signal_source"),  # type: ignore[arg-type]
+            seq=obs.get("seq"),  # type: ignore[arg-type]
         )
     if isinstance(obs, tuple) and 1 <= len(obs) <= 5:
         return Observation(*obs)

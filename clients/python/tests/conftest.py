@@ -94,16 +94,22 @@ class Server:
                 self.process.wait()
 
 
-def start_server(workdir: Path, extra: Sequence[str] = (), env: dict[str, str] | None = None) -> Server:
-    """Starts the binary on free ports and waits until REST answers ``/readyz``
-    and the gRPC port accepts connections."""
+def start_server(
+    workdir: Path,
+    extra: Sequence[str] = (),
+    env: dict[str, str] | None = None,
+    ports: tuple[int, int] | None = None,
+) -> Server:
+    """Starts the binary on free ports (or on ``ports``, REST and gRPC: a
+    restart where the clients connected) and waits until REST answers
+    ``/readyz`` and the gRPC port accepts connections."""
     workdir.mkdir(parents=True, exist_ok=True)
     # Nothing from the caller's environment configures the server under test.
     base_env = {k: v for k, v in os.environ.items() if not k.startswith("MCAPI_")}
     base_env.update(env or {})
     last_error = ""
     for attempt in range(5):
-        http_port, grpc_port = _free_port(), _free_port()
+        http_port, grpc_port = ports or (_free_port(), _free_port())
         if http_port == grpc_port:
             continue
         log = workdir / f"server-{attempt}.log"

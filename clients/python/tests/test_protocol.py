@@ -261,6 +261,8 @@ def test_sync_and_async_rest_clients_send_the_same_requests(server: Server) -> N
     asyncio.run(run())
     assert len(blocking) == len(concurrent) == 8
     sid2 = concurrent[1][1].split("/")[-2]  # .../v1/sessions/<id>/observations
-    assert sid2 != sid and json.loads(blocking[1][2]) == {"state": 4}
+    # Numbered by default: 0, 1, then the batch 2 and 3.
+    assert sid2 != sid and json.loads(blocking[1][2]) == {"state": 4, "seq": 0}
+    assert [o["seq"] for o in json.loads(blocking[3][2])["observations"]] == [2, 3]
     for (m1, u1, b1), (m2, u2, b2) in zip(blocking, concurrent):
         assert (m1, u1.replace(sid, "<id>"), b1) == (m2, u2.replace(sid2, "<id>"), b2)
