@@ -33,7 +33,8 @@ pub enum ClusterCommand {
     Rebalance(RebalanceArgs),
     /// Show a running `mcapi cluster local`'s replicas and every shard not
     /// plainly served by its map's owner: frozen (with the lease left),
-    /// half-moved, being imported, not released.
+    /// half-moved, being imported, not released. Exits 1 if any shard needs
+    /// attention or a replica does not answer, 0 otherwise.
     Status(StatusArgs),
 }
 
@@ -250,6 +251,16 @@ fn run_status(args: &StatusArgs) -> Result<()> {
         }
     }
     print!("{out}");
+    // A script (or a readiness probe) reads the exit status: 0 only when
+    // every replica answered and every shard is plainly served.
+    let silent = st.replicas.iter().filter(|(_, l)| l.is_err()).count();
+    if silent > 0 || !st.findings.is_empty() {
+        bail!(
+            "{} shard(s) frozen, half-moved, importing or not released, {silent} replica(s) not \
+             answering (listed above)",
+            st.findings.len()
+        );
+    }
     Ok(())
 }
 

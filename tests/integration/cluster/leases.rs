@@ -17,17 +17,35 @@ use crate::common;
 
 /// `mcapi cluster ARGS...`: stdout, and stderr on failure.
 fn cli(args: &[&str]) -> String {
+    let (ok, stdout, stderr) = cli_status(args);
+    assert!(ok, "mcapi cluster {args:?}: {stderr}");
+    stdout
+}
+
+/// `mcapi cluster ARGS`: whether it exited 0, its stdout and its stderr.
+fn cli_status(args: &[&str]) -> (bool, String, String) {
     let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
         .arg("cluster")
         .args(args)
         .output()
         .expect("mcapi cluster runs");
-    assert!(
+    (
         out.status.success(),
-        "mcapi cluster {args:?}: {}",
-        String::from_utf8_lossy(&out.stderr)
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// `mcapi cluster status` of a cluster with a shard that needs attention:
+/// it lists what it found and exits non-zero, saying how many.
+fn status_needing_attention(data: &str) -> String {
+    let (ok, stdout, stderr) = cli_status(&["status", "--data-dir", data]);
+    assert!(
+        !ok,
+        "status exits non-zero while a shard needs attention: {stdout}"
     );
-    String::from_utf8_lossy(&out.stdout).into_owned()
+    assert!(stderr.contains("shard(s) frozen, half-moved"), "{stderr}");
+    stdout
 }
 
 /// An admin call on a replica: status and body bytes.
@@ -123,7 +141,7 @@ async fn a_dead_movers_freeze_ends_with_its_lease_and_a_half_move_is_finished() 
     .await;
     assert_eq!(code, 503, "{body}");
     assert_eq!(body["code"], "shard_moving");
-    let status = cli(&["status", "--data-dir", &data]);
+    let status = status_needing_attention(&data);
     assert!(
         status.contains(&format!("{shard} frozen on {from}, its lease ends in")),
         "{status}"
@@ -200,7 +218,7 @@ async fn a_dead_movers_freeze_ends_with_its_lease_and_a_half_move_is_finished() 
     )
     .await;
     assert_eq!(code, 200, "{}", String::from_utf8_lossy(&body));
-    let status = cli(&["status", "--data-dir", &data]);
+    let status = status_needing_attention(&data);
     assert!(
         status.contains(&format!(
             "{shard} half-moved: {from} gave it to {to} but the map still names {from}"
