@@ -420,11 +420,7 @@ impl SessionManager {
             // One group commit holds every entry queued above: the first
             // wait is the only one that waits.
             for (pos, session, observed) in applied {
-                let result = observed.durable().await.and_then(|mut steps| {
-                    steps
-                        .pop()
-                        .ok_or_else(|| ServiceError::Internal("observe returned no step".into()))
-                });
+                let result = observed.durable().await.and_then(only_step);
                 self.roll_back_if_uncommitted(&session, &result);
                 results[pos] = Some(result);
             }
@@ -440,15 +436,10 @@ impl SessionManager {
             let group = &group;
             async move {
                 let result = match member {
-                    Some(member) => {
-                        self.observe(caller, &member, vec![obs])
-                            .await
-                            .and_then(|mut steps| {
-                                steps.pop().ok_or_else(|| {
-                                    ServiceError::Internal("observe returned no step".into())
-                                })
-                            })
-                    }
+                    Some(member) => self
+                        .observe(caller, &member, vec![obs])
+                        .await
+                        .and_then(only_step),
                     None => Err(unrecovered(&group.id, index)),
                 };
                 (pos, result)
@@ -559,6 +550,13 @@ enum Applied {
     Refused(ServiceError),
     /// Not applied here: it takes [`SessionManager::observe`]'s path.
     Elsewhere(ObservationIn),
+}
+
+/// The one step of a member's one observation.
+fn only_step(mut steps: Vec<StepOut>) -> Result<StepOut, ServiceError> {
+    steps
+        .pop()
+        .ok_or_else(|| ServiceError::Internal("observe returned no step".into()))
 }
 
 /// A member whose records could not be recovered from the store.
