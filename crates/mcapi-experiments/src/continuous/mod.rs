@@ -436,6 +436,24 @@ fn discrete_reference(opts: &RunOptions) -> anyhow::Result<BTreeMap<String, Stat
         .collect())
 }
 
+/// The mean cumulative stimulus of [`discrete_reference`] over `trials`
+/// trials of `steps` ticks from `seed`.
+pub fn discrete_reference_stimulus(trials: usize, steps: usize, seed: u64) -> anyhow::Result<f64> {
+    let opts = RunOptions {
+        trials,
+        steps,
+        seed,
+        out: std::env::temp_dir(),
+        csv: false,
+        figures: false,
+        progress: false,
+    };
+    discrete_reference(&opts)?
+        .get("total_stimulus")
+        .map(|s| s.mean)
+        .context("the discrete agent's total stimulus")
+}
+
 /// `DIR/<config>/trial_<i>.csv`: tick, the point, the stimulus, |r|, D.
 fn write_csv(
     config: &str,
