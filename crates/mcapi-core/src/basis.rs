@@ -9,6 +9,9 @@
 //! The last two are *state* features v(s) ∈ R^k lifted to state-action
 //! features by one block per action: φ(s,a) = e_a ⊗ v(s), k·|A| features.
 
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Instant;
+
 use nalgebra::{DMatrix, SymmetricEigen};
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -108,6 +111,43 @@ impl StateFeatures {
     }
 }
 
+/// When a basis build gives up: a deadline and a flag its caller sets when
+/// it no longer wants the result, both optional. The sparse eigensolver
+/// checks them between its block products (each a bounded amount of work),
+/// so a stopped build frees its thread within one product. A build that
+/// finishes has the same bits whatever its budget: the budget decides only
+/// whether it finishes.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct BuildBudget<'a> {
+    /// Give up at this instant.
+    pub deadline: Option<Instant>,
+    /// Give up once this is set.
+    pub cancelled: Option<&'a AtomicBool>,
+}
+
+impl BuildBudget<'_> {
+    /// No deadline, never cancelled: recovery, tests, the experiments.
+    pub const UNLIMITED: BuildBudget<'static> = BuildBudget {
+        deadline: None,
+        cancelled: None,
+    };
+
+    /// `Err(BuildStopped)` once the deadline has passed or the flag is set.
+    pub fn check(&self) -> Result<()> {
+        if self.cancelled.is_some_and(|c| c.load(Ordering::Relaxed)) {
+            return Err(AlgoError::BuildStopped(
+                "its request was abandoned".to_owned(),
+            ));
+        }
+        if self.deadline.is_some_and(|d| Instant::now() >= d) {
+            return Err(AlgoError::BuildStopped(
+                "it ran past its time budget".to_owned(),
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// A built basis.
 #[derive(Debug, Clone, PartialEq)]
 pub enum Basis {
@@ -120,9 +160,21 @@ pub enum Basis {
 impl Basis {
     /// Builds the basis `spec` names for `model`.
     pub fn build(spec: &BasisSpec, model: &EnvModel) -> Result<Self> {
+        Self::build_within(spec, model, BuildBudget::UNLIMITED)
+    }
+
+    /// [`Basis::build`], given up as `budget` says (a PVF basis is the one
+    /// whose build can take long).
+    pub fn build_within(
+        spec: &BasisSpec,
+        model: &EnvModel,
+        budget: BuildBudget<'_>,
+    ) -> Result<Self> {
         match spec {
             BasisSpec::Indicator => Ok(Self::Indicator),
-            BasisSpec::ProtoValue { k } => Ok(Self::StateBlocks(proto_value_functions(model, *k)?)),
+            BasisSpec::ProtoValue { k } => Ok(Self::StateBlocks(proto_value_functions_within(
+                model, *k, budget,
+            )?)),
             BasisSpec::Custom { state_features } => {
                 Ok(Self::StateBlocks(custom_features(model, state_features)?))
             }
@@ -134,7 +186,16 @@ impl Basis {
     /// number is beyond [`MAX_FEATURE_CONDITION`] (the check of a client's
     /// basis; the PVFs are orthonormal by construction).
     pub fn build_checked(spec: &BasisSpec, model: &EnvModel) -> Result<Self> {
-        let basis = Self::build(spec, model)?;
+        Self::build_checked_within(spec, model, BuildBudget::UNLIMITED)
+    }
+
+    /// [`Basis::build_checked`] within `budget`.
+    pub fn build_checked_within(
+        spec: &BasisSpec,
+        model: &EnvModel,
+        budget: BuildBudget<'_>,
+    ) -> Result<Self> {
+        let basis = Self::build_within(spec, model, budget)?;
         if let (BasisSpec::Custom { .. }, Self::StateBlocks(f)) = (spec, &basis) {
             let c = f.condition();
             if c > MAX_FEATURE_CONDITION {
@@ -218,6 +279,18 @@ pub const DENSE_PVF_MAX_STATES: usize = 800;
 /// Up to [`DENSE_PVF_MAX_STATES`] states they are exact (dense solver);
 /// above, they come from [`sparse_pvfs`], deterministic for a given model.
 pub fn proto_value_functions(model: &EnvModel, k: usize) -> Result<StateFeatures> {
+    proto_value_functions_within(model, k, BuildBudget::UNLIMITED)
+}
+
+/// [`proto_value_functions`] within `budget` (checked before the dense
+/// decomposition, which is bounded by [`DENSE_PVF_MAX_STATES`], and between
+/// the sparse solver's block products).
+pub fn proto_value_functions_within(
+    model: &EnvModel,
+    k: usize,
+    budget: BuildBudget<'_>,
+) -> Result<StateFeatures> {
+    budget.check()?;
     let n = model.states();
     if k == 0 || k > n {
         return Err(AlgoError::InvalidBasis(format!(
@@ -227,7 +300,7 @@ pub fn proto_value_functions(model: &EnvModel, k: usize) -> Result<StateFeatures
     if n <= DENSE_PVF_MAX_STATES {
         dense_pvfs(model, k)
     } else {
-        sparse_pvfs(&StateGraph::of(model), k).map(|(_, features)| features)
+        sparse_pvfs_within(&StateGraph::of(model), k, budget).map(|(_, features)| features)
     }
 }
 
@@ -527,14 +600,23 @@ const SPARSE_PVF_SEED: u64 = 0x5056_4653; // "PVFS"
 /// dense solver. Work: at most [`SPARSE_PVF_MAX_ITERATIONS`] iterations,
 /// each O(degree · b · (|S| + edges) + |S| b²); memory O(|S| b).
 pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatures)> {
+    sparse_pvfs_within(graph, k, BuildBudget::UNLIMITED)
+}
+
+/// [`sparse_pvfs`] within `budget`, checked between block products.
+pub fn sparse_pvfs_within(
+    graph: &StateGraph,
+    k: usize,
+    budget: BuildBudget<'_>,
+) -> Result<(Vec<f64>, StateFeatures)> {
     let n = graph.states();
     if k == 0 || k > n {
         return Err(AlgoError::InvalidBasis(format!(
             "`k` = {k} must be between 1 and the number of states ({n})"
         )));
     }
-    match filtered_block(graph, k, None) {
-        Err(AlgoError::Numerical(_)) => deflated_pvfs(graph, k),
+    match filtered_block(graph, k, None, budget) {
+        Err(AlgoError::Numerical(_)) => deflated_pvfs(graph, k, budget),
         done => done,
     }
 }
@@ -543,7 +625,11 @@ pub fn sparse_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatu
 /// eigenvalue repeats across the whole block (docs/algorithm.md §5): many
 /// components, whose null vectors D^{1/2}1_C are known exactly and are
 /// taken first, and a cut kept above a Ritz cluster that fills the block.
-fn deflated_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeatures)> {
+fn deflated_pvfs(
+    graph: &StateGraph,
+    k: usize,
+    budget: BuildBudget<'_>,
+) -> Result<(Vec<f64>, StateFeatures)> {
     let n = graph.states();
     let null = graph.null_space();
     let c = null.count.min(k);
@@ -555,7 +641,7 @@ fn deflated_pvfs(graph: &StateGraph, k: usize) -> Result<(Vec<f64>, StateFeature
     }
     let mut theta = vec![0.0; c];
     if c < k {
-        let (rest, features) = filtered_block(graph, k - c, Some(&null))?;
+        let (rest, features) = filtered_block(graph, k - c, Some(&null), budget)?;
         for s in 0..n {
             values[s * k + c..(s + 1) * k].copy_from_slice(features.row(s));
         }
@@ -605,6 +691,7 @@ fn filtered_block(
     graph: &StateGraph,
     k: usize,
     deflate: Option<&NullSpace>,
+    budget: BuildBudget<'_>,
 ) -> Result<(Vec<f64>, StateFeatures)> {
     let n = graph.states();
     let room = n - deflate.map_or(0, |d| d.count);
@@ -643,8 +730,10 @@ fn filtered_block(
         let sigma1 = -e / c;
         let tau = 2.0 / sigma1;
         let mut sigma = sigma1;
+        budget.check()?;
         graph.apply(&x, c, sigma1 / e, None, &mut y);
         for _ in 2..=degree {
+            budget.check()?;
             let sigma_next = 1.0 / (tau - sigma);
             graph.apply(
                 &y,
@@ -661,7 +750,9 @@ fn filtered_block(
         if let Some(d) = deflate {
             d.project_out(&mut x);
         }
+        budget.check()?;
         orthonormalise(&mut x).ok_or_else(not_converged)?;
+        budget.check()?;
         graph.apply(&x, 0.0, 1.0, None, &mut lx);
         let (ritz, q) = rayleigh_ritz(&x, &lx);
         theta = ritz;

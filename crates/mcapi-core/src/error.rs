@@ -118,6 +118,11 @@ pub enum AlgoError {
     /// or a non-finite intermediate). Not a caller's mistake.
     #[error("numerical failure: {0}")]
     Numerical(String),
+
+    /// A build was stopped before it finished: its deadline passed or its
+    /// caller went away ([`crate::basis::BuildBudget`]). Nothing was built.
+    #[error("build stopped: {0}")]
+    BuildStopped(String),
 }
 
 /// Largest accepted magnitude of a stimulus component. Beyond about 1e154

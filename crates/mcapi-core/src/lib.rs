@@ -32,7 +32,7 @@ pub mod stimulus;
 pub use agent::{
     Agent, AgentSnapshot, LearnedSnapshot, Observation, ObserveOutcome, RngState, Step,
 };
-pub use basis::Basis;
+pub use basis::{Basis, BuildBudget};
 pub use curiosity::{
     CuriosityChannel, CuriosityParams, CuriosityStep, Eq6Source, Signals, ValidCuriosityParams,
 };

@@ -220,3 +220,44 @@ fn identical_rooms_repeating_the_kth_eigenvalue_across_the_block_are_solved() {
     let (theta, features) = sparse_pvfs(&graph, 30).expect("sparse");
     are_the_smallest_eigenpairs(&graph, 30, &theta, features.as_slice());
 }
+
+/// A build budget decides only whether a build finishes: past its
+/// deadline, or with its flag set, the build stops with `BuildStopped`
+/// (and builds nothing); with room to spare it gives the same bits as a
+/// build without a budget.
+#[test]
+fn a_build_budget_stops_the_sparse_solver_or_changes_nothing() {
+    use std::sync::atomic::AtomicBool;
+    use std::time::{Duration, Instant};
+
+    use mcapi_core::basis::proto_value_functions_within;
+    use mcapi_core::{AlgoError, BuildBudget};
+
+    let model = grid_model(&open_grid(30, 30));
+    assert!(model.states() > DENSE_PVF_MAX_STATES);
+    let past = BuildBudget {
+        deadline: Some(Instant::now()),
+        cancelled: None,
+    };
+    assert!(matches!(
+        proto_value_functions_within(&model, 10, past),
+        Err(AlgoError::BuildStopped(_))
+    ));
+    let flag = AtomicBool::new(true);
+    let abandoned = BuildBudget {
+        deadline: None,
+        cancelled: Some(&flag),
+    };
+    assert!(matches!(
+        proto_value_functions_within(&model, 10, abandoned),
+        Err(AlgoError::BuildStopped(_))
+    ));
+    let unset = AtomicBool::new(false);
+    let roomy = BuildBudget {
+        deadline: Instant::now().checked_add(Duration::from_secs(3600)),
+        cancelled: Some(&unset),
+    };
+    let within = proto_value_functions_within(&model, 10, roomy).expect("built");
+    let plain = proto_value_functions(&model, 10).expect("built");
+    assert_eq!(within, plain);
+}

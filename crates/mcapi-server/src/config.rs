@@ -176,6 +176,11 @@ pub struct ServeConfig {
     /// Maximum estimated CPU time of one batch of observations, in ms.
     #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_BATCH_MS", default_value_t = Limits::default().max_batch_ms)]
     pub max_batch_ms: u64,
+    /// Maximum time one basis build (proto-value functions) may take when a
+    /// session is created, in ms: estimated before it starts, enforced
+    /// while it runs.
+    #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_BUILD_MS", default_value_t = Limits::default().max_build_ms)]
+    pub max_build_ms: u64,
     /// Sessions one API key (without keys: all clients) may hold.
     #[arg(help_heading = "Limits", long, env = "MCAPI_MAX_KEY_SESSIONS", default_value_t = Limits::default().max_key_sessions)]
     pub max_key_sessions: usize,
@@ -304,6 +309,7 @@ impl ServeConfig {
             max_session_bytes: self.max_session_bytes,
             max_tick_us: self.max_tick_us,
             max_batch_ms: self.max_batch_ms,
+            max_build_ms: self.max_build_ms,
             max_key_sessions: self.max_key_sessions,
             max_key_bytes: self.max_key_bytes,
             max_response_bytes: self.max_response_bytes,
@@ -457,6 +463,7 @@ impl ServeConfig {
             ("--max-session-bytes", self.max_session_bytes),
             ("--max-tick-us", self.max_tick_us),
             ("--max-batch-ms", self.max_batch_ms),
+            ("--max-build-ms", self.max_build_ms),
             ("--max-key-bytes", self.max_key_bytes),
         ] {
             if value == 0 {

@@ -47,6 +47,11 @@ pub fn classify(e: &ServiceError) -> (StatusCode, tonic::Code, &'static str) {
                 (H::BAD_REQUEST, G::InvalidArgument, "invalid_observation")
             }
             AlgoError::Numerical(_) => (H::INTERNAL_SERVER_ERROR, G::Internal, "numerical_failure"),
+            // A build stopped by its time budget (setup says so as a
+            // `LimitExceeded`, this is the same answer).
+            AlgoError::BuildStopped(_) => {
+                (H::PAYLOAD_TOO_LARGE, G::ResourceExhausted, "limit_exceeded")
+            }
         },
         ServiceError::BadRequest(_) => (H::BAD_REQUEST, G::InvalidArgument, "bad_request"),
         ServiceError::NotFound(_) | ServiceError::GroupNotFound(_) => {

@@ -42,7 +42,7 @@ use tracing::Instrument;
 use crate::api::conn::{ConnLimits, grpc_panic_layer, limited_incoming};
 use crate::api::error::{step_error, to_status};
 use crate::api::streams::{StreamLimiter, StreamSlot};
-use crate::service::{Caller, ObservationIn, ServiceError, SessionManager, StepOut};
+use crate::service::{Caller, ObservationIn, ServiceError, SessionManager, StepOut, Watch};
 
 use pb::agents_server::{Agents, AgentsServer};
 
@@ -258,11 +258,15 @@ impl Agents for AgentsService {
         let caller = caller(&self.manager, &request)?;
         let req = convert::create_session(request.into_inner()).map_err(to_status)?;
         let manager = Arc::clone(&self.manager);
-        // Building a model (PVFs: an eigendecomposition) must not block the runtime.
+        // Building a model (PVFs: an eigendecomposition) must not block the
+        // runtime; the build stops if this call is abandoned (the guard is
+        // dropped with its future).
+        let watch = Watch::default();
+        let _abandon = watch.abandon_on_drop();
         let info = tokio::task::spawn_blocking(move || match req {
-            convert::CreateCall::Json(req) => manager.create(caller, req),
+            convert::CreateCall::Json(req) => manager.create_watched(caller, req, &watch),
             convert::CreateCall::Typed { model, agent } => {
-                manager.create_parsed(caller, model, &agent)
+                manager.create_parsed(caller, model, &agent, &watch)
             }
         })
         .await

@@ -26,6 +26,7 @@ use crate::service::budget::ResponsePermit;
 use crate::service::groups::{ADVISED, Columns, CreateGroup, GroupInfo};
 use crate::service::{
     CreateSession, HistoryEntry, ServiceError, SessionInfo, SessionPage, ValueSelection, Values,
+    Watch,
 };
 
 /// Liveness
@@ -109,7 +110,11 @@ pub(crate) async fn create_session(
     JsonBody(req): JsonBody<CreateSession>,
 ) -> Result<(StatusCode, Json<SessionInfo>), ApiError> {
     let manager = Arc::clone(&state.manager);
-    let info = tokio::task::spawn_blocking(move || manager.create(caller, req))
+    // Dropped with this future when the request is abandoned: the model's
+    // build then stops.
+    let watch = Watch::default();
+    let _abandon = watch.abandon_on_drop();
+    let info = tokio::task::spawn_blocking(move || manager.create_watched(caller, req, &watch))
         .await
         .map_err(|e| ServiceError::Internal(format!("create task: {e}")))??;
     Ok((StatusCode::CREATED, Json(info)))

@@ -255,6 +255,38 @@ fn continuous(
     }
 }
 
+/// A low estimate of the time, in milliseconds, that building `basis` for
+/// `model` takes: what a session's creation is refused for before the
+/// build starts when it is over `--max-build-ms` (the build is also
+/// stopped by that deadline while it runs, so the estimate only has to
+/// spare the server builds that could not finish; it errs low, so that no
+/// build that could finish is refused). Only proto-value functions cost
+/// more than the model itself:
+/// - up to `DENSE_PVF_MAX_STATES` states, a dense symmetric
+///   eigendecomposition, |S|³/4 operations (551 ms for 1,024 states,
+///   BENCHMARKS.md §9, is about |S|³/2);
+/// - above, the sparse solver's iteration, two of them at a filter of
+///   degree 32: each applies the Laplacian to a block of b vectors per
+///   degree, b (|S| + 2 · transitions), and orthonormalises and rotates
+///   the block, 4 |S| b² (measured: 30 ms for 30 PVFs of a 32 × 32 grid,
+///   estimated 31; 0.74 s for a 100 × 100 grid, estimated 0.31; about
+///   155 s for 550 PVFs of a 10,000-state ring, estimated 56).
+pub fn basis_build_ms(basis: &mcapi_core::BasisSpec, model: &mcapi_core::EnvModel) -> u64 {
+    use mcapi_core::basis::{DENSE_PVF_MAX_STATES, sparse_pvf_block};
+    let mcapi_core::BasisSpec::ProtoValue { k } = basis else {
+        return 0;
+    };
+    let n = model.states() as f64;
+    let ops = if model.states() <= DENSE_PVF_MAX_STATES {
+        n * n * n / 4.0
+    } else {
+        let b = sparse_pvf_block(*k, model.states()) as f64;
+        let nnz = 2.0 * model.n_transitions() as f64;
+        2.0 * (32.0 * b * (n + nnz) + 4.0 * n * b * b)
+    };
+    us(ops) / 1000
+}
+
 /// Estimated CPU time of one observation without its policy update (what
 /// an async-mode observation costs the request), in microseconds.
 pub fn observe_us(model: &ModelSummary, config: &EffectiveConfig) -> u64 {

@@ -59,6 +59,9 @@ pub struct Limits {
     pub max_tick_us: u64,
     /// Estimated CPU time of one batch of observations, in milliseconds.
     pub max_batch_ms: u64,
+    /// Time one basis build may take, in milliseconds: estimated before it
+    /// starts ([`super::cost::basis_build_ms`]) and enforced while it runs.
+    pub max_build_ms: u64,
     /// Sessions one API key (or, without keys, all clients) may hold.
     pub max_key_sessions: usize,
     /// Estimated memory of all sessions of one API key (or, without keys,
@@ -95,6 +98,7 @@ impl Default for Limits {
             max_session_bytes: 256 << 20,
             max_tick_us: 250_000,
             max_batch_ms: 30_000,
+            max_build_ms: 30_000,
             max_key_sessions: 250_000,
             max_key_bytes: 8 << 30,
             max_response_bytes: 64 << 20,
@@ -126,6 +130,7 @@ impl Limits {
             max_session_bytes: u64::MAX,
             max_tick_us: u64::MAX,
             max_batch_ms: u64::MAX,
+            max_build_ms: u64::MAX,
             max_key_sessions: usize::MAX,
             max_key_bytes: u64::MAX,
             max_response_bytes: usize::MAX,

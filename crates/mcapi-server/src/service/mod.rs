@@ -46,8 +46,8 @@ pub use error::{DecodeError, RecordError, RecoveryError, ServiceError, StorageEr
 pub use learner::Learner;
 pub use limits::{Limits, Usage};
 pub use manager::{
-    DEFAULT_INLINE_PLAN, DEFAULT_PAGE, DEFAULT_SNAPSHOT_EVERY, MAX_PAGE, ManagerOptions, SHARDS,
-    SessionManager,
+    AbandonOnDrop, DEFAULT_INLINE_PLAN, DEFAULT_PAGE, DEFAULT_SNAPSHOT_EVERY, MAX_PAGE,
+    ManagerOptions, SHARDS, SessionManager, Watch,
 };
 pub use recovery::RecoveryReport;
 pub use session::{Durability, Session, SessionRef};

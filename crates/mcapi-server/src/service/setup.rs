@@ -4,14 +4,15 @@
 //! built. Creation and recovery both build here.
 
 use std::collections::HashMap;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Weak};
+use std::time::{Duration, Instant};
 use std::time::{SystemTime, UNIX_EPOCH};
 
 use parking_lot::Mutex;
 
 use mcapi_core::continuous::{ContinuousAgent, ContinuousBasisSpec, ContinuousModel};
-use mcapi_core::{Agent, AlgoError, Basis, CuriousAgent, PlanningModel};
+use mcapi_core::{Agent, AlgoError, Basis, BasisSpec, BuildBudget, CuriousAgent, PlanningModel};
 
 use super::agent_config::{EffectiveConfig, SessionConfig};
 use super::cost;
@@ -19,7 +20,7 @@ use super::error::ServiceError;
 use super::learner::Learner;
 use super::limits::Limits;
 use super::spec::ModelInput;
-use super::wire::{BasisSummary, GridLayout, LearnedSummary, ModelSummary};
+use super::wire::{BasisSummary, GridLayout, LearnedSummary, ModelSummary, SessionCost};
 
 /// A counting semaphore for model builds: at most `slots` at once, and at
 /// most `queue` more waiting; beyond that a create is refused with 503
@@ -80,6 +81,18 @@ impl Drop for BuildSlot<'_> {
 /// are not copied into each session.
 type Built = Arc<ModelSummary>;
 
+/// What the build of a new session checks before it spends anything, and
+/// when it gives up. Creation builds with one; recovery without (a session
+/// accepted once is rebuilt whatever it costs).
+pub(super) struct NewBuild<'a> {
+    /// The session's estimated cost against the caller's quota, checked
+    /// before the basis is built.
+    pub admit: &'a dyn Fn(&SessionCost) -> Result<(), ServiceError>,
+    /// Set when the request that asked for the session is abandoned (its
+    /// client went away, or its time ran out): the build stops.
+    pub abandoned: Option<&'a AtomicBool>,
+}
+
 /// The summary of a model as built: the basis chosen and the grid layout.
 fn summary_of(
     ctx: &PlanningModel,
@@ -87,7 +100,18 @@ fn summary_of(
     layout: Option<GridLayout>,
     learned: Option<LearnedSummary>,
 ) -> ModelSummary {
-    let model = ctx.model();
+    summary_with(ctx.model(), ctx.n_features(), basis, layout, learned)
+}
+
+/// [`summary_of`] from the model and its feature count: what a session
+/// will be, before its basis is built.
+fn summary_with(
+    model: &mcapi_core::EnvModel,
+    features: usize,
+    basis: BasisSummary,
+    layout: Option<GridLayout>,
+    learned: Option<LearnedSummary>,
+) -> ModelSummary {
     ModelSummary {
         states: model.states(),
         actions: model.actions().to_vec(),
@@ -96,7 +120,7 @@ fn summary_of(
         transitions: model.n_transitions(),
         deterministic: model.is_deterministic(),
         basis,
-        features: ctx.n_features(),
+        features,
         layout,
         learned,
         continuous: None,
@@ -145,6 +169,9 @@ pub(super) struct Setup {
     models: Mutex<HashMap<String, (Weak<PlanningModel>, Built)>>,
     seed_counter: AtomicU64,
     builds: BuildSlots,
+    /// Basis builds stopped before they finished (their request abandoned,
+    /// or past `--max-build-ms`).
+    stopped: AtomicU64,
 }
 
 impl Setup {
@@ -157,7 +184,13 @@ impl Setup {
             models: Mutex::new(HashMap::new()),
             seed_counter: AtomicU64::new(splitmix(now ^ u64::from(std::process::id()))),
             builds: BuildSlots::new(workers),
+            stopped: AtomicU64::new(0),
         }
+    }
+
+    /// Basis builds stopped before they finished, since the start.
+    pub(super) fn builds_stopped(&self) -> u64 {
+        self.stopped.load(Ordering::Relaxed)
     }
 
     pub(super) fn fresh_u64(&self) -> u64 {
@@ -168,42 +201,95 @@ impl Setup {
     }
 
     /// The shared planning model for `input`, built once per distinct model,
-    /// with what a session's model summary takes from its build.
+    /// with what a session's model summary takes from its build. Before a
+    /// basis is built, `before` sees what the session will be (so that every
+    /// check that costs nothing runs first); with `new`, a build estimated
+    /// over `--max-build-ms` is refused, and one that runs past it or whose
+    /// request is abandoned is stopped.
     fn planning_model(
         &self,
         input: &ModelInput,
         curious: bool,
         limits: &Limits,
+        before: &dyn Fn(&ModelSummary) -> Result<(), ServiceError>,
+        new: Option<&NewBuild<'_>>,
     ) -> Result<(Arc<PlanningModel>, Built), ServiceError> {
         let key = format!("{}:curious={curious}", input.cache_key());
         if let Some((weak, built)) = self.models.lock().get(&key)
             && let Some(ctx) = weak.upgrade()
         {
+            before(built)?;
             return Ok((ctx, Arc::clone(built)));
         }
-        // Built outside the lock (PVFs cost an eigendecomposition), a few at
-        // a time.
-        let _slot = self.builds.acquire()?;
         let (model, basis_spec) = input.build(limits, curious)?;
-        let basis = Basis::build_checked(&basis_spec, &model).map_err(|e| match e {
+        let learned = |model: &mcapi_core::EnvModel| {
+            input.learning().map(|l| LearnedSummary {
+                known_after: l.known_after,
+                optimism: l.optimism,
+                max_transitions: limits.learned_transitions(model),
+            })
+        };
+        let features = match &basis_spec {
+            BasisSpec::Indicator => model.n_pairs(),
+            BasisSpec::ProtoValue { k } => k.saturating_mul(model.n_actions()),
+            BasisSpec::Custom { state_features } => state_features
+                .first()
+                .map_or(0, Vec::len)
+                .saturating_mul(model.n_actions()),
+        };
+        before(&summary_with(
+            &model,
+            features,
+            BasisSummary::of(&basis_spec),
+            input.layout(),
+            learned(&model),
+        ))?;
+        let kind = BasisSummary::of(&basis_spec).kind;
+        let way_out = "ask for fewer proto-value functions (`k`) or `{\"kind\": \"indicator\"}`";
+        let budget_ms = limits.max_build_ms;
+        if new.is_some() {
+            let estimate = cost::basis_build_ms(&basis_spec, &model);
+            if estimate > budget_ms {
+                return Err(ServiceError::LimitExceeded(format!(
+                    "the {kind} basis of this model ({} states) would take at least {estimate} ms to build; the limit is {budget_ms} ms (--max-build-ms); {way_out}",
+                    model.states()
+                )));
+            }
+        }
+        // Built outside the lock (PVFs cost an eigendecomposition), a few at
+        // a time; a new session's build within its time budget, counted
+        // from when it gets its slot.
+        let _slot = self.builds.acquire()?;
+        let budget = match new {
+            Some(new) => BuildBudget {
+                deadline: Instant::now().checked_add(Duration::from_millis(budget_ms)),
+                cancelled: new.abandoned,
+            },
+            None => BuildBudget::UNLIMITED,
+        };
+        let basis = Basis::build_checked_within(&basis_spec, &model, budget).map_err(|e| match e {
             // A basis the solver could not compute (the sparse PVF solver
             // gives up on some graphs) is no fault of the server's: say
             // which basis, and what to ask for instead.
             AlgoError::Numerical(detail) => ServiceError::field(
                 "model.basis",
                 format!(
-                    "the {} basis of this model could not be computed ({detail}); ask for                      `{{\"kind\": \"indicator\"}}` or fewer proto-value functions (`k`)",
-                    BasisSummary::of(&basis_spec).kind
+                    "the {kind} basis of this model could not be computed ({detail}); ask for                      `{{\"kind\": \"indicator\"}}` or fewer proto-value functions (`k`)"
                 ),
             ),
+            AlgoError::BuildStopped(why) => {
+                self.stopped.fetch_add(1, Ordering::Relaxed);
+                let abandoned = budget.cancelled.is_some_and(|c| c.load(Ordering::Relaxed));
+                let reason = if abandoned { "abandoned" } else { "deadline" };
+                metrics::counter!("mcapi_builds_stopped_total", "reason" => reason).increment(1);
+                ServiceError::LimitExceeded(format!(
+                    "the {kind} basis of this model was not built: {why} (--max-build-ms is {budget_ms} ms); {way_out}"
+                ))
+            }
             other => other.into(),
         })?;
         let ctx = Arc::new(PlanningModel::new(model, basis));
-        let learned = input.learning().map(|l| LearnedSummary {
-            known_after: l.known_after,
-            optimism: l.optimism,
-            max_transitions: limits.learned_transitions(ctx.model()),
-        });
+        let learned = learned(ctx.model());
         let built = Arc::new(summary_of(
             &ctx,
             BasisSummary::of(&basis_spec),
@@ -221,12 +307,36 @@ impl Setup {
         Ok((ctx, built))
     }
 
-    /// Builds the agent of a session (fresh, or the base of a recovery).
+    /// Builds the agent of a session: the base of a recovery, or a group's
+    /// later members (their model is built by then).
     pub(super) fn build(
         &self,
         input: &ModelInput,
         agent: &SessionConfig,
         limits: &Limits,
+    ) -> Result<(Learner, Arc<ModelSummary>, EffectiveConfig), ServiceError> {
+        self.build_as(input, agent, limits, None)
+    }
+
+    /// Builds the agent of a new session: as [`Self::build`], with the
+    /// session's cost admitted before its basis is built, and that build
+    /// priced, timed and stopped as `new` and `--max-build-ms` say.
+    pub(super) fn build_new(
+        &self,
+        input: &ModelInput,
+        agent: &SessionConfig,
+        limits: &Limits,
+        new: &NewBuild<'_>,
+    ) -> Result<(Learner, Arc<ModelSummary>, EffectiveConfig), ServiceError> {
+        self.build_as(input, agent, limits, Some(new))
+    }
+
+    fn build_as(
+        &self,
+        input: &ModelInput,
+        agent: &SessionConfig,
+        limits: &Limits,
+        new: Option<&NewBuild<'_>>,
     ) -> Result<(Learner, Arc<ModelSummary>, EffectiveConfig), ServiceError> {
         limits.check_config(agent)?;
         if let Some(spec) = input.continuous() {
@@ -259,10 +369,21 @@ impl Setup {
                 "a curiosity channel needs a model with posted transitions; this model learns them (`learn`)",
             ));
         }
-        let (ctx, summary) = self.planning_model(input, agent.curiosity.is_some(), limits)?;
-        let params = agent
-            .params()
-            .check(ctx.model().n_stimuli(), self.fresh_u64())?;
+        let seed = self.fresh_u64();
+        // The agent's parameters and the session's cost, checked against
+        // what the session will be before anything is built.
+        let before = |summary: &ModelSummary| -> Result<(), ServiceError> {
+            let params = agent.params().check(summary.stimuli.len(), seed)?;
+            if let Some(new) = new {
+                let config = agent.effective(&params);
+                let summary = within_budget(Arc::new(summary.clone()), &config, limits);
+                (new.admit)(&cost::estimate(&summary, &config))?;
+            }
+            Ok(())
+        };
+        let curious = agent.curiosity.is_some();
+        let (ctx, summary) = self.planning_model(input, curious, limits, &before, new)?;
+        let params = agent.params().check(ctx.model().n_stimuli(), seed)?;
         let config = agent.effective(&params);
         let summary = within_budget(summary, &config, limits);
         let learner = match (&agent.curiosity, input.learning()) {

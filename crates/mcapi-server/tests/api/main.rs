@@ -10,6 +10,7 @@
 //! package's (`tests/integration/` at the workspace root); the helpers both
 //! share are the mcapi-testkit crate.
 
+mod builds;
 mod continuous;
 mod eviction;
 mod groups;

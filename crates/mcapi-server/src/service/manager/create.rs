@@ -2,20 +2,62 @@
 //! built by [`super::super::setup`] off the runtime, logged to the store
 //! before it is installed in the table.
 
+use std::sync::atomic::AtomicBool;
+
+use super::super::setup::NewBuild;
 use super::*;
+
+/// Watches a creation's request: set when the request is abandoned (its
+/// client went away or its time ran out), so that the build of its model
+/// stops instead of running on for nobody. An adapter makes one per request
+/// and keeps an [`AbandonOnDrop`] for it in the request's future.
+#[derive(Debug, Clone, Default)]
+pub struct Watch {
+    abandoned: Arc<AtomicBool>,
+}
+
+impl Watch {
+    /// A guard that marks this request abandoned when it is dropped: when
+    /// the request's future is dropped before the creation returns, or
+    /// after (harmless then).
+    pub fn abandon_on_drop(&self) -> AbandonOnDrop {
+        AbandonOnDrop(Arc::clone(&self.abandoned))
+    }
+}
+
+/// See [`Watch::abandon_on_drop`].
+#[derive(Debug)]
+pub struct AbandonOnDrop(Arc<AtomicBool>);
+
+impl Drop for AbandonOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, std::sync::atomic::Ordering::Relaxed);
+    }
+}
 
 impl SessionManager {
     /// Creates a session. Synchronous and possibly slow (a PVF basis costs
     /// an eigendecomposition; with a store, the creation is committed before
     /// this returns): call it off the async runtime.
     pub fn create(&self, caller: Caller, req: CreateSession) -> Result<SessionInfo, ServiceError> {
+        self.create_watched(caller, req, &Watch::default())
+    }
+
+    /// [`Self::create`] for a request that may be abandoned: its model's
+    /// build stops once `watch` says so (see [`Watch`]).
+    pub fn create_watched(
+        &self,
+        caller: Caller,
+        req: CreateSession,
+        watch: &Watch,
+    ) -> Result<SessionInfo, ServiceError> {
         let CreateSession { model, agent } = req;
         if self.len() >= self.limits.max_sessions {
             return Err(ServiceError::TooManySessions(self.limits.max_sessions));
         }
         let model_text = self.durability.as_ref().map(|_| model.to_string());
         let input = ModelInput::parse(model)?;
-        self.create_from(caller, input, &agent, model_text)
+        self.create_from(caller, input, &agent, model_text, watch)
     }
 
     /// Creates a session from a model already parsed (gRPC's typed `Model`,
@@ -26,6 +68,7 @@ impl SessionManager {
         caller: Caller,
         input: ModelInput,
         agent: &SessionConfig,
+        watch: &Watch,
     ) -> Result<SessionInfo, ServiceError> {
         if self.len() >= self.limits.max_sessions {
             return Err(ServiceError::TooManySessions(self.limits.max_sessions));
@@ -34,7 +77,7 @@ impl SessionManager {
             Some(_) => Some(input.to_json_text()?),
             None => None,
         };
-        self.create_from(caller, input, agent, model_text)
+        self.create_from(caller, input, agent, model_text, watch)
     }
 
     pub(super) fn create_from(
@@ -43,6 +86,7 @@ impl SessionManager {
         input: ModelInput,
         agent: &SessionConfig,
         model_text: Option<String>,
+        watch: &Watch,
     ) -> Result<SessionInfo, ServiceError> {
         let owner = caller.owner();
         // Refused early when the key's quota of sessions is used up.
@@ -53,7 +97,15 @@ impl SessionManager {
             },
             self.sessions.read().usage(&owner),
         )?;
-        let (learner, summary, config) = self.setup.build(&input, agent, &self.limits)?;
+        let admit = |cost: &SessionCost| {
+            self.limits
+                .check_cost(cost, self.sessions.read().usage(&owner))
+        };
+        let new = NewBuild {
+            admit: &admit,
+            abandoned: Some(&watch.abandoned),
+        };
+        let (learner, summary, config) = self.setup.build_new(&input, agent, &self.limits, &new)?;
         let cost = cost::estimate(&summary, &config);
         self.limits
             .check_cost(&cost, self.sessions.read().usage(&owner))?;

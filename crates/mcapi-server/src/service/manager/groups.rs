@@ -144,7 +144,17 @@ impl SessionManager {
         };
         // One member first: its cost prices the group before the others
         // are built.
-        let first = self.setup.build(&input, &member_config(0), &self.limits)?;
+        let admit = |cost: &SessionCost| {
+            self.limits
+                .check_cost(cost, self.sessions.read().usage(&owner))
+        };
+        let new = super::super::setup::NewBuild {
+            admit: &admit,
+            abandoned: None,
+        };
+        let first = self
+            .setup
+            .build_new(&input, &member_config(0), &self.limits, &new)?;
         let cost = cost::estimate(&first.1, &first.2);
         let total = SessionCost {
             bytes: cost.bytes.saturating_mul(n as u64),

@@ -7,6 +7,7 @@
 //! sessions at start.
 
 mod create;
+pub use create::{AbandonOnDrop, Watch};
 mod groups;
 mod lifecycle;
 mod lookup;
@@ -202,6 +203,12 @@ impl SessionManager {
     /// The memory of value and history responses in flight.
     pub fn responses(&self) -> &ResponseBudget {
         &self.responses
+    }
+
+    /// Basis builds of new sessions stopped before they finished: their
+    /// request abandoned, or past `--max-build-ms`.
+    pub fn builds_stopped(&self) -> u64 {
+        self.setup.builds_stopped()
     }
 
     /// Number of sessions.

@@ -1,0 +1,184 @@
+//! A basis build is priced before it starts and stopped when it runs past
+//! `--max-build-ms` or its request is abandoned: a proto-value basis that
+//! could not finish in time is refused at once with 413 (it used to run
+//! for minutes after its request had timed out), every check that costs
+//! nothing comes first, and the build of a request whose client went away
+//! stops instead of holding its thread and its creation slot.
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
+use mcapi_server::api::grpc::{pb, serve_on};
+use mcapi_server::api::{AppState, router};
+use mcapi_server::service::{Limits, SessionManager};
+use serde_json::{Value, json};
+
+/// A server on `limits`: (its manager, REST base URL, gRPC address).
+async fn start(limits: Limits) -> (Arc<SessionManager>, String, String) {
+    let manager = Arc::new(SessionManager::new(limits, 1).expect("manager"));
+    let rest = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let base = format!("http://{}", rest.local_addr().expect("addr"));
+    let app = router(AppState {
+        manager: Arc::clone(&manager),
+        metrics: None,
+        serving: None,
+    });
+    tokio::spawn(async move { axum::serve(rest, app).await.expect("serve") });
+    let grpc = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let addr = format!("http://{}", grpc.local_addr().expect("addr"));
+    tokio::spawn(serve_on(
+        grpc,
+        Arc::clone(&manager),
+        8,
+        std::future::pending(),
+    ));
+    (manager, base, addr)
+}
+
+/// A ring of `n` states, one action, with `k` proto-value functions: a
+/// graph whose eigenvalues crowd together, so its sparse build is slow.
+fn ring(n: usize, k: usize) -> Value {
+    let next: Vec<Vec<usize>> = (0..n).map(|s| vec![(s + 1) % n]).collect();
+    json!({"states": n, "actions": ["go"], "next": next, "stimuli": ["x"],
+           "basis": {"kind": "proto_value", "k": k}})
+}
+
+async fn post(base: &str, body: &Value) -> (u16, Value) {
+    let resp = reqwest::Client::new()
+        .post(format!("{base}/v1/sessions"))
+        .json(body)
+        .send()
+        .await
+        .expect("request");
+    let status = resp.status().as_u16();
+    (status, resp.json().await.unwrap_or(Value::Null))
+}
+
+#[tokio::test]
+async fn a_build_estimated_over_the_budget_is_refused_before_it_starts() {
+    let (manager, base, addr) = start(Limits::default()).await;
+    // 550 PVFs of a 10,000-state ring: inside every size limit, but about
+    // 155 s of eigensolver (estimated at least 56 s; the budget is 30 s).
+    let body = json!({"model": ring(10_000, 550)});
+    let (status, reply) = post(&base, &body).await;
+    assert_eq!(status, 413, "{reply}");
+    assert_eq!(reply["code"], "limit_exceeded", "{reply}");
+    let message = reply["message"].as_str().unwrap_or_default();
+    assert!(message.contains("--max-build-ms"), "{message}");
+    assert!(message.contains("fewer proto-value functions"), "{message}");
+    assert_eq!(manager.builds_stopped(), 0, "refused, not started");
+    // gRPC alike: RESOURCE_EXHAUSTED.
+    let mut client = AgentsClient::connect(addr).await.expect("connect");
+    #[allow(deprecated)]
+    let status = client
+        .create_session(pb::CreateSessionRequest {
+            model_json: body["model"].to_string(),
+            ..Default::default()
+        })
+        .await
+        .expect_err("refused");
+    assert_eq!(status.code(), tonic::Code::ResourceExhausted, "{status:?}");
+    assert!(status.message().contains("--max-build-ms"), "{status:?}");
+    assert!(manager.is_empty());
+}
+
+#[tokio::test]
+async fn cheap_checks_come_before_the_build() {
+    // A wrong agent parameter on a model whose build would cost seconds,
+    // on a server that stops builds after 1 s: refused for the parameter,
+    // not for the build (which, run first, would be stopped: 413).
+    let (manager, base, _) = start(Limits {
+        max_build_ms: 1000,
+        ..Limits::default()
+    })
+    .await;
+    let (status, reply) = post(
+        &base,
+        &json!({"model": ring(2000, 150), "agent": {"eta": -1.0}}),
+    )
+    .await;
+    assert_eq!(status, 400, "{reply}");
+    assert!(
+        reply["message"]
+            .as_str()
+            .unwrap_or_default()
+            .contains("eta"),
+        "{reply}"
+    );
+    let (status, reply) = post(
+        &base,
+        &json!({"model": ring(2000, 150), "agent": {"priorities": [1.0, 1.0, 1.0]}}),
+    )
+    .await;
+    assert_eq!(status, 400, "{reply}");
+    // A session over the per-session tick budget: 413 for its cost, before
+    // its basis is built.
+    let (tight, tight_base, _) = start(Limits {
+        max_tick_us: 1,
+        max_build_ms: 1000,
+        ..Limits::default()
+    })
+    .await;
+    let (status, reply) = post(&tight_base, &json!({"model": ring(2000, 150)})).await;
+    assert_eq!(status, 413, "{reply}");
+    assert!(
+        reply["message"]
+            .as_str()
+            .unwrap_or_default()
+            .contains("--max-tick-us"),
+        "{reply}"
+    );
+    assert_eq!(manager.builds_stopped() + tight.builds_stopped(), 0);
+}
+
+#[tokio::test]
+async fn a_build_past_its_deadline_is_stopped() {
+    // 150 PVFs of a 2000-state ring: estimated at about 0.9 s, so it
+    // starts under a 1 s budget, and takes seconds, so it is stopped.
+    let (manager, base, _) = start(Limits {
+        max_build_ms: 1000,
+        ..Limits::default()
+    })
+    .await;
+    let (status, reply) = post(&base, &json!({"model": ring(2000, 150)})).await;
+    assert_eq!(status, 413, "{reply}");
+    let message = reply["message"].as_str().unwrap_or_default();
+    assert!(message.contains("ran past its time budget"), "{message}");
+    assert_eq!(manager.builds_stopped(), 1);
+    assert!(manager.is_empty());
+    // The slot is free again: a model that builds at once is served.
+    let (status, reply) = post(&base, &json!({"model": ring(50, 5)})).await;
+    assert_eq!(status, 201, "{reply}");
+}
+
+#[tokio::test]
+async fn the_build_of_an_abandoned_request_stops() {
+    let (manager, base, _) = start(Limits::default()).await;
+    // The client gives up after 200 ms on a build of seconds.
+    let gave_up = reqwest::Client::new()
+        .post(format!("{base}/v1/sessions"))
+        .timeout(Duration::from_millis(200))
+        .json(&json!({"model": ring(2000, 150)}))
+        .send()
+        .await;
+    assert!(gave_up.is_err(), "the client timed out: {gave_up:?}");
+    // Wait for the server to notice (one block product at most), bounded:
+    // a build that ran to its end would leave the count at 0.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    while manager.builds_stopped() == 0 && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(
+        manager.builds_stopped(),
+        1,
+        "the abandoned build was stopped"
+    );
+    assert!(manager.is_empty());
+    let (status, reply) = post(&base, &json!({"model": ring(50, 5)})).await;
+    assert_eq!(status, 201, "{reply}");
+}
