@@ -420,7 +420,10 @@ impl SessionManager {
             // One group commit holds every entry queued above: the first
             // wait is the only one that waits.
             for (pos, session, observed) in applied {
-                let result = observed.durable().await.and_then(only_step);
+                let result = observed.durable().await.and_then(|out| {
+                    super::observe::replays_stand(&session, &out)?;
+                    only_step(out)
+                });
                 self.roll_back_if_uncommitted(&session, &result);
                 results[pos] = Some(result);
             }
