@@ -11,8 +11,8 @@
 //! not strictly increasing or names a member beyond the group
 //! (`invalid_mask`), a column whose length disagrees with the members
 //! stepped, the stimulus dimensions or the observation dimensions
-//! (`column_length`; `seqs` too), a number no member could take (a state outside the
-//! model, a NaN, infinite or too large stimulus component, a NaN
+//! (`column_length`; `seqs` too), a number no member could take (a state
+//! outside the model, a NaN, infinite or too large stimulus component, a NaN
 //! observation coordinate: the code one such observation gets alone). What
 //! only a member's own state refuses (an action it cannot take, a stimulus
 //! on its first observation, a member deleted alone, a seq the member's
