@@ -10,6 +10,7 @@ binary64 ``bytes``, row-major, one row per member stepped (docs/groups.md).
 from __future__ import annotations
 
 import asyncio
+import collections
 import queue
 from collections.abc import AsyncIterator, Iterator, Sequence
 from typing import TYPE_CHECKING, Any
@@ -19,9 +20,11 @@ import numpy as np
 from ._pb import rpc_error
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from .errors import Unavailable
-from .groups import F64, Columns, GroupInfo, GroupStep, MemberStatus, check_columns
+from .groups import F64, Columns, GroupInfo, GroupSeqs, GroupStep, MemberStatus, check_columns, stepped
 
 if TYPE_CHECKING:
+    import numpy.typing as npt
+
     from ._proto.mcapi.v1 import agents_pb2_grpc as pb_grpc
 
 __all__ = ["VectorAgents", "AsyncVectorAgents", "group_info", "step_request", "group_step"]
@@ -40,9 +43,13 @@ def group_info(msg: pb.GroupInfo) -> GroupInfo:
     )
 
 
-def step_request(group_id: str, seq: int, columns: Columns) -> pb.GroupStepRequest:
-    """One ``GroupStepRequest`` of checked columns."""
+def step_request(
+    group_id: str, seq: int, columns: Columns, seqs: npt.NDArray[np.uint64] | None = None
+) -> pb.GroupStepRequest:
+    """One ``GroupStepRequest`` of checked columns (and its members' ``seqs``)."""
     msg = pb.GroupStepRequest(group_id=group_id, seq=seq)
+    if seqs is not None:
+        msg.seqs.extend(seqs.tolist())
     if columns.states is not None:
         msg.states.extend(columns.states.tolist())
     if columns.observations is not None:
@@ -67,7 +74,21 @@ def group_step(msg: pb.GroupStepReply, stimuli: int) -> GroupStep:
         rewards=np.frombuffer(msg.rewards, dtype=F64),
         policy_versions=np.asarray(msg.policy_versions, dtype=np.uint64),
         ticks=np.asarray(msg.ticks, dtype=np.uint64),
-        errors=[MemberStatus(s.index, s.code, s.message) for s in msg.statuses],
+        errors=[
+            MemberStatus(
+                s.index,
+                s.code,
+                s.message,
+                s.expected_seq if s.HasField("expected_seq") else None,
+                s.oldest_seq if s.HasField("oldest_seq") else None,
+            )
+            for s in msg.statuses
+        ],
+        replayed=(
+            np.asarray(msg.replayed, dtype=np.bool_)
+            if len(msg.replayed)
+            else np.zeros(len(actions), dtype=np.bool_)
+        ),
     )
 
 
@@ -82,13 +103,20 @@ class _GroupStream:
     _outbox: queue.SimpleQueue[pb.GroupStepRequest | None] | asyncio.Queue[pb.GroupStepRequest | None]
     _call: Any
 
-    def __init__(self, info: GroupInfo, metadata: Sequence[tuple[str, str]]) -> None:
+    def __init__(
+        self, info: GroupInfo, metadata: Sequence[tuple[str, str]], seqs: GroupSeqs | None = None
+    ) -> None:
         self.info = info
         self._metadata = (*metadata, ("x-mcapi-session", info.id))
         self._seq = 0
         self._sent = 0
         self._received = 0
         self._closed = False
+        self._seqs = seqs
+        # Per step sent and not answered, oldest first: its members and seqs.
+        self._unanswered: collections.deque[
+            tuple[npt.NDArray[np.intp], npt.NDArray[np.uint64] | None]
+        ] = collections.deque()
 
     @property
     def pending(self) -> int:
@@ -103,12 +131,24 @@ class _GroupStream:
         columns = check_columns(
             self.info, states, stimuli, observations=observations, action_taken=action_taken, mask=mask
         )
-        return step_request(self.info.id if self._sent == 0 else "", self._seq, columns)
+        members = stepped(self.info, columns)
+        sent = self._seqs.take(members) if self._seqs is not None else None
+        self._unanswered.append((members, sent))
+        return step_request(self.info.id if self._sent == 0 else "", self._seq, columns, sent)
 
     def _queued(self, msg: pb.GroupStepRequest) -> int:
         self._seq += 1
         self._sent += 1
         return msg.seq
+
+    def _lost(self) -> None:
+        """The stream ended with steps unanswered: their seqs are taken
+        again (newest first), so that this client's next stream sends them
+        again and the members that applied them replay."""
+        while self._unanswered:
+            members, sent = self._unanswered.pop()
+            if self._seqs is not None:
+                self._seqs.failed(members, sent)
 
     def _expect_reply(self) -> None:
         if self.pending == 0:
@@ -116,13 +156,20 @@ class _GroupStream:
 
     def _reply(self, msg: pb.GroupStepReply) -> GroupStep:
         self._received += 1
-        return group_step(msg, self.info.stimuli)
+        step = group_step(msg, self.info.stimuli)
+        if self._unanswered:
+            members, sent = self._unanswered.popleft()
+            if self._seqs is not None:
+                self._seqs.answered(members, sent, step)
+        return step
 
     def close(self) -> None:
-        """Ends the stream; replies not received are dropped (the group stays)."""
+        """Ends the stream; replies not received are dropped (the group stays;
+        with ``exactly_once`` their steps' seqs are taken again)."""
         if self._closed:
             return
         self._closed = True
+        self._lost()
         self._outbox.put_nowait(None)
         self._call.cancel()
 
@@ -144,9 +191,13 @@ class VectorAgents(_GroupStream):
     """
 
     def __init__(
-        self, stub: pb_grpc.AgentsStub, info: GroupInfo, metadata: Sequence[tuple[str, str]]
+        self,
+        stub: pb_grpc.AgentsStub,
+        info: GroupInfo,
+        metadata: Sequence[tuple[str, str]],
+        seqs: GroupSeqs | None = None,
     ) -> None:
-        super().__init__(info, metadata)
+        super().__init__(info, metadata, seqs)
         self._outbox: queue.SimpleQueue[pb.GroupStepRequest | None] = queue.SimpleQueue()
         self._call = stub.StepGroup(self._requests(), metadata=self._metadata)
 
@@ -195,10 +246,12 @@ class VectorAgents(_GroupStream):
         try:
             msg = next(self._call)
         except StopIteration:
+            self._lost()
             raise Unavailable(
                 "the server ended the stream before replying", code="stream_closed"
             ) from None
         except Exception as e:  # grpc.RpcError, without importing grpc here
+            self._lost()
             if _is_rpc_error(e):
                 raise rpc_error(e) from e
             raise
@@ -243,9 +296,13 @@ class AsyncVectorAgents(_GroupStream):
     """
 
     def __init__(
-        self, stub: pb_grpc.AgentsStub, info: GroupInfo, metadata: Sequence[tuple[str, str]]
+        self,
+        stub: pb_grpc.AgentsStub,
+        info: GroupInfo,
+        metadata: Sequence[tuple[str, str]],
+        seqs: GroupSeqs | None = None,
     ) -> None:
-        super().__init__(info, metadata)
+        super().__init__(info, metadata, seqs)
         self._outbox: asyncio.Queue[pb.GroupStepRequest | None] = asyncio.Queue()
         self._call = stub.StepGroup(self._requests(), metadata=self._metadata)
 
@@ -277,10 +334,12 @@ class AsyncVectorAgents(_GroupStream):
         try:
             msg = await self._call.read()
         except Exception as e:  # grpc.RpcError, without importing grpc here
+            self._lost()
             if _is_rpc_error(e):
                 raise rpc_error(e) from e
             raise
         if not isinstance(msg, pb.GroupStepReply):  # grpc.aio.EOF
+            self._lost()
             raise Unavailable("the server ended the stream before replying", code="stream_closed")
         return self._reply(msg)
 

@@ -15,7 +15,7 @@ import json
 import math
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
-from typing import Any, cast
+from typing import TYPE_CHECKING, Any, cast
 
 from google.protobuf.descriptor import EnumDescriptor
 from google.protobuf.message import Message
@@ -62,6 +62,9 @@ from .types import (
     as_observation,
     check_signal,
 )
+
+if TYPE_CHECKING:
+    from .groups import GroupInfo, GroupSeqs, GroupSeqTable
 
 SESSION_METADATA = "x-mcapi-session"
 """Metadata key naming the session a call concerns."""
@@ -905,6 +908,26 @@ class GrpcProtocol:
         )
         self._shapes: SessionCache[tuple[int, list[str]]] = SessionCache()
         self.seqs: Sequences | None = Sequences() if exactly_once else None
+        # Made on first use (it needs numpy, the `vector` extra).
+        self._group_seqs: GroupSeqTable | None = None
+
+    def group_seqs(self, info: GroupInfo, created: bool = False) -> GroupSeqs | None:
+        """With ``exactly_once``, the counts of a group's members (every
+        count 0 for a group just ``created``, else kept or learned): they
+        outlive a ``StepGroup`` stream, so the next one resends what a
+        broken one left unanswered with the same seqs."""
+        if self.seqs is None:
+            return None
+        if self._group_seqs is None:
+            from .groups import GroupSeqTable
+
+            self._group_seqs = GroupSeqTable()
+        return self._group_seqs.created(info) if created else self._group_seqs.of(info)
+
+    def forget_group(self, group_id: str) -> None:
+        """A group deleted: its counts go."""
+        if self._group_seqs is not None:
+            self._group_seqs.drop(group_id)
 
     def metadata(self, session_id: str | None = None) -> Metadata:
         """The metadata of a call: the session (routers read it), the API key."""

@@ -41,7 +41,7 @@ from .types import (
 )
 
 if TYPE_CHECKING:
-    from .groups import GroupInfo, GroupStep
+    from .groups import GroupInfo, GroupSeqs, GroupSeqTable, GroupStep
     from .types import AgentKwargs
 
 __all__ = [
@@ -146,6 +146,19 @@ class RestProtocol:
         self._actions: SessionCache[list[str]] = SessionCache()
         self._groups: SessionCache[GroupInfo] = SessionCache()
         self.seqs: Sequences | None = Sequences() if exactly_once else None
+        # Made on first use (it needs numpy, the `vector` extra).
+        self._group_seqs: GroupSeqTable | None = None
+
+    def group_seqs(self, info: GroupInfo, created: bool = False) -> GroupSeqs | None:
+        """With ``exactly_once``, the counts of a group's members (every
+        count 0 for a group just ``created``, else kept or learned)."""
+        if self.seqs is None:
+            return None
+        if self._group_seqs is None:
+            from .groups import GroupSeqTable
+
+            self._group_seqs = GroupSeqTable()
+        return self._group_seqs.created(info) if created else self._group_seqs.of(info)
 
     def _remember(self, info: SessionInfo, created: bool = False) -> SessionInfo:
         self._actions.put(info.id, info.model.actions)
@@ -248,6 +261,7 @@ class RestProtocol:
         reply = yield Request("POST", "/v1/groups", json=body)
         info = groups.group_info_json(reply)
         self._groups.put(info.id, info)
+        self.group_seqs(info, created=True)
         return info
 
     def get_group(self, group_id: str) -> Op[Request, GroupInfo]:
@@ -263,6 +277,8 @@ class RestProtocol:
         """``DELETE /v1/groups/{id}``."""
         yield Request("DELETE", group_path(group_id))
         self._groups.drop(group_id)
+        if self._group_seqs is not None:
+            self._group_seqs.drop(group_id)
 
     def group(self, group_id: str) -> Op[Request, GroupInfo]:
         """The group's shape: remembered, else read (``GET /v1/groups/{id}``)."""
@@ -281,12 +297,24 @@ class RestProtocol:
         mask: Any,
     ) -> Op[Request, GroupStep]:
         """``POST /v1/groups/{id}/steps``, the columns checked against the
-        group's shape first (read once when not known yet)."""
+        group's shape first (read once when not known yet), numbered with
+        ``exactly_once`` (:class:`mcapi_client.groups.GroupSeqs`)."""
         from . import groups
 
         info = yield from self.group(group_id)
         columns = groups.check_columns(
             info, states, stimuli, observations=observations, action_taken=action_taken, mask=mask
         )
-        reply = yield Request("POST", group_path(group_id, "/steps"), json=groups.step_body(columns))
-        return groups.group_step_json(reply, info.stimuli)
+        seqs = self.group_seqs(info)
+        body, members, sent = groups.numbered_body(info, columns, seqs)
+        path = group_path(group_id, "/steps")
+        try:
+            reply = yield Request("POST", path, json=body, resend=sent is not None)
+        except BaseException:
+            if seqs is not None:
+                seqs.failed(members, sent)
+            raise
+        step = groups.group_step_json(reply, info.stimuli)
+        if seqs is not None:
+            seqs.answered(members, sent, step)
+        return step

@@ -30,12 +30,31 @@ mistake is a ``ValueError`` naming the column, and nothing is sent. What
 depends on the model or on a member (a state beyond the model's, an unknown
 action) is the server's to refuse. The layout on the wire is the server's
 ``docs/groups.md``.
+
+**Exactly once.** With the client's ``exactly_once`` (the default), every
+step carries a ``seqs`` column, each member's observation numbered in that
+member's stream as a lone observation is (docs/sessions.md, "Delivery
+guarantees"). The client keeps one count per member of each group it
+stepped (:class:`GroupSeqs`), from 0 for a group it created; a step that
+got no answer may therefore be resent as it was, and the members that had
+applied it are answered with their recorded steps (:attr:`GroupStep.replayed`).
+A resent step is one the caller sends again with the same columns: the
+REST clients resend a numbered step on a lost answer themselves, and a
+``StepGroup`` stream that broke gives its unanswered steps' seqs back, so
+the same client's next stream (``vector_agents``) sends them again. A
+member whose count the client does not know (a group it did not create,
+or after ``seq_conflict``, ``seq_expired`` or ``numerical_failure``) makes
+a step unnumbered, at least once, and its count is then learned from the
+reply's ``ticks``. A member refused ``seq_gap`` goes on from the
+``expected_seq`` the server named; refusals are in :attr:`GroupStep.errors`,
+never raised.
 """
 
 from __future__ import annotations
 
+import threading
 from collections.abc import Awaitable, Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Protocol
 
 try:
@@ -61,6 +80,7 @@ __all__ = [
     "MemberStatus",
     "Columns",
     "GroupAgents",
+    "GroupSeqs",
     "VectorAgents",
     "AsyncVectorAgents",
     "RestVectorAgents",
@@ -125,8 +145,12 @@ class MemberStatus:
     index: int
     """The member's index in the group."""
     code: str
-    """The stable error code (``unknown_action``, ``not_found``...)."""
+    """The stable error code (``unknown_action``, ``not_found``, ``seq_gap``...)."""
     message: str
+    expected_seq: int | None = None
+    """``seq_gap``: the seq the member's session takes next."""
+    oldest_seq: int | None = None
+    """``seq_expired``: the oldest seq the member's session can still replay."""
 
 
 @dataclass(frozen=True)
@@ -152,6 +176,10 @@ class GroupStep:
     ticks: npt.NDArray[np.uint64]
     errors: list[MemberStatus]
     """The members refused (their rows are placeholders); empty when none was."""
+    replayed: npt.NDArray[np.bool_] = field(default_factory=lambda: np.zeros(0, dtype=np.bool_))
+    """Whether each member's step is the one recorded for its seq, replayed
+    (nothing applied), shape (M,); all false for an unnumbered step or a
+    refused member."""
 
 
 def member_seed(seed: int, index: int) -> int:
@@ -319,6 +347,20 @@ def step_body(columns: Columns) -> dict[str, Any]:
     return body
 
 
+def numbered_body(
+    info: GroupInfo, columns: Columns, seqs: GroupSeqs | None
+) -> tuple[dict[str, Any], npt.NDArray[np.intp], npt.NDArray[np.uint64] | None]:
+    """The JSON body of a step numbered by ``seqs`` (unnumbered without, or
+    while a member's count is unknown): the body, the members stepped and
+    the seqs sent."""
+    body = step_body(columns)
+    members = stepped(info, columns)
+    sent = seqs.take(members) if seqs is not None else None
+    if sent is not None:
+        body["seqs"] = sent.tolist()
+    return body, members, sent
+
+
 def _finite(rows: npt.NDArray[np.float64], name: str, code: str) -> None:
     ok = np.isfinite(rows)
     if not bool(ok.all()):
@@ -329,7 +371,16 @@ def _finite(rows: npt.NDArray[np.float64], name: str, code: str) -> None:
 def group_step_json(d: dict[str, Any], stimuli: int, seq: int = 0) -> GroupStep:
     """The columns of a REST step reply as numpy arrays, a refused member's
     ``null`` entries as the gRPC placeholders (:class:`GroupStep`)."""
-    errors = [MemberStatus(int(e["index"]), str(e["code"]), str(e["message"])) for e in d["errors"]]
+    errors = [
+        MemberStatus(
+            int(e["index"]),
+            str(e["code"]),
+            str(e["message"]),
+            _opt_int(e.get("expected_seq")),
+            _opt_int(e.get("oldest_seq")),
+        )
+        for e in d["errors"]
+    ]
     actions, drives, rewards = d["actions"], d["drives"], d["rewards"]
     versions, ticks = d["policy_versions"], d["ticks"]
     if errors:
@@ -348,7 +399,153 @@ def group_step_json(d: dict[str, Any], stimuli: int, seq: int = 0) -> GroupStep:
         policy_versions=np.asarray(versions, dtype=np.uint64).reshape(m),
         ticks=np.asarray(ticks, dtype=np.uint64).reshape(m),
         errors=errors,
+        replayed=np.asarray(d.get("replayed") or [False] * m, dtype=np.bool_).reshape(m),
     )
+
+
+def _opt_int(value: object) -> int | None:
+    return value if type(value) is int else None
+
+
+# -- exactly once: one count per member ---------------------------------------
+
+_UNKNOWN = -1
+"""A member count the client does not know."""
+
+_FORGET = frozenset({"seq_conflict", "seq_expired", "numerical_failure"})
+"""Member refusals after which the member's count is read again (from the
+next unnumbered step's ``ticks``): someone else numbered it, a resend came
+too late, or the observation was applied and failed."""
+
+
+class GroupSeqs:
+    """Per member of one group, the seq of its next observation: what the
+    ``seqs`` column of the group's next step carries (thread-safe; numpy, one
+    entry per member).
+
+    :meth:`take` numbers a step (or leaves it unnumbered while a member's
+    count is unknown); :meth:`answered` and :meth:`failed` say what became
+    of it, in the order the steps were sent.
+    """
+
+    def __init__(self, size: int, *, known: bool) -> None:
+        """``known``: the group was just created (every count 0); otherwise
+        every count is learned from the first step's ``ticks``."""
+        self._lock = threading.Lock()
+        self._next: npt.NDArray[np.int64] = np.full(size, 0 if known else _UNKNOWN, dtype=np.int64)
+        # Unnumbered steps in flight per member: its count is learned from
+        # their replies, so it is not known until the last one is answered.
+        self._unnumbered: npt.NDArray[np.int64] = np.zeros(size, dtype=np.int64)
+
+    def next_seqs(self) -> npt.NDArray[np.int64]:
+        """A copy of every member's count (-1: not known)."""
+        with self._lock:
+            out: npt.NDArray[np.int64] = self._next.copy()
+        return out
+
+    def take(self, members: npt.NDArray[np.intp]) -> npt.NDArray[np.uint64] | None:
+        """Reserves one seq for each member stepped (``members``, the mask's
+        indices): their seqs, or ``None`` when a count is not known (the step
+        goes unnumbered)."""
+        with self._lock:
+            nxt = self._next[members]
+            if bool((nxt < 0).any()) or bool(self._unnumbered[members].any()):
+                self._unnumbered[members] += 1
+                return None
+            self._next[members] = nxt + 1
+            return nxt.astype(np.uint64)
+
+    def answered(
+        self, members: npt.NDArray[np.intp], sent: npt.NDArray[np.uint64] | None, step: GroupStep
+    ) -> None:
+        """The reply of a step that carried ``sent`` (``None``: unnumbered)."""
+        with self._lock:
+            if sent is None:
+                self._unnumbered[members] -= 1
+                applied = np.ones(members.size, dtype=np.bool_)
+                position = {int(i): j for j, i in enumerate(members.tolist())} if step.errors else {}
+                for e in step.errors:
+                    j = position.get(e.index)
+                    if j is not None:
+                        applied[j] = False
+                        if e.code in _FORGET:
+                            self._next[e.index] = _UNKNOWN
+                ticks = step.ticks.astype(np.int64)
+                self._next[members[applied]] = ticks[applied] + 1
+                return
+            if not step.errors:
+                return
+            position = {int(i): j for j, i in enumerate(members.tolist())}
+            for e in step.errors:
+                j = position.get(e.index)
+                if j is None:
+                    continue
+                seq = int(sent[j])
+                # No later step of this member was numbered meanwhile.
+                last = int(self._next[e.index]) == seq + 1
+                if e.code == "seq_gap" and e.expected_seq is not None:
+                    if last:
+                        self._next[e.index] = e.expected_seq
+                elif e.code in _FORGET:
+                    self._next[e.index] = _UNKNOWN
+                elif last:
+                    # Not applied: the member's next observation takes it.
+                    self._next[e.index] = seq
+
+    def failed(self, members: npt.NDArray[np.intp], sent: npt.NDArray[np.uint64] | None) -> None:
+        """A step got no reply (or was refused whole): its seqs are taken
+        again, so that sending it again replays what the members applied of
+        it. Several steps in flight are failed newest first."""
+        with self._lock:
+            if sent is None:
+                self._unnumbered[members] -= 1
+                self._next[members] = _UNKNOWN
+                return
+            after = sent.astype(np.int64) + 1
+            back = self._next[members] == after
+            self._next[members[back]] = after[back] - 1
+            self._next[members[~back]] = _UNKNOWN
+
+    def forget(self) -> None:
+        """Every count is learned again."""
+        with self._lock:
+            self._next[:] = _UNKNOWN
+
+
+def stepped(info: GroupInfo, columns: Columns) -> npt.NDArray[np.intp]:
+    """The member indices a step's columns are for, in order."""
+    if columns.mask is not None and columns.mask.size:
+        return columns.mask.astype(np.intp)
+    return np.arange(info.size, dtype=np.intp)
+
+
+class GroupSeqTable:
+    """A client's :class:`GroupSeqs`, by group id (created with its group, or
+    on first use, unknown)."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._groups: dict[str, GroupSeqs] = {}
+
+    def created(self, info: GroupInfo) -> GroupSeqs:
+        """A group just created: every count 0."""
+        seqs = GroupSeqs(info.size, known=True)
+        with self._lock:
+            self._groups[info.id] = seqs
+        return seqs
+
+    def of(self, info: GroupInfo) -> GroupSeqs:
+        """The counts of a group: kept, else unknown."""
+        with self._lock:
+            seqs = self._groups.get(info.id)
+            if seqs is None:
+                seqs = self._groups[info.id] = GroupSeqs(info.size, known=False)
+            return seqs
+
+    def drop(self, group_id: str) -> None:
+        """A group deleted."""
+        with self._lock:
+            self._groups.pop(group_id, None)
 
 
 # -- what the adapters take ---------------------------------------------------
@@ -389,9 +586,15 @@ class RestVectorAgents:
     ...); a member refused alone is listed in :attr:`GroupStep.errors`.
     """
 
-    def __init__(self, info: GroupInfo, send: Callable[[dict[str, Any]], dict[str, Any]]) -> None:
+    def __init__(
+        self,
+        info: GroupInfo,
+        send: Callable[[dict[str, Any], bool], dict[str, Any]],
+        seqs: GroupSeqs | None = None,
+    ) -> None:
         self._info = info
         self._send = send
+        self._seqs = seqs
         self._seq = 0
         self._closed = False
 
@@ -415,9 +618,18 @@ class RestVectorAgents:
         cols = check_columns(
             self._info, states, stimuli, observations=observations, action_taken=action_taken, mask=mask
         )
-        reply = self._send(step_body(cols))
+        body, members, sent = numbered_body(self._info, cols, self._seqs)
+        try:
+            reply = self._send(body, sent is not None)
+        except BaseException:
+            if self._seqs is not None:
+                self._seqs.failed(members, sent)
+            raise
         seq, self._seq = self._seq, self._seq + 1
-        return group_step_json(reply, self._info.stimuli, seq)
+        step = group_step_json(reply, self._info.stimuli, seq)
+        if self._seqs is not None:
+            self._seqs.answered(members, sent, step)
+        return step
 
     def close(self) -> None:
         """Stops stepping (the group and its members stay)."""
@@ -435,10 +647,14 @@ class AsyncRestVectorAgents:
     from :meth:`mcapi_client.AsyncClient.create_group`."""
 
     def __init__(
-        self, info: GroupInfo, send: Callable[[dict[str, Any]], Awaitable[dict[str, Any]]]
+        self,
+        info: GroupInfo,
+        send: Callable[[dict[str, Any], bool], Awaitable[dict[str, Any]]],
+        seqs: GroupSeqs | None = None,
     ) -> None:
         self._info = info
         self._send = send
+        self._seqs = seqs
         self._seq = 0
         self._closed = False
 
@@ -462,9 +678,18 @@ class AsyncRestVectorAgents:
         cols = check_columns(
             self._info, states, stimuli, observations=observations, action_taken=action_taken, mask=mask
         )
-        reply = await self._send(step_body(cols))
+        body, members, sent = numbered_body(self._info, cols, self._seqs)
+        try:
+            reply = await self._send(body, sent is not None)
+        except BaseException:
+            if self._seqs is not None:
+                self._seqs.failed(members, sent)
+            raise
         seq, self._seq = self._seq, self._seq + 1
-        return group_step_json(reply, self._info.stimuli, seq)
+        step = group_step_json(reply, self._info.stimuli, seq)
+        if self._seqs is not None:
+            self._seqs.answered(members, sent, step)
+        return step
 
     def close(self) -> None:
         """Stops stepping (the group and its members stay)."""

@@ -646,7 +646,8 @@ class GrpcClient:
         from . import _group_grpc
 
         info = _group_grpc.group_info(self._send(_group_create_call(model, n, agent)))
-        return _group_grpc.VectorAgents(self._stub, info, self._protocol.metadata())
+        seqs = self._protocol.group_seqs(info, created=True)
+        return _group_grpc.VectorAgents(self._stub, info, self._protocol.metadata(), seqs)
 
     def get_group(self, group_id: str) -> GroupInfo:
         """A group: its seed, shape and member session ids (``GetGroup``)."""
@@ -659,11 +660,14 @@ class GrpcClient:
         """Opens a ``StepGroup`` stream on an existing group."""
         from . import _group_grpc
 
-        return _group_grpc.VectorAgents(self._stub, self.get_group(group_id), self._protocol.metadata())
+        info = self.get_group(group_id)
+        seqs = self._protocol.group_seqs(info)
+        return _group_grpc.VectorAgents(self._stub, info, self._protocol.metadata(), seqs)
 
     def delete_group(self, group_id: str) -> None:
         """Deletes every member of a group, then the group (``DeleteGroup``)."""
         self._send(Call("DeleteGroup", pb.DeleteGroupRequest(group_id=group_id), group_id))
+        self._protocol.forget_group(group_id)
 
     def get_session(self, session_id: str) -> SessionInfo:
         """A session's drive, tick, policy version, model, configuration and statistics."""
@@ -1123,7 +1127,8 @@ class AsyncGrpcClient:
         from . import _group_grpc
 
         info = _group_grpc.group_info(await self._send(_group_create_call(model, n, agent)))
-        return _group_grpc.AsyncVectorAgents(self._stub, info, self._protocol.metadata())
+        seqs = self._protocol.group_seqs(info, created=True)
+        return _group_grpc.AsyncVectorAgents(self._stub, info, self._protocol.metadata(), seqs)
 
     async def get_group(self, group_id: str) -> GroupInfo:
         """A group: its seed, shape and member session ids (``GetGroup``)."""
@@ -1138,11 +1143,13 @@ class AsyncGrpcClient:
         from . import _group_grpc
 
         info = await self.get_group(group_id)
-        return _group_grpc.AsyncVectorAgents(self._stub, info, self._protocol.metadata())
+        seqs = self._protocol.group_seqs(info)
+        return _group_grpc.AsyncVectorAgents(self._stub, info, self._protocol.metadata(), seqs)
 
     async def delete_group(self, group_id: str) -> None:
         """Deletes every member of a group, then the group (``DeleteGroup``)."""
         await self._send(Call("DeleteGroup", pb.DeleteGroupRequest(group_id=group_id), group_id))
+        self._protocol.forget_group(group_id)
 
     async def get_session(self, session_id: str) -> SessionInfo:
         """A session's details; see :meth:`GrpcClient.get_session`."""

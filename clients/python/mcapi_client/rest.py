@@ -327,7 +327,11 @@ class Client:
         from .groups import RestVectorAgents
 
         path = group_path(info.id, "/steps")
-        return RestVectorAgents(info, lambda body: self._send(Request("POST", path, json=body)))
+        return RestVectorAgents(
+            info,
+            lambda body, resend: self._send(Request("POST", path, json=body, resend=resend)),
+            self._protocol.group_seqs(info),
+        )
 
     def delete_group(self, group_id: str) -> None:
         """Deletes every member of a group, then the group (``DELETE /v1/groups/{id}``)."""
@@ -524,10 +528,10 @@ class AsyncClient:
 
         path = group_path(info.id, "/steps")
 
-        async def send(body: dict[str, Any]) -> Any:
-            return await self._send(Request("POST", path, json=body))
+        async def send(body: dict[str, Any], resend: bool) -> Any:
+            return await self._send(Request("POST", path, json=body, resend=resend))
 
-        return AsyncRestVectorAgents(info, send)
+        return AsyncRestVectorAgents(info, send, self._protocol.group_seqs(info))
 
     async def delete_group(self, group_id: str) -> None:
         """Deletes every member of a group, then the group."""

@@ -196,7 +196,7 @@ pub struct ErrorBody {
 }
 
 /// The seq details of an error: `(expected_seq, oldest_seq)`.
-fn seq_details(e: &ServiceError) -> (Option<u64>, Option<u64>) {
+pub(crate) fn seq_details(e: &ServiceError) -> (Option<u64>, Option<u64>) {
     match e {
         ServiceError::SeqGap { expected, .. } => (Some(*expected), None),
         ServiceError::SeqExpired { oldest, .. } => (None, Some(*oldest)),

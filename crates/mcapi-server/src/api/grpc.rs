@@ -554,6 +554,7 @@ async fn step_group_stream(
         while let Some(item) = ahead.recv().await {
             let reply = match item {
                 Ok((id, seq, columns)) => {
+                    let numbered = !columns.seqs.is_empty();
                     let n = match width {
                         Some(n) => Ok(n),
                         None => manager
@@ -564,7 +565,7 @@ async fn step_group_stream(
                         Ok(n) => manager
                             .step_group(caller, &id, columns)
                             .await
-                            .map(|steps| convert::group_step_reply(seq, n, steps))
+                            .map(|steps| convert::group_step_reply(seq, n, steps, numbered))
                             .map_err(to_status),
                         Err(e) => Err(to_status(e)),
                     }

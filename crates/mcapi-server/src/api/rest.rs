@@ -461,7 +461,8 @@ pub(crate) async fn delete_group(
 /// One step of the members masked (all without a mask) by columns: each
 /// column has one entry per member stepped. A member that refuses its
 /// observation is null in the reply's columns and listed in `errors`; the
-/// others are applied.
+/// others are applied. With `seqs`, a member whose seq was already applied
+/// is answered with its recorded step (`replayed`) and applies nothing.
 #[utoipa::path(post, path = "/v1/groups/{id}/steps", tag = "groups", operation_id = "step_group",
     params(("id" = String, Path, description = "The group's id, as `POST /v1/groups` returned it.")),
     request_body = GroupStep,
@@ -481,8 +482,9 @@ pub(crate) async fn step_group(
     JsonBody(body): JsonBody<GroupStep>,
 ) -> Result<Json<GroupStepReply>, ApiError> {
     let columns = group_columns(body)?;
+    let numbered = !columns.seqs.is_empty();
     let steps = state.manager.step_group(caller, &id, columns).await?;
-    Ok(Json(GroupStepReply::of(steps)))
+    Ok(Json(GroupStepReply::of(steps, numbered)))
 }
 
 /// A step's JSON columns as the service's: rows of numbers laid end to end
@@ -494,6 +496,7 @@ fn group_columns(body: GroupStep) -> Result<Columns, ServiceError> {
         observations,
         stimuli,
         action_taken,
+        seqs,
     } = body;
     let action_taken = action_taken
         .unwrap_or_default()
@@ -513,6 +516,7 @@ fn group_columns(body: GroupStep) -> Result<Columns, ServiceError> {
         observations: rows("observations", observations.unwrap_or_default())?,
         stimuli: rows("stimuli", stimuli.unwrap_or_default())?,
         action_taken,
+        seqs: seqs.unwrap_or_default(),
     })
 }
 

@@ -11,12 +11,16 @@
 //! not strictly increasing or names a member beyond the group
 //! (`invalid_mask`), a column whose length disagrees with the members
 //! stepped, the stimulus dimensions or the observation dimensions
-//! (`column_length`), a number no member could take (a state outside the
-//! model, a NaN, infinite or too large stimulus component, a NaN
+//! (`column_length`; `seqs` too), a number no member could take (a state
+//! outside the model, a NaN, infinite or too large stimulus component, a NaN
 //! observation coordinate: the code one such observation gets alone). What
 //! only a member's own state refuses (an action it cannot take, a stimulus
-//! on its first observation, a member deleted alone) refuses that member
-//! only, with the code an `Interact` of the same observation would end with.
+//! on its first observation, a member deleted alone, a seq the member's
+//! session refuses) refuses that member only, with the code an `Interact` of
+//! the same observation would end with. With `seqs`, each member's
+//! observation carries its seq and is checked by its session as a lone
+//! numbered observation is: one already applied is answered with its
+//! recorded step (`replayed`) and applied nothing.
 
 use std::sync::Arc;
 
@@ -162,6 +166,7 @@ impl Group {
             observations,
             stimuli,
             action_taken,
+            seqs,
         } = columns;
         let size = self.members.len();
         let stepped: Vec<usize> = if mask.is_empty() {
@@ -219,6 +224,9 @@ impl Group {
         if !action_taken.is_empty() {
             column("action_taken", action_taken.len(), m, &members)?;
         }
+        if !seqs.is_empty() {
+            column("seqs", seqs.len(), m, &members)?;
+        }
         self.check_values(&states, &observations, &stimuli)?;
         let d = self.dim().unwrap_or(0);
         let out = stepped
@@ -235,7 +243,7 @@ impl Group {
                         .map(|&a| ActionRef::Index(a as usize)),
                     signal: None,
                     signal_source: None,
-                    seq: None,
+                    seq: seqs.get(j).copied(),
                 };
                 (member, obs)
             })
@@ -325,6 +333,10 @@ pub struct Columns {
     /// The action each took, [`ADVISED`] for the advised one: M entries, or
     /// none (every member took its advised action).
     pub action_taken: Vec<u32>,
+    /// Each member's observation's seq (docs/sessions.md, "Delivery
+    /// guarantees"): M entries, or none (applied as they come, at least
+    /// once).
+    pub seqs: Vec<u64>,
 }
 
 /// What one step answers for one member: its step, or why it was refused

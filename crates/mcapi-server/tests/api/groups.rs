@@ -623,3 +623,165 @@ fn a_step_beyond_the_batch_time_budget_is_refused_whole() {
     assert!(steps.iter().all(|s| s.result.is_ok()));
     manager.shutdown();
 }
+
+/// The member ids and index of each member's refusal in a REST reply.
+fn refusals(reply: &Value) -> Vec<(u64, &str)> {
+    reply["errors"]
+        .as_array()
+        .expect("errors")
+        .iter()
+        .map(|e| {
+            (
+                e["index"].as_u64().expect("index"),
+                e["code"].as_str().expect("code"),
+            )
+        })
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_resent_rest_group_step_with_its_seqs_is_replayed_and_a_refused_seq_refuses_its_member_only()
+ {
+    let base = start(Limits::default()).await;
+    let (status, group) = post(
+        &format!("{base}/v1/groups"),
+        &json!({"model": {"preset": "hallway"}, "agent": {"history": 2}, "n": 3, "seed": 5}),
+    )
+    .await;
+    assert_eq!(status, 201, "{group}");
+    let id = group["id"].as_str().expect("id");
+    let members: Vec<String> = group["members"]
+        .as_array()
+        .expect("members")
+        .iter()
+        .map(|m| m.as_str().expect("an id").to_string())
+        .collect();
+    let url = format!("{base}/v1/groups/{id}/steps");
+    let zeros = json!([[0, 0], [0, 0], [0, 0]]);
+    // Without seqs: no `replayed` column (at least once, as before).
+    let (status, first) = post(&url, &json!({"states": [25, 25, 25]})).await;
+    assert_eq!(status, 200, "{first}");
+    assert!(first.get("replayed").is_none(), "{first}");
+    let step = json!({"states": [24, 26, 25], "stimuli": zeros, "seqs": [1, 1, 1]});
+    let (status, applied) = post(&url, &step).await;
+    assert_eq!(status, 200, "{applied}");
+    assert_eq!(applied["replayed"], json!([false, false, false]));
+    assert_eq!(applied["ticks"], json!([1, 1, 1]));
+    // The same step again: every member replayed, bit for bit, nothing applied.
+    let (status, again) = post(&url, &step).await;
+    assert_eq!(status, 200, "{again}");
+    assert_eq!(again["replayed"], json!([true, true, true]));
+    assert_eq!(again["errors"], json!([]));
+    for column in ["actions", "ticks", "policy_versions"] {
+        assert_eq!(again[column], applied[column], "{column}");
+    }
+    for j in 0..3 {
+        assert_bits_eq(
+            &floats(&again["drives"][j]),
+            &floats(&applied["drives"][j]),
+            "drive",
+        );
+    }
+    assert_bits_eq(
+        &floats(&again["rewards"]),
+        &floats(&applied["rewards"]),
+        "rewards",
+    );
+    for m in &members {
+        let (status, info) = call(
+            reqwest::Method::GET,
+            &format!("{base}/v1/sessions/{m}"),
+            None,
+        )
+        .await;
+        assert_eq!((status, &info["tick"]), (200, &json!(1)), "{info}");
+    }
+    // Member 0 applies seq 2; member 1 resends seq 1 with another state
+    // (a conflict), member 2 skips ahead (a gap): refused alone, with the
+    // codes and details of a lone observation.
+    let (status, mixed) = post(
+        &url,
+        &json!({"states": [23, 27, 25], "stimuli": zeros, "seqs": [2, 1, 4]}),
+    )
+    .await;
+    assert_eq!(status, 200, "{mixed}");
+    assert_eq!(refusals(&mixed), [(1, "seq_conflict"), (2, "seq_gap")]);
+    assert_eq!(mixed["errors"][1]["expected_seq"], 2, "{mixed}");
+    assert_eq!(mixed["ticks"], json!([2, null, null]));
+    assert_eq!(mixed["actions"][1], Value::Null);
+    assert_eq!(mixed["replayed"], json!([false, false, false]));
+    // Absurd seqs are gaps: u64::MAX, and one far ahead on a masked member.
+    let (status, far) = post(
+        &url,
+        &json!({"mask": [1, 2], "states": [27, 25], "stimuli": [[0, 0], [0, 0]],
+                "seqs": [18_446_744_073_709_551_615u64, 1_000_000_000_000u64]}),
+    )
+    .await;
+    assert_eq!(status, 200, "{far}");
+    assert_eq!(refusals(&far), [(1, "seq_gap"), (2, "seq_gap")]);
+    assert_eq!(far["errors"][0]["expected_seq"], 2);
+    assert_eq!(far["ticks"], json!([null, null]));
+    // Beyond the window (history 2): member 0 has applied seqs 0..=3 now.
+    let (status, reply) = post(
+        &url,
+        &json!({"mask": [0], "states": [22], "stimuli": [[0, 0]], "seqs": [3]}),
+    )
+    .await;
+    assert_eq!(
+        (status, &reply["replayed"]),
+        (200, &json!([false])),
+        "{reply}"
+    );
+    let (status, expired) = post(
+        &url,
+        &json!({"mask": [0], "states": [25], "stimuli": [[0, 0]], "seqs": [0]}),
+    )
+    .await;
+    assert_eq!(status, 200, "{expired}");
+    assert_eq!(refusals(&expired), [(0, "seq_expired")]);
+    assert_eq!(expired["errors"][0]["oldest_seq"], 2, "{expired}");
+    // A `seqs` column of the wrong length, or not of u64s: the step refused whole.
+    for (body, code, needle) in [
+        (
+            json!({"states": [25, 25, 25], "stimuli": zeros, "seqs": [2, 2]}),
+            "column_length",
+            "`seqs` has 2 entries; 3 expected (one per member stepped: 3)",
+        ),
+        (
+            json!({"mask": [2], "states": [25], "stimuli": [[0, 0]], "seqs": [2, 2, 2]}),
+            "column_length",
+            "`seqs` has 3 entries; 1 expected",
+        ),
+        (
+            json!({"states": [25, 25, 25], "stimuli": zeros, "seqs": [2, -1, 2]}),
+            "bad_request",
+            "seqs",
+        ),
+        (
+            json!({"states": [25, 25, 25], "stimuli": zeros, "seqs": [2, 2, 18_446_744_073_709_551_616.0]}),
+            "bad_request",
+            "seqs",
+        ),
+    ] {
+        let (status, err) = post(&url, &body).await;
+        assert_eq!(
+            (status, err["code"].as_str()),
+            (400, Some(code)),
+            "{body}: {err}"
+        );
+        assert!(
+            err["message"].as_str().expect("message").contains(needle),
+            "{body}: {err}"
+        );
+    }
+    // Nothing of the refused steps was applied.
+    for (m, tick) in members.iter().zip([3, 1, 1]) {
+        let (_, info) = call(
+            reqwest::Method::GET,
+            &format!("{base}/v1/sessions/{m}"),
+            None,
+        )
+        .await;
+        assert_eq!(info["tick"], tick, "{m}: {info}");
+    }
+}

@@ -1,8 +1,8 @@
 //! Session groups: `POST /v1/groups` with mutated create bodies (every
 //! group accepted is stepped once and deleted), `POST /v1/groups/{id}/steps`
-//! with mutated columns against a standing group, and `StepGroup` messages
-//! (mutated encodings, absurd columns, raw bytes) as the first message of
-//! a stream. Every answer must pass the REST and gRPC contracts of the
+//! with mutated columns and seqs against a standing group, and `StepGroup`
+//! messages (mutated encodings, absurd columns and seqs, raw bytes) as the
+//! first message of a stream. Every answer must pass the REST and gRPC contracts of the
 //! other fuzz tests; no case may take long or grow memory past the budget.
 
 use std::sync::OnceLock;
@@ -44,6 +44,9 @@ fn step_bases() -> Vec<Value> {
         json!({"mask": [1], "states": [23], "stimuli": [[0, 0]], "action_taken": [0]}),
         json!({"states": [25, 25, 25, 25], "stimuli": [[0, 0], [0, 0], [0, 0], [0, 0]],
             "action_taken": [null, 1, 2, null]}),
+        json!({"states": [25, 25, 25, 25], "stimuli": [[0, 0], [0, 0], [0, 0], [0, 0]],
+            "seqs": [0, 1, 2, 18_446_744_073_709_551_615u64]}),
+        json!({"mask": [0, 3], "states": [24, 26], "seqs": [5, 1]}),
     ]
 }
 
@@ -226,9 +229,10 @@ fn grpc_step_bodies(group: String) -> impl Strategy<Value = Vec<u8>> {
         prop::collection::vec(any::<u8>(), 0..20),
         prop::collection::vec(prop_oneof![4 => 0u32..4, 1 => any::<u32>()], 0..6),
         prop::collection::vec(prop_oneof![4 => 0u32..5, 1 => any::<u32>()], 0..6),
+        prop::collection::vec(prop_oneof![4 => 0u64..8, 1 => any::<u64>()], 0..6),
     )
         .prop_map(
-            |(group_id, seq, states, stimuli, observations, action_taken, mask)| {
+            |(group_id, seq, states, stimuli, observations, action_taken, mask, seqs)| {
                 pb::GroupStepRequest {
                     group_id,
                     seq,
@@ -237,6 +241,7 @@ fn grpc_step_bodies(group: String) -> impl Strategy<Value = Vec<u8>> {
                     stimuli: le(&stimuli),
                     action_taken,
                     mask,
+                    seqs,
                 }
                 .encode_to_vec()
             },

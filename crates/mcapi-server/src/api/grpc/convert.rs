@@ -1159,6 +1159,7 @@ pub fn group_step(req: pb::GroupStepRequest) -> Result<(String, u64, Columns), S
         stimuli,
         action_taken,
         mask,
+        seqs,
     } = req;
     let columns = Columns {
         mask,
@@ -1166,15 +1167,23 @@ pub fn group_step(req: pb::GroupStepRequest) -> Result<(String, u64, Columns), S
         observations: le_f64s("observations", &observations)?,
         stimuli: le_f64s("stimuli", &stimuli)?,
         action_taken,
+        seqs,
     };
     Ok((group_id, seq, columns))
 }
 
 /// The reply to one `StepGroup` message: the columns of its members' steps,
 /// `n` numbers of drive each; a refused member's entries are
-/// placeholders (action `u32::MAX`, drive and reward 0, version and tick 0)
-/// and a status: no NaN leaves the server, not even as a marker.
-pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::GroupStepReply {
+/// placeholders (action `u32::MAX`, drive and reward 0, version and tick 0,
+/// not replayed) and a status: no NaN leaves the server, not even as a
+/// marker. `numbered`: the message carried `seqs`, and the reply's
+/// `replayed` has one entry per member.
+pub fn group_step_reply(
+    seq: u64,
+    n: usize,
+    steps: Vec<MemberStep>,
+    numbered: bool,
+) -> pb::GroupStepReply {
     let m = steps.len();
     let mut reply = pb::GroupStepReply {
         seq,
@@ -1184,6 +1193,7 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
         policy_versions: Vec::with_capacity(m),
         statuses: Vec::new(),
         ticks: Vec::with_capacity(m),
+        replayed: Vec::with_capacity(if numbered { m } else { 0 }),
     };
     for MemberStep { index, result } in steps {
         match result {
@@ -1196,14 +1206,16 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
                     reward,
                     policy_version,
                     curiosity: _,
-                    // Group steps carry no seqs: nothing is replayed.
-                    replayed: _,
+                    replayed,
                 } = step;
                 reply.actions.push(u32_of(action_index));
                 reply.drives.extend(le_bytes(drive));
                 reply.rewards.extend(reward.to_le_bytes());
                 reply.policy_versions.push(policy_version);
                 reply.ticks.push(tick);
+                if numbered {
+                    reply.replayed.push(replayed);
+                }
             }
             Err(e) => {
                 reply.actions.push(ADVISED);
@@ -1211,6 +1223,10 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
                 reply.rewards.extend(0.0f64.to_le_bytes());
                 reply.policy_versions.push(0);
                 reply.ticks.push(0);
+                if numbered {
+                    reply.replayed.push(false);
+                }
+                let (expected_seq, oldest_seq) = crate::api::error::seq_details(&e);
                 let pb::StepError {
                     status,
                     code,
@@ -1222,6 +1238,8 @@ pub fn group_step_reply(seq: u64, n: usize, steps: Vec<MemberStep>) -> pb::Group
                     status,
                     code,
                     message,
+                    expected_seq,
+                    oldest_seq,
                 });
             }
         }

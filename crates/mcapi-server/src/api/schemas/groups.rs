@@ -124,7 +124,31 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
             "the action each member stepped took; absent: every member took its advised one",
         ),
     )
-    .examples([json!({"states": [25, 25, 25, 25]})]);
+    .property(
+        "seqs",
+        array(
+            integer(
+                0,
+                U64_MAX,
+                false,
+                "the member's observation's 0-based index in its session's stream of applied \
+                 observations",
+            ),
+            0,
+            max,
+            true,
+            "the seq of each member's observation, for exactly-once delivery (docs/sessions.md, \
+             \"Delivery guarantees\"): a member whose seq was already applied gets its recorded \
+             step (`replayed`) and applies nothing; one whose seq its session refuses gets \
+             `seq_gap`, `seq_expired` or `seq_conflict` in `errors`; absent: applied as they \
+             come (at least once)",
+        ),
+    )
+    .examples([
+        json!({"states": [25, 25, 25, 25]}),
+        json!({"states": [26, 24, 26, 25], "stimuli": [[0, 0], [0, 0], [0, 0], [0, 0]],
+               "seqs": [1, 1, 1, 1]}),
+    ]);
     vec![("CreateGroup", create.into()), ("GroupStep", step.into())]
 }
 
@@ -174,6 +198,9 @@ pub struct GroupStep {
     /// The action each member stepped took; null: the advised one.
     #[serde(default)]
     pub action_taken: Option<Vec<Option<u32>>>,
+    /// The seq of each member's observation; absent: at least once.
+    #[serde(default)]
+    pub seqs: Option<Vec<u64>>,
 }
 
 impl BodyShape for GroupStep {
@@ -193,8 +220,8 @@ impl ToSchema for GroupStep {
 }
 
 /// The reply to a group step, by columns: one entry per member stepped, in
-/// the order of the mask; a refused member's entries are null and its error
-/// is in `errors`.
+/// the order of the mask; a refused member's entries are null (`false` in
+/// `replayed`) and its error is in `errors`.
 #[derive(Debug, Serialize, Deserialize, ToSchema)]
 pub struct GroupStepReply {
     /// The next action of each member (its index).
@@ -209,6 +236,10 @@ pub struct GroupStepReply {
     pub ticks: Vec<Option<u64>>,
     /// The members refused, in mask order; empty when all were applied.
     pub errors: Vec<MemberError>,
+    /// Only when the step carried `seqs`: whether each member's step is the
+    /// one recorded for its seq, replayed (nothing applied).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub replayed: Vec<bool>,
 }
 
 /// Why a member of a step was refused: the error the same observation sent
@@ -222,11 +253,18 @@ pub struct MemberError {
     pub code: String,
     /// The message.
     pub message: String,
+    /// `seq_gap`: the seq the member's session takes next.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub expected_seq: Option<u64>,
+    /// `seq_expired`: the oldest seq the member's session can still replay.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub oldest_seq: Option<u64>,
 }
 
 impl GroupStepReply {
-    /// The columns of these members' steps.
-    pub fn of(steps: Vec<MemberStep>) -> Self {
+    /// The columns of these members' steps; `numbered`: the step carried
+    /// `seqs`, and the reply says which members were replayed.
+    pub fn of(steps: Vec<MemberStep>, numbered: bool) -> Self {
         let m = steps.len();
         let mut reply = Self {
             actions: Vec::with_capacity(m),
@@ -235,6 +273,7 @@ impl GroupStepReply {
             policy_versions: Vec::with_capacity(m),
             ticks: Vec::with_capacity(m),
             errors: Vec::new(),
+            replayed: Vec::with_capacity(if numbered { m } else { 0 }),
         };
         for MemberStep { index, result } in steps {
             match result {
@@ -244,6 +283,9 @@ impl GroupStepReply {
                     reply.rewards.push(Some(step.reward));
                     reply.policy_versions.push(Some(step.policy_version));
                     reply.ticks.push(Some(step.tick));
+                    if numbered {
+                        reply.replayed.push(step.replayed);
+                    }
                 }
                 Err(e) => {
                     reply.actions.push(None);
@@ -251,11 +293,17 @@ impl GroupStepReply {
                     reply.rewards.push(None);
                     reply.policy_versions.push(None);
                     reply.ticks.push(None);
+                    if numbered {
+                        reply.replayed.push(false);
+                    }
                     let (status, _, code) = crate::api::error::classify(&e);
+                    let (expected_seq, oldest_seq) = crate::api::error::seq_details(&e);
                     reply.errors.push(MemberError {
                         index,
                         code: code.to_string(),
                         message: crate::api::error::public_message(&e, status),
+                        expected_seq,
+                        oldest_seq,
                     });
                 }
             }

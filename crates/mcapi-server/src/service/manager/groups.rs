@@ -360,7 +360,11 @@ impl SessionManager {
     /// whole if they do not fit; then every member stepped observes its
     /// observation as [`Self::observe`] would apply it alone and answers
     /// its step or its own refusal, in mask order. A refused member does
-    /// not stop the others.
+    /// not stop the others. With `seqs`, each member's observation carries
+    /// its seq: a member that already applied it answers its recorded step
+    /// (`replayed`) and applies nothing, one whose session refuses it
+    /// (`seq_gap`, `seq_expired`, `seq_conflict`) is refused alone, as the
+    /// same observation sent alone would be.
     ///
     /// Members whose update is cheap (the hallway's takes about a
     /// microsecond) are applied in chunks of [`STEP_CHUNK`] on the blocking
@@ -430,7 +434,10 @@ impl SessionManager {
             // One group commit holds every entry queued above: the first
             // wait is the only one that waits.
             for (pos, session, observed) in applied {
-                let result = observed.durable().await.and_then(only_step);
+                let result = observed.durable().await.and_then(|out| {
+                    super::observe::replays_stand(&session, &out)?;
+                    only_step(out)
+                });
                 self.roll_back_if_uncommitted(&session, &result);
                 results[pos] = Some(result);
             }

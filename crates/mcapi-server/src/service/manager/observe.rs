@@ -141,16 +141,7 @@ impl SessionManager {
                 observed.durable().await?
             }
         };
-        // A replayed reply stands only if what it replays is still the
-        // session's state: a commit of it that failed meanwhile rolls the
-        // observation back.
-        if out.iter().any(|s| s.replayed) && !session.replays_stand() {
-            return Err(ServiceError::Unavailable(format!(
-                "session `{}` is being reloaded from its last durable state after a storage \
-                 failure; retry",
-                session.id
-            )));
-        }
+        replays_stand(session, &out)?;
         // Replays count as observations: they are priced as such, too.
         tick::meters().observations.increment(n);
         Ok(out)
@@ -269,4 +260,18 @@ impl SessionManager {
             permit,
         })
     }
+}
+
+/// A replayed reply stands only if what it replays is still the session's
+/// state: a commit of it that failed meanwhile rolls the observation back,
+/// and the replies are then refused (`unavailable`, retry).
+pub(super) fn replays_stand(session: &Session, out: &[StepOut]) -> Result<(), ServiceError> {
+    if out.iter().any(|s| s.replayed) && !session.replays_stand() {
+        return Err(ServiceError::Unavailable(format!(
+            "session `{}` is being reloaded from its last durable state after a storage \
+             failure; retry",
+            session.id
+        )));
+    }
+    Ok(())
 }

@@ -3,7 +3,8 @@
 //! member's trajectory bit-equal to a session with the member's derived
 //! seed driven alone through `Interact`; every malformed column, mask and
 //! `seq` answered with its own code; a member's refusal does not stop the
-//! others.
+//! others; a step resent with its members' `seqs` replayed bit for bit, a
+//! member's refused seq refusing that member only.
 
 use std::collections::VecDeque;
 
@@ -419,6 +420,17 @@ async fn every_malformed_step_gets_its_own_code_and_a_refused_member_stops_no_ot
             "skips ahead",
         ),
         (
+            "a seqs column of the wrong length",
+            vec![],
+            pb::GroupStepRequest {
+                seqs: vec![0; 3],
+                ..first(0)
+            },
+            Code::InvalidArgument,
+            "column_length",
+            "`seqs` has 3 entries; 4 expected (one per member stepped: 4)",
+        ),
+        (
             "too few states",
             vec![],
             pb::GroupStepRequest {
@@ -804,4 +816,105 @@ async fn more_messages_in_flight_than_the_server_reads_ahead_wait_and_are_answer
     }
     assert!(replies.message().await.expect("ends cleanly").is_none());
     server.stop().await;
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_step_resent_with_its_seqs_is_replayed_and_a_refused_seq_refuses_its_member_only() {
+    let server = Server::start().await;
+    let mut client = server.client().await;
+    let group = create_group(&mut client, 3, pb::UpdateMode::Lockstep).await;
+    let (tx, mut replies) = open(&mut client).await;
+    let step = |seq: u64, states: Vec<u32>, seqs: Vec<u64>| pb::GroupStepRequest {
+        group_id: if seq == 0 {
+            group.group_id.clone()
+        } else {
+            String::new()
+        },
+        seq,
+        stimuli: if seq == 0 {
+            Vec::new()
+        } else {
+            le(&vec![0.0; 2 * states.len()])
+        },
+        states,
+        seqs,
+        ..Default::default()
+    };
+    tx.send(step(0, vec![START as u32; 3], vec![0, 0, 0]))
+        .await
+        .expect("send");
+    let first = replies.message().await.expect("reply").expect("a reply");
+    assert_eq!(first.replayed, [false; 3]);
+    assert_eq!(first.ticks, [0, 0, 0]);
+    // The same observations resent with the same seqs (a stream reopened
+    // after a lost reply would do this): replayed, bit for bit.
+    tx.send(step(1, vec![24, 26, 25], vec![1, 1, 1]))
+        .await
+        .expect("send");
+    let applied = replies.message().await.expect("reply").expect("a reply");
+    tx.send(step(2, vec![24, 26, 25], vec![1, 1, 1]))
+        .await
+        .expect("send");
+    let again = replies.message().await.expect("reply").expect("a reply");
+    assert_eq!(applied.replayed, [false; 3]);
+    assert_eq!(again.replayed, [true; 3]);
+    assert!(again.statuses.is_empty(), "{:?}", again.statuses);
+    assert_eq!(again.ticks, [1, 1, 1], "nothing applied again");
+    assert_eq!(
+        (
+            &again.actions,
+            &again.drives,
+            &again.rewards,
+            &again.policy_versions
+        ),
+        (
+            &applied.actions,
+            &applied.drives,
+            &applied.rewards,
+            &applied.policy_versions
+        ),
+        "the recorded steps, bit for bit"
+    );
+    // A conflict (member 0), an applied step (member 1), a gap (member 2).
+    tx.send(step(3, vec![23, 27, 25], vec![1, 2, 7]))
+        .await
+        .expect("send");
+    let mixed = replies.message().await.expect("reply").expect("a reply");
+    let codes: Vec<(u32, u32, &str, Option<u64>)> = mixed
+        .statuses
+        .iter()
+        .map(|s| (s.index, s.status, s.code.as_str(), s.expected_seq))
+        .collect();
+    assert_eq!(
+        codes,
+        [
+            (0, Code::FailedPrecondition as u32, "seq_conflict", None),
+            (2, Code::FailedPrecondition as u32, "seq_gap", Some(2)),
+        ]
+    );
+    assert_eq!(mixed.ticks, [0, 2, 0]);
+    assert_eq!(mixed.actions[0], u32::MAX);
+    assert_eq!(f64s(&mixed.drives)[..2], [0.0, 0.0], "0, never NaN");
+    assert_eq!(mixed.replayed, [false; 3]);
+    // u64::MAX on one member: a gap; the stream goes on.
+    tx.send(pb::GroupStepRequest {
+        mask: vec![1],
+        ..step(4, vec![28], vec![u64::MAX])
+    })
+    .await
+    .expect("send");
+    let far = replies.message().await.expect("reply").expect("a reply");
+    assert_eq!(far.statuses.len(), 1, "{:?}", far.statuses);
+    assert_eq!(
+        (far.statuses[0].code.as_str(), far.statuses[0].expected_seq),
+        ("seq_gap", Some(3))
+    );
+    // Without seqs: no `replayed` column.
+    tx.send(step(5, vec![23, 28, 25], Vec::new()))
+        .await
+        .expect("send");
+    let plain = replies.message().await.expect("reply").expect("a reply");
+    assert!(plain.replayed.is_empty());
+    assert_eq!(plain.ticks, [2, 3, 2]);
+    drop(tx);
 }

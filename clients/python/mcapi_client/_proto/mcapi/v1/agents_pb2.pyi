@@ -827,7 +827,7 @@ class DeleteGroupResponse(_message.Message):
     def __init__(self) -> None: ...
 
 class GroupStepRequest(_message.Message):
-    __slots__ = ("group_id", "seq", "states", "observations", "stimuli", "action_taken", "mask")
+    __slots__ = ("group_id", "seq", "states", "observations", "stimuli", "action_taken", "mask", "seqs")
     GROUP_ID_FIELD_NUMBER: _ClassVar[int]
     SEQ_FIELD_NUMBER: _ClassVar[int]
     STATES_FIELD_NUMBER: _ClassVar[int]
@@ -835,6 +835,7 @@ class GroupStepRequest(_message.Message):
     STIMULI_FIELD_NUMBER: _ClassVar[int]
     ACTION_TAKEN_FIELD_NUMBER: _ClassVar[int]
     MASK_FIELD_NUMBER: _ClassVar[int]
+    SEQS_FIELD_NUMBER: _ClassVar[int]
     group_id: str
     seq: int
     states: _containers.RepeatedScalarFieldContainer[int]
@@ -842,10 +843,11 @@ class GroupStepRequest(_message.Message):
     stimuli: bytes
     action_taken: _containers.RepeatedScalarFieldContainer[int]
     mask: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, group_id: _Optional[str] = ..., seq: _Optional[int] = ..., states: _Optional[_Iterable[int]] = ..., observations: _Optional[bytes] = ..., stimuli: _Optional[bytes] = ..., action_taken: _Optional[_Iterable[int]] = ..., mask: _Optional[_Iterable[int]] = ...) -> None: ...
+    seqs: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, group_id: _Optional[str] = ..., seq: _Optional[int] = ..., states: _Optional[_Iterable[int]] = ..., observations: _Optional[bytes] = ..., stimuli: _Optional[bytes] = ..., action_taken: _Optional[_Iterable[int]] = ..., mask: _Optional[_Iterable[int]] = ..., seqs: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class GroupStepReply(_message.Message):
-    __slots__ = ("seq", "actions", "drives", "rewards", "policy_versions", "statuses", "ticks")
+    __slots__ = ("seq", "actions", "drives", "rewards", "policy_versions", "statuses", "ticks", "replayed")
     SEQ_FIELD_NUMBER: _ClassVar[int]
     ACTIONS_FIELD_NUMBER: _ClassVar[int]
     DRIVES_FIELD_NUMBER: _ClassVar[int]
@@ -853,6 +855,7 @@ class GroupStepReply(_message.Message):
     POLICY_VERSIONS_FIELD_NUMBER: _ClassVar[int]
     STATUSES_FIELD_NUMBER: _ClassVar[int]
     TICKS_FIELD_NUMBER: _ClassVar[int]
+    REPLAYED_FIELD_NUMBER: _ClassVar[int]
     seq: int
     actions: _containers.RepeatedScalarFieldContainer[int]
     drives: bytes
@@ -860,16 +863,21 @@ class GroupStepReply(_message.Message):
     policy_versions: _containers.RepeatedScalarFieldContainer[int]
     statuses: _containers.RepeatedCompositeFieldContainer[MemberStatus]
     ticks: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, seq: _Optional[int] = ..., actions: _Optional[_Iterable[int]] = ..., drives: _Optional[bytes] = ..., rewards: _Optional[bytes] = ..., policy_versions: _Optional[_Iterable[int]] = ..., statuses: _Optional[_Iterable[_Union[MemberStatus, _Mapping]]] = ..., ticks: _Optional[_Iterable[int]] = ...) -> None: ...
+    replayed: _containers.RepeatedScalarFieldContainer[bool]
+    def __init__(self, seq: _Optional[int] = ..., actions: _Optional[_Iterable[int]] = ..., drives: _Optional[bytes] = ..., rewards: _Optional[bytes] = ..., policy_versions: _Optional[_Iterable[int]] = ..., statuses: _Optional[_Iterable[_Union[MemberStatus, _Mapping]]] = ..., ticks: _Optional[_Iterable[int]] = ..., replayed: _Optional[_Iterable[bool]] = ...) -> None: ...
 
 class MemberStatus(_message.Message):
-    __slots__ = ("index", "status", "code", "message")
+    __slots__ = ("index", "status", "code", "message", "expected_seq", "oldest_seq")
     INDEX_FIELD_NUMBER: _ClassVar[int]
     STATUS_FIELD_NUMBER: _ClassVar[int]
     CODE_FIELD_NUMBER: _ClassVar[int]
     MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    EXPECTED_SEQ_FIELD_NUMBER: _ClassVar[int]
+    OLDEST_SEQ_FIELD_NUMBER: _ClassVar[int]
     index: int
     status: int
     code: str
     message: str
-    def __init__(self, index: _Optional[int] = ..., status: _Optional[int] = ..., code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
+    expected_seq: int
+    oldest_seq: int
+    def __init__(self, index: _Optional[int] = ..., status: _Optional[int] = ..., code: _Optional[str] = ..., message: _Optional[str] = ..., expected_seq: _Optional[int] = ..., oldest_seq: _Optional[int] = ...) -> None: ...

@@ -217,8 +217,8 @@ class AgentsServicer:
         Up to 8 messages are read ahead of the replies; a message that does not
         fit the group (lengths, mask, seq, a state outside the model, a NaN or
         too large number) ends the stream with its status; a member that
-        refuses its observation (an action it cannot take, ...) gets a status in
-        the reply and the others go on.
+        refuses its observation (an action it cannot take, a refused seq, ...)
+        gets a status in the reply and the others go on.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
