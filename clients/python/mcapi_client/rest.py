@@ -63,6 +63,16 @@ __all__ = ["Client", "AsyncClient", "DEFAULT_URL", "ModelLike"]
 DEFAULT_URL = "http://127.0.0.1:8080"
 """Where ``mcapi serve`` listens for REST by default."""
 
+POOL_LIMITS = httpx.Limits(max_connections=100, max_keepalive_connections=100)
+"""The connection pool of both clients: httpx's default size (100), every
+connection kept alive. With httpx's default of 20 kept alive, httpcore
+closes each connection that goes idle while the pool holds more than 20,
+and under threads sharing one client it can close one it has just handed
+to a waiting request: that request then waits for its whole ``timeout`` on
+a closed socket and fails ("Bad file descriptor"), too late to be retried,
+after the server may have applied it. Kept alive, an idle connection is
+closed only when the server closed it or its keep-alive (5 s) expired."""
+
 
 def _reply(response: httpx.Response) -> Any:
     """The reply's JSON, or its error with the owner a misdirected one names."""
@@ -135,6 +145,7 @@ class Client:
             headers=request_headers(api_key, headers),
             timeout=timeout,
             transport=transport,
+            limits=POOL_LIMITS,
         )
         self._protocol = RestProtocol(exactly_once)
 
@@ -398,6 +409,7 @@ class AsyncClient:
             headers=request_headers(api_key, headers),
             timeout=timeout,
             transport=transport,
+            limits=POOL_LIMITS,
         )
         self._protocol = RestProtocol(exactly_once)
 
