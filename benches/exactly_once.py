@@ -270,22 +270,33 @@ def one_run(args: argparse.Namespace, run_no: int) -> Run:
             rebalance = [args.mcapi, "cluster", "rebalance", "--data-dir", str(cluster.dir)]
             rebalance += ["--replicas", "4"]
             t0 = time.monotonic()
-            reb = subprocess.Popen(rebalance, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+            # Its output goes to a file: a pipe nobody reads while it runs
+            # would fill up (a line per move) and stop it.
+            log = work / "rebalance.log"
+
+            def start_rebalance() -> subprocess.Popen[bytes]:
+                with open(log, "ab") as out:
+                    return subprocess.Popen(rebalance, stdout=out, stderr=subprocess.STDOUT)
+
+            reb = start_rebalance()
             if args.kill_during:
                 # After a number of moves drawn per run, from 1 to 200 of 256.
                 at = epoch0 + random.Random(run_no).randint(1, 200)
                 while reb.poll() is None and cluster.epoch() < at:
+                    if time.monotonic() - t0 > 180:
+                        raise RuntimeError(f"no {at - epoch0} moves in 180 s:\n{log.read_text()[-2000:]}")
                     time.sleep(0.005)
                 result.moves_at_kill = cluster.epoch() - epoch0
                 victim, killed_at = kill(cluster, result.victim)
-            _, err = reb.communicate()
+            reb.wait(300)
             tries = 1
             while reb.returncode != 0:
                 if not args.kill_during or tries >= 5:
-                    raise RuntimeError(f"rebalance failed ({reb.returncode}):\n{err[-2000:]}")
+                    tail = log.read_text(errors="replace")[-2000:]
+                    raise RuntimeError(f"rebalance failed ({reb.returncode}):\n{tail}")
                 result.back_s = wait_back(cluster, result.victim, victim, killed_at, result.back_s)
-                reb = subprocess.Popen(rebalance, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-                _, err = reb.communicate()
+                reb = start_rebalance()
+                reb.wait(300)
                 tries += 1
             result.rebalance_s = time.monotonic() - t0
             result.rebalance_tries = tries
