@@ -1,6 +1,7 @@
 """Applied exactly once under a live rebalance and a SIGKILL, through the
 Python client with its default settings (BENCHMARKS.md §13, "Exactly once
-under a rebalance and a SIGKILL"; docs/sessions.md, "Delivery guarantees").
+under a live rebalance and a SIGKILL"; docs/sessions.md, "Delivery
+guarantees").
 
 Each run, on a fresh temporary data directory:
 
@@ -12,11 +13,14 @@ Each run, on a fresh temporary data directory:
    Each thread counts the observations acknowledged to its session.
    An observation whose call finally fails is sent again, with the same
    content, until it is acknowledged (the client then resends the same
-   ``seq``), so that every observation the task made is acknowledged once;
+   ``seq``), so that every observation the thread made is acknowledged once;
 3. while the load runs: ``mcapi cluster rebalance --replicas 4`` (256
    shards move to ``mcapi-3``), then SIGKILL of one replica (``mcapi-(run %
    4)``; the supervisor starts it again), and the load goes on for
-   ``--after-kill`` seconds;
+   ``--after-kill`` seconds. With ``--kill-during`` the replica is killed
+   while shards move instead (after 1 to 200 of the 256 moves, drawn per
+   run), and the rebalance, which the kill interrupts, is run again until
+   it completes;
 4. stops the load (each thread finishes the observation it is sending), then
    reads every session through the router: its ``next_seq`` must equal the
    observations acknowledged to it, and its ``tick`` that number less one
@@ -28,8 +32,8 @@ with ``replayed``), the mismatches, and the calls that failed for good (to
 the caller, after the client's own retries). Exits 1 if any run has a
 mismatch, 2 if a run could not be carried out.
 
-    clients/python/.venv/bin/python benches/exactly_once.py --runs 20
-    make bench-exactly-once RUNS=20
+    clients/python/.venv/bin/python benches/exactly_once.py --runs 20 [--kill-during]
+    make bench-exactly-once RUNS=20 [KILL_DURING=1]
 
 The client is imported from this tree (clients/python), not from the venv's
 installed copy, so the code measured is the code checked out.
