@@ -4,7 +4,7 @@ CARGO ?= cargo
 
 .DEFAULT_GOAL := test
 
-.PHONY: help check generate test lint-docker check-links fmt-check clippy unit build release bench bench-server bench-vector figures peers clean \
+.PHONY: help check generate test lint-docker check-links fmt-check clippy unit build release bench bench-server bench-vector bench-exactly-once figures peers clean \
 	python-venv python-lint python-test e2e contract fuzz checks container-base container-test container-bench \
 	k8s-validate k8s-configmap readme-test
 
@@ -194,6 +194,22 @@ bench-server: release ## every row of BENCHMARKS.md §8 (about 12 min)
 # windows. Not part of `make test`.
 bench-vector: release python-venv ## vectorised stepping, every path (about 4 min)
 	bash benches/vector.sh
+
+# Applied exactly once under a live rebalance and a SIGKILL
+# (benches/exactly_once.py, BENCHMARKS.md §13): each run starts `mcapi
+# cluster local --replicas 3` on a fresh directory, drives 150 hallway
+# sessions through the router with the Python client at its default
+# settings, runs `mcapi cluster rebalance --replicas 4` under that load,
+# then SIGKILLs one replica, and checks that every session's next_seq is
+# the number of observations acknowledged to it. RUNS runs (default 20,
+# about 7 minutes on a busy 2-core machine); KILL_DURING=1 kills the replica
+# while shards move instead. Exits 1 on a mismatch. Needs haproxy. Not part
+# of `make test`.
+RUNS ?= 20
+bench-exactly-once: python-venv ## exactly once under a rebalance and a SIGKILL, RUNS runs (about 7 min)
+	$(CARGO) build --locked --bin mcapi
+	$(PY_CLIENT)/.venv/bin/python benches/exactly_once.py --mcapi $(MCAPI_BIN) --runs $(RUNS) \
+	  $(if $(filter 1,$(KILL_DURING)),--kill-during)
 
 # The numpy peer of the tick benchmark (creates its own venv).
 peers: ## the numpy peer of the tick benchmark

@@ -63,6 +63,21 @@ __all__ = ["Client", "AsyncClient", "DEFAULT_URL", "ModelLike"]
 DEFAULT_URL = "http://127.0.0.1:8080"
 """Where ``mcapi serve`` listens for REST by default."""
 
+POOL_LIMITS = httpx.Limits(max_connections=20, max_keepalive_connections=20)
+"""The connection pool of both clients: 20 connections, every one kept
+alive (httpx's default is 100, of which 20 kept alive). With more open
+than kept alive, httpcore closes each connection that goes idle while the
+pool holds more than 20, and under threads sharing one client it can close
+one it has just handed to a waiting request: that request then waits for
+its whole ``timeout`` on a closed socket and fails ("Bad file descriptor"),
+too late to be retried, after the server may have applied it. Kept alive,
+an idle connection is closed only when the server closed it or its
+keep-alive (5 s) expired. 20 rather than 100: httpcore's pool scans its
+connections on every request, and 150 threads sharing a pool of 100 made
+11% and 25% fewer observations per second than with 20, in two
+interleaved runs (BENCHMARKS.md §13); more requests wait for a connection
+instead."""
+
 
 def _reply(response: httpx.Response) -> Any:
     """The reply's JSON, or its error with the owner a misdirected one names."""
@@ -135,6 +150,7 @@ class Client:
             headers=request_headers(api_key, headers),
             timeout=timeout,
             transport=transport,
+            limits=POOL_LIMITS,
         )
         self._protocol = RestProtocol(exactly_once)
 
@@ -402,6 +418,7 @@ class AsyncClient:
             headers=request_headers(api_key, headers),
             timeout=timeout,
             transport=transport,
+            limits=POOL_LIMITS,
         )
         self._protocol = RestProtocol(exactly_once)
 

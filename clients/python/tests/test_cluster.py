@@ -8,8 +8,11 @@ transport, an in-process gRPC server) and two real replicas."""
 from __future__ import annotations
 
 import asyncio
+import http.server
 import random
+import socketserver
 import subprocess
+import threading
 import time
 from collections.abc import Callable, Iterator
 from concurrent import futures
@@ -125,6 +128,75 @@ def test_async_rest_retries_too() -> None:
 
     asyncio.run(run())
     assert len(seen) == 3
+
+
+class _CountingServer(socketserver.ThreadingMixIn, http.server.HTTPServer):
+    """A kept-alive HTTP/1.1 server answering every GET with 200 after
+    ``delay`` seconds, counting the connections it accepts."""
+
+    daemon_threads = True
+    request_queue_size = 256
+
+    def __init__(self, delay: float) -> None:
+        self.accepted = 0
+        self.delay = delay
+        server = self
+
+        class Handler(http.server.BaseHTTPRequestHandler):
+            protocol_version = "HTTP/1.1"
+
+            def setup(self) -> None:
+                server.accepted += 1
+                super().setup()
+
+            def do_GET(self) -> None:  # noqa: N802 (the stdlib's name)
+                time.sleep(server.delay)
+                self.send_response(200)
+                self.send_header("content-length", "0")
+                self.end_headers()
+
+            def log_message(self, *args: Any) -> None:
+                pass
+
+        super().__init__(("127.0.0.1", 0), Handler)
+
+
+def test_rest_keeps_every_pooled_connection_alive() -> None:
+    # With httpx's default pool (20 connections kept alive), httpcore closes
+    # each connection that goes idle while the pool holds more than 20, and
+    # can so close one just handed to a waiting thread's request: that
+    # request hangs for its whole timeout, then fails ("Bad file
+    # descriptor"), after the server may have applied it. Seen once in 20
+    # runs of benches/exactly_once.py. The client's pool keeps every
+    # connection it opens: a second burst of 40 concurrent requests finds
+    # the first burst's connections, and opens none (with httpx's default
+    # pool the first burst opens up to 40, and the second opens some again).
+    server = _CountingServer(delay=0.1)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        with Client(f"http://127.0.0.1:{server.server_address[1]}") as mc:
+
+            def burst() -> None:
+                start = threading.Barrier(40)
+
+                def one() -> None:
+                    start.wait()
+                    assert mc.ready()
+
+                threads = [threading.Thread(target=one) for _ in range(40)]
+                for t in threads:
+                    t.start()
+                for t in threads:
+                    t.join()
+
+            burst()
+            first = server.accepted
+            assert first > 1, f"the first burst opened only {first} connection"
+            burst()
+            assert server.accepted == first, f"{server.accepted - first} connections opened again"
+    finally:
+        server.shutdown()
+        server.server_close()
 
 
 def test_backoff_is_jittered_bounded_and_growing() -> None:
