@@ -212,9 +212,10 @@ pub(super) fn module_rng(seed: u64, k: u64) -> ChaCha8Rng {
 }
 
 impl CuriosityChannel {
-    /// A channel for m-dimensional signals (m ≥ 1) with a fresh active
-    /// module and an empty library.
-    pub fn new(m: usize, params: ValidCuriosityParams, seed: u64) -> Result<Self> {
+    /// Checks a signal dimension m: 1 ≤ m ≤ [`MAX_SIGNAL_DIM`] (what
+    /// [`Self::new`] checks first, for callers that price a channel before
+    /// they make it).
+    pub fn check_signal_dim(m: usize) -> Result<()> {
         if m == 0 {
             return Err(bad("signal_dim", "must be at least 1"));
         }
@@ -224,6 +225,13 @@ impl CuriosityChannel {
                 format!("{m} exceeds the limit of {MAX_SIGNAL_DIM}"),
             ));
         }
+        Ok(())
+    }
+
+    /// A channel for m-dimensional signals (m ≥ 1) with a fresh active
+    /// module and an empty library.
+    pub fn new(m: usize, params: ValidCuriosityParams, seed: u64) -> Result<Self> {
+        Self::check_signal_dim(m)?;
         let active = ActiveModule::fresh(m, &params, &mut module_rng(seed, 0));
         Ok(Self {
             params,

@@ -369,6 +369,15 @@ impl Setup {
                 "a curiosity channel needs a model with posted transitions; this model learns them (`learn`)",
             ));
         }
+        if let Some(c) = &agent.curiosity {
+            // Checked before the channel is priced (its cost grows with
+            // the signal's dimension to the fourth power).
+            c.params
+                .check()
+                .map_err(|e| ServiceError::algo_at("agent.curiosity.params", e))?;
+            mcapi_core::curiosity::CuriosityChannel::check_signal_dim(c.signal_dim)
+                .map_err(|e| ServiceError::algo_at("agent.curiosity", e))?;
+        }
         let seed = self.fresh_u64();
         // The agent's parameters and the session's cost, checked against
         // what the session will be before anything is built.
