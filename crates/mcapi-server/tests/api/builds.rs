@@ -5,40 +5,12 @@
 //! nothing comes first, and the build of a request whose client went away
 //! stops instead of holding its thread and its creation slot.
 
-use std::sync::Arc;
 use std::time::Duration;
 
+use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::api::grpc::{pb, serve_on};
-use mcapi_server::api::{AppState, router};
-use mcapi_server::service::{Limits, SessionManager};
+use mcapi_server::service::Limits;
 use serde_json::{Value, json};
-
-/// A server on `limits`: (its manager, REST base URL, gRPC address).
-async fn start(limits: Limits) -> (Arc<SessionManager>, String, String) {
-    let manager = Arc::new(SessionManager::new(limits, 1).expect("manager"));
-    let rest = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let base = format!("http://{}", rest.local_addr().expect("addr"));
-    let app = router(AppState {
-        manager: Arc::clone(&manager),
-        metrics: None,
-        serving: None,
-    });
-    tokio::spawn(async move { axum::serve(rest, app).await.expect("serve") });
-    let grpc = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let addr = format!("http://{}", grpc.local_addr().expect("addr"));
-    tokio::spawn(serve_on(
-        grpc,
-        Arc::clone(&manager),
-        8,
-        std::future::pending(),
-    ));
-    (manager, base, addr)
-}
 
 /// A ring of `n` states, one action, with `k` proto-value functions: a
 /// graph whose eigenvalues crowd together, so its sparse build is slow.
@@ -61,7 +33,7 @@ async fn post(base: &str, body: &Value) -> (u16, Value) {
 
 #[tokio::test]
 async fn a_build_estimated_over_the_budget_is_refused_before_it_starts() {
-    let (manager, base, addr) = start(Limits::default()).await;
+    let (manager, base, addr) = crate::serve_both(Limits::default()).await;
     // 550 PVFs of a 10,000-state ring: inside every size limit, but about
     // 155 s of eigensolver (estimated at least 56 s; the budget is 30 s).
     let body = json!({"model": ring(10_000, 550)});
@@ -92,7 +64,7 @@ async fn cheap_checks_come_before_the_build() {
     // A wrong agent parameter on a model whose build would cost seconds,
     // on a server that stops builds after 1 s: refused for the parameter,
     // not for the build (which, run first, would be stopped: 413).
-    let (manager, base, _) = start(Limits {
+    let (manager, base, _) = crate::serve_both(Limits {
         max_build_ms: 1000,
         ..Limits::default()
     })
@@ -118,7 +90,7 @@ async fn cheap_checks_come_before_the_build() {
     assert_eq!(status, 400, "{reply}");
     // A session over the per-session tick budget: 413 for its cost, before
     // its basis is built.
-    let (tight, tight_base, _) = start(Limits {
+    let (tight, tight_base, _) = crate::serve_both(Limits {
         max_tick_us: 1,
         max_build_ms: 1000,
         ..Limits::default()
@@ -140,7 +112,7 @@ async fn cheap_checks_come_before_the_build() {
 async fn a_build_past_its_deadline_is_stopped() {
     // 150 PVFs of a 2000-state ring: estimated at about 0.9 s, so it
     // starts under a 1 s budget, and takes seconds, so it is stopped.
-    let (manager, base, _) = start(Limits {
+    let (manager, base, _) = crate::serve_both(Limits {
         max_build_ms: 1000,
         ..Limits::default()
     })
@@ -158,7 +130,7 @@ async fn a_build_past_its_deadline_is_stopped() {
 
 #[tokio::test]
 async fn the_build_of_an_abandoned_request_stops() {
-    let (manager, base, _) = start(Limits::default()).await;
+    let (manager, base, _) = crate::serve_both(Limits::default()).await;
     // The client gives up after 200 ms on a build of seconds.
     let gave_up = reqwest::Client::new()
         .post(format!("{base}/v1/sessions"))

@@ -52,3 +52,26 @@ async fn serve_rest(
     });
     (manager, addr)
 }
+
+/// [`serve_rest`] and the gRPC service over the same manager, each on a
+/// free local port: the manager, the REST base URL and the gRPC endpoint.
+async fn serve_both(
+    limits: mcapi_server::service::Limits,
+) -> (
+    std::sync::Arc<mcapi_server::service::SessionManager>,
+    String,
+    String,
+) {
+    let (manager, rest) = serve_rest(limits).await;
+    let grpc = tokio::net::TcpListener::bind("127.0.0.1:0")
+        .await
+        .expect("bind");
+    let addr = format!("http://{}", grpc.local_addr().expect("addr"));
+    tokio::spawn(mcapi_server::api::grpc::serve_on(
+        grpc,
+        std::sync::Arc::clone(&manager),
+        8,
+        std::future::pending(),
+    ));
+    (manager, format!("http://{rest}"), addr)
+}

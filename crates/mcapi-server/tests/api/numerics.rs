@@ -12,36 +12,16 @@
 // one more release, docs/grpc.md), so both transports read the same text.
 #![allow(deprecated)]
 
-use std::sync::Arc;
-
+use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::api::grpc::{pb, serve_on};
-use mcapi_server::api::{AppState, router};
-use mcapi_server::service::{Limits, SessionManager};
+use mcapi_server::service::Limits;
 use serde_json::{Value, json};
 use tonic::transport::Channel;
 
 /// One manager behind both transports: (REST base URL, gRPC client).
 async fn start() -> (String, AgentsClient<Channel>) {
-    let manager = Arc::new(SessionManager::new(Limits::default(), 2).expect("manager"));
-    let rest = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let base = format!("http://{}", rest.local_addr().expect("addr"));
-    let app = router(AppState {
-        manager: Arc::clone(&manager),
-        metrics: None,
-        serving: None,
-    });
-    tokio::spawn(async move { axum::serve(rest, app).await.expect("serve") });
-    let grpc = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let addr = grpc.local_addr().expect("addr");
-    tokio::spawn(serve_on(grpc, manager, 8, std::future::pending()));
-    let client = AgentsClient::connect(format!("http://{addr}"))
-        .await
-        .expect("connect");
+    let (_, base, addr) = crate::serve_both(Limits::default()).await;
+    let client = AgentsClient::connect(addr).await.expect("connect");
     (base, client)
 }
 

@@ -11,9 +11,8 @@
 
 use std::sync::Arc;
 
+use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::api::grpc::{pb, serve_on};
-use mcapi_server::api::{AppState, router};
 use mcapi_server::service::{Limits, SessionManager};
 use serde_json::{Value, json};
 use tokio::sync::mpsc;
@@ -28,30 +27,8 @@ struct Servers {
 
 /// One manager behind both transports.
 async fn start() -> Servers {
-    let manager = Arc::new(SessionManager::new(Limits::default(), 2).expect("manager"));
-    let rest = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let base = format!("http://{}", rest.local_addr().expect("addr"));
-    let app = router(AppState {
-        manager: Arc::clone(&manager),
-        metrics: None,
-        serving: None,
-    });
-    tokio::spawn(async move { axum::serve(rest, app).await.expect("serve") });
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0")
-        .await
-        .expect("bind");
-    let addr = listener.local_addr().expect("addr");
-    tokio::spawn(serve_on(
-        listener,
-        Arc::clone(&manager),
-        8,
-        std::future::pending(),
-    ));
-    let grpc = AgentsClient::connect(format!("http://{addr}"))
-        .await
-        .expect("connect");
+    let (manager, base, addr) = crate::serve_both(Limits::default()).await;
+    let grpc = AgentsClient::connect(addr).await.expect("connect");
     Servers {
         manager,
         base,
