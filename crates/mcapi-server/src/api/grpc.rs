@@ -433,9 +433,12 @@ impl Agents for AgentsService {
         let (model, agent, n, seed) =
             convert::create_group(request.into_inner()).map_err(to_status)?;
         let manager = Arc::clone(&self.manager);
-        // Building N agents (and a model) must not block the runtime.
+        // Building N agents (and a model) must not block the runtime; it
+        // stops if this call is abandoned (the guard goes with its future).
+        let watch = Watch::default();
+        let _abandon = watch.abandon_on_drop();
         let info = tokio::task::spawn_blocking(move || {
-            manager.create_group_parsed(caller, model, &agent, n, seed)
+            manager.create_group_parsed(caller, model, &agent, n, seed, &watch)
         })
         .await
         .map_err(|e| to_status(ServiceError::Internal(format!("create task: {e}"))))?

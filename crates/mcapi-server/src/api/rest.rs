@@ -405,9 +405,14 @@ pub(crate) async fn create_group(
     JsonBody(req): JsonBody<CreateGroup>,
 ) -> Result<(StatusCode, Json<GroupInfo>), ApiError> {
     let manager = Arc::clone(&state.manager);
-    let info = tokio::task::spawn_blocking(move || manager.create_group(caller, req))
-        .await
-        .map_err(|e| ServiceError::Internal(format!("create task: {e}")))??;
+    // Dropped with this future when the request is abandoned: the build
+    // of the model and of the members then stops.
+    let watch = Watch::default();
+    let _abandon = watch.abandon_on_drop();
+    let info =
+        tokio::task::spawn_blocking(move || manager.create_group_watched(caller, req, &watch))
+            .await
+            .map_err(|e| ServiceError::Internal(format!("create task: {e}")))??;
     Ok((StatusCode::CREATED, Json(info)))
 }
 

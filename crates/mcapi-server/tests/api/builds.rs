@@ -154,3 +154,21 @@ async fn the_build_of_an_abandoned_request_stops() {
     let (status, reply) = post(&base, &json!({"model": ring(50, 5)})).await;
     assert_eq!(status, 201, "{reply}");
 }
+
+#[tokio::test]
+async fn the_build_of_an_abandoned_group_stops() {
+    let (manager, base, _) = crate::serve_both(Limits::default()).await;
+    let gave_up = reqwest::Client::new()
+        .post(format!("{base}/v1/groups"))
+        .timeout(Duration::from_millis(200))
+        .json(&json!({"model": ring(2000, 150), "n": 3}))
+        .send()
+        .await;
+    assert!(gave_up.is_err(), "the client timed out: {gave_up:?}");
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    while manager.builds_stopped() == 0 && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(manager.builds_stopped(), 1, "the abandoned build was stopped");
+    assert!(manager.is_empty());
+}

@@ -23,6 +23,16 @@ impl Watch {
     pub fn abandon_on_drop(&self) -> AbandonOnDrop {
         AbandonOnDrop(Arc::clone(&self.abandoned))
     }
+
+    /// The flag a build checks.
+    pub(super) fn flag(&self) -> &AtomicBool {
+        &self.abandoned
+    }
+
+    /// Whether the request was abandoned.
+    pub(super) fn is_abandoned(&self) -> bool {
+        self.abandoned.load(std::sync::atomic::Ordering::Relaxed)
+    }
 }
 
 /// See [`Watch::abandon_on_drop`].
@@ -103,7 +113,7 @@ impl SessionManager {
         };
         let new = NewBuild {
             admit: &admit,
-            abandoned: Some(&watch.abandoned),
+            abandoned: Some(watch.flag()),
         };
         let (learner, summary, config) = self.setup.build_new(&input, agent, &self.limits, &new)?;
         let cost = cost::estimate(&summary, &config);

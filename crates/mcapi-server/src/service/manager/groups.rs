@@ -45,6 +45,17 @@ impl GroupMember {
     }
 }
 
+/// A group's creation as [`SessionManager::create_group_from`] takes it:
+/// the model parsed (and its text, for the store), the members'
+/// configuration, how many, and the group's seed.
+struct GroupRequest<'a> {
+    input: ModelInput,
+    model_text: Option<String>,
+    agent: &'a SessionConfig,
+    n: u64,
+    seed: Option<u64>,
+}
+
 impl SessionManager {
     /// Creates a group from REST's body (the model as JSON, parsed as
     /// `POST /v1/sessions` parses it); see [`Self::create_group_parsed`].
@@ -52,6 +63,17 @@ impl SessionManager {
         &self,
         caller: Caller,
         req: CreateGroup,
+    ) -> Result<GroupInfo, ServiceError> {
+        self.create_group_watched(caller, req, &Watch::default())
+    }
+
+    /// [`Self::create_group`] for a request that may be abandoned: the
+    /// model's build and the members' stop once `watch` says so.
+    pub fn create_group_watched(
+        &self,
+        caller: Caller,
+        req: CreateGroup,
+        watch: &Watch,
     ) -> Result<GroupInfo, ServiceError> {
         let CreateGroup {
             model,
@@ -61,7 +83,14 @@ impl SessionManager {
         } = req;
         let model_text = self.durability.as_ref().map(|_| model.to_string());
         let input = ModelInput::parse(model)?;
-        self.create_group_from(caller, input, model_text, &agent, n, seed)
+        let req = GroupRequest {
+            input,
+            model_text,
+            agent: &agent,
+            n,
+            seed,
+        };
+        self.create_group_from(caller, req, watch)
     }
 
     /// Creates a group from a model already parsed (gRPC's typed `Model`);
@@ -73,12 +102,20 @@ impl SessionManager {
         agent: &SessionConfig,
         n: u64,
         seed: Option<u64>,
+        watch: &Watch,
     ) -> Result<GroupInfo, ServiceError> {
         let model_text = match &self.durability {
             Some(_) => Some(input.to_json_text()?),
             None => None,
         };
-        self.create_group_from(caller, input, model_text, agent, n, seed)
+        let req = GroupRequest {
+            input,
+            model_text,
+            agent,
+            n,
+            seed,
+        };
+        self.create_group_from(caller, req, watch)
     }
 
     /// Creates a group of `n` sessions of one model and configuration
@@ -91,12 +128,16 @@ impl SessionManager {
     fn create_group_from(
         &self,
         caller: Caller,
-        input: ModelInput,
-        model_text: Option<String>,
-        agent: &SessionConfig,
-        n: u64,
-        seed: Option<u64>,
+        req: GroupRequest<'_>,
+        watch: &Watch,
     ) -> Result<GroupInfo, ServiceError> {
+        let GroupRequest {
+            input,
+            model_text,
+            agent,
+            n,
+            seed,
+        } = req;
         let n = usize::try_from(n).unwrap_or(usize::MAX);
         if n == 0 {
             return Err(ServiceError::field("n", "must be at least 1"));
@@ -150,7 +191,7 @@ impl SessionManager {
         };
         let new = super::super::setup::NewBuild {
             admit: &admit,
-            abandoned: None,
+            abandoned: Some(watch.flag()),
         };
         let first = self
             .setup
@@ -166,6 +207,11 @@ impl SessionManager {
         let mut built = Vec::with_capacity(n);
         built.push(first);
         for i in 1..n {
+            if watch.is_abandoned() {
+                return Err(ServiceError::Unavailable(
+                    "the request was abandoned while its members were built".into(),
+                ));
+            }
             built.push(self.setup.build(&input, &member_config(i), &self.limits)?);
         }
         let (shard, _guard) = match &self.placement {
