@@ -169,6 +169,10 @@ async fn the_build_of_an_abandoned_group_stops() {
     while manager.builds_stopped() == 0 && tokio::time::Instant::now() < deadline {
         tokio::time::sleep(Duration::from_millis(20)).await;
     }
-    assert_eq!(manager.builds_stopped(), 1, "the abandoned build was stopped");
+    assert_eq!(
+        manager.builds_stopped(),
+        1,
+        "the abandoned build was stopped"
+    );
     assert!(manager.is_empty());
 }
