@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
-use mcapi_server::service::Limits;
+use mcapi_server::service::{Limits, SessionManager};
 use serde_json::{Value, json};
 
 /// A ring of `n` states, one action, with `k` proto-value functions: a
@@ -21,14 +21,31 @@ fn ring(n: usize, k: usize) -> Value {
 }
 
 async fn post(base: &str, body: &Value) -> (u16, Value) {
-    let resp = reqwest::Client::new()
-        .post(format!("{base}/v1/sessions"))
+    crate::post_json(base, "/v1/sessions", body).await
+}
+
+/// Sends `body` to `base` + `path` with a client that gives up after
+/// 200 ms on a build of seconds, then waits (bounded) for the server to
+/// stop that build: a build that ran to its end would leave the count at
+/// 0. Asserts that exactly one build was stopped and nothing was created.
+async fn abandon_and_wait(manager: &SessionManager, base: &str, path: &str, body: &Value) {
+    let gave_up = reqwest::Client::new()
+        .post(format!("{base}{path}"))
+        .timeout(Duration::from_millis(200))
         .json(body)
         .send()
-        .await
-        .expect("request");
-    let status = resp.status().as_u16();
-    (status, resp.json().await.unwrap_or(Value::Null))
+        .await;
+    assert!(gave_up.is_err(), "the client timed out: {gave_up:?}");
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    while manager.builds_stopped() == 0 && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(
+        manager.builds_stopped(),
+        1,
+        "the abandoned build was stopped"
+    );
+    assert!(manager.is_empty());
 }
 
 #[tokio::test]
@@ -131,26 +148,9 @@ async fn a_build_past_its_deadline_is_stopped() {
 #[tokio::test]
 async fn the_build_of_an_abandoned_request_stops() {
     let (manager, base, _) = crate::serve_both(Limits::default()).await;
-    // The client gives up after 200 ms on a build of seconds.
-    let gave_up = reqwest::Client::new()
-        .post(format!("{base}/v1/sessions"))
-        .timeout(Duration::from_millis(200))
-        .json(&json!({"model": ring(2000, 150)}))
-        .send()
-        .await;
-    assert!(gave_up.is_err(), "the client timed out: {gave_up:?}");
-    // Wait for the server to notice (one block product at most), bounded:
-    // a build that ran to its end would leave the count at 0.
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
-    while manager.builds_stopped() == 0 && tokio::time::Instant::now() < deadline {
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    assert_eq!(
-        manager.builds_stopped(),
-        1,
-        "the abandoned build was stopped"
-    );
-    assert!(manager.is_empty());
+    let body = json!({"model": ring(2000, 150)});
+    abandon_and_wait(&manager, &base, "/v1/sessions", &body).await;
+    // The slot is free again.
     let (status, reply) = post(&base, &json!({"model": ring(50, 5)})).await;
     assert_eq!(status, 201, "{reply}");
 }
@@ -158,21 +158,6 @@ async fn the_build_of_an_abandoned_request_stops() {
 #[tokio::test]
 async fn the_build_of_an_abandoned_group_stops() {
     let (manager, base, _) = crate::serve_both(Limits::default()).await;
-    let gave_up = reqwest::Client::new()
-        .post(format!("{base}/v1/groups"))
-        .timeout(Duration::from_millis(200))
-        .json(&json!({"model": ring(2000, 150), "n": 3}))
-        .send()
-        .await;
-    assert!(gave_up.is_err(), "the client timed out: {gave_up:?}");
-    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
-    while manager.builds_stopped() == 0 && tokio::time::Instant::now() < deadline {
-        tokio::time::sleep(Duration::from_millis(20)).await;
-    }
-    assert_eq!(
-        manager.builds_stopped(),
-        1,
-        "the abandoned build was stopped"
-    );
-    assert!(manager.is_empty());
+    let body = json!({"model": ring(2000, 150), "n": 3});
+    abandon_and_wait(&manager, &base, "/v1/groups", &body).await;
 }

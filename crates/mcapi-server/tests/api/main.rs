@@ -75,3 +75,16 @@ async fn serve_both(
     ));
     (manager, format!("http://{rest}"), addr)
 }
+
+/// POSTs `body` to `base` + `path`: the status and the JSON reply (null if
+/// the reply is not JSON).
+async fn post_json(base: &str, path: &str, body: &serde_json::Value) -> (u16, serde_json::Value) {
+    let resp = reqwest::Client::new()
+        .post(format!("{base}{path}"))
+        .json(body)
+        .send()
+        .await
+        .expect("request");
+    let status = resp.status().as_u16();
+    (status, resp.json().await.unwrap_or(serde_json::Value::Null))
+}

@@ -26,14 +26,7 @@ async fn start() -> (String, AgentsClient<Channel>) {
 }
 
 async fn post(base: &str, path: &str, body: &Value) -> (u16, Value) {
-    let resp = reqwest::Client::new()
-        .post(format!("{base}{path}"))
-        .json(body)
-        .send()
-        .await
-        .expect("request");
-    let status = resp.status().as_u16();
-    (status, resp.json().await.unwrap_or(Value::Null))
+    crate::post_json(base, path, body).await
 }
 
 /// A two-state world with a custom basis of these state features.
