@@ -221,7 +221,12 @@ impl Basis {
     }
 }
 
-fn custom_features(model: &EnvModel, rows: &[Vec<f64>]) -> Result<StateFeatures> {
+/// Checks a client's `state_features` without building anything: one row
+/// per state, every row as long as the first and not empty, every entry
+/// finite and within ±[`MAX_FEATURE`]. O(entries) and no allocation, so a
+/// server runs it before a build takes a place (the conditioning check,
+/// an SVD, runs with the build: [`Basis::build_checked`]).
+pub fn check_custom_rows(model: &EnvModel, rows: &[Vec<f64>]) -> Result<()> {
     let bad = |msg: String| AlgoError::InvalidBasis(msg);
     if rows.len() != model.states() {
         return Err(bad(format!(
@@ -234,7 +239,6 @@ fn custom_features(model: &EnvModel, rows: &[Vec<f64>]) -> Result<StateFeatures>
     if k == 0 {
         return Err(bad("`state_features[0]` is empty".into()));
     }
-    let mut values = Vec::with_capacity(rows.len() * k);
     for (s, row) in rows.iter().enumerate() {
         if row.len() != k {
             return Err(bad(format!(
@@ -252,6 +256,15 @@ fn custom_features(model: &EnvModel, rows: &[Vec<f64>]) -> Result<StateFeatures>
                 "`state_features[{s}][{j}]` = {x:e} exceeds the limit of ±{MAX_FEATURE:e}"
             )));
         }
+    }
+    Ok(())
+}
+
+fn custom_features(model: &EnvModel, rows: &[Vec<f64>]) -> Result<StateFeatures> {
+    check_custom_rows(model, rows)?;
+    let k = rows[0].len();
+    let mut values = Vec::with_capacity(rows.len() * k);
+    for row in rows {
         values.extend_from_slice(row);
     }
     Ok(StateFeatures::new(k, values))

@@ -79,7 +79,7 @@ pub struct Limits {
 impl Default for Limits {
     fn default() -> Self {
         Self {
-            max_sessions: 250_000,
+            max_sessions: 1_000_000,
             max_pairs: 1_000_000,
             max_transitions: 2_000_000,
             max_features: 1024,
@@ -99,7 +99,7 @@ impl Default for Limits {
             max_tick_us: 250_000,
             max_batch_ms: 30_000,
             max_build_ms: 30_000,
-            max_key_sessions: 250_000,
+            max_key_sessions: 1_000_000,
             max_key_bytes: 8 << 30,
             max_response_bytes: 64 << 20,
             max_response_bytes_total: 256 << 20,
@@ -166,7 +166,8 @@ fn exceeded(
 pub struct Usage {
     /// Sessions.
     pub sessions: usize,
-    /// Estimated bytes of those sessions.
+    /// Bytes charged for those sessions: each resident one its estimated
+    /// cost, each evicted one what its stub holds.
     pub bytes: u64,
 }
 

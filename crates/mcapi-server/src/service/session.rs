@@ -14,6 +14,7 @@ use mcapi_core::{AlgoError, Observation};
 use mcapi_store::{Commit, Store, Write};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
+use super::cost;
 use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
 use super::groups::GroupTag;
@@ -587,6 +588,7 @@ impl Session {
         Some(Evicted {
             owner: self.owner,
             cost,
+            held: cost::evicted_bytes(&self.id),
             tick: st.learner.tick(),
             states: self.model.states,
             mode: self.mode,
@@ -1003,14 +1005,18 @@ pub(crate) enum Update {
 pub type Owner = Option<[u8; 32]>;
 
 /// What the table keeps of an evicted session: enough to list it, charge
-/// its owner and price a message without loading it (about 100 bytes,
-/// against kilobytes for the session).
+/// its owner and price a message without loading it (about 200 bytes with
+/// its id and table slot, against kilobytes for the session).
 #[derive(Debug)]
 pub struct Evicted {
     /// Its owner.
     pub owner: Owner,
-    /// Its estimated cost, as charged while it was resident.
+    /// Its estimated cost once loaded back (what its owner is charged
+    /// while it is resident).
     pub cost: SessionCost,
+    /// What its owner is charged while it is evicted: what it holds in
+    /// memory ([`cost::evicted_bytes`]).
+    pub held: u64,
     /// Ticks so far.
     pub tick: u64,
     /// States of its model.

@@ -215,13 +215,24 @@ impl Setup {
         new: Option<&NewBuild<'_>>,
     ) -> Result<(Arc<PlanningModel>, Built), ServiceError> {
         let key = format!("{}:curious={curious}", input.cache_key());
-        if let Some((weak, built)) = self.models.lock().get(&key)
-            && let Some(ctx) = weak.upgrade()
-        {
-            before(built)?;
-            return Ok((ctx, Arc::clone(built)));
+        // Not held while `before` runs: it may make room for the session
+        // by evicting others, which waits for the store.
+        let cached = self
+            .models
+            .lock()
+            .get(&key)
+            .and_then(|(weak, built)| Some((weak.upgrade()?, Arc::clone(built))));
+        if let Some((ctx, built)) = cached {
+            before(&built)?;
+            return Ok((ctx, built));
         }
         let (model, basis_spec) = input.build(limits, curious)?;
+        // A client's features are checked entry by entry before anything
+        // waits for a build's place (their conditioning, an SVD, is
+        // checked with the build).
+        if let BasisSpec::Custom { state_features } = &basis_spec {
+            mcapi_core::basis::check_custom_rows(&model, state_features)?;
+        }
         let learned = |model: &mcapi_core::EnvModel| {
             input.learning().map(|l| LearnedSummary {
                 known_after: l.known_after,

@@ -1,7 +1,9 @@
 //! The session table: sessions by id, each resident (in memory) or evicted
 //! to the store (docs/sessions.md, "Idle sessions"), and what each API key
 //! holds (its session count and their estimated memory), kept in step on
-//! every insert and removal so a quota check costs one lookup.
+//! every insert, removal, eviction and load so a quota check costs one
+//! lookup. A resident session is charged its full estimate, an evicted one
+//! what its stub holds.
 
 use std::collections::HashMap;
 use std::collections::btree_map::{self, BTreeMap};
@@ -31,11 +33,20 @@ impl Entry {
         }
     }
 
-    /// Its estimated cost.
+    /// Its estimated cost once resident.
     pub fn cost(&self) -> SessionCost {
         match self {
             Self::Resident(s) => cost::estimate(&s.model, &s.config),
             Self::Evicted(e) => e.cost,
+        }
+    }
+
+    /// The bytes its owner is charged for it now: its full estimate while
+    /// resident, what its stub holds while evicted.
+    pub fn charge(&self) -> u64 {
+        match self {
+            Self::Resident(s) => cost::estimate(&s.model, &s.config).bytes,
+            Self::Evicted(e) => e.held,
         }
     }
 
@@ -102,7 +113,7 @@ impl SessionTable {
     pub fn insert_entry(&mut self, id: String, entry: Entry) -> Option<Entry> {
         let usage = self.usage.entry(*entry.owner()).or_default();
         usage.sessions += 1;
-        usage.bytes = usage.bytes.saturating_add(entry.cost().bytes);
+        usage.bytes = usage.bytes.saturating_add(entry.charge());
         self.evicted += usize::from(matches!(entry, Entry::Evicted(_)));
         let old = self.map.insert(id, entry);
         if let Some(old) = &old {
@@ -119,8 +130,10 @@ impl SessionTable {
     }
 
     /// Replaces the entry of `id` by `with` if it is still `expected` (the
-    /// same resident session or the same eviction); the owner's charge is
-    /// unchanged, as the cost is. False if the entry changed meanwhile.
+    /// same resident session or the same eviction), moving its owner's
+    /// charge from the one to the other (an eviction refunds all but the
+    /// stub, a load charges the full estimate again). False if the entry
+    /// changed meanwhile.
     pub fn swap(&mut self, id: &str, expected: &Entry, with: Entry) -> bool {
         let Some(entry) = self.map.get_mut(id) else {
             return false;
@@ -135,6 +148,10 @@ impl SessionTable {
         }
         let was = usize::from(matches!(entry, Entry::Evicted(_)));
         let now = usize::from(matches!(with, Entry::Evicted(_)));
+        let (refund, charge) = (entry.charge(), with.charge());
+        if let Some(usage) = self.usage.get_mut(with.owner()) {
+            usage.bytes = usage.bytes.saturating_sub(refund).saturating_add(charge);
+        }
         *entry = with;
         self.evicted = self.evicted + now - was;
         true
@@ -145,7 +162,7 @@ impl SessionTable {
         let owner = entry.owner();
         if let Some(usage) = self.usage.get_mut(owner) {
             usage.sessions = usage.sessions.saturating_sub(1);
-            usage.bytes = usage.bytes.saturating_sub(entry.cost().bytes);
+            usage.bytes = usage.bytes.saturating_sub(entry.charge());
             if usage.sessions == 0 {
                 self.usage.remove(owner);
             }

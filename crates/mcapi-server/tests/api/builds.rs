@@ -126,6 +126,49 @@ async fn cheap_checks_come_before_the_build() {
 }
 
 #[tokio::test]
+async fn a_custom_basis_out_of_range_is_refused_without_waiting_for_a_build() {
+    // Both build places taken by builds of seconds; a custom basis with an
+    // entry beyond ±10⁶ is refused while they run, not after one of them.
+    let (manager, base, _) = crate::serve_both(Limits {
+        max_build_ms: 120_000,
+        ..Limits::default()
+    })
+    .await;
+    let long: Vec<_> = (0..2)
+        .map(|_| {
+            let base = base.clone();
+            tokio::spawn(async move { post(&base, &json!({"model": ring(2000, 150)})).await })
+        })
+        .collect();
+    tokio::time::sleep(Duration::from_millis(500)).await;
+    let custom = json!({"states": 2, "actions": ["go", "stay"], "stimuli": ["x"],
+                        "next": [[1, 0], [0, 1]],
+                        "basis": {"kind": "custom", "state_features": [[1e200, 0], [0, 1]]}});
+    let (status, reply) = post(&base, &json!({ "model": custom })).await;
+    assert_eq!(status, 400, "{reply}");
+    assert!(
+        reply["message"]
+            .as_str()
+            .unwrap_or_default()
+            .contains("exceeds the limit"),
+        "{reply}"
+    );
+    assert!(
+        long.iter().all(|h| !h.is_finished()),
+        "the refusal waited for a build to end"
+    );
+    for h in long {
+        h.abort();
+    }
+    // The abandoned builds stop.
+    let deadline = tokio::time::Instant::now() + Duration::from_secs(60);
+    while manager.builds_stopped() < 2 && tokio::time::Instant::now() < deadline {
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    assert_eq!(manager.builds_stopped(), 2);
+}
+
+#[tokio::test]
 async fn a_build_past_its_deadline_is_stopped() {
     // 150 PVFs of a 2000-state ring: estimated at about 0.9 s, so it
     // starts under a 1 s budget, and takes seconds, so it is stopped.

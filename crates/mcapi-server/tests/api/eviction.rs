@@ -16,8 +16,8 @@ use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
 use std::time::Duration;
 
 use mcapi_server::service::{
-    Caller, CreateSession, Limits, ManagerOptions, ObservationIn, SessionConfig, SessionManager,
-    StepOut, ValueSelection,
+    Caller, CreateSession, Limits, ManagerOptions, ObservationIn, ServiceError, SessionConfig,
+    SessionManager, StepOut, ValueSelection,
 };
 use mcapi_store::Store;
 use mcapi_testkit::{assert_bits_eq, stimulus};
@@ -261,4 +261,109 @@ fn after_a_restart_sessions_start_evicted_and_load_on_their_first_request() {
     assert_eq!(manager.len(), 3);
     assert_eq!(manager.evicted_len(), 3);
     manager.shutdown();
+}
+
+/// A key's quota of bytes charges a resident session its estimate and an
+/// evicted one its stub; when a creation or a load would go over it, the
+/// key's sessions idle for a second or more are evicted to make room, the
+/// least recently active first; a load that still does not fit is refused
+/// with `unavailable` and the session stays in the store.
+#[test]
+fn a_key_over_its_quota_evicts_its_idle_sessions_to_make_room() {
+    let rt = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let hallway = json!({"preset": "hallway"});
+    let price = {
+        let m = in_memory();
+        let agent: SessionConfig = serde_json::from_value(json!({"seed": 1})).expect("agent");
+        m.create(
+            Caller::Anyone,
+            CreateSession {
+                model: hallway.clone(),
+                agent,
+            },
+        )
+        .expect("create")
+        .cost
+        .bytes
+    };
+    // Room for three resident sessions (and a few stubs of about 200 bytes).
+    let quota = 3 * price + 100;
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = SessionManager::with_options(ManagerOptions {
+        store: Some(store),
+        evict_after: Some(Duration::from_secs(3600)),
+        ..ManagerOptions::new(
+            Limits {
+                max_key_bytes: quota,
+                ..Limits::default()
+            },
+            1,
+        )
+    })
+    .expect("manager");
+    manager.recover().expect("recovery");
+    let [a, b, c] = [1, 2, 3].map(|seed| create(&manager, &hallway, &json!({ "seed": seed })));
+    assert_eq!(manager.usage(Caller::Anyone).bytes, 3 * price);
+    let fourth = |seed: u64| {
+        let agent: SessionConfig = serde_json::from_value(json!({ "seed": seed })).expect("agent");
+        manager.create(
+            Caller::Anyone,
+            CreateSession {
+                model: hallway.clone(),
+                agent,
+            },
+        )
+    };
+    // All three were active within the second: none gives way.
+    match fourth(4) {
+        Err(ServiceError::QuotaExceeded(m)) => assert!(m.contains("--max-key-bytes"), "{m}"),
+        other => panic!("a fourth session within the second: {other:?}"),
+    }
+    assert_eq!(manager.evicted_len(), 0);
+
+    std::thread::sleep(Duration::from_millis(1100));
+    let d = fourth(4)
+        .expect("room is made by evicting the idle sessions")
+        .id;
+    // The oldest went first, and enough of them to leave a tenth of the
+    // quota free: a and b.
+    assert_eq!(manager.evicted_len(), 2);
+    let usage = manager.usage(Caller::Anyone);
+    assert_eq!(usage.sessions, 4);
+    assert!(usage.bytes < 2 * price + 1000, "{usage:?}");
+
+    rt.block_on(async {
+        // Loading a back charges its full price: c, idle for a second,
+        // makes room.
+        manager
+            .observe(Caller::Anyone, &a, vec![observation(0, true)])
+            .await
+            .expect("a loads back, c makes room");
+        assert_eq!(manager.evicted_len(), 2, "c left, a came back");
+        // a and d are fresh: b cannot be loaded back now.
+        match manager
+            .observe(Caller::Anyone, &b, vec![observation(0, true)])
+            .await
+        {
+            Err(ServiceError::Unavailable(m)) => {
+                assert!(m.contains("--max-key-bytes") && m.contains(&b), "{m}");
+            }
+            other => panic!("b loaded over the quota: {other:?}"),
+        }
+        assert!(manager.usage(Caller::Anyone).bytes <= quota);
+        tokio::time::sleep(Duration::from_millis(1100)).await;
+        manager
+            .observe(Caller::Anyone, &b, vec![observation(0, true)])
+            .await
+            .expect("b loads once another session has been idle a second");
+        assert!(manager.usage(Caller::Anyone).bytes <= quota);
+        for id in [&a, &b, &c, &d] {
+            manager.delete(Caller::Anyone, id).await.expect("delete");
+        }
+    });
+    assert_eq!(manager.usage(Caller::Anyone), Default::default());
 }

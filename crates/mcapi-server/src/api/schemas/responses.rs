@@ -103,7 +103,7 @@ error_responses! {
          key its quota of sessions or estimated memory (`quota_exceeded`), or the caller \
          its maximum of open event streams (`too_many_streams`).",
         "too_many_sessions",
-        "the server already holds its maximum of 250000 sessions"
+        "the server already holds its maximum of 1000000 sessions"
     );
     /// 500.
     InternalError = (

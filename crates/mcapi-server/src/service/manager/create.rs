@@ -107,18 +107,14 @@ impl SessionManager {
             },
             self.sessions.read().usage(&owner),
         )?;
-        let admit = |cost: &SessionCost| {
-            self.limits
-                .check_cost(cost, self.sessions.read().usage(&owner))
-        };
+        let admit = |cost: &SessionCost| self.admit_cost(&owner, cost);
         let new = NewBuild {
             admit: &admit,
             abandoned: Some(watch.flag()),
         };
         let (learner, summary, config) = self.setup.build_new(&input, agent, &self.limits, &new)?;
         let cost = cost::estimate(&summary, &config);
-        self.limits
-            .check_cost(&cost, self.sessions.read().usage(&owner))?;
+        self.admit_cost(&owner, &cost)?;
         // Held until the session is in the table: a move freezing the
         // shard waits for it (docs/cluster.md, "How a shard moves").
         let (shard, _guard) = match &self.placement {
@@ -186,6 +182,50 @@ impl SessionManager {
         }
         tracing::info!(session = %id, states = session.model.states, "session created");
         Ok(info_of(&session))
+    }
+
+    /// Checks a new session's estimated cost against the limits and its
+    /// owner's quota, first evicting the owner's idle sessions when that
+    /// makes it fit the quota of bytes ([`Self::make_room`]). Blocking.
+    pub(super) fn admit_cost(
+        &self,
+        owner: &session::Owner,
+        cost: &SessionCost,
+    ) -> Result<(), ServiceError> {
+        // The table's lock is not held past this line: making room takes
+        // it to write.
+        let held = self.sessions.read().usage(owner);
+        match self.limits.check_cost(cost, held) {
+            Err(ServiceError::QuotaExceeded(_))
+                if cost.bytes <= self.limits.max_session_bytes
+                    && self.make_room(owner, cost.bytes) =>
+            {
+                self.limits
+                    .check_cost(cost, self.sessions.read().usage(owner))
+            }
+            other => other,
+        }
+    }
+
+    /// Room for an evicted session to be loaded back: its owner is charged
+    /// its full estimate again, so the owner's idle sessions make room if
+    /// that goes over the quota ([`Self::make_room`]); when they cannot,
+    /// the load is refused with `unavailable` (503) and the session stays
+    /// in the store, unchanged. Blocking.
+    pub(super) fn room_to_load(
+        &self,
+        id: &str,
+        stub: &session::Evicted,
+    ) -> Result<(), ServiceError> {
+        let need = stub.cost.bytes.saturating_sub(stub.held);
+        if self.make_room(&stub.owner, need) {
+            return Ok(());
+        }
+        Err(ServiceError::Unavailable(format!(
+            "session `{id}` is evicted to the store, and loading it back ({need} more bytes) would take its API key's sessions over their memory quota of {} bytes (--max-key-bytes), with no other session of the key idle for {} s to make room; retry later, or delete sessions",
+            self.limits.max_key_bytes,
+            PRESSURE_MIN_IDLE.as_secs()
+        )))
     }
 
     /// Puts a session loaded back in place of its eviction `was`. Two

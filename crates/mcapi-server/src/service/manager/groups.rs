@@ -185,10 +185,7 @@ impl SessionManager {
         };
         // One member first: its cost prices the group before the others
         // are built.
-        let admit = |cost: &SessionCost| {
-            self.limits
-                .check_cost(cost, self.sessions.read().usage(&owner))
-        };
+        let admit = |cost: &SessionCost| self.admit_cost(&owner, cost);
         let new = super::super::setup::NewBuild {
             admit: &admit,
             abandoned: Some(watch.flag()),
@@ -201,8 +198,7 @@ impl SessionManager {
             bytes: cost.bytes.saturating_mul(n as u64),
             tick_us: cost.tick_us,
         };
-        self.limits
-            .check_cost(&cost, self.sessions.read().usage(&owner))?;
+        self.admit_cost(&owner, &cost)?;
         self.check_group_bytes(&total, &owner, n)?;
         let mut built = Vec::with_capacity(n);
         built.push(first);
@@ -332,13 +328,15 @@ impl SessionManager {
     }
 
     /// The group's estimated memory, all members together, against what
-    /// the caller's key may hold.
+    /// the caller's key may hold, after evicting the key's idle sessions
+    /// if that makes it fit ([`Self::make_room`]). Blocking.
     fn check_group_bytes(
         &self,
         total: &SessionCost,
         owner: &session::Owner,
         n: usize,
     ) -> Result<(), ServiceError> {
+        self.make_room(owner, total.bytes);
         let held = self.sessions.read().usage(owner);
         let sum = held.bytes.saturating_add(total.bytes);
         if sum > self.limits.max_key_bytes {

@@ -227,51 +227,123 @@ impl SessionManager {
                 }
                 (candidates, last.cloned())
             };
-            let prepared: Vec<_> = candidates
-                .into_iter()
-                .filter_map(|s| s.prepare_eviction().map(|commit| (s, commit)))
-                .collect();
-            let mut ready = Vec::with_capacity(prepared.len());
-            for (s, commit) in prepared {
-                match commit.map(mcapi_store::Commit::wait_blocking).transpose() {
-                    Ok(_) => ready.push(s),
-                    Err(e) => {
-                        s.not_pristine();
-                        tracing::warn!(session = %s.id, error = %e, "session kept in memory: its eviction snapshot was not committed");
-                    }
-                }
-            }
-            if !ready.is_empty() {
-                let mut sessions = self.sessions.write();
-                for s in &ready {
-                    // Held by the table and `ready` only: no request or
-                    // job has it, and none can take it while the lock is
-                    // held.
-                    if Arc::strong_count(s) != 2 {
-                        continue;
-                    }
-                    let Some(stub) = s.still_evictable(cost::estimate(&s.model, &s.config)) else {
-                        continue;
-                    };
-                    let was = Entry::Resident(Arc::clone(s));
-                    if sessions.swap(&s.id, &was, Entry::Evicted(Arc::new(stub))) {
-                        evicted += 1;
-                    }
-                }
-                metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
-                drop(sessions);
-                // The sessions are freed here, outside the lock.
-                drop(ready);
-            }
+            evicted += self.evict(candidates);
             match last {
                 Some(id) => after = Some(id),
                 None => break,
             }
         }
         if evicted > 0 {
-            metrics::counter!("mcapi_session_evictions_total").increment(evicted as u64);
             tracing::debug!(sessions = evicted, "idle sessions evicted to the store");
         }
         evicted
+    }
+
+    /// Evicts `candidates` that may still go: each is prepared (a snapshot
+    /// committed if it changed since it was built), then swapped for its
+    /// stub under one write of the table. Returns how many left. Blocking.
+    fn evict(&self, candidates: Vec<SessionRef>) -> usize {
+        let prepared: Vec<_> = candidates
+            .into_iter()
+            .filter_map(|s| s.prepare_eviction().map(|commit| (s, commit)))
+            .collect();
+        let mut ready = Vec::with_capacity(prepared.len());
+        for (s, commit) in prepared {
+            match commit.map(mcapi_store::Commit::wait_blocking).transpose() {
+                Ok(_) => ready.push(s),
+                Err(e) => {
+                    s.not_pristine();
+                    tracing::warn!(session = %s.id, error = %e, "session kept in memory: its eviction snapshot was not committed");
+                }
+            }
+        }
+        if ready.is_empty() {
+            return 0;
+        }
+        let mut evicted = 0;
+        let mut sessions = self.sessions.write();
+        for s in &ready {
+            // Held by the table and `ready` only: no request or job has
+            // it, and none can take it while the lock is held.
+            if Arc::strong_count(s) != 2 {
+                continue;
+            }
+            let Some(stub) = s.still_evictable(cost::estimate(&s.model, &s.config)) else {
+                continue;
+            };
+            let was = Entry::Resident(Arc::clone(s));
+            if sessions.swap(&s.id, &was, Entry::Evicted(Arc::new(stub))) {
+                evicted += 1;
+            }
+        }
+        metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
+        drop(sessions);
+        // The sessions are freed here, outside the lock.
+        drop(ready);
+        metrics::counter!("mcapi_session_evictions_total").increment(evicted as u64);
+        evicted
+    }
+
+    /// Makes room for `need` more bytes of `owner`'s within its quota
+    /// (`--max-key-bytes`) by evicting its least recently active sessions,
+    /// when sessions may be evicted at all (a store and `--evict-idle-secs`;
+    /// docs/limits.md, "Memory pressure"). Only sessions inactive for at
+    /// least [`PRESSURE_MIN_IDLE`] go, so that sessions in use are not
+    /// thrown out and loaded back in turn; enough go to leave a tenth of the
+    /// quota free besides `need`, so that a run of creations does not pay
+    /// a pass each. True if `need` then fits. One pass at a time; blocking.
+    pub(super) fn make_room(&self, owner: &session::Owner, need: u64) -> bool {
+        let quota = self.limits.max_key_bytes;
+        let fits = |m: &Self| m.sessions.read().usage(owner).bytes.saturating_add(need) <= quota;
+        if fits(self) {
+            return true;
+        }
+        if self.evict_after.is_none() || need > quota {
+            return false;
+        }
+        let _one_pass = self.pressure.lock();
+        if fits(self) {
+            return true;
+        }
+        let target = (quota - need).saturating_sub(quota / 10);
+        // The owner's evictable sessions, least recently active first.
+        let mut idle: Vec<(Duration, u64, SessionRef)> = Vec::new();
+        let held = {
+            let sessions = self.sessions.read();
+            for entry in sessions.values() {
+                if let Entry::Resident(s) = entry
+                    && s.owner == *owner
+                    && Arc::strong_count(s) == 1
+                {
+                    let inactive = s.inactive();
+                    if inactive >= PRESSURE_MIN_IDLE {
+                        let freed = entry.charge().saturating_sub(cost::evicted_bytes(&s.id));
+                        idle.push((inactive, freed, Arc::clone(s)));
+                    }
+                }
+            }
+            sessions.usage(owner).bytes
+        };
+        idle.sort_by_key(|e| std::cmp::Reverse(e.0));
+        let mut to_free = held.saturating_sub(target);
+        let mut chosen = Vec::new();
+        for (_, freed, s) in idle {
+            if to_free == 0 {
+                break;
+            }
+            to_free = to_free.saturating_sub(freed);
+            chosen.push(s);
+        }
+        let mut evicted = 0;
+        while !chosen.is_empty() {
+            let rest = chosen.split_off(chosen.len().min(EVICT_CHUNK));
+            evicted += self.evict(std::mem::replace(&mut chosen, rest));
+        }
+        metrics::counter!("mcapi_pressure_evictions_total").increment(evicted as u64);
+        tracing::debug!(
+            sessions = evicted,
+            "sessions evicted to make room within a key's quota"
+        );
+        fits(self)
     }
 }

@@ -36,6 +36,7 @@ impl SessionManager {
             Entry::Resident(s) => Ok(s),
             Entry::Evicted(stub) => {
                 let d = self.evicted_store(id)?;
+                self.room_to_load(id, &stub)?;
                 let fresh = recovery::load(&self.setup, &self.limits, d, id, stub.lsn)?;
                 let was = Entry::Evicted(stub);
                 self.install(id, &was, fresh)
@@ -54,6 +55,15 @@ impl SessionManager {
             Entry::Resident(s) => Ok(s),
             Entry::Evicted(stub) => {
                 let d = self.evicted_store(id)?.clone();
+                // Making room may commit eviction snapshots: off the
+                // runtime's own work (the server's runtime has several
+                // threads; a single-threaded one, in tests, waits inline).
+                match tokio::runtime::Handle::try_current().map(|h| h.runtime_flavor()) {
+                    Ok(tokio::runtime::RuntimeFlavor::MultiThread) => {
+                        tokio::task::block_in_place(|| self.room_to_load(id, &stub))?;
+                    }
+                    _ => self.room_to_load(id, &stub)?,
+                }
                 let (setup, limits, owned, lsn) = (
                     Arc::clone(&self.setup),
                     self.limits.clone(),
@@ -142,6 +152,13 @@ impl SessionManager {
             source: Box::new(e),
         })?;
         self.session(id)
+    }
+
+    /// What `caller`'s key holds now: its sessions, and the bytes they are
+    /// charged against `--max-key-bytes` (each resident one its estimate,
+    /// each evicted one its stub).
+    pub fn usage(&self, caller: Caller) -> Usage {
+        self.sessions.read().usage(&caller.owner())
     }
 
     /// Details of a session.

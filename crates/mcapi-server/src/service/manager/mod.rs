@@ -30,7 +30,7 @@ use super::budget::{self, Budgeted, ResponseBudget};
 use super::cost;
 use super::durable;
 use super::error::{RecoveryError, ServiceError, StorageError};
-use super::limits::Limits;
+use super::limits::{Limits, Usage};
 use super::recovery::{self, RecoveryReport};
 use super::session::{self, Durability, Session, SessionRef};
 use super::setup::Setup;
@@ -108,6 +108,10 @@ impl ManagerOptions {
 /// Sessions examined per hold of the table's lock in an eviction pass.
 const EVICT_CHUNK: usize = 1024;
 
+/// The least a session must have been inactive to be evicted to make room
+/// within its key's quota ([`SessionManager::make_room`]).
+pub const PRESSURE_MIN_IDLE: Duration = Duration::from_secs(1);
+
 /// The session manager: owns sessions, shared models and the tick pool.
 pub struct SessionManager {
     sessions: RwLock<SessionTable>,
@@ -127,6 +131,9 @@ pub struct SessionManager {
     ready: AtomicBool,
     /// Held while a session is reloaded after a storage failure.
     reloading: Mutex<()>,
+    /// Held while sessions are evicted to make room within a key's quota
+    /// ([`SessionManager::make_room`]).
+    pressure: Mutex<()>,
     /// The shards served here, when clustered.
     placement: Option<Arc<Placement>>,
     /// The admin key of the shard-move calls.
@@ -183,6 +190,7 @@ impl SessionManager {
             keys,
             ready,
             reloading: Mutex::new(()),
+            pressure: Mutex::new(()),
             placement,
             admin,
             moving: tokio::sync::Mutex::new(()),
