@@ -367,3 +367,69 @@ fn a_key_over_its_quota_evicts_its_idle_sessions_to_make_room() {
     });
     assert_eq!(manager.usage(Caller::Anyone), Default::default());
 }
+
+/// Creations racing each other at a full quota each get room: one that
+/// loses the room it was admitted to, to another committed first, makes
+/// room again instead of being refused.
+#[test]
+fn concurrent_creations_at_a_full_quota_all_get_room() {
+    let hallway = json!({"preset": "hallway"});
+    let price = in_memory()
+        .create(
+            Caller::Anyone,
+            CreateSession {
+                model: hallway.clone(),
+                agent: SessionConfig::default(),
+            },
+        )
+        .expect("create")
+        .cost
+        .bytes;
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = SessionManager::with_options(ManagerOptions {
+        store: Some(store),
+        evict_after: Some(Duration::from_secs(3600)),
+        ..ManagerOptions::new(
+            Limits {
+                max_key_bytes: 20 * price,
+                ..Limits::default()
+            },
+            1,
+        )
+    })
+    .expect("manager");
+    manager.recover().expect("recovery");
+    for seed in 0..20 {
+        create(&manager, &hallway, &json!({ "seed": seed }));
+    }
+    std::thread::sleep(Duration::from_millis(1100));
+    let refused = AtomicUsize::new(0);
+    std::thread::scope(|scope| {
+        for t in 0..8u64 {
+            let (manager, hallway, refused) = (&manager, &hallway, &refused);
+            scope.spawn(move || {
+                for i in 0..2 {
+                    let agent: SessionConfig =
+                        serde_json::from_value(json!({ "seed": 100 + 2 * t + i })).expect("agent");
+                    let created = manager.create(
+                        Caller::Anyone,
+                        CreateSession {
+                            model: hallway.clone(),
+                            agent,
+                        },
+                    );
+                    if let Err(e) = created {
+                        eprintln!("refused: {e}");
+                        refused.fetch_add(1, Ordering::Relaxed);
+                    }
+                }
+            });
+        }
+    });
+    assert_eq!(refused.load(Ordering::Relaxed), 0);
+    let usage = manager.usage(Caller::Anyone);
+    assert_eq!(usage.sessions, 36);
+    assert!(usage.bytes <= 20 * price, "{usage:?}");
+    assert!(manager.evicted_len() >= 16);
+}

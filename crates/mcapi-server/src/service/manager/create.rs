@@ -161,24 +161,35 @@ impl SessionManager {
                 ..session::Resumed::default()
             },
         ));
-        {
+        // Checked again under the lock: concurrent creates see each other.
+        // One that took the room this one was admitted to is made room for
+        // again (a few times at most: each pass leaves a tenth free).
+        let mut passes = 0;
+        loop {
             let mut sessions = self.sessions.write();
-            // Checked again under the lock: concurrent creates see each other.
             let refused = if sessions.len() >= self.limits.max_sessions {
                 Some(ServiceError::TooManySessions(self.limits.max_sessions))
             } else {
                 self.limits.check_cost(&cost, sessions.usage(&owner)).err()
             };
-            if let Some(e) = refused {
-                drop(sessions);
-                // Undo the stored record; the client sees the limit.
-                if let Some(commit) = session.delete() {
-                    let _ = commit.wait_blocking();
-                }
-                return Err(e);
+            let Some(e) = refused else {
+                sessions.insert(id.clone(), Arc::clone(&session));
+                metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+                break;
+            };
+            drop(sessions);
+            if matches!(e, ServiceError::QuotaExceeded(_))
+                && passes < 3
+                && self.make_room(&owner, cost.bytes)
+            {
+                passes += 1;
+                continue;
             }
-            sessions.insert(id.clone(), Arc::clone(&session));
-            metrics::gauge!("mcapi_sessions").set(sessions.len() as f64);
+            // Undo the stored record; the client sees the limit.
+            if let Some(commit) = session.delete() {
+                let _ = commit.wait_blocking();
+            }
+            return Err(e);
         }
         tracing::info!(session = %id, states = session.model.states, "session created");
         Ok(info_of(&session))

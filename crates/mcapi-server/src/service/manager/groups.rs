@@ -289,9 +289,11 @@ impl SessionManager {
             mode,
             tick_us: cost.tick_us,
         });
-        {
+        // Checked again under the lock: concurrent creates see each other
+        // (room made again, a few times at most, for one that took it).
+        let mut passes = 0;
+        loop {
             let mut table = self.sessions.write();
-            // Checked again under the lock: concurrent creates see each other.
             let refused = refused_for_count(&table).or_else(|| {
                 let held = table.usage(&owner);
                 let total_bytes = held.bytes.saturating_add(total.bytes);
@@ -304,24 +306,32 @@ impl SessionManager {
                     ))
                 })
             });
-            if let Some(e) = refused {
-                drop(table);
-                // Undo the stored records; the client sees the limit.
-                let commits: Vec<_> = sessions.iter().filter_map(|s| s.delete()).collect();
-                for commit in commits {
-                    let _ = commit.wait_blocking();
+            let Some(e) = refused else {
+                for session in &sessions {
+                    table.insert(session.id.clone(), Arc::clone(session));
                 }
-                return Err(e);
+                metrics::gauge!("mcapi_sessions").set(table.len() as f64);
+                // Under the session table's lock: a shard move removing
+                // this shard's sessions sees the group with them.
+                self.groups
+                    .write()
+                    .insert(group_id.clone(), Arc::clone(&group));
+                break;
+            };
+            drop(table);
+            if matches!(e, ServiceError::QuotaExceeded(_))
+                && passes < 3
+                && self.make_room(&owner, total.bytes)
+            {
+                passes += 1;
+                continue;
             }
-            for session in &sessions {
-                table.insert(session.id.clone(), Arc::clone(session));
+            // Undo the stored records; the client sees the limit.
+            let commits: Vec<_> = sessions.iter().filter_map(|s| s.delete()).collect();
+            for commit in commits {
+                let _ = commit.wait_blocking();
             }
-            metrics::gauge!("mcapi_sessions").set(table.len() as f64);
-            // Under the session table's lock: a shard move removing this
-            // shard's sessions sees the group with them.
-            self.groups
-                .write()
-                .insert(group_id.clone(), Arc::clone(&group));
+            return Err(e);
         }
         tracing::info!(group = %group_id, members = n, "group created");
         Ok(group.info())
