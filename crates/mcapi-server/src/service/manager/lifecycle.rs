@@ -13,7 +13,9 @@ impl SessionManager {
     #[tracing::instrument(level = "debug", skip(self))]
     pub async fn delete(&self, caller: Caller, id: &str) -> Result<(), ServiceError> {
         let _guard = self.enter_shard(id)?;
-        let session = self.visible_session_async(caller, id).await?;
+        // An evicted session is loaded to be deleted whatever its key's
+        // quota: a delete is how a key makes room.
+        let session = self.visible_session_loaded(caller, id, false).await?;
         self.store_writable()?;
         let result = match session.begin_delete()? {
             Some(commit) => commit.wait().await.map_err(ServiceError::from),

@@ -46,10 +46,13 @@ impl SessionManager {
 
     /// [`Self::loaded`] for the async paths: an evicted session is loaded
     /// back on the blocking pool.
+    /// `room`: whether the load must fit its key's quota ([`Self::room_to_load`]);
+    /// not for a delete, which only loads the session to end it.
     pub(super) async fn loaded_async(
         &self,
         id: &str,
         entry: Entry,
+        room: bool,
     ) -> Result<SessionRef, ServiceError> {
         match entry {
             Entry::Resident(s) => Ok(s),
@@ -58,11 +61,13 @@ impl SessionManager {
                 // Making room may commit eviction snapshots: off the
                 // runtime's own work (the server's runtime has several
                 // threads; a single-threaded one, in tests, waits inline).
-                match tokio::runtime::Handle::try_current().map(|h| h.runtime_flavor()) {
-                    Ok(tokio::runtime::RuntimeFlavor::MultiThread) => {
-                        tokio::task::block_in_place(|| self.room_to_load(id, &stub))?;
+                if room {
+                    match tokio::runtime::Handle::try_current().map(|h| h.runtime_flavor()) {
+                        Ok(tokio::runtime::RuntimeFlavor::MultiThread) => {
+                            tokio::task::block_in_place(|| self.room_to_load(id, &stub))?;
+                        }
+                        _ => self.room_to_load(id, &stub)?,
                     }
-                    _ => self.room_to_load(id, &stub)?,
                 }
                 let (setup, limits, owned, lsn) = (
                     Arc::clone(&self.setup),
@@ -120,8 +125,19 @@ impl SessionManager {
         caller: Caller,
         id: &str,
     ) -> Result<SessionRef, ServiceError> {
+        self.visible_session_loaded(caller, id, true).await
+    }
+
+    /// [`Self::visible_session_async`]; `room` as [`Self::loaded_async`]
+    /// takes it.
+    pub(super) async fn visible_session_loaded(
+        &self,
+        caller: Caller,
+        id: &str,
+        room: bool,
+    ) -> Result<SessionRef, ServiceError> {
         let entry = self.visible_entry(caller, id)?;
-        let session = self.loaded_async(id, entry).await?;
+        let session = self.loaded_async(id, entry, room).await?;
         self.rolled_back(id, session)
     }
 
