@@ -231,6 +231,14 @@ fn live() -> i64 {
     LIVE.load(Ordering::Relaxed)
 }
 
+/// A current-thread runtime to await the manager's calls on.
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .expect("runtime")
+}
+
 /// The tests of this binary measure one counter: one at a time.
 static ONE_AT_A_TIME: std::sync::Mutex<()> = std::sync::Mutex::new(());
 
@@ -243,10 +251,7 @@ fn measuring() -> std::sync::MutexGuard<'static, ()> {
 #[test]
 fn the_memory_estimate_is_within_one_and_a_half_times_what_sessions_hold() {
     let _measuring = measuring();
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .expect("runtime");
+    let rt = runtime();
     let manager = SessionManager::new(Limits::default(), 1).expect("manager");
     let mut rows = Vec::new();
     for kind in kinds() {
@@ -328,10 +333,7 @@ fn hallways(manager: &SessionManager, n: usize) -> Vec<String> {
 fn an_evicted_session_is_charged_what_its_stub_holds() {
     const N: usize = 400;
     let _measuring = measuring();
-    let rt = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .expect("runtime");
+    let rt = runtime();
     let memory = SessionManager::new(Limits::default(), 1).expect("manager");
     let ids = hallways(&memory, N);
     let before = live();

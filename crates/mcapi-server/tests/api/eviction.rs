@@ -64,6 +64,44 @@ fn in_memory() -> SessionManager {
     manager
 }
 
+/// What a hallway session is priced at (its `cost.bytes`).
+fn hallway_price() -> u64 {
+    let agent = SessionConfig::default();
+    in_memory()
+        .create(
+            Caller::Anyone,
+            CreateSession {
+                model: json!({"preset": "hallway"}),
+                agent,
+            },
+        )
+        .expect("create")
+        .cost
+        .bytes
+}
+
+/// A manager on a fresh store that evicts (after an hour, unless a key's
+/// quota `max_key_bytes` needs room first); the directory lives as long
+/// as it is kept.
+fn durable_with_quota(max_key_bytes: u64) -> (tempfile::TempDir, SessionManager) {
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = SessionManager::with_options(ManagerOptions {
+        store: Some(store),
+        evict_after: Some(Duration::from_secs(3600)),
+        ..ManagerOptions::new(
+            Limits {
+                max_key_bytes,
+                ..Limits::default()
+            },
+            1,
+        )
+    })
+    .expect("manager");
+    manager.recover().expect("recovery");
+    (data, manager)
+}
+
 fn create(manager: &SessionManager, model: &Value, agent: &Value) -> String {
     let agent: SessionConfig = serde_json::from_value(agent.clone()).expect("agent config");
     manager
@@ -275,37 +313,10 @@ fn a_key_over_its_quota_evicts_its_idle_sessions_to_make_room() {
         .build()
         .expect("runtime");
     let hallway = json!({"preset": "hallway"});
-    let price = {
-        let m = in_memory();
-        let agent: SessionConfig = serde_json::from_value(json!({"seed": 1})).expect("agent");
-        m.create(
-            Caller::Anyone,
-            CreateSession {
-                model: hallway.clone(),
-                agent,
-            },
-        )
-        .expect("create")
-        .cost
-        .bytes
-    };
+    let price = hallway_price();
     // Room for three resident sessions (and a few stubs of about 200 bytes).
     let quota = 3 * price + 100;
-    let data = tempfile::tempdir().expect("data dir");
-    let store = Arc::new(Store::open(data.path()).expect("store"));
-    let manager = SessionManager::with_options(ManagerOptions {
-        store: Some(store),
-        evict_after: Some(Duration::from_secs(3600)),
-        ..ManagerOptions::new(
-            Limits {
-                max_key_bytes: quota,
-                ..Limits::default()
-            },
-            1,
-        )
-    })
-    .expect("manager");
-    manager.recover().expect("recovery");
+    let (_data, manager) = durable_with_quota(quota);
     let [a, b, c] = [1, 2, 3].map(|seed| create(&manager, &hallway, &json!({ "seed": seed })));
     assert_eq!(manager.usage(Caller::Anyone).bytes, 3 * price);
     let fourth = |seed: u64| {
@@ -379,32 +390,8 @@ fn a_key_over_its_quota_evicts_its_idle_sessions_to_make_room() {
 #[test]
 fn concurrent_creations_at_a_full_quota_all_get_room() {
     let hallway = json!({"preset": "hallway"});
-    let price = in_memory()
-        .create(
-            Caller::Anyone,
-            CreateSession {
-                model: hallway.clone(),
-                agent: SessionConfig::default(),
-            },
-        )
-        .expect("create")
-        .cost
-        .bytes;
-    let data = tempfile::tempdir().expect("data dir");
-    let store = Arc::new(Store::open(data.path()).expect("store"));
-    let manager = SessionManager::with_options(ManagerOptions {
-        store: Some(store),
-        evict_after: Some(Duration::from_secs(3600)),
-        ..ManagerOptions::new(
-            Limits {
-                max_key_bytes: 20 * price,
-                ..Limits::default()
-            },
-            1,
-        )
-    })
-    .expect("manager");
-    manager.recover().expect("recovery");
+    let price = hallway_price();
+    let (_data, manager) = durable_with_quota(20 * price);
     for seed in 0..20 {
         create(&manager, &hallway, &json!({ "seed": seed }));
     }
