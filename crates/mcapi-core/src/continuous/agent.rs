@@ -151,6 +151,7 @@ impl ContinuousAgent {
         let sp = model.samples;
         let store = SampleStore::new(
             d,
+            k,
             sp.cells_per_dim,
             sp.per_cell as usize,
             sp.max as usize,
@@ -205,7 +206,7 @@ impl ContinuousAgent {
     pub fn stats(&self) -> ContinuousStats {
         ContinuousStats {
             clipped: self.clipped,
-            samples: self.store.samples().len(),
+            samples: self.store.len(),
             slots: self.store.slots(),
             updates: self.planner.updates,
             rebuilds: self.planner.rebuilds,
@@ -357,7 +358,7 @@ impl ContinuousAgent {
         let before = self.store.visits(s, a);
         let inserted = self.store.insert(self.tick, s, a, s_next, v, v_next, xi);
         if let Some(old) = &inserted.replaced {
-            self.planner.remove(inserted.index, old);
+            self.planner.remove(inserted.index, old.as_ref());
         }
         // A pair that just became known: every stored successor in its cell learns it.
         if before + 1 == self.model.samples.known_after as u64 {
@@ -377,8 +378,8 @@ impl ContinuousAgent {
             self.known_next[inserted.index] = mask;
         }
         let (pi, known, _) = self.greedy_successor(inserted.index, false);
-        let sample = &self.store.samples()[inserted.index];
-        self.planner.add(inserted.index, sample, pi, known);
+        self.planner
+            .add(inserted.index, self.store.get(inserted.index), pi, known);
     }
 
     /// u_a = W_a Λ D; R(s_i, a_i) of every stored transition into
@@ -409,8 +410,8 @@ impl ContinuousAgent {
         }
         self.targets.clear();
         self.next_rewards.clear();
-        for (sample, &mask) in self.store.samples().iter().zip(&self.known_next) {
-            let r = self.reward(&sample.v, sample.a);
+        for (sample, &mask) in self.store.iter().zip(&self.known_next) {
+            let r = self.reward(sample.v, sample.a);
             self.targets.push(r);
             r_max = r_max.max(r);
             // Only unknown successor pairs need R (for Q_opt); a known
@@ -419,7 +420,7 @@ impl ContinuousAgent {
                 let r = if mask >> a & 1 == 1 {
                     0.0
                 } else {
-                    self.reward(&sample.v_next, a)
+                    self.reward(sample.v_next, a)
                 };
                 self.next_rewards.push(r);
                 r_max = r_max.max(r);
@@ -456,7 +457,7 @@ impl ContinuousAgent {
     /// `cached`: R(s′_i, ·) is in `next_rewards` (it is after
     /// [`Self::refresh_reward_weights`], for the transitions stored then).
     fn greedy_successor(&self, i: usize, cached: bool) -> (usize, bool, f64) {
-        let sample = &self.store.samples()[i];
+        let sample = self.store.get(i);
         let mask = self.known_next[i];
         let previous = self.planner.successor(i).map(|(pi, _)| pi);
         let mut best = (f64::NEG_INFINITY, 0usize);
@@ -465,11 +466,11 @@ impl ContinuousAgent {
         let g = self.params.gamma;
         for (a, q) in qs.iter_mut().enumerate().take(na) {
             *q = if mask >> a & 1 == 1 {
-                self.planner.q(&sample.v_next, a)
+                self.planner.q(sample.v_next, a)
             } else if cached {
                 self.next_rewards[i * na + a] + g * self.r_max / (1.0 - g)
             } else {
-                self.q_opt(&sample.v_next, a)
+                self.q_opt(sample.v_next, a)
             };
             if *q > best.0 {
                 best = (*q, a);
@@ -491,18 +492,18 @@ impl ContinuousAgent {
         let g = self.params.gamma;
         let na = self.model.n_actions();
         let opt = g * self.r_max / (1.0 - g);
-        for i in 0..self.store.samples().len() {
+        for i in 0..self.store.len() {
             if let Some((pi, false)) = self.planner.successor(i) {
                 self.targets[i] += g * (self.next_rewards[i * na + pi] + opt);
             }
         }
-        self.planner.maybe_rebuild(self.store.samples());
-        self.planner.evaluate(self.store.samples(), &self.targets);
+        self.planner.maybe_rebuild(&self.store);
+        self.planner.evaluate(&self.store, &self.targets);
         // The improvement: every successor whose greedy action differs from
         // the one A holds is a candidate; at most MAX_SWITCHES of them, the
         // largest advantages first (ties by index), change this tick.
         self.switches.clear();
-        for i in 0..self.store.samples().len() {
+        for i in 0..self.store.len() {
             let (pi, known, advantage) = self.greedy_successor(i, true);
             if self.planner.successor(i) != Some((pi, known)) {
                 self.switches.push((advantage, i, pi, known));
@@ -517,8 +518,7 @@ impl ContinuousAgent {
             self.switches.sort_unstable_by_key(|s| s.1);
         }
         for &(_, i, pi, known) in &self.switches {
-            let sample = &self.store.samples()[i];
-            self.planner.set_successor(i, sample, pi, known);
+            self.planner.set_successor(i, self.store.get(i), pi, known);
         }
     }
 

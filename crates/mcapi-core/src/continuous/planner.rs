@@ -32,7 +32,7 @@
 use nalgebra::DMatrix;
 
 use super::dot::dot;
-use super::samples::Sample;
+use super::samples::{SampleRef, SampleStore};
 
 /// Ticks between rebuilds of A⁻¹ from the samples.
 pub const REBUILD_EVERY: u64 = 256;
@@ -113,10 +113,10 @@ impl SamplePlanner {
         self.succ.get(i).copied()
     }
 
-    fn terms<'a>(&self, sample: &'a Sample, pi: usize, known: bool) -> ([Term<'a>; 2], usize) {
-        let own = (sample.a, 1.0, sample.v.as_slice());
+    fn terms<'a>(&self, sample: SampleRef<'a>, pi: usize, known: bool) -> ([Term<'a>; 2], usize) {
+        let own = (sample.a, 1.0, sample.v);
         if known {
-            ([own, (pi, -self.gamma, sample.v_next.as_slice())], 2)
+            ([own, (pi, -self.gamma, sample.v_next)], 2)
         } else {
             ([own, own], 1)
         }
@@ -166,31 +166,31 @@ impl SamplePlanner {
     }
 
     /// Removes transition `old`'s term from A (it was at index i).
-    pub fn remove(&mut self, i: usize, old: &Sample) {
+    pub fn remove(&mut self, i: usize, old: SampleRef<'_>) {
         let (pi, known) = self.succ[i];
         let (terms, len) = self.terms(old, pi, known);
-        self.rank_one(-old.weight, old.a, &old.v, &terms[..len]);
+        self.rank_one(-old.weight, old.a, old.v, &terms[..len]);
     }
 
     /// Adds transition i (already in `samples`) with successor action π.
-    pub fn add(&mut self, i: usize, sample: &Sample, pi: usize, known: bool) {
+    pub fn add(&mut self, i: usize, sample: SampleRef<'_>, pi: usize, known: bool) {
         if i == self.succ.len() {
             self.succ.push((pi, known));
         } else {
             self.succ[i] = (pi, known);
         }
         let (terms, len) = self.terms(sample, pi, known);
-        self.rank_one(sample.weight, sample.a, &sample.v, &terms[..len]);
+        self.rank_one(sample.weight, sample.a, sample.v, &terms[..len]);
     }
 
     /// Changes transition i's successor action (line 9's improvement at s′_i).
-    pub fn set_successor(&mut self, i: usize, sample: &Sample, pi: usize, known: bool) {
+    pub fn set_successor(&mut self, i: usize, sample: SampleRef<'_>, pi: usize, known: bool) {
         let (old_pi, old_known) = self.succ[i];
         if (old_pi, old_known) == (pi, known) {
             return;
         }
         self.succ[i] = (pi, known);
-        let g = sample.v_next.as_slice();
+        let g = sample.v_next;
         let mut terms: [Term<'_>; 2] = [(0, 0.0, g), (0, 0.0, g)];
         let mut len = 0;
         if known {
@@ -202,7 +202,7 @@ impl SamplePlanner {
             len += 1;
         }
         if len > 0 {
-            self.rank_one(sample.weight, sample.a, &sample.v, &terms[..len]);
+            self.rank_one(sample.weight, sample.a, sample.v, &terms[..len]);
         }
     }
 
@@ -216,7 +216,7 @@ impl SamplePlanner {
 
     /// Rebuilds A from the samples and inverts it, when stale or due.
     /// Returns whether it rebuilt.
-    pub fn maybe_rebuild(&mut self, samples: &[Sample]) -> bool {
+    pub fn maybe_rebuild(&mut self, store: &SampleStore) -> bool {
         self.since_rebuild += 1;
         if !self.stale && self.since_rebuild < REBUILD_EVERY {
             return false;
@@ -229,7 +229,7 @@ impl SamplePlanner {
         for i in 0..n {
             rows[i * n + i] = self.ridge;
         }
-        for (sample, &(pi, known)) in samples.iter().zip(&self.succ) {
+        for (sample, &(pi, known)) in store.iter().zip(&self.succ) {
             let (terms, len) = self.terms(sample, pi, known);
             for (j, &fj) in sample.v.iter().enumerate() {
                 let fj = fj * sample.weight;
@@ -266,13 +266,13 @@ impl SamplePlanner {
 
     /// b = Σ_i u_i y_i and w = A⁻¹ b (one evaluation of line 9).
     /// `targets[i]` is y_i.
-    pub fn evaluate(&mut self, samples: &[Sample], targets: &[f64]) {
+    pub fn evaluate(&mut self, store: &SampleStore, targets: &[f64]) {
         let (k, n) = (self.k, self.k * self.actions);
         self.b.iter_mut().for_each(|b| *b = 0.0);
-        for (sample, &y) in samples.iter().zip(targets) {
+        for (sample, &y) in store.iter().zip(targets) {
             let y = y * sample.weight;
             let block = &mut self.b[sample.a * k..(sample.a + 1) * k];
-            for (b, f) in block.iter_mut().zip(&sample.v) {
+            for (b, f) in block.iter_mut().zip(sample.v) {
                 *b += f * y;
             }
         }
@@ -296,7 +296,7 @@ mod tests {
     #[test]
     fn incremental_inverse_matches_a_rebuild() {
         let (k, actions) = (3, 2);
-        let mut store = SampleStore::new(1, 8, 1, 6, 1);
+        let mut store = SampleStore::new(1, k, 8, 1, 6, 1);
         let mut planner = SamplePlanner::new(k, actions, 0.9, 0.1);
         let feats = |x: f64| vec![1.0, x, x * x];
         for t in 0..20u64 {
@@ -312,18 +312,21 @@ mod tests {
                 &[0.0],
             );
             if let Some(old) = &ins.replaced {
-                planner.remove(ins.index, old);
+                planner.remove(ins.index, old.as_ref());
             }
-            let sample = store.samples()[ins.index].clone();
-            planner.add(ins.index, &sample, ((t / 3) % 2) as usize, t % 5 != 0);
+            planner.add(
+                ins.index,
+                store.get(ins.index),
+                ((t / 3) % 2) as usize,
+                t % 5 != 0,
+            );
             if t % 4 == 0 {
-                let s = store.samples()[0].clone();
-                planner.set_successor(0, &s, (t % 2) as usize, true);
+                planner.set_successor(0, store.get(0), (t % 2) as usize, true);
             }
         }
         let incremental = planner.ainv.clone();
         planner.stale = true;
-        assert!(planner.maybe_rebuild(store.samples()));
+        assert!(planner.maybe_rebuild(&store));
         let max_err = incremental
             .iter()
             .zip(&planner.ainv)

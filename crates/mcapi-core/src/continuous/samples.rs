@@ -16,7 +16,8 @@
 
 use std::collections::HashMap;
 
-/// One stored transition, with its features cached.
+/// One stored transition; its features live in the store's feature
+/// matrices, row for row ([`SampleStore::get`]).
 #[derive(Debug, Clone, PartialEq)]
 pub struct Sample {
     /// Normalised s.
@@ -25,10 +26,6 @@ pub struct Sample {
     pub a: usize,
     /// Normalised s′.
     pub s_next: Vec<f64>,
-    /// v(s).
-    pub v: Vec<f64>,
-    /// v(s′).
-    pub v_next: Vec<f64>,
     /// The mean stimulus ξ of the visits it stands for (what Ξ is refitted
     /// to when the basis is rebuilt).
     pub xi: Vec<f64>,
@@ -40,6 +37,45 @@ pub struct Sample {
     /// replaced in a full slot. A slot's weights sum to its visits, so the
     /// planner weighs the store as it would the whole history.
     pub weight: f64,
+}
+
+/// What the planner reads of a stored transition: its action, its weight
+/// in visits, and the features v(s) and v(s′).
+#[derive(Debug, Clone, Copy)]
+pub struct SampleRef<'a> {
+    /// The action taken.
+    pub a: usize,
+    /// The visits it stands for.
+    pub weight: f64,
+    /// v(s).
+    pub v: &'a [f64],
+    /// v(s′).
+    pub v_next: &'a [f64],
+}
+
+/// A transition an insertion replaced, with its features.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Replaced {
+    /// The action taken.
+    pub a: usize,
+    /// The visits it stood for.
+    pub weight: f64,
+    /// v(s).
+    pub v: Vec<f64>,
+    /// v(s′).
+    pub v_next: Vec<f64>,
+}
+
+impl Replaced {
+    /// The planner's view of it.
+    pub fn as_ref(&self) -> SampleRef<'_> {
+        SampleRef {
+            a: self.a,
+            weight: self.weight,
+            v: &self.v,
+            v_next: &self.v_next,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Default, PartialEq)]
@@ -56,25 +92,36 @@ pub struct Inserted {
     /// Where the new transition is.
     pub index: usize,
     /// The transition that was at `index` before.
-    pub replaced: Option<Sample>,
+    pub replaced: Option<Replaced>,
 }
 
 /// The sample store and the visit counts.
+///
+/// The features of the stored transitions are kept in two row-major
+/// N × k matrices, v(s) and v(s′), so the planner's passes over the store
+/// read memory in order (docs/algorithm.md §9.5).
 #[derive(Debug, Clone, PartialEq)]
 pub struct SampleStore {
     d: usize,
+    /// Features per point.
+    k: usize,
     cells_per_dim: u32,
     per_slot: usize,
     max_samples: usize,
     known_after: u64,
     samples: Vec<Sample>,
+    /// v(s_i), row i.
+    v: Vec<f64>,
+    /// v(s′_i), row i.
+    v_next: Vec<f64>,
     slots: HashMap<(u64, usize), Slot>,
 }
 
 impl SampleStore {
-    /// An empty store.
+    /// An empty store of points of dimension `d` with `k` features each.
     pub fn new(
         d: usize,
+        k: usize,
         cells_per_dim: u32,
         per_slot: usize,
         max_samples: usize,
@@ -82,11 +129,14 @@ impl SampleStore {
     ) -> Self {
         Self {
             d,
+            k,
             cells_per_dim,
             per_slot,
             max_samples,
             known_after,
             samples: Vec::new(),
+            v: Vec::new(),
+            v_next: Vec::new(),
             slots: HashMap::new(),
         }
     }
@@ -125,12 +175,58 @@ impl SampleStore {
         &self.samples
     }
 
+    /// Transitions stored.
+    pub fn len(&self) -> usize {
+        self.samples.len()
+    }
+
+    /// Whether none is stored.
+    pub fn is_empty(&self) -> bool {
+        self.samples.is_empty()
+    }
+
+    /// Features per point.
+    pub fn k(&self) -> usize {
+        self.k
+    }
+
+    /// Transition i as the planner reads it.
+    pub fn get(&self, i: usize) -> SampleRef<'_> {
+        let k = self.k;
+        SampleRef {
+            a: self.samples[i].a,
+            weight: self.samples[i].weight,
+            v: &self.v[i * k..(i + 1) * k],
+            v_next: &self.v_next[i * k..(i + 1) * k],
+        }
+    }
+
+    /// Every stored transition as the planner reads it, in index order.
+    pub fn iter(&self) -> impl Iterator<Item = SampleRef<'_>> {
+        let k = self.k.max(1);
+        self.samples
+            .iter()
+            .zip(self.v.chunks_exact(k).zip(self.v_next.chunks_exact(k)))
+            .map(|(s, (v, v_next))| SampleRef {
+                a: s.a,
+                weight: s.weight,
+                v,
+                v_next,
+            })
+    }
+
     /// Recomputes v and v′ of every stored transition with `features`
     /// (after the basis was rebuilt).
     pub fn refeature(&mut self, mut features: impl FnMut(&[f64], &mut [f64])) {
-        for sample in &mut self.samples {
-            features(&sample.s, &mut sample.v);
-            features(&sample.s_next, &mut sample.v_next);
+        let k = self.k.max(1);
+        for ((sample, v), v_next) in self
+            .samples
+            .iter()
+            .zip(self.v.chunks_exact_mut(k))
+            .zip(self.v_next.chunks_exact_mut(k))
+        {
+            features(&sample.s, v);
+            features(&sample.s_next, v_next);
         }
     }
 
@@ -151,19 +247,17 @@ impl SampleStore {
         v_next: &[f64],
         xi: &[f64],
     ) -> Inserted {
+        debug_assert_eq!((v.len(), v_next.len()), (self.k, self.k));
         let key = (self.cell(s), a);
-        let sample = Sample {
+        let mut sample = Sample {
             s: s.to_vec(),
             a,
             s_next: s_next.to_vec(),
-            v: v.to_vec(),
-            v_next: v_next.to_vec(),
             xi: xi.to_vec(),
             slot: key,
             stored_at: tick,
             weight: 1.0,
         };
-        let mut sample = sample;
         let slot = self.slots.entry(key).or_default();
         slot.visits += 1;
         if slot.samples.len() >= self.per_slot {
@@ -175,7 +269,7 @@ impl SampleStore {
             for (x, o) in sample.xi.iter_mut().zip(&old.xi) {
                 *x += (o - *x) * (old.weight / sample.weight);
             }
-            let replaced = std::mem::replace(&mut self.samples[index], sample);
+            let replaced = self.replace(index, sample, v, v_next);
             return Inserted {
                 index,
                 replaced: Some(replaced),
@@ -185,6 +279,15 @@ impl SampleStore {
             let index = self.samples.len();
             slot.samples.push(index);
             self.samples.push(sample);
+            if self.v.len() == self.v.capacity() {
+                // Double, but never past `max_samples` rows: a full store
+                // holds exactly what the cost model prices.
+                let rows = index.max(16).min(self.max_samples - index);
+                self.v.reserve_exact(rows * self.k);
+                self.v_next.reserve_exact(rows * self.k);
+            }
+            self.v.extend_from_slice(v);
+            self.v_next.extend_from_slice(v_next);
             return Inserted {
                 index,
                 replaced: None,
@@ -201,11 +304,26 @@ impl SampleStore {
         if let Some(slot) = self.slots.get_mut(&key) {
             slot.samples.push(index);
         }
-        let replaced = std::mem::replace(&mut self.samples[index], sample);
+        let replaced = self.replace(index, sample, v, v_next);
         Inserted {
             index,
             replaced: Some(replaced),
         }
+    }
+
+    /// Puts `sample` with its features at `index`, returning what was there.
+    fn replace(&mut self, index: usize, sample: Sample, v: &[f64], v_next: &[f64]) -> Replaced {
+        let rows = index * self.k..(index + 1) * self.k;
+        let old = std::mem::replace(&mut self.samples[index], sample);
+        let replaced = Replaced {
+            a: old.a,
+            weight: old.weight,
+            v: self.v[rows.clone()].to_vec(),
+            v_next: self.v_next[rows.clone()].to_vec(),
+        };
+        self.v[rows.clone()].copy_from_slice(v);
+        self.v_next[rows].copy_from_slice(v_next);
+        replaced
     }
 }
 
@@ -215,7 +333,7 @@ mod tests {
 
     #[test]
     fn the_store_is_bounded_per_slot_and_in_total() {
-        let mut store = SampleStore::new(1, 10, 2, 5, 2);
+        let mut store = SampleStore::new(1, 1, 10, 2, 5, 2);
         let f = [1.0];
         // Three visits of one slot: two kept, the first replaced.
         for t in 0..3 {
@@ -234,6 +352,7 @@ mod tests {
             store.insert(t, &[(t as f64) / 20.0], 1, &[0.5], &f, &f, &f);
         }
         assert_eq!(store.samples().len(), 5);
+        assert_eq!(store.v.capacity(), 5, "the feature rows stop at max_samples");
         // Every stored sample is listed in exactly its slot.
         let listed: usize = store.slots.values().map(|s| s.samples.len()).sum();
         assert_eq!(listed, 5);
@@ -241,11 +360,11 @@ mod tests {
 
     #[test]
     fn cells_are_exact_until_they_overflow_then_hashed() {
-        let low = SampleStore::new(2, 10, 1, 10, 1);
+        let low = SampleStore::new(2, 1, 10, 1, 10, 1);
         assert_eq!(low.cell(&[0.0, 0.0]), 0);
         assert_eq!(low.cell(&[0.15, 0.95]), 19);
         assert_eq!(low.cell(&[1.0, 1.0]), 99);
-        let high = SampleStore::new(64, 16, 1, 10, 1);
+        let high = SampleStore::new(64, 1, 16, 1, 10, 1);
         let a = high.cell(&[0.5; 64]);
         assert!(a >> 63 == 1);
         assert_ne!(a, high.cell(&[0.4; 64]));

@@ -18,7 +18,7 @@ use rand::Rng;
 use rand_distr::{Distribution, Normal};
 
 use super::basis::FeatureMap;
-use super::samples::Sample;
+use super::samples::SampleStore;
 
 /// Ξ as per-action linear models.
 #[derive(Debug, Clone, PartialEq)]
@@ -113,12 +113,18 @@ impl LinearStimulus {
         sd: f64,
         typical_sq_norm: f64,
         rng: &mut impl Rng,
-        samples: &[Sample],
+        samples: &SampleStore,
     ) -> Self {
         let mut xi = Self::new(actions, k, n, sd, typical_sq_norm, rng);
         let lambda = typical_sq_norm;
         for a in 0..actions {
-            let mine = || samples.iter().filter(|s| s.a == a);
+            let mine = || {
+                samples
+                    .samples()
+                    .iter()
+                    .zip(samples.iter())
+                    .filter(|(s, _)| s.a == a)
+            };
             if mine().next().is_none() {
                 continue;
             }
@@ -128,13 +134,13 @@ impl LinearStimulus {
             }
             let w = &mut xi.w[a * k * n..(a + 1) * k * n];
             let mut rhs: Vec<f64> = w.iter().map(|m| lambda * m).collect();
-            for s in mine() {
-                for (r, &vr) in s.v.iter().enumerate() {
+            for (s, features) in mine() {
+                for (r, &vr) in features.v.iter().enumerate() {
                     let c = s.weight * vr;
                     if c == 0.0 {
                         continue;
                     }
-                    for (gc, vc) in g[r * k..(r + 1) * k].iter_mut().zip(&s.v) {
+                    for (gc, vc) in g[r * k..(r + 1) * k].iter_mut().zip(features.v) {
                         *gc += c * vc;
                     }
                     for (h, x) in rhs[r * n..(r + 1) * n].iter_mut().zip(&s.xi) {

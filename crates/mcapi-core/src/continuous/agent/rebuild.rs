@@ -67,7 +67,7 @@ impl ContinuousAgent {
             self.params.optimistic_sd,
             typical,
             &mut rng,
-            self.store.samples(),
+            &self.store,
         );
         self.planner.rebase(PLANNER_RIDGE * typical);
         if let Some((s, v)) = &mut self.s {
