@@ -352,7 +352,11 @@ mod tests {
             store.insert(t, &[(t as f64) / 20.0], 1, &[0.5], &f, &f, &f);
         }
         assert_eq!(store.samples().len(), 5);
-        assert_eq!(store.v.capacity(), 5, "the feature rows stop at max_samples");
+        assert_eq!(
+            store.v.capacity(),
+            5,
+            "the feature rows stop at max_samples"
+        );
         // Every stored sample is listed in exactly its slot.
         let listed: usize = store.slots.values().map(|s| s.samples.len()).sum();
         assert_eq!(listed, 5);

@@ -294,16 +294,47 @@ pub fn step_error(e: ServiceError) -> mcapi_proto::StepError {
 pub const OWNER_HEADER: &str = "x-mcapi-owner";
 
 /// The headers a refusal carries besides its body: the owner of a
-/// misdirected session's shard, the wait for a frozen one or for the
-/// response memory.
+/// misdirected session's shard; the wait for a frozen one, for the
+/// response memory, or for whatever made the server `unavailable` (a full
+/// queue, a recovery, a session that cannot be loaded back within its
+/// key's quota yet).
 fn cluster_headers(e: &ServiceError) -> Vec<(&'static str, String)> {
+    let wait = || {
+        vec![(
+            "retry-after",
+            crate::service::budget::RETRY_AFTER_SECS.to_string(),
+        )]
+    };
     match e {
         ServiceError::WrongReplica(w) => vec![(OWNER_HEADER, w.owner.clone())],
         ServiceError::ShardFrozen(f) => vec![("retry-after", f.retry_after_secs.to_string())],
-        ServiceError::ResponsesBusy(_) => vec![(
-            "retry-after",
-            crate::service::budget::RETRY_AFTER_SECS.to_string(),
-        )],
+        ServiceError::ResponsesBusy(_) | ServiceError::Unavailable(_) => wait(),
         _ => Vec::new(),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A 503 that asks the client to come back says when, on both
+    /// transports; one that does not (a failed commit) says nothing.
+    #[test]
+    fn unavailable_says_when_to_retry() {
+        let refused = || ServiceError::Unavailable("the tick queue is full".into());
+        let response = ApiError(refused()).into_response();
+        assert_eq!(response.status(), StatusCode::SERVICE_UNAVAILABLE);
+        assert_eq!(response.headers()["retry-after"], "1");
+        let status = to_status(refused());
+        assert_eq!(status.code(), tonic::Code::Unavailable);
+        assert_eq!(
+            status
+                .metadata()
+                .get("retry-after")
+                .map(|v| v.to_str().ok()),
+            Some(Some("1"))
+        );
+        let response = ApiError(ServiceError::TooManySessions(3)).into_response();
+        assert!(response.headers().get("retry-after").is_none());
     }
 }

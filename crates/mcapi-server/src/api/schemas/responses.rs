@@ -138,7 +138,8 @@ error_responses! {
          store failed, the request took longer than the server's request timeout, or \
          (clustered) the session's shard is being moved, or responses in flight hold the \
          server's response memory (`unavailable`, `storage_unavailable`, `request_timeout`, \
-         `shard_moving` and `responses_busy` with `Retry-After`); may be retried.",
+         `shard_moving`, `responses_busy`; `unavailable`, `shard_moving` and \
+         `responses_busy` with `Retry-After`); may be retried.",
         "unavailable",
         "the server is recovering its stored sessions; retry shortly"
     );
