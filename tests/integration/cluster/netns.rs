@@ -329,6 +329,43 @@ impl Net {
         );
     }
 
+    /// From the moment `role` sends a TCP segment carrying `text` to
+    /// `peer`, every packet from `peer` to `role` vanishes: the answer to
+    /// that request is lost, and so is everything after it.
+    pub(super) fn cut_answers_after(&self, role: &str, peer: &str, text: &str) {
+        let ip = self.member(peer).ip.to_string();
+        self.iptables(
+            role,
+            &[
+                "-A", "INPUT", "-s", &ip, "-m", "recent", "--rcheck", "--name", "cut", "--rdest",
+                "-j", "DROP",
+            ],
+        );
+        self.iptables(
+            role,
+            &[
+                "-A",
+                "OUTPUT",
+                "-p",
+                "tcp",
+                "-d",
+                &ip,
+                "-m",
+                "string",
+                "--algo",
+                "bm",
+                "--string",
+                text,
+                "-m",
+                "recent",
+                "--set",
+                "--name",
+                "cut",
+                "--rsource",
+            ],
+        );
+    }
+
     /// Every link heals: every rule of every member goes (and the
     /// triggers' memory with them).
     pub(super) fn heal(&self) {

@@ -20,6 +20,10 @@
 //!    call each other (the mover relays a shard's data), so the cut
 //!    between source and target alone changes nothing: the mover losing
 //!    the target is what leaves the move half done.
+//! 4. **A commit's answer**, and the source with it, from the mover, from
+//!    the moment the commit is sent: the source commits, the mover cannot
+//!    know it and undoes nothing (the target keeps its copy); after the
+//!    heal, `cluster rebalance` finishes the move.
 //!
 //! Asserted: no acknowledged observation is lost and none is applied
 //! twice (every session's `next_seq` equals the observations acknowledged
@@ -450,6 +454,7 @@ struct Report {
     heal_router: Duration,
     heal_mover: Duration,
     heal_target: Duration,
+    heal_commit: Duration,
     thawed_by_lease: Duration,
     sessions: usize,
     acked: usize,
@@ -786,6 +791,91 @@ async fn partitioned(net: Arc<Net>, tmp: std::path::PathBuf) -> Report {
         text(&status.stderr)
     );
 
+    // 4. The source (mcapi-2) answers its commit into the void, and stays
+    // cut from the mover: the mover cannot know whether the commit was
+    // made, so it undoes nothing; after the heal, `rebalance` finishes
+    // the commit. (Moving to mcapi-1 leaves every replica's share as it
+    // was: the rebalance has nothing else to move.)
+    let d = on("mcapi-2")[0];
+    let shard_d = shard(d);
+    let map_c = map_of(&cluster);
+    net.cut_answers_after("mover", "r2", "/commit?");
+    let out = mover(
+        &net,
+        [
+            "move",
+            "--data-dir",
+            &data,
+            "--shard",
+            &shard_key(shard_d),
+            "--to",
+            "mcapi-1",
+            "--freeze-lease-ms",
+            &LEASE_MS.to_string(),
+            "--call-timeout-secs",
+            "3",
+        ]
+        .map(String::from)
+        .to_vec(),
+    )
+    .await;
+    assert!(
+        !out.status.success(),
+        "the move had to stop: {}",
+        text(&out.stdout)
+    );
+    assert!(
+        text(&out.stderr).contains("nothing undone"),
+        "{}",
+        text(&out.stderr)
+    );
+    let unknown = listings(&client, &cluster).await;
+    let line = |r: &str| {
+        let l = unknown.iter().find(|l| l.replica == r).expect("a listing");
+        let line = &l.shards[usize::from(shard_d)];
+        (line.state.clone(), line.owner.clone())
+    };
+    assert_eq!(
+        line("mcapi-2"),
+        ("foreign".into(), "mcapi-1".into()),
+        "the source committed"
+    );
+    assert_eq!(line("mcapi-1").0, "importing", "the target's copy is kept");
+    assert_eq!(
+        map_of(&cluster).owners(),
+        map_c.owners(),
+        "the map was not written"
+    );
+    assert_one_owner(&unknown, &map_c, &[shard_d], "commit unanswered");
+    let probed = probe(&client, &cluster, &ids[d]).await;
+    assert!(probed.values().all(|(s, _)| *s == 421), "{probed:?}");
+    net.heal();
+    let healed = Instant::now();
+    let out = mover(
+        &net,
+        ["rebalance", "--data-dir", &data, "--replicas", "3"]
+            .map(String::from)
+            .to_vec(),
+    )
+    .await;
+    assert!(out.status.success(), "{}", text(&out.stderr));
+    assert!(
+        text(&out.stderr).contains("repaired 1 shards"),
+        "{}",
+        text(&out.stderr)
+    );
+    assert!(
+        text(&out.stdout).contains(": 0 shards moved"),
+        "{}",
+        text(&out.stdout)
+    );
+    let heal_commit = served_again(&live, &ids, &all, healed, "a commit's answer lost").await;
+    assert_eq!(
+        router_owners(&cluster, shard_d),
+        ["mcapi-1"],
+        "the router's one owner"
+    );
+
     stop.store(true, Ordering::Relaxed);
     let mut walks = Vec::new();
     for d in drivers {
@@ -796,15 +886,14 @@ async fn partitioned(net: Arc<Net>, tmp: std::path::PathBuf) -> Report {
     let map = map_of(&cluster);
     let after = listings(&client, &cluster).await;
     assert_one_owner(&after, &map, &[], "after the heals");
-    assert_eq!(
-        epoch_of(&after, "mcapi-2"),
-        map.epoch(),
-        "the target's epoch"
-    );
+    for r in ["mcapi-1", "mcapi-2"] {
+        assert_eq!(epoch_of(&after, r), map.epoch(), "{r}'s epoch");
+    }
     let mut report = Report {
         heal_router,
         heal_mover,
         heal_target,
+        heal_commit,
         thawed_by_lease,
         sessions: walks.len(),
         acked: 0,
@@ -834,7 +923,7 @@ async fn partitioned(net: Arc<Net>, tmp: std::path::PathBuf) -> Report {
         let s = seen(&live, i);
         let mut replicas: Vec<&str> = s.by.iter().map(|(r, _)| r.as_str()).collect();
         replicas.dedup();
-        let moves = usize::from(shard(i) == shard_c);
+        let moves = usize::from(shard(i) == shard_c || shard(i) == shard_d);
         assert!(
             replicas.len() <= 1 + moves && replicas.last() == Some(&owner.as_str()),
             "{}: answered by {replicas:?} in turn",
@@ -897,8 +986,8 @@ fn partitions_lose_nothing_apply_nothing_twice_and_heal() {
         "partitions: {} sessions, {} acknowledged observations ({} replayed after a lost answer), \
          {} refused and {} unanswered attempts; served again after the heal within {:.1} s (router \
          cut from a replica), {:.1} s (mover cut from a source), {:.1} s (target cut after the \
-         commit, `move` run again); a frozen shard thawed by its lease after {:.1} s; {:.1} s in \
-         all; first errors: {:?}",
+         commit, `move` run again), {:.1} s (a commit's answer lost, `rebalance` run); a frozen \
+         shard thawed by its lease after {:.1} s; {:.1} s in all; first errors: {:?}",
         r.sessions,
         r.acked,
         r.replayed,
@@ -907,6 +996,7 @@ fn partitions_lose_nothing_apply_nothing_twice_and_heal() {
         r.heal_router.as_secs_f64(),
         r.heal_mover.as_secs_f64(),
         r.heal_target.as_secs_f64(),
+        r.heal_commit.as_secs_f64(),
         r.thawed_by_lease.as_secs_f64(),
         started.elapsed().as_secs_f64(),
         r.errors
