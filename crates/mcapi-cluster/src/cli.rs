@@ -44,6 +44,11 @@ fn lease_parser() -> clap::builder::RangedU64ValueParser<u64> {
     clap::value_parser!(u64).range(100..=600_000)
 }
 
+/// The time one admin call of a mover may take, in seconds.
+fn call_timeout_parser() -> clap::builder::RangedU64ValueParser<u64> {
+    clap::value_parser!(u64).range(1..=3600)
+}
+
 /// `mcapi cluster status`.
 #[derive(Debug, Args)]
 pub struct StatusArgs {
@@ -68,6 +73,11 @@ pub struct MoveArgs {
     /// the source serves the shard again by itself and refuses the commit.
     #[arg(long, default_value_t = crate::mover::DEFAULT_LEASE_MS, value_parser = lease_parser())]
     pub freeze_lease_ms: u64,
+    /// Seconds (1 to 3600) each call to a replica may take before it
+    /// counts as unanswered. A commit left unanswered is not undone unless
+    /// the source says it did not make it.
+    #[arg(long, default_value_t = crate::mover::DEFAULT_CALL_TIMEOUT_SECS, value_parser = call_timeout_parser())]
+    pub call_timeout_secs: u64,
 }
 
 /// `mcapi cluster rebalance`.
@@ -82,6 +92,9 @@ pub struct RebalanceArgs {
     /// Each freeze's lease (ms, 100 to 600000), as for `move`.
     #[arg(long, default_value_t = crate::mover::DEFAULT_LEASE_MS, value_parser = lease_parser())]
     pub freeze_lease_ms: u64,
+    /// Seconds (1 to 3600) each call to a replica may take, as for `move`.
+    #[arg(long, default_value_t = crate::mover::DEFAULT_CALL_TIMEOUT_SECS, value_parser = call_timeout_parser())]
+    pub call_timeout_secs: u64,
 }
 
 /// `mcapi cluster plan`.
@@ -180,6 +193,7 @@ fn run_move(args: &MoveArgs) -> Result<()> {
         .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
     let mut mover = crate::mover::Mover::open(&dir)?;
     mover.set_lease_ms(args.freeze_lease_ms);
+    mover.set_call_timeout(std::time::Duration::from_secs(args.call_timeout_secs));
     match mover.move_shard(shard, &to)? {
         Some(r) => println!("{}", crate::mover::report_line(&r)),
         None => println!(
@@ -195,7 +209,12 @@ fn run_rebalance(args: &RebalanceArgs) -> Result<()> {
     let dir = std::fs::canonicalize(&args.data_dir)
         .with_context(|| format!("--data-dir {}", args.data_dir.display()))?;
     let started = std::time::Instant::now();
-    let reports = crate::mover::rebalance(&dir, usize::from(args.replicas), args.freeze_lease_ms)?;
+    let reports = crate::mover::rebalance(
+        &dir,
+        usize::from(args.replicas),
+        args.freeze_lease_ms,
+        std::time::Duration::from_secs(args.call_timeout_secs),
+    )?;
     let mut pauses: Vec<f64> = reports
         .iter()
         .map(|r| r.pause.as_secs_f64() * 1e3)

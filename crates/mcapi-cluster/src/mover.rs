@@ -34,8 +34,9 @@ use crate::local::{ADMIN_KEY_FILE, MAP_FILE, STATE_FILE, State};
 
 /// Longest answer read from a replica (a shard's data).
 const MAX_ANSWER_BYTES: usize = 1 << 30;
-/// Time allowed for one admin call.
-const CALL_TIMEOUT: Duration = Duration::from_secs(120);
+/// Time allowed for one admin call when `--call-timeout-secs` is not
+/// given (s): a shard's data may take long to export or import.
+pub const DEFAULT_CALL_TIMEOUT_SECS: u64 = 120;
 
 /// One admin call's answer: status and body.
 struct Answer {
@@ -51,15 +52,22 @@ impl Answer {
 
 /// A plain HTTP/1.1 call with `Connection: close` (no client crate: the
 /// replicas are on loopback and each call is one request).
-fn http_call(addr: &str, method: &str, path: &str, key: &str, body: &[u8]) -> Result<Answer> {
+fn http_call(
+    addr: &str,
+    method: &str,
+    path: &str,
+    key: &str,
+    body: &[u8],
+    timeout: Duration,
+) -> Result<Answer> {
     let sock = addr
         .to_socket_addrs()?
         .next()
         .ok_or_else(|| anyhow!("cannot resolve {addr}"))?;
     let mut stream = TcpStream::connect_timeout(&sock, Duration::from_secs(5))
         .with_context(|| format!("connecting to {addr}"))?;
-    stream.set_read_timeout(Some(CALL_TIMEOUT))?;
-    stream.set_write_timeout(Some(CALL_TIMEOUT))?;
+    stream.set_read_timeout(Some(timeout))?;
+    stream.set_write_timeout(Some(timeout))?;
     let head = format!(
         "{method} {path} HTTP/1.1\r\nHost: {addr}\r\nAuthorization: Bearer {key}\r\n\
          Content-Type: application/octet-stream\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
@@ -143,6 +151,8 @@ pub struct Mover {
     router_map: PathBuf,
     /// The lease of each freeze (ms).
     lease_ms: u64,
+    /// Time allowed for one admin call.
+    call_timeout: Duration,
     _lock: std::fs::File,
 }
 
@@ -178,6 +188,7 @@ impl Mover {
             socket: state.admin_socket.clone(),
             router_map: dir.join("router").join("shards.map"),
             lease_ms: DEFAULT_LEASE_MS,
+            call_timeout: Duration::from_secs(DEFAULT_CALL_TIMEOUT_SECS),
             _lock: lock,
         };
         mover.refresh(&state);
@@ -188,6 +199,12 @@ impl Mover {
     /// refuse one outside 100 to 600000).
     pub fn set_lease_ms(&mut self, ms: u64) {
         self.lease_ms = ms;
+    }
+
+    /// The time each admin call of this mover may take before it counts
+    /// as unanswered.
+    pub fn set_call_timeout(&mut self, timeout: Duration) {
+        self.call_timeout = timeout;
     }
 
     fn refresh(&mut self, state: &State) {
@@ -221,7 +238,7 @@ impl Mover {
         body: &[u8],
     ) -> Result<Vec<u8>> {
         let addr = self.addr(replica)?;
-        let a = http_call(addr, method, path, &self.key, body)
+        let a = http_call(addr, method, path, &self.key, body, self.call_timeout)
             .with_context(|| format!("{method} {path} on {replica}"))?;
         if a.status != 200 {
             bail!("{method} {path} on {replica}: {} {}", a.status, a.text());
@@ -346,13 +363,10 @@ impl Mover {
             .freeze_token
             .ok_or_else(|| undo(anyhow!("{from} answered the freeze without a token")))?;
         let epoch = map.epoch() + 1;
-        self.call(
-            &from,
-            "POST",
-            &format!("{base}/commit?epoch={epoch}&owner={to}&token={token}"),
-            &[],
-        )
-        .map_err(undo)?;
+        let commit = format!("{base}/commit?epoch={epoch}&owner={to}&token={token}");
+        if let Err(e) = self.call(&from, "POST", &commit, &[]) {
+            self.after_unanswered_commit(shard, &from, to, epoch, e)?;
+        }
         // From here on the move is finished by a rerun, never undone.
         let next = map.with_owner(shard, to, epoch)?;
         write_atomic(&self.dir.join(MAP_FILE), &next.to_text()).with_context(|| {
@@ -382,6 +396,59 @@ impl Mover {
             "shard moved"
         );
         Ok(Some(report))
+    }
+
+    /// A commit that failed without a refusal may still have been made:
+    /// its answer can be lost after the source committed. The source is
+    /// asked; `Ok` if it committed (the move goes on), else the error. The
+    /// move is undone only if the source says it did not commit, and the
+    /// target's copy deleted only once no commit of this freeze can land
+    /// any more (the source thawed, or serving the shard again after its
+    /// lease); if the source cannot be asked, nothing is touched, for a
+    /// rerun to settle (`move`, or `rebalance`, which finishes a commit
+    /// or thaws by the lease's end).
+    fn after_unanswered_commit(
+        &self,
+        shard: u16,
+        from: &ReplicaName,
+        to: &ReplicaName,
+        epoch: u64,
+        e: anyhow::Error,
+    ) -> Result<()> {
+        let key = shard_key(shard);
+        let base = format!("/admin/shards/{key}");
+        match self.status(from, shard) {
+            Ok(st) if st.state == "foreign" && st.owner == to.as_str() && st.epoch == epoch => {
+                tracing::warn!(shard = %key, %from, %to, epoch, error = %format!("{e:#}"), "the commit's answer was lost, but the source committed: the move goes on");
+                Ok(())
+            }
+            Ok(st) if st.state == "frozen" || st.state == "owned" => {
+                let thawed = st.state == "owned"
+                    || self
+                        .call(from, "POST", &format!("{base}/thaw"), &[])
+                        .is_ok();
+                let aborted =
+                    thawed && self.call(to, "POST", &format!("{base}/abort"), &[]).is_ok();
+                tracing::warn!(shard = %key, error = %format!("{e:#}"), thawed, aborted, "move undone: the source did not commit");
+                Err(e.context(format!(
+                    "moving {key} from {from} to {to} failed at its commit, which {from} did not make; \
+                     undone (source thawed: {thawed}, target's copy deleted: {aborted})"
+                )))
+            }
+            Ok(st) => Err(e.context(format!(
+                "moving {key} from {from} to {to}: the commit failed and {from} has the shard {} \
+                 (owner {}, epoch {}); nothing undone: see `mcapi cluster status`",
+                st.state, st.owner, st.epoch
+            ))),
+            Err(asking) => {
+                tracing::warn!(shard = %key, %from, error = %format!("{e:#}"), asking = %format!("{asking:#}"), "the commit's outcome is unknown: nothing undone");
+                Err(e.context(format!(
+                    "moving {key} from {from} to {to}: the commit got no answer and {from} cannot \
+                     be asked whether it made it ({asking:#}); nothing undone: run the move (or \
+                     `rebalance`) again once {from} answers"
+                )))
+            }
+        }
     }
 
     /// Steps 6 and 7 of a move whose map file already names `to`: each is
@@ -558,7 +625,8 @@ pub fn status(dir: &Path) -> Result<ClusterStatus> {
     let mut replicas = Vec::new();
     for p in &state.processes {
         let Some(addr) = &p.http else { continue };
-        let listing = http_call(addr, "GET", "/admin/shards", &key, &[])
+        let timeout = Duration::from_secs(DEFAULT_CALL_TIMEOUT_SECS);
+        let listing = http_call(addr, "GET", "/admin/shards", &key, &[], timeout)
             .and_then(|a| {
                 if a.status != 200 {
                     bail!("{} {}", a.status, a.text());
@@ -601,8 +669,19 @@ impl Mover {
         }
         let refs: Vec<&ReplicaShards> = listings.iter().collect();
         let map = self.map()?;
+        let found = findings(&map, &refs);
+        // An import that a source committed to is the shard's only
+        // future: finished with that commit, never deleted (whichever of
+        // the two findings comes first).
+        let committed: Vec<(u16, String)> = found
+            .iter()
+            .filter_map(|(s, f)| match f {
+                Finding::Committed { to, .. } => Some((*s, to.clone())),
+                _ => None,
+            })
+            .collect();
         let mut repaired = 0;
-        for (shard, finding) in findings(&map, &refs) {
+        for (shard, finding) in found {
             let base = format!("/admin/shards/{}", shard_key(shard));
             let parse = |n: &str| ReplicaName::parse(n).map_err(anyhow::Error::msg);
             tracing::warn!(shard = %shard_key(shard), finding = %finding, "repairing");
@@ -622,6 +701,9 @@ impl Mover {
                     }
                 }
                 Finding::Importing { replica } => {
+                    if committed.contains(&(shard, replica.clone())) {
+                        continue;
+                    }
                     self.call(&parse(replica)?, "POST", &format!("{base}/abort"), &[])?;
                 }
             }
@@ -662,7 +744,12 @@ pub fn report_line(r: &MoveReport) -> String {
 /// `mcapi cluster rebalance`: asks the supervisor for `n` replicas, waits
 /// until it runs them behind the router, then moves every shard the plan
 /// gives to another replica, one at a time.
-pub fn rebalance(dir: &Path, n: usize, lease_ms: u64) -> Result<Vec<MoveReport>> {
+pub fn rebalance(
+    dir: &Path,
+    n: usize,
+    lease_ms: u64,
+    call_timeout: Duration,
+) -> Result<Vec<MoveReport>> {
     let state = read_state(dir)?;
     let running = state.replicas;
     if n < running {
@@ -696,6 +783,7 @@ pub fn rebalance(dir: &Path, n: usize, lease_ms: u64) -> Result<Vec<MoveReport>>
     let mut mover = Mover::open(dir)?;
     mover.refresh(&read_state(dir)?);
     mover.set_lease_ms(lease_ms);
+    mover.set_call_timeout(call_timeout);
     let repaired = mover.repair()?;
     if repaired > 0 {
         eprintln!("repaired {repaired} shards that earlier moves left half done");

@@ -23,7 +23,9 @@
 //! refuse), [`local`] (`mcapi cluster local`), [`kubernetes`] (the committed
 //! ConfigMap), [`shard_moves`] (live moves), [`router`] (no request left
 //! unanswered while replicas join), [`leases`] (a dead mover's freeze and
-//! half-done move); the helpers they share (the
+//! half-done move), [`partitions`] (replicas and the router in network
+//! namespaces of their own, links cut with iptables under load); the
+//! helpers they share (the
 //! router, replicas, a local cluster, a driven session) are here.
 
 use crate::common;
@@ -46,6 +48,8 @@ use tonic::transport::Channel;
 mod kubernetes;
 mod leases;
 mod local;
+mod netns;
+mod partitions;
 mod replicas;
 mod router;
 mod shard_moves;
@@ -282,6 +286,8 @@ async fn start_router(dir: &Path, map: &Path, replicas: &[(&str, &Server)]) -> R
 struct LocalCluster {
     child: Child,
     dir: PathBuf,
+    /// The router's address (127.0.0.1 unless it runs in a namespace).
+    host: String,
     http: u16,
     grpc: u16,
     stdout: PathBuf,
@@ -300,6 +306,11 @@ impl LocalCluster {
     /// replica and the router ready).
     fn start(dir: &Path, extra: &[&str], run: &str) -> Self {
         let (http, grpc) = free_ports();
+        Self::start_at(dir, extra, run, "127.0.0.1", http, grpc)
+    }
+
+    /// Starts it with its router on `host`, as [`LocalCluster::start`].
+    fn start_at(dir: &Path, extra: &[&str], run: &str, host: &str, http: u16, grpc: u16) -> Self {
         let stdout = dir.join(format!("local-{run}.out"));
         let stderr = dir.join(format!("local-{run}.err"));
         let data = dir.join("cluster");
@@ -307,9 +318,9 @@ impl LocalCluster {
             "cluster",
             "local",
             "--http",
-            &format!("127.0.0.1:{http}"),
+            &format!("{host}:{http}"),
             "--grpc",
-            &format!("127.0.0.1:{grpc}"),
+            &format!("{host}:{grpc}"),
             "--data-dir",
             data.to_str().expect("utf-8"),
         ]
@@ -329,6 +340,7 @@ impl LocalCluster {
         let mut cluster = Self {
             child,
             dir: data,
+            host: host.to_string(),
             http,
             grpc,
             stdout,
@@ -364,7 +376,7 @@ impl LocalCluster {
     }
 
     fn base(&self) -> String {
-        format!("http://127.0.0.1:{}", self.http)
+        format!("http://{}:{}", self.host, self.http)
     }
 
     /// `cluster.json`.

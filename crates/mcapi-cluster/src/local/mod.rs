@@ -36,8 +36,9 @@
 //!
 //! Files, one idea each: the flags and the entry point (here), the state
 //! file (`state.rs`), the supervised processes and their backoff
-//! (`process.rs`), the checks and files before a start (`setup.rs`) and the
-//! supervisor (`supervisor.rs`).
+//! (`process.rs`), the checks and files before a start (`setup.rs`), the
+//! supervisor (`supervisor.rs`) and the network namespaces a process may
+//! run in (`netns.rs`, `--netns`).
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -48,6 +49,7 @@ use clap::Args;
 use setup::prepare;
 use supervisor::supervise;
 
+mod netns;
 mod process;
 mod setup;
 mod state;
@@ -120,6 +122,15 @@ pub struct LocalArgs {
     /// (docs/cluster.md gives the numbers).
     #[arg(long, hide = true, value_enum, default_value_t = RouterUpdate::Runtime)]
     pub router_update: RouterUpdate,
+    /// Run a process in a network namespace that exists (`ip netns exec
+    /// NETNS`, as root), to test network partitions: `NAME=NETNS@IP` runs
+    /// replica NAME there, listening on IP (an address of that namespace)
+    /// instead of 127.0.0.1; `haproxy=NETNS` runs the router there, on
+    /// --http and --grpc (then not checked free from here). Repeat per
+    /// process. This supervisor, the mover and clients must reach every
+    /// address given.
+    #[arg(long, value_name = "NAME=NETNS[@IP]")]
+    pub netns: Vec<String>,
     /// Extra `mcapi serve` flags for every replica, after `--` (e.g. `-- --workers 2`).
     #[arg(last = true)]
     pub serve_args: Vec<String>,

@@ -4,6 +4,7 @@
 //! it.
 
 use std::ffi::OsString;
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::process::{Child, Command, ExitStatus, Stdio};
 use std::time::{Duration, Instant};
@@ -77,8 +78,8 @@ pub(super) struct Process {
     /// Environment variables set for it (a replica's admin key).
     pub(super) env: Vec<(String, String)>,
     pub(super) log: PathBuf,
-    /// A replica's (REST, gRPC) ports.
-    pub(super) ports: Option<(u16, u16)>,
+    /// A replica's (REST, gRPC) addresses.
+    pub(super) listen: Option<(SocketAddr, SocketAddr)>,
     /// What answers 200 once it is ready.
     pub(super) ready_url: String,
     pub(super) run: Run,
@@ -161,8 +162,8 @@ impl Process {
         ProcessState {
             name: self.name.clone(),
             pid: self.pid(),
-            http: self.ports.map(|(h, _)| format!("127.0.0.1:{h}")),
-            grpc: self.ports.map(|(_, g)| format!("127.0.0.1:{g}")),
+            http: self.listen.map(|(h, _)| h.to_string()),
+            grpc: self.listen.map(|(_, g)| g.to_string()),
             restarts: self.restarts,
             log: self.log.clone(),
         }

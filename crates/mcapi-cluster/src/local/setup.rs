@@ -3,7 +3,7 @@
 //! key, the router's files and free loopback ports.
 
 use std::ffi::OsString;
-use std::net::{SocketAddr, TcpListener};
+use std::net::{IpAddr, SocketAddr, TcpListener};
 use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Duration;
@@ -13,6 +13,7 @@ use anyhow::{Context, Result, bail};
 use mcapi_shards::plan::{self, ordinal_names};
 use mcapi_shards::{ReplicaName, ShardMap};
 
+use super::netns::Placements;
 use super::process::{Process, Run, alive};
 use super::state::State;
 use super::{
@@ -29,6 +30,7 @@ pub(super) struct Setup {
     pub(super) map: ShardMap,
     pub(super) template: ReplicaTemplate,
     pub(super) spec: RouterSpec,
+    pub(super) haproxy: PathBuf,
     pub(super) haproxy_cfg: PathBuf,
     pub(super) admin_socket: PathBuf,
     pub(super) http: SocketAddr,
@@ -53,10 +55,15 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
     if args.http == args.grpc {
         bail!("--http and --grpc must differ (both are {})", args.http);
     }
-    for (flag, addr) in [("--http", args.http), ("--grpc", args.grpc)] {
-        TcpListener::bind(addr).with_context(|| {
-            format!("{flag} {addr} is not free (another cluster or server running?); choose another address")
-        })?;
+    let placements = Placements::parse(&args.netns)?;
+    // A router in a namespace of its own listens on addresses of that
+    // namespace, which cannot be bound from here.
+    if !placements.has(ROUTER) {
+        for (flag, addr) in [("--http", args.http), ("--grpc", args.grpc)] {
+            TcpListener::bind(addr).with_context(|| {
+                format!("{flag} {addr} is not free (another cluster or server running?); choose another address")
+            })?;
+        }
     }
     let haproxy = match &args.haproxy {
         Some(p) if p.is_file() => p.clone(),
@@ -84,6 +91,19 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
         );
     }
     let map = local_map(&dir, args.replicas.map(usize::from))?;
+    let known = ordinal_names("mcapi", MAX_LOCAL_REPLICAS).map_err(anyhow::Error::msg)?;
+    for name in placements.names() {
+        let replica = map
+            .replicas()
+            .iter()
+            .chain(&known)
+            .any(|r| r.as_str() == name);
+        if name != ROUTER && !replica {
+            bail!(
+                "--netns: `{name}` is neither `{ROUTER}` nor a replica this cluster runs or may add"
+            );
+        }
+    }
     for sub in ["replicas", "router", "logs"] {
         std::fs::create_dir_all(dir.join(sub))
             .with_context(|| format!("creating {}", dir.join(sub).display()))?;
@@ -105,14 +125,11 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
         dir: dir.clone(),
         serve_args: args.serve_args.clone(),
         admin_key,
+        placements,
     };
     for (k, name) in map.replicas().iter().enumerate() {
         let (http, grpc) = (ports[2 * k], ports[2 * k + 1]);
-        backends.push(Backend {
-            replica: name.clone(),
-            rest: format!("127.0.0.1:{http}"),
-            grpc: format!("127.0.0.1:{grpc}"),
-        });
+        backends.push(template.backend(name, http, grpc));
         // `--joining` for every replica: one that gave all its shards
         // away is no longer named by the map, and must still start again.
         processes.push(template.process(name, http, grpc, true));
@@ -140,10 +157,10 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
     write_router(&router_dir, &map, &spec)?;
     check_router(&haproxy, &router_dir.join("haproxy.cfg"))?;
     let haproxy_cfg = router_dir.join("haproxy.cfg");
-    processes.push(Process {
-        name: ROUTER.into(),
-        program: haproxy,
-        args: match args.router_update {
+    let (program, router_args) = template.placements.command(
+        ROUTER,
+        haproxy.clone(),
+        match args.router_update {
             RouterUpdate::Runtime | RouterUpdate::Restart => {
                 vec!["-db".into(), "-f".into(), haproxy_cfg.clone().into()]
             }
@@ -156,9 +173,14 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
                 haproxy_cfg.clone().into(),
             ],
         },
+    );
+    processes.push(Process {
+        name: ROUTER.into(),
+        program,
+        args: router_args,
         env: Vec::new(),
         log: dir.join("logs").join(format!("{ROUTER}.log")),
-        ports: None,
+        listen: None,
         ready_url: format!("http://{}/readyz", args.http),
         run: Run::Stopped,
         streak: 0,
@@ -169,6 +191,7 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
         map,
         template,
         spec,
+        haproxy,
         haproxy_cfg,
         admin_socket,
         http: args.http,
@@ -232,9 +255,27 @@ pub(super) struct ReplicaTemplate {
     pub(super) dir: PathBuf,
     pub(super) serve_args: Vec<String>,
     pub(super) admin_key: String,
+    /// `--netns`: where each process runs, and a replica's address.
+    pub(super) placements: Placements,
 }
 
 impl ReplicaTemplate {
+    /// Where replica `name` listens on these ports.
+    fn listen(&self, name: &ReplicaName, http: u16, grpc: u16) -> (SocketAddr, SocketAddr) {
+        let host: IpAddr = self.placements.host(name.as_str());
+        (SocketAddr::new(host, http), SocketAddr::new(host, grpc))
+    }
+
+    /// The router's backend of replica `name` on these ports.
+    pub(super) fn backend(&self, name: &ReplicaName, http: u16, grpc: u16) -> Backend {
+        let (rest, grpc) = self.listen(name, http, grpc);
+        Backend {
+            replica: name.clone(),
+            rest: rest.to_string(),
+            grpc: grpc.to_string(),
+        }
+    }
+
     pub(super) fn process(
         &self,
         name: &ReplicaName,
@@ -243,12 +284,13 @@ impl ReplicaTemplate {
         joining: bool,
     ) -> Process {
         let store = self.dir.join("replicas").join(name.as_str());
+        let (rest_addr, grpc_addr) = self.listen(name, http, grpc);
         let mut argv: Vec<OsString> = vec![
             "serve".into(),
             "--http".into(),
-            format!("127.0.0.1:{http}").into(),
+            rest_addr.to_string().into(),
             "--grpc".into(),
-            format!("127.0.0.1:{grpc}").into(),
+            grpc_addr.to_string().into(),
             "--data-dir".into(),
             store.into(),
             "--shard-map".into(),
@@ -260,14 +302,17 @@ impl ReplicaTemplate {
             argv.push("--joining".into());
         }
         argv.extend(self.serve_args.iter().map(OsString::from));
+        let (program, args) = self
+            .placements
+            .command(name.as_str(), self.exe.clone(), argv);
         Process {
             name: name.to_string(),
-            program: self.exe.clone(),
-            args: argv,
+            program,
+            args,
             env: vec![("MCAPI_ADMIN_KEY".into(), self.admin_key.clone())],
             log: self.dir.join("logs").join(format!("{name}.log")),
-            ports: Some((http, grpc)),
-            ready_url: format!("http://127.0.0.1:{http}/readyz"),
+            listen: Some((rest_addr, grpc_addr)),
+            ready_url: format!("http://{rest_addr}/readyz"),
             run: Run::Stopped,
             streak: 0,
             restarts: 0,

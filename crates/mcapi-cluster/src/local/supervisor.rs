@@ -18,7 +18,7 @@ use super::state::State;
 use super::{MAP_FILE, MAX_LOCAL_REPLICAS, REQUEST_FILE, RouterUpdate, STATE_FILE};
 use crate::files::write_atomic;
 use crate::haproxy::write_router;
-use crate::haproxy::{Backend, RouterSpec, add_backend};
+use crate::haproxy::{RouterSpec, add_backend};
 use crate::probe::http_ok;
 
 /// The processes, stopped (SIGKILL) if dropped while any still runs: an
@@ -27,6 +27,9 @@ pub(super) struct Cluster {
     pub(super) processes: Vec<Process>,
     pub(super) template: ReplicaTemplate,
     pub(super) spec: RouterSpec,
+    /// The `haproxy` executable (the router's process may run it behind
+    /// `ip netns exec`).
+    pub(super) haproxy: PathBuf,
     pub(super) dir: PathBuf,
     pub(super) state_file: PathBuf,
     pub(super) state: State,
@@ -237,11 +240,9 @@ impl Cluster {
         let router = self.processes.len() - 1;
         for (k, name) in names[have..].iter().enumerate() {
             let (http, grpc) = (ports[2 * k], ports[2 * k + 1]);
-            self.spec.backends.push(Backend {
-                replica: name.clone(),
-                rest: format!("127.0.0.1:{http}"),
-                grpc: format!("127.0.0.1:{grpc}"),
-            });
+            self.spec
+                .backends
+                .push(self.template.backend(name, http, grpc));
             let p = self.template.process(name, http, grpc, true);
             self.processes.insert(router + k, p);
         }
@@ -255,10 +256,7 @@ impl Cluster {
             .retain(|n| !names[have..].iter().any(|m| m == n));
         write_router(&self.dir.join("router"), &map, &self.spec)?;
         let router = self.processes.len() - 1;
-        check_router(
-            &self.processes[router].program,
-            &self.dir.join("router").join("haproxy.cfg"),
-        )?;
+        check_router(&self.haproxy, &self.dir.join("router").join("haproxy.cfg"))?;
         match self.router_update {
             RouterUpdate::Runtime => {
                 for b in &self.spec.backends[have..] {
@@ -326,6 +324,7 @@ pub(super) async fn supervise(setup: Setup, signal: impl Future<Output = ()> + S
         map,
         template,
         spec,
+        haproxy,
         haproxy_cfg,
         admin_socket,
         http,
@@ -340,6 +339,7 @@ pub(super) async fn supervise(setup: Setup, signal: impl Future<Output = ()> + S
         processes,
         template,
         spec,
+        haproxy,
         dir: dir.clone(),
         state_file: dir.join(STATE_FILE),
         state: State {
@@ -407,10 +407,12 @@ pub(super) fn print_banner(
     );
     for p in &cluster.processes {
         let pid = p.pid().map_or_else(|| "-".to_string(), |p| p.to_string());
-        match p.ports {
+        match p.listen {
             Some((h, g)) => out.push_str(&format!(
-                "  {:<10} REST 127.0.0.1:{h:<5}  gRPC 127.0.0.1:{g:<5}  pid {pid:<7}  log {}\n",
+                "  {:<10} REST {:<15}  gRPC {:<15}  pid {pid:<7}  log {}\n",
                 p.name,
+                h.to_string(),
+                g.to_string(),
                 p.log.display()
             )),
             None => out.push_str(&format!(

@@ -38,7 +38,7 @@ fn process(dir: &Path, program: &str, args: &[&str]) -> Process {
         args: args.iter().map(OsString::from).collect(),
         env: Vec::new(),
         log: dir.join("p.log"),
-        ports: None,
+        listen: None,
         ready_url: String::new(),
         run: Run::Stopped,
         streak: 0,
@@ -133,4 +133,32 @@ fn a_data_dir_keeps_its_map_and_refuses_another_replica_count() {
         format!("{e:#}").contains("`haproxy` names the router"),
         "{e:#}"
     );
+}
+
+#[test]
+fn netns_placements_are_checked_before_anything_starts() {
+    use super::netns::Placements;
+    let refused = |spec: &str| {
+        format!(
+            "{:#}",
+            Placements::parse(&[spec.to_string()]).expect_err(spec)
+        )
+    };
+    assert!(refused("mcapi-0").contains("expected NAME=NETNS@IP"));
+    assert!(refused("mcapi-0=ns0").contains("needs the address it listens on there"));
+    assert!(refused("mcapi-0=ns0@10.1.2").contains("is not an IP address"));
+    assert!(refused("mcapi-0=ns0@0.0.0.0").contains("cannot be dialled"));
+    assert!(refused("haproxy=ns0@10.1.2.3").contains("listens on --http and --grpc"));
+    assert!(refused("Mcapi_0=ns0@10.1.2.3").contains("Mcapi_0"));
+    assert!(refused("mcapi-0=../x@10.1.2.3").contains("is not a namespace name"));
+    assert!(
+        refused("mcapi-0=mcapi-no-such-netns@10.1.2.3")
+            .contains("no network namespace `mcapi-no-such-netns`")
+    );
+    // None given: every process on loopback, as before, and run as is.
+    let none = Placements::parse(&[]).expect("none");
+    assert_eq!(none.host("mcapi-0").to_string(), "127.0.0.1");
+    let (program, args) = none.command("mcapi-0", "/bin/mcapi".into(), vec!["serve".into()]);
+    assert_eq!(program, std::path::PathBuf::from("/bin/mcapi"));
+    assert_eq!(args, [OsString::from("serve")]);
 }
