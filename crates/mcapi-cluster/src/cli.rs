@@ -27,9 +27,10 @@ pub enum ClusterCommand {
     /// replica, live: snapshot, freeze, delta, flip the map, drop at the
     /// source (docs/cluster.md).
     Move(MoveArgs),
-    /// Add replicas to a running `mcapi cluster local` and move to them,
-    /// live, the shards the rendezvous plan gives them (first finishing
-    /// what dead movers left half done).
+    /// Grow or shrink a running `mcapi cluster local`, live: move the
+    /// shards the rendezvous plan for N replicas gives to others (first
+    /// finishing what dead movers left half done), starting new replicas
+    /// before, or stopping the ones beyond N after.
     Rebalance(RebalanceArgs),
     /// Show a running `mcapi cluster local`'s replicas and every shard not
     /// plainly served by its map's owner: frozen (with the lease left),
@@ -86,7 +87,9 @@ pub struct RebalanceArgs {
     /// The running `mcapi cluster local`'s directory.
     #[arg(long, default_value = "./cluster")]
     pub data_dir: PathBuf,
-    /// Replicas after it (at least those running; at most 64).
+    /// Replicas after it (1 to 64). More than run: new replicas start
+    /// and shards move to them. Fewer: every shard moves off the replicas
+    /// beyond N, which then leave the router and stop.
     #[arg(long, value_parser = clap::value_parser!(u16).range(1..=crate::local::MAX_LOCAL_REPLICAS as i64))]
     pub replicas: u16,
     /// Each freeze's lease (ms, 100 to 600000), as for `move`.

@@ -438,14 +438,12 @@ const DYNAMIC_CHECK: &str = "inter 2s fall 2 rise 1";
 /// configuration naming the replica, so that a restarted HAProxy keeps it.
 pub fn add_backend(socket: &Path, b: &Backend) -> std::io::Result<()> {
     let r = &b.replica;
-    let servers = [
-        (format!("be_rest_{r}"), rest_server_args(b)),
-        (format!("be_grpc_{r}"), grpc_server_args(b)),
-        ("be_rest_any".to_string(), rest_server_args(b)),
-        ("be_grpc_any".to_string(), grpc_server_args(b)),
-    ];
+    let (rest, grpc) = (rest_server_args(b), grpc_server_args(b));
+    let servers = server_slots(r)
+        .into_iter()
+        .zip([&rest, &grpc, &rest, &grpc]);
     let mut added = Vec::new();
-    for (backend, args) in &servers {
+    for (backend, args) in servers {
         // `args` starts with the server's name.
         let command = format!("add server {backend}/{args} {DYNAMIC_CHECK}");
         let answer = runtime_command(socket, &command)?;
@@ -471,6 +469,87 @@ pub fn add_backend(socket: &Path, b: &Backend) -> std::io::Result<()> {
                     answer.trim()
                 )));
             }
+        }
+    }
+    Ok(())
+}
+
+/// The backends a replica's servers live in: its own two, then the
+/// round-robin ones.
+fn server_slots(r: &ReplicaName) -> [String; 4] {
+    [
+        format!("be_rest_{r}"),
+        format!("be_grpc_{r}"),
+        "be_rest_any".to_string(),
+        "be_grpc_any".to_string(),
+    ]
+}
+
+/// Sends `command` and fails unless HAProxy answers nothing (its answer to
+/// a command that succeeded) or one of `fine` (prefixes of answers that
+/// mean "already so").
+fn runtime_quiet(socket: &Path, command: &str, fine: &[&str]) -> std::io::Result<()> {
+    let answer = runtime_command(socket, command)?;
+    let answer = answer.trim();
+    if answer.is_empty() || fine.iter().any(|f| answer.starts_with(f)) {
+        Ok(())
+    } else {
+        Err(std::io::Error::other(format!(
+            "HAProxy refused `{command}`: {answer}"
+        )))
+    }
+}
+
+/// First half of taking a leaving replica from behind the running router:
+/// its servers go to maintenance, so HAProxy sends them nothing new while
+/// the requests already sent finish. The replica is then stopped (it
+/// drains what it accepted), and [`remove_backend`] deletes the servers.
+/// A server HAProxy does not have is skipped.
+pub fn drain_backend(socket: &Path, r: &ReplicaName) -> std::io::Result<()> {
+    for backend in server_slots(r) {
+        runtime_quiet(
+            socket,
+            &format!("set server {backend}/{r} state maint"),
+            &["No such server"],
+        )?;
+    }
+    Ok(())
+}
+
+/// Second half: deletes the leaving replica's servers from the running
+/// router (its two own backends stay, empty, as a spare name's do, ready
+/// for [`add_backend`] if it joins again). HAProxy deletes a server only
+/// once it holds no connection, so this retries for up to `patience` after
+/// closing any left (the replica has stopped by now, so none carries a
+/// request). No restart or reload: no client connection is touched.
+pub fn remove_backend(socket: &Path, r: &ReplicaName, patience: Duration) -> std::io::Result<()> {
+    let deadline = std::time::Instant::now() + patience;
+    for backend in server_slots(r) {
+        let server = format!("{backend}/{r}");
+        runtime_quiet(
+            socket,
+            &format!("set server {server} state maint"),
+            &["No such server"],
+        )?;
+        runtime_quiet(
+            socket,
+            &format!("shutdown sessions server {server}"),
+            &["No such server"],
+        )?;
+        loop {
+            let command = format!("del server {server}");
+            let answer = runtime_command(socket, &command)?;
+            let answer = answer.trim();
+            if answer.starts_with("Server deleted") || answer.starts_with("No such server") {
+                break;
+            }
+            if std::time::Instant::now() >= deadline {
+                return Err(std::io::Error::other(format!(
+                    "HAProxy refused `{command}` for {} s: {answer}",
+                    patience.as_secs()
+                )));
+            }
+            std::thread::sleep(Duration::from_millis(100));
         }
     }
     Ok(())

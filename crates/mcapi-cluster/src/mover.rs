@@ -741,9 +741,13 @@ pub fn report_line(r: &MoveReport) -> String {
     )
 }
 
-/// `mcapi cluster rebalance`: asks the supervisor for `n` replicas, waits
-/// until it runs them behind the router, then moves every shard the plan
-/// gives to another replica, one at a time.
+/// `mcapi cluster rebalance`: to grow, asks the supervisor for `n`
+/// replicas and waits until it runs them behind the router; then moves
+/// every shard the plan for `n` replicas gives to another replica, one at
+/// a time; to shrink, then asks the supervisor to take the replicas beyond
+/// `n`, which own nothing by now, out of the router and stop them. The
+/// move lock is held throughout, so no other mover gives them a shard
+/// meanwhile.
 pub fn rebalance(
     dir: &Path,
     n: usize,
@@ -752,33 +756,8 @@ pub fn rebalance(
 ) -> Result<Vec<MoveReport>> {
     let state = read_state(dir)?;
     let running = state.replicas;
-    if n < running {
-        bail!(
-            "the cluster runs {running} replicas; rebalance adds replicas, it does not remove them (asked for {n})"
-        );
-    }
     if n > running {
-        write_atomic(
-            &dir.join(crate::local::REQUEST_FILE),
-            &format!("{{\"replicas\": {n}}}\n"),
-        )?;
-        let pid = i32::try_from(state.supervisor).context("a supervisor pid")?;
-        // SAFETY: a signal to the supervisor's pid, read from its state file.
-        if unsafe { libc::kill(pid, libc::SIGHUP) } != 0 {
-            bail!("cannot signal the supervisor (pid {pid}): is it running?");
-        }
-        let deadline = Instant::now() + Duration::from_secs(180);
-        loop {
-            std::thread::sleep(Duration::from_millis(100));
-            if let Ok(s) = read_state(dir)
-                && s.replicas >= n
-            {
-                break;
-            }
-            if Instant::now() >= deadline {
-                bail!("the supervisor did not start {n} replicas within 180 s (see its log)");
-            }
-        }
+        ask_supervisor(dir, &state, n, "start")?;
     }
     let mut mover = Mover::open(dir)?;
     mover.refresh(&read_state(dir)?);
@@ -801,5 +780,45 @@ pub fn rebalance(
             }
         }
     }
+    if n < running {
+        // Every shard has left the replicas beyond n (a move that could not
+        // finish stopped the rebalance above): only now may they stop.
+        let map = mover.map()?;
+        if let Some(r) = map.replicas().iter().find(|r| !names.contains(r)) {
+            bail!(
+                "{r} still owns {} shards after the moves; nothing was stopped (run rebalance again)",
+                map.shards_of(r).len()
+            );
+        }
+        ask_supervisor(dir, &read_state(dir)?, n, "stop")?;
+    }
     Ok(reports)
+}
+
+/// Asks `cluster local`'s supervisor to run `n` replicas (its request
+/// file, then SIGHUP) and waits until its state file says it does: new
+/// replicas started and behind the router, or leaving ones out of the
+/// router and stopped (`what` names which, for the error).
+fn ask_supervisor(dir: &Path, state: &State, n: usize, what: &str) -> Result<()> {
+    write_atomic(
+        &dir.join(crate::local::REQUEST_FILE),
+        &format!("{{\"replicas\": {n}}}\n"),
+    )?;
+    let pid = i32::try_from(state.supervisor).context("a supervisor pid")?;
+    // SAFETY: a signal to the supervisor's pid, read from its state file.
+    if unsafe { libc::kill(pid, libc::SIGHUP) } != 0 {
+        bail!("cannot signal the supervisor (pid {pid}): is it running?");
+    }
+    let deadline = Instant::now() + Duration::from_secs(180);
+    loop {
+        std::thread::sleep(Duration::from_millis(100));
+        if let Ok(s) = read_state(dir)
+            && s.replicas == n
+        {
+            return Ok(());
+        }
+        if Instant::now() >= deadline {
+            bail!("the supervisor did not {what} replicas to run {n} within 180 s (see its log)");
+        }
+    }
 }

@@ -1,7 +1,7 @@
 //! The router while the cluster changes (docs/cluster.md, "Adding
-//! replicas"): load runs through HAProxy over REST and gRPC while
-//! `mcapi cluster local` takes new replicas and shards move, and every
-//! request must get an answer. A request without one (a connection closed
+//! replicas", "Removing replicas"): load runs through HAProxy over REST
+//! and gRPC while `mcapi cluster local` takes new replicas, shards move and
+//! a replica leaves, and every request must get an answer. A request without one (a connection closed
 //! before the response, a connection refused) is what restarting HAProxy
 //! did to every request in flight.
 
@@ -18,7 +18,7 @@ use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use mcapi_shards::{shard_key, shard_of_id};
 use serde_json::json;
 
-use super::{LocalCluster, call, haproxy_or_skip};
+use super::{LocalCluster, call, haproxy_or_skip, process_exists};
 
 /// What the drivers saw.
 #[derive(Debug, Default)]
@@ -283,6 +283,43 @@ async fn load_while_replicas_join(how: &str) -> Tally {
         assert_eq!(status, 200, "{body}");
         assert_eq!(replica.as_deref(), Some(to), "served by its new replica");
     }
+    // One replica leaves under the same load: `rebalance --replicas 3`
+    // moves every shard off mcapi-3 (and what the plan for three gives
+    // mcapi-2), takes it out of the router and stops it.
+    let leaving_pid = cluster.pid("mcapi-3").expect("mcapi-3 runs");
+    let out = tokio::task::spawn_blocking(move || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_mcapi"))
+            .args([
+                "cluster",
+                "rebalance",
+                "--data-dir",
+                &data,
+                "--replicas",
+                "3",
+            ])
+            .output()
+            .expect("mcapi cluster rebalance runs")
+    })
+    .await
+    .expect("rebalance task");
+    assert!(
+        out.status.success(),
+        "rebalance --replicas 3: {}\n{}",
+        String::from_utf8_lossy(&out.stderr),
+        cluster.err()
+    );
+    assert_eq!(cluster.state()["replicas"], 3, "{}", cluster.err());
+    assert_eq!(cluster.pid("mcapi-3"), None, "mcapi-3 is no longer run");
+    assert!(!process_exists(leaving_pid), "mcapi-3 stopped");
+    let (status, replica, _, body) = call(
+        &client,
+        reqwest::Method::GET,
+        &format!("{base}/v1/sessions/{}", ids[1]),
+        None,
+    )
+    .await;
+    assert_eq!(status, 200, "the session mcapi-3 held is served: {body}");
+    assert_ne!(replica.as_deref(), Some("mcapi-3"));
     tokio::time::sleep(Duration::from_millis(500)).await;
     stop.store(true, Ordering::Relaxed);
     let mut tally = Tally::default();
@@ -295,17 +332,18 @@ async fn load_while_replicas_join(how: &str) -> Tally {
             Some(haproxy_pid),
             "the router was not restarted"
         );
-        assert!(
-            cluster.err().contains("added to the running router"),
-            "{}",
-            cluster.err()
-        );
+        for said in [
+            "added to the running router",
+            "deleted from the running router",
+        ] {
+            assert!(cluster.err().contains(said), "{}", cluster.err());
+        }
     }
     let (status, _) = cluster.terminate();
     assert!(status.success(), "{}", cluster.err());
     eprintln!(
-        "router update `{how}`: {} requests sent while 2 replicas joined and 2 shards moved, \
-         {} unanswered, answers {:?}; first errors: {:?}",
+        "router update `{how}`: {} requests sent while 2 replicas joined, 2 shards moved and \
+         1 replica left, {} unanswered, answers {:?}; first errors: {:?}",
         tally.sent, tally.unanswered, tally.answered, tally.errors
     );
     tally

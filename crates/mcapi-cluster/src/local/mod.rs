@@ -116,9 +116,9 @@ pub struct LocalArgs {
     /// Seconds a replica may take to drain after SIGTERM before SIGKILL (1 to 300).
     #[arg(long, default_value_t = 30, value_parser = clap::value_parser!(u64).range(1..=300))]
     pub drain_timeout_secs: u64,
-    /// How the router learns of replicas added by `rebalance`: `runtime`
-    /// (the Runtime API, HAProxy keeps running), `reload` (a master-worker
-    /// reload) or `restart`. Only for measuring them against each other
+    /// How the router learns of the replicas `rebalance` adds or removes:
+    /// `runtime` (the Runtime API, HAProxy keeps running), `reload` (a
+    /// master-worker reload) or `restart`. Only for measuring them against each other
     /// (docs/cluster.md gives the numbers).
     #[arg(long, hide = true, value_enum, default_value_t = RouterUpdate::Runtime)]
     pub router_update: RouterUpdate,

@@ -1,7 +1,7 @@
 //! The supervisor of `mcapi cluster local`: starts the replicas and the
 //! router, waits until all are ready, restarts what exits, takes a
-//! rebalance's new replicas on SIGHUP and stops everything in order on
-//! SIGTERM or Ctrl-C.
+//! rebalance's new replicas on SIGHUP (or stops the leaving ones it moved
+//! every shard off) and stops everything in order on SIGTERM or Ctrl-C.
 
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
@@ -18,7 +18,7 @@ use super::state::State;
 use super::{MAP_FILE, MAX_LOCAL_REPLICAS, REQUEST_FILE, RouterUpdate, STATE_FILE};
 use crate::files::write_atomic;
 use crate::haproxy::write_router;
-use crate::haproxy::{RouterSpec, add_backend};
+use crate::haproxy::{RouterSpec, add_backend, drain_backend, remove_backend};
 use crate::probe::http_ok;
 
 /// The processes, stopped (SIGKILL) if dropped while any still runs: an
@@ -203,14 +203,14 @@ impl Cluster {
         }
     }
 
-    /// A rebalance's request (`rebalance.json`, then SIGHUP): starts the
-    /// replicas up to the number asked for (`--joining`: owning nothing
-    /// until shards move to them), writes the router's configuration with
-    /// them and adds them to the running HAProxy through its Runtime API,
-    /// then records `replicas`. HAProxy is not restarted: a restart cut
-    /// the requests in flight and refused connections until it listened
-    /// again.
-    pub(super) async fn grow(&mut self, ready_timeout: Duration) -> Result<()> {
+    /// A rebalance's request (`rebalance.json`, then SIGHUP): grows or
+    /// shrinks to the number of replicas asked for, then records it in
+    /// the state file, which `rebalance` waits on.
+    pub(super) async fn resize(
+        &mut self,
+        ready_timeout: Duration,
+        drain_timeout: Duration,
+    ) -> Result<()> {
         #[derive(Deserialize)]
         struct Request {
             replicas: usize,
@@ -225,16 +225,27 @@ impl Cluster {
         if want > MAX_LOCAL_REPLICAS {
             bail!("{want} replicas asked for; `cluster local` runs at most {MAX_LOCAL_REPLICAS}");
         }
-        if want <= have {
-            tracing::info!(
-                replicas = have,
-                asked = want,
-                "rebalance request: enough replicas run"
-            );
-            self.state.replicas = have;
-            self.write_state();
-            return Ok(());
+        if want == 0 {
+            bail!("0 replicas asked for; a cluster keeps at least one");
         }
+        match want.cmp(&have) {
+            std::cmp::Ordering::Greater => self.grow(have, want, ready_timeout).await,
+            std::cmp::Ordering::Less => self.shrink(have, want, ready_timeout, drain_timeout).await,
+            std::cmp::Ordering::Equal => {
+                tracing::info!(replicas = have, "rebalance request: as many replicas run");
+                self.state.replicas = have;
+                self.write_state();
+                Ok(())
+            }
+        }
+    }
+
+    /// Starts replicas `have..want` (`--joining`: owning nothing until
+    /// shards move to them), writes the router's configuration with them
+    /// and adds them to the running HAProxy through its Runtime API.
+    /// HAProxy is not restarted: a restart cut the requests in flight and
+    /// refused connections until it listened again.
+    async fn grow(&mut self, have: usize, want: usize, ready_timeout: Duration) -> Result<()> {
         let names = ordinal_names("mcapi", want).map_err(anyhow::Error::msg)?;
         let ports = free_ports((want - have) * 2)?;
         let router = self.processes.len() - 1;
@@ -308,6 +319,108 @@ impl Cluster {
         Ok(())
     }
 
+    /// Takes replicas `want..have` away, once `rebalance` has moved every
+    /// shard off them (refused while one still owns a shard): each leaves
+    /// the running router first, its servers set to maintenance so HAProxy
+    /// sends it nothing new while what it sent finishes; then it stops
+    /// (SIGTERM: it drains what it accepted, SIGKILL after
+    /// `drain_timeout`); then its servers are deleted from the router
+    /// (Runtime API, no restart), and the configuration is written without
+    /// it, its name kept as a spare so it may join again.
+    async fn shrink(
+        &mut self,
+        have: usize,
+        want: usize,
+        ready_timeout: Duration,
+        drain_timeout: Duration,
+    ) -> Result<()> {
+        let map = ShardMap::read(&self.dir.join(MAP_FILE))
+            .with_context(|| format!("shard map {}", self.dir.join(MAP_FILE).display()))?;
+        let leaving = ordinal_names("mcapi", have).map_err(anyhow::Error::msg)?[want..].to_vec();
+        for r in &leaving {
+            let owned = map.shards_of(r).len();
+            if owned > 0 {
+                bail!(
+                    "{r} still owns {owned} shards: `mcapi cluster rebalance --replicas {want}` moves them off before it stops a replica"
+                );
+            }
+        }
+        let socket = self.state.admin_socket.clone();
+        let runtime = matches!(self.router_update, RouterUpdate::Runtime);
+        // The router may be restarting after an exit: it then reads the
+        // configuration written below, without the leaving replicas.
+        let absent = |e: &std::io::Error| {
+            matches!(
+                e.kind(),
+                std::io::ErrorKind::NotFound | std::io::ErrorKind::ConnectionRefused
+            )
+        };
+        if runtime {
+            for r in &leaving {
+                match drain_backend(&socket, r) {
+                    Err(e) if !absent(&e) => {
+                        return Err(
+                            anyhow::Error::new(e).context(format!("taking {r} out of the router"))
+                        );
+                    }
+                    _ => {}
+                }
+            }
+        }
+        self.stop(want..have, drain_timeout).await;
+        if runtime {
+            let (socket, names) = (socket.clone(), leaving.clone());
+            let removed = tokio::task::spawn_blocking(move || {
+                for r in &names {
+                    match remove_backend(&socket, r, Duration::from_secs(10)) {
+                        Err(e) if !absent(&e) => {
+                            return Err(anyhow::Error::new(e)
+                                .context(format!("deleting {r} from the router")));
+                        }
+                        _ => {}
+                    }
+                }
+                Ok(())
+            })
+            .await
+            .context("the router update task")?;
+            removed?;
+        }
+        self.processes.drain(want..have);
+        self.spec.backends.retain(|b| !leaving.contains(&b.replica));
+        self.spec.spare.extend(leaving.iter().cloned());
+        write_router(&self.dir.join("router"), &map, &self.spec)?;
+        check_router(&self.haproxy, &self.dir.join("router").join("haproxy.cfg"))?;
+        let router = self.processes.len() - 1;
+        match self.router_update {
+            RouterUpdate::Runtime => tracing::info!(
+                replicas = want,
+                "replicas stopped and deleted from the running router (Runtime API, no restart)"
+            ),
+            RouterUpdate::Reload => {
+                if let Some(pid) = self.processes[router].pid() {
+                    send_signal(pid, libc::SIGUSR2);
+                }
+                tracing::info!(replicas = want, "replicas stopped; the router reloaded");
+            }
+            RouterUpdate::Restart => {
+                self.stop(router..router + 1, Duration::from_secs(10)).await;
+                self.start(router..router + 1, ready_timeout).await?;
+                tracing::info!(
+                    replicas = want,
+                    "replicas stopped; the router started again"
+                );
+            }
+        }
+        self.state.replicas = want;
+        self.write_state();
+        tracing::info!(
+            replicas = want,
+            "rebalance request done: the leaving replicas are stopped and out of the router"
+        );
+        Ok(())
+    }
+
     /// Replicas first (they drain on SIGTERM), then the router.
     pub(super) async fn shutdown(&mut self, drain: Duration) {
         let replicas = self.processes.len().saturating_sub(1);
@@ -374,7 +487,7 @@ pub(super) async fn supervise(setup: Setup, signal: impl Future<Output = ()> + S
             () = cluster.watch(Backoff::DEFAULT) => break,
             () = &mut signal => break,
             _ = hangup.recv() => {
-                if let Err(e) = cluster.grow(ready_timeout).await {
+                if let Err(e) = cluster.resize(ready_timeout, drain_timeout).await {
                     tracing::error!(error = %format!("{e:#}"), "rebalance request refused");
                 }
             }
