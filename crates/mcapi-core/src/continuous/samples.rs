@@ -185,11 +185,6 @@ impl SampleStore {
         self.samples.is_empty()
     }
 
-    /// Features per point.
-    pub fn k(&self) -> usize {
-        self.k
-    }
-
     /// Transition i as the planner reads it.
     pub fn get(&self, i: usize) -> SampleRef<'_> {
         let k = self.k;
