@@ -47,7 +47,7 @@ use crate::write::Write;
 /// A checkpoint reads and rewrites the newest log chunk of every session it
 /// touches, however few records each gained: under a steady load that
 /// cost is paid per session per checkpoint, not per record. Ten thousand
-/// sessions stepped together as a group gained about 7 records each per
+/// sessions stepped together as a group gained about 4 records each per
 /// 500 ms checkpoint, and applying them took 22% of the server's CPU
 /// samples; checkpointing every 2 s spreads each chunk's rewrite over four
 /// times as many records (BENCHMARKS.md, "Vectorised stepping"). Readers
