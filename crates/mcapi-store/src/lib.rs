@@ -16,7 +16,7 @@
 //!   [`OS_SYNC_INTERVAL`]);
 //! - the **redb file** (`mcapi.redb`, layout in `db.rs`): sessions,
 //!   snapshots and the log in chunks, brought up to date in bulk by the
-//!   checkpointer thread (`checkpoint.rs`) about twice a second, after
+//!   checkpointer thread (`checkpoint.rs`) about every 2 s, after
 //!   which the segments it applied are deleted. Opening the store applies
 //!   whatever the log holds beyond the file's last checkpoint, so reads see
 //!   every acknowledged write; a reader at run time first asks for a

@@ -93,6 +93,49 @@ pub struct LogEntry {
     pub digest: u64,
 }
 
+/// A [`LogEntry`] borrowed from the observation it logs: encoded exactly as
+/// the owned entry is (the same fields in the same order, and postcard
+/// writes a borrowed slice as it writes a vector), without copying the
+/// observation's vectors first. What the request path encodes.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct LogEntryRef<'a> {
+    /// [`LogEntry::state`].
+    pub state: u32,
+    /// [`LogEntry::observation`].
+    pub observation: Option<&'a [f64]>,
+    /// [`LogEntry::planned_before`].
+    pub planned_before: bool,
+    /// [`LogEntry::stimulus`].
+    pub stimulus: Option<&'a [f64]>,
+    /// [`LogEntry::taken`].
+    pub taken: Option<u32>,
+    /// [`LogEntry::advised`].
+    pub advised: u32,
+    /// [`LogEntry::lstdq_error`].
+    pub lstdq_error: f64,
+    /// [`LogEntry::policy_version`].
+    pub policy_version: u64,
+    /// [`LogEntry::signal`].
+    pub signal: Option<(u32, &'a [f64])>,
+    /// [`LogEntry::digest`].
+    pub digest: u64,
+}
+
+impl LogEntryRef<'_> {
+    /// Encodes the entry as [`encode`] encodes a [`LogEntry`], into a
+    /// buffer sized for it up front (one allocation, no regrowth: the
+    /// version byte and the fixed fields take at most 55 bytes, a vector's
+    /// length one or two more, each f64 8).
+    pub fn encode(&self) -> Result<Vec<u8>, ServiceError> {
+        let len = |x: Option<&[f64]>| x.map_or(0, <[f64]>::len);
+        let floats = len(self.observation) + len(self.stimulus) + len(self.signal.map(|(_, x)| x));
+        let mut out = Vec::with_capacity(64 + 8 * floats);
+        out.push(RECORD_V5);
+        postcard::to_extend(self, out)
+            .map_err(|e| ServiceError::Internal(format!("encoding a record: {e}")))
+    }
+}
+
 /// A log entry as [`RECORD_V4`] wrote it (no digest).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 struct LogEntryV4 {
@@ -407,6 +450,55 @@ mod tests {
         };
         assert_eq!(bits(&back), bits(&continuous));
         assert_eq!(back, continuous);
+    }
+
+    /// The borrowed entry the request path encodes is byte for byte the
+    /// owned one, whatever its optional fields hold.
+    #[test]
+    fn borrowed_entries_encode_as_owned_ones() {
+        let signals = [None, Some((1, vec![0.5, -2.0]))];
+        let observations = [None, Some(vec![0.1 + 0.2, -0.0, 1e308])];
+        for (signal, observation) in signals.iter().zip(&observations) {
+            for stimulus in [None, Some(vec![6.0, f64::MIN_POSITIVE])] {
+                let e = LogEntry {
+                    observation: observation.clone(),
+                    stimulus,
+                    signal: signal.clone(),
+                    ..entry(None)
+                };
+                let borrowed = LogEntryRef {
+                    state: e.state,
+                    observation: e.observation.as_deref(),
+                    planned_before: e.planned_before,
+                    stimulus: e.stimulus.as_deref(),
+                    taken: e.taken,
+                    advised: e.advised,
+                    lstdq_error: e.lstdq_error,
+                    policy_version: e.policy_version,
+                    signal: e.signal.as_ref().map(|(s, x)| (*s, x.as_slice())),
+                    digest: e.digest,
+                };
+                let bytes = borrowed.encode().expect("encode");
+                assert_eq!(bytes, encode(&e).expect("encode"));
+                assert!(bytes.len() <= bytes.capacity() && bytes.capacity() <= 64 + 8 * 9);
+                assert_eq!(decode_entry(&bytes, "entry").expect("decode"), e);
+            }
+        }
+        // The largest fixed fields still fit the buffer's 64 bytes.
+        let widest = LogEntryRef {
+            state: u32::MAX,
+            observation: None,
+            planned_before: true,
+            stimulus: None,
+            taken: Some(u32::MAX),
+            advised: u32::MAX,
+            lstdq_error: f64::MAX,
+            policy_version: u64::MAX,
+            signal: Some((u32::MAX, &[])),
+            digest: u64::MAX,
+        };
+        let bytes = widest.encode().expect("encode");
+        assert!(bytes.len() <= 64, "{}", bytes.len());
     }
 
     #[test]

@@ -15,7 +15,7 @@ use mcapi_store::{Commit, Store, Write};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::cost;
-use super::durable::{LearnerSnapshot, LogEntry, SnapshotRecord, TickRecord, encode};
+use super::durable::{LearnerSnapshot, LogEntryRef, SnapshotRecord, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
 use super::groups::GroupTag;
 use super::history::{self, RingTick, push_tick};
@@ -743,12 +743,18 @@ impl SessionState {
         }))
     }
 
-    /// Queues log entries (and a snapshot when one is due) for commit.
-    fn log(&mut self, id: &str, d: &Durability, entries: Vec<LogEntry>) -> Commit {
+    /// Queues log entries, encoded (and a snapshot when one is due), for
+    /// commit.
+    fn log(
+        &mut self,
+        id: &str,
+        d: &Durability,
+        entries: Vec<Result<Vec<u8>, ServiceError>>,
+    ) -> Commit {
         let id: Arc<str> = Arc::from(id);
         let mut writes = Vec::with_capacity(entries.len() + 1);
-        for entry in &entries {
-            match encode(entry) {
+        for entry in entries {
+            match entry {
                 Ok(bytes) => writes.push(Write::Append {
                     id: Arc::clone(&id),
                     seq: self.seq,
@@ -776,7 +782,7 @@ impl SessionState {
         plan: bool,
         history_cap: usize,
         out: &mut Vec<StepOut>,
-        mut log: Option<&mut Vec<LogEntry>>,
+        mut log: Option<&mut Vec<Result<Vec<u8>, ServiceError>>>,
     ) -> Result<(), ServiceError> {
         for (i, obs) in batch.iter().enumerate().skip(start) {
             // The action whose pair this observation updates, resolved now.
@@ -790,25 +796,28 @@ impl SessionState {
                     plan_failed,
                 }) => {
                     if let Some(log) = log.as_deref_mut() {
-                        log.push(LogEntry {
-                            state: obs.state.unwrap_or(0) as u32,
-                            observation: obs.observation.clone(),
-                            planned_before,
-                            stimulus: obs.stimulus.clone(),
-                            taken: obs
-                                .stimulus
-                                .as_ref()
-                                .and(taken.or(advised_before))
-                                .map(|a| a as u32),
-                            advised: step.action_index as u32,
-                            lstdq_error: self.learner.lstdq_error(),
-                            policy_version: step.policy_version,
-                            signal: obs
-                                .signal
-                                .as_ref()
-                                .map(|x| (obs.signal_source.unwrap_or(0) as u32, x.clone())),
-                            digest,
-                        });
+                        log.push(
+                            LogEntryRef {
+                                state: obs.state.unwrap_or(0) as u32,
+                                observation: obs.observation.as_deref(),
+                                planned_before,
+                                stimulus: obs.stimulus.as_deref(),
+                                taken: obs
+                                    .stimulus
+                                    .as_ref()
+                                    .and(taken.or(advised_before))
+                                    .map(|a| a as u32),
+                                advised: step.action_index as u32,
+                                lstdq_error: self.learner.lstdq_error(),
+                                policy_version: step.policy_version,
+                                signal: obs
+                                    .signal
+                                    .as_deref()
+                                    .map(|x| (obs.signal_source.unwrap_or(0) as u32, x)),
+                                digest,
+                            }
+                            .encode(),
+                        );
                     }
                     if let Some(e) = plan_failed {
                         // The observation is applied (Ξ, D, the tick) and
