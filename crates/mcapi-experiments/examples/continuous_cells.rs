@@ -10,6 +10,12 @@
 //!     --cells 26x11 --known-after 5 --gamma 0.88 --trials 4 --steps 20000 --seed 1
 //! ```
 //!
+//! With `--nodes R`, the states are not a grid's cells but points the
+//! agent observed: an observation farther than R from every node so far
+//! becomes a node (at most W × H of them), and every observation is the
+//! state of its nearest node. The states then follow where the robot can
+//! be, not a grid laid over the walls.
+//!
 //! Prints one line a trial and the mean cumulative stimulus against the
 //! discrete agent's on the map itself (computed on the same trials).
 
@@ -27,6 +33,7 @@ use rayon::prelude::*;
 
 struct Options {
     cells: (usize, usize),
+    nodes: Option<f64>,
     known_after: u32,
     gamma: f64,
     optimism: Optimism,
@@ -37,9 +44,11 @@ struct Options {
 
 fn parse() -> anyhow::Result<Options> {
     let usage = "usage: continuous_cells [--cells WxH] [--known-after M] [--gamma G] \
-                 [--optimism absorbing|stimulus] [--trials N] [--steps N] [--seed N]";
+                 [--nodes R] [--optimism absorbing|stimulus] [--trials N] [--steps N] \
+                 [--seed N]";
     let mut o = Options {
         cells: (26, 11),
+        nodes: None,
         known_after: 5,
         gamma: 0.88,
         optimism: Optimism::Absorbing,
@@ -58,6 +67,7 @@ fn parse() -> anyhow::Result<Options> {
                 let (w, h) = value.split_once('x').context("--cells is WxH")?;
                 o.cells = (w.parse().context("--cells")?, h.parse().context("--cells")?);
             }
+            "--nodes" => o.nodes = Some(value.parse().context("--nodes")?),
             "--known-after" => o.known_after = value.parse().context("--known-after")?,
             "--gamma" => o.gamma = value.parse().context("--gamma")?,
             "--optimism" => o.optimism = serde_json::from_value(value.as_str().into())?,
@@ -71,6 +81,10 @@ fn parse() -> anyhow::Result<Options> {
     anyhow::ensure!(
         (1..=512).contains(&w) && (1..=512).contains(&h),
         "--cells: 1..=512 each"
+    );
+    anyhow::ensure!(
+        o.nodes.is_none_or(|r| r > 0.0 && r.is_finite()),
+        "--nodes: a radius above 0"
     );
     anyhow::ensure!(
         o.trials > 0 && o.steps > 0,
@@ -95,11 +109,6 @@ fn main() -> anyhow::Result<()> {
         optimism: Some(o.optimism),
     }
     .check()?;
-    let cell = |x: &[f64]| {
-        let i = ((x[0] * w as f64) as usize).min(w - 1);
-        let j = ((x[1] * h as f64) as usize).min(h - 1);
-        j * w + i
-    };
     let trials = (0..o.trials)
         .into_par_iter()
         .map(|t| -> anyhow::Result<_> {
@@ -113,6 +122,8 @@ fn main() -> anyhow::Result<()> {
             }
             .check(n, agent_seed)?;
             let mut agent = Agent::new_learned(ctx.clone(), params, learned)?;
+            let mut states = States::new(o.cells, o.nodes);
+            let mut cell = |x: &[f64]| states.of(x);
             let mut x = world.start(&mut rng);
             let mut action = agent.step(&Observation::first(cell(&x)))?.action;
             let mut rec = ContinuousTrial {
@@ -153,4 +164,44 @@ fn main() -> anyhow::Result<()> {
         mean / reference
     );
     Ok(())
+}
+
+/// How an observation becomes a state: the cell of a `w × h` grid, or the
+/// nearest of the nodes grown from the observations.
+struct States {
+    cells: (usize, usize),
+    /// The nodes' radius, if the states are nodes.
+    radius: Option<f64>,
+    nodes: Vec<[f64; 2]>,
+}
+
+impl States {
+    fn new(cells: (usize, usize), radius: Option<f64>) -> Self {
+        Self {
+            cells,
+            radius,
+            nodes: Vec::new(),
+        }
+    }
+
+    fn of(&mut self, x: &[f64]) -> usize {
+        let (w, h) = self.cells;
+        let Some(radius) = self.radius else {
+            let i = ((x[0] * w as f64) as usize).min(w - 1);
+            let j = ((x[1] * h as f64) as usize).min(h - 1);
+            return j * w + i;
+        };
+        let (mut best, mut nearest) = (f64::INFINITY, 0);
+        for (i, n) in self.nodes.iter().enumerate() {
+            let d = (n[0] - x[0]).hypot(n[1] - x[1]);
+            if d < best {
+                (best, nearest) = (d, i);
+            }
+        }
+        if best > radius && self.nodes.len() < w * h {
+            self.nodes.push([x[0], x[1]]);
+            nearest = self.nodes.len() - 1;
+        }
+        nearest
+    }
 }
