@@ -91,7 +91,7 @@ pub struct RngState {
 }
 
 impl RngState {
-    fn of(rng: &ChaCha8Rng) -> Self {
+    pub(crate) fn of(rng: &ChaCha8Rng) -> Self {
         Self {
             seed: rng.get_seed(),
             stream: rng.get_stream(),
@@ -99,7 +99,7 @@ impl RngState {
         }
     }
 
-    fn resume(&self) -> ChaCha8Rng {
+    pub(crate) fn resume(&self) -> ChaCha8Rng {
         let mut rng = ChaCha8Rng::from_seed(self.seed);
         rng.set_stream(self.stream);
         rng.set_word_pos(self.word_pos);

@@ -5,10 +5,14 @@
 //! observations gives; an async session's values at every grid point are
 //! the same bits before the kill and after the recovery (its plans, made
 //! by the tick loop whenever it ran, are replayed where they were made).
+//! Snapshots are taken every 120 observations, so a recovery restores one
+//! and replays the log after it, through basis rebuilds on both sides.
 
 use crate::common;
 
-use common::{Launch, Server, assert_bits_eq, grpc_request, http_client, rest, rest_get};
+use common::{
+    Launch, Server, assert_bits_eq, grpc_request, http_client, log_events, rest, rest_get,
+};
 use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation, ContinuousSpec};
 use mcapi_server::api::grpc::pb;
 use rand::{RngExt, SeedableRng};
@@ -191,7 +195,7 @@ async fn values(client: &reqwest::Client, base: &str, id: &str) -> Value {
 async fn continuous_sessions_survive_kill_9_bit_for_bit() {
     let data = tempfile::tempdir().expect("data dir");
     let logs = logs();
-    let launch = Launch::new(data.path(), &[]);
+    let launch = Launch::new(data.path(), &["--snapshot-every", "120"]);
     let mut server = Server::start(&launch, log_path(&logs, "continuous-first")).await;
     let client = http_client();
     let base = server.base();
@@ -322,6 +326,16 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
 
     server.kill9();
     let server = Server::start(&launch, log_path(&logs, "continuous-second")).await;
+    // Each session's 301 logged observations: a snapshot (after 240 of
+    // them) restored, and only the ones after it replayed.
+    let recovered = log_events(&server.log_text(), "sessions recovered");
+    assert_eq!(recovered.len(), 1, "{recovered:?}");
+    assert_eq!(recovered[0]["sessions"], json!(4), "{recovered:?}");
+    let replayed = recovered[0]["replayed"].as_u64().expect("replayed");
+    assert!(
+        replayed > 0 && replayed <= 4 * 120,
+        "a snapshot, then the log after it: {replayed} entries replayed"
+    );
     let base = server.base();
     let mut grpc = server.grpc_client().await;
     let after = values(&client, &base, &async_.id).await;

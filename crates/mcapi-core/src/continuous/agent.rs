@@ -16,6 +16,9 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
 mod rebuild;
+mod snapshot;
+
+pub use snapshot::ContinuousSnapshot;
 
 use super::basis::{FeatureMap, PvfGraph};
 use super::dot::dot;
@@ -190,6 +193,11 @@ impl ContinuousAgent {
     /// The model.
     pub fn model(&self) -> &ContinuousModel {
         &self.model
+    }
+
+    /// The parameters.
+    pub fn params(&self) -> &ValidParams {
+        &self.params
     }
 
     /// The drive.

@@ -18,7 +18,8 @@ pub mod space;
 pub mod stimulus;
 
 pub use agent::{
-    ContinuousAgent, ContinuousObservation, ContinuousObserved, ContinuousStats, ContinuousStep,
+    ContinuousAgent, ContinuousObservation, ContinuousObserved, ContinuousSnapshot,
+    ContinuousStats, ContinuousStep,
 };
 pub use basis::{ContinuousBasisSpec, FeatureMap};
 pub use model::{ContinuousModel, ContinuousSpec, SampleParams, ValidSampleParams};

@@ -30,6 +30,7 @@
 //! the data, so a replay is bit-identical.
 
 use nalgebra::DMatrix;
+use serde::{Deserialize, Serialize};
 
 use super::dot::dot;
 use super::samples::{SampleRef, SampleStore};
@@ -44,7 +45,7 @@ const MIN_PIVOT: f64 = 1e-8;
 type Term<'a> = (usize, f64, &'a [f64]);
 
 /// The inverse of A, the weights and the successor policy.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SamplePlanner {
     k: usize,
     actions: usize,
@@ -95,6 +96,20 @@ impl SamplePlanner {
             x: vec![0.0; n],
             y: vec![0.0; n],
         }
+    }
+
+    /// Whether a planner read from a snapshot has the shape of one for `k`
+    /// features, `actions` actions and `samples` stored transitions.
+    pub fn fits(&self, k: usize, actions: usize, samples: usize) -> bool {
+        let n = k * actions;
+        self.k == k
+            && self.actions == actions
+            && self.ainv.len() == n * n
+            && [&self.w, &self.b, &self.x, &self.y]
+                .iter()
+                .all(|v| v.len() == n)
+            && self.succ.len() == samples
+            && self.succ.iter().all(|&(pi, _)| pi < actions)
     }
 
     /// The weights w (block a: action a's weights on v(s)).

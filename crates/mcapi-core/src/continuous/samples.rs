@@ -16,9 +16,11 @@
 
 use std::collections::HashMap;
 
+use serde::{Deserialize, Serialize};
+
 /// One stored transition; its features live in the store's feature
 /// matrices, row for row ([`SampleStore::get`]).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Sample {
     /// Normalised s.
     pub s: Vec<f64>,
@@ -78,7 +80,7 @@ impl Replaced {
     }
 }
 
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
 struct Slot {
     visits: u64,
     /// Indices into the store, oldest first.
@@ -100,7 +102,7 @@ pub struct Inserted {
 /// The features of the stored transitions are kept in two row-major
 /// N × k matrices, v(s) and v(s′), so the planner's passes over the store
 /// read memory in order (docs/algorithm.md §9.5).
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct SampleStore {
     d: usize,
     /// Features per point.
@@ -110,9 +112,12 @@ pub struct SampleStore {
     max_samples: usize,
     known_after: u64,
     samples: Vec<Sample>,
-    /// v(s_i), row i.
+    /// v(s_i), row i. Not in a snapshot: recomputed from s_i
+    /// ([`SampleStore::restore_features`]).
+    #[serde(skip)]
     v: Vec<f64>,
     /// v(s′_i), row i.
+    #[serde(skip)]
     v_next: Vec<f64>,
     slots: HashMap<(u64, usize), Slot>,
 }
@@ -208,6 +213,37 @@ impl SampleStore {
                 v,
                 v_next,
             })
+    }
+
+    /// Whether a store read from a snapshot fits an agent of dimension
+    /// `d`, `k` features, `actions` actions and `n` stimuli: every length
+    /// and index the store relies on.
+    pub fn fits(&self, d: usize, k: usize, actions: usize, n: usize) -> bool {
+        let len = self.samples.len();
+        self.d == d
+            && self.k == k
+            && len <= self.max_samples
+            && self.samples.iter().all(|s| {
+                s.s.len() == d
+                    && s.s_next.len() == d
+                    && s.xi.len() == n
+                    && s.a < actions
+                    && s.weight.is_finite()
+            })
+            && self
+                .slots
+                .values()
+                .all(|slot| slot.samples.iter().all(|&i| i < len))
+    }
+
+    /// The features of every stored transition, recomputed from its points
+    /// (a store read from a snapshot keeps the points only). The features
+    /// are a function of the points, so they are the bits the store held.
+    pub fn restore_features(&mut self, features: impl FnMut(&[f64], &mut [f64])) {
+        let n = self.samples.len() * self.k;
+        self.v = vec![0.0; n];
+        self.v_next = vec![0.0; n];
+        self.refeature(features);
     }
 
     /// Recomputes v and v′ of every stored transition with `features`

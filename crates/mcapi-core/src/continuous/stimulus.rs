@@ -16,12 +16,13 @@
 use nalgebra::DMatrix;
 use rand::Rng;
 use rand_distr::{Distribution, Normal};
+use serde::{Deserialize, Serialize};
 
 use super::basis::FeatureMap;
 use super::samples::SampleStore;
 
 /// Ξ as per-action linear models.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct LinearStimulus {
     k: usize,
     n: usize,
@@ -183,6 +184,17 @@ impl LinearStimulus {
     /// Stimulus dimensions n.
     pub fn dims(&self) -> usize {
         self.n
+    }
+
+    /// Whether Ξ read from a snapshot has the shape of an agent with
+    /// `actions` actions, `k` features and `n` stimuli.
+    pub fn fits(&self, actions: usize, k: usize, n: usize) -> bool {
+        self.k == k
+            && self.n == n
+            && self.w.len() == actions * k * n
+            && self.p.len() == actions * k * k
+            && self.pv.len() == k
+            && self.err.len() == n
     }
 
     /// One RLS step for action `a` at features `v` with target ξ.

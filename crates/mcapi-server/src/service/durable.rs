@@ -34,6 +34,7 @@
 
 use serde::{Deserialize, Serialize};
 
+use mcapi_core::continuous::ContinuousSnapshot;
 use mcapi_core::{AgentSnapshot, CuriousSnapshot, LearnedSnapshot};
 pub use mcapi_store::RECORD_V2;
 
@@ -227,6 +228,19 @@ pub enum LearnerSnapshot {
     /// postcard numbers variants by position, so stored snapshots of the
     /// variants above still decode.
     Learned(Box<LearnedRecord>),
+    /// A continuous world's agent (docs/algorithm.md §9.7). After the
+    /// variants above, for the same reason.
+    Continuous(Box<ContinuousRecord>),
+}
+
+/// A continuous world's agent as a snapshot keeps it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ContinuousRecord {
+    /// The agent.
+    pub agent: ContinuousSnapshot,
+    /// The observation of each tick of the history ring, oldest first
+    /// ([`TickRecord`] has no field for it).
+    pub history_observations: Vec<Option<Vec<f64>>>,
 }
 
 /// A learned agent as a snapshot keeps it.
@@ -598,7 +612,9 @@ mod tests {
         let snap = decode_snapshot(&bytes, "snapshot").expect("decode");
         match snap.learner {
             LearnerSnapshot::Plain(a) => assert_eq!(a, agent.snapshot()),
-            LearnerSnapshot::Curious(_) | LearnerSnapshot::Learned(_) => {
+            LearnerSnapshot::Curious(_)
+            | LearnerSnapshot::Learned(_)
+            | LearnerSnapshot::Continuous(_) => {
                 panic!("a format-2 snapshot is a plain agent's")
             }
         }
@@ -700,7 +716,56 @@ mod tests {
         let back: LearnerSnapshot = postcard::from_bytes(&bytes[1..]).expect("decode");
         match back {
             LearnerSnapshot::Learned(s) => assert_eq!(*s, snap),
-            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => {
+            LearnerSnapshot::Plain(_)
+            | LearnerSnapshot::Curious(_)
+            | LearnerSnapshot::Continuous(_) => {
+                panic!("decoded as another variant")
+            }
+        }
+    }
+
+    /// A continuous world's snapshot is the fourth variant, after those
+    /// that stores already hold, and keeps the ring's observations.
+    #[test]
+    fn continuous_snapshots_decode_as_written() {
+        let spec: mcapi_core::continuous::ContinuousSpec =
+            serde_json::from_value(serde_json::json!({
+                "observation_space": {"low": [0, 0], "high": [1, 1]},
+                "actions": ["north", "south"],
+                "stimuli": ["food"],
+                "basis": {"kind": "fourier", "order": 2},
+            }))
+            .expect("spec");
+        let params = mcapi_core::AgentParams::default()
+            .check(1, 7)
+            .expect("params");
+        let mut agent =
+            mcapi_core::continuous::ContinuousAgent::new(spec.build().expect("model"), params);
+        for (i, x) in [0.1, 0.2, 0.3, 0.2].into_iter().enumerate() {
+            agent
+                .step(&mcapi_core::continuous::ContinuousObservation {
+                    observation: &[x, 0.5],
+                    stimulus: (i > 0).then_some(&[1.0][..]),
+                    action_taken: None,
+                })
+                .expect("step");
+        }
+        let record = ContinuousRecord {
+            agent: agent.snapshot(),
+            history_observations: vec![Some(vec![0.2, 0.5]), None],
+        };
+        let bytes = encode(&LearnerSnapshot::Continuous(Box::new(record.clone()))).expect("encode");
+        assert_eq!(bytes[1], 3, "Continuous is the fourth variant");
+        match postcard::from_bytes::<LearnerSnapshot>(&bytes[1..]).expect("decode") {
+            LearnerSnapshot::Continuous(back) => {
+                assert_eq!(back.history_observations, record.history_observations);
+                // Through the store, the agent's scratch buffers come back empty.
+                let again = encode(&LearnerSnapshot::Continuous(back)).expect("encode");
+                assert_eq!(again.len(), bytes.len());
+            }
+            LearnerSnapshot::Plain(_)
+            | LearnerSnapshot::Curious(_)
+            | LearnerSnapshot::Learned(_) => {
                 panic!("decoded as another variant")
             }
         }

@@ -246,6 +246,14 @@ impl RingTick {
         self
     }
 
+    /// A continuous world's observation that made this tick.
+    pub fn observation(&self) -> Option<&[f64]> {
+        match self.extra.as_deref() {
+            Some(Extra::Observation(x)) => Some(x),
+            Some(Extra::Curiosity(_)) | None => None,
+        }
+    }
+
     /// The known fraction of a learned model after this tick.
     pub fn known_fraction(&self) -> Option<f64> {
         (self.drive_len & KNOWN_FLAG != 0)
@@ -338,8 +346,7 @@ impl From<&RingTick> for TickRecord {
             curiosity,
             // Kept aside by a learned snapshot (`LearnedRecord`).
             known_fraction: _,
-            // A continuous world's session takes no snapshot: its log is
-            // replayed whole.
+            // Kept aside by a continuous snapshot (`ContinuousRecord`).
             observation: _,
         } = t.entry();
         Self {

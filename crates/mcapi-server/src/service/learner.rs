@@ -6,7 +6,7 @@ use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation};
 use mcapi_core::drive::Drive;
 use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation};
 
-use super::durable::{LearnedRecord, LearnerSnapshot};
+use super::durable::{ContinuousRecord, LearnedRecord, LearnerSnapshot};
 use super::error::ServiceError;
 use super::wire::TickCuriosity;
 
@@ -224,10 +224,13 @@ impl Learner {
 
     /// True when a snapshot of this learner restores to one that continues
     /// bit for bit as it would ([`Agent::restores_exactly`]; a curiosity
-    /// channel's snapshot holds all of its state). A continuous world's
-    /// agent takes no snapshot: it is rebuilt by replaying its whole log.
+    /// channel's snapshot holds all of its state; a continuous world's
+    /// snapshot holds its whole agent, docs/algorithm.md §9.7).
     pub fn restores_exactly(&self) -> bool {
-        self.agent().is_some_and(Agent::restores_exactly)
+        match self {
+            Self::Continuous(_) => true,
+            Self::Plain(_) | Self::Curious(_) => self.agent().is_some_and(Agent::restores_exactly),
+        }
     }
 
     /// True when R changed since the last policy update.
@@ -300,10 +303,10 @@ impl Learner {
     }
 
     /// The resumable state (with the learned counts for an agent that
-    /// learns its transitions, docs/algorithm.md §8); `None` for a
-    /// continuous world's agent, which is rebuilt from its log.
-    pub fn snapshot(&self) -> Option<LearnerSnapshot> {
-        Some(match self {
+    /// learns its transitions, docs/algorithm.md §8; a continuous world's
+    /// agent whole, docs/algorithm.md §9.7).
+    pub fn snapshot(&self) -> LearnerSnapshot {
+        match self {
             Self::Plain(a) => match a.learned_snapshot() {
                 // The history's known fractions are the session's to add.
                 Some(agent) => LearnerSnapshot::Learned(Box::new(LearnedRecord {
@@ -313,7 +316,11 @@ impl Learner {
                 None => LearnerSnapshot::Plain(a.snapshot()),
             },
             Self::Curious(c) => LearnerSnapshot::Curious(Box::new(c.snapshot())),
-            Self::Continuous(_) => return None,
-        })
+            // The session adds its ring's observations.
+            Self::Continuous(c) => LearnerSnapshot::Continuous(Box::new(ContinuousRecord {
+                agent: c.snapshot(),
+                history_observations: Vec::new(),
+            })),
+        }
     }
 }

@@ -15,7 +15,7 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-use mcapi_core::continuous::ContinuousObservation;
+use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation};
 use mcapi_core::{Agent, CuriousAgent};
 use mcapi_shards::Placement;
 use mcapi_store::{StoreError, StoredSession};
@@ -171,16 +171,23 @@ pub(super) fn rebuild(
     let mut after = None;
     if let Some((seq, bytes)) = &stored.snapshot {
         let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(|e| bad(e.into()))?;
-        let known = match &snap.learner {
-            LearnerSnapshot::Learned(l) => l.history_known.clone(),
-            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => Vec::new(),
+        let (known, observations) = match &snap.learner {
+            LearnerSnapshot::Learned(l) => (l.history_known.clone(), Vec::new()),
+            LearnerSnapshot::Continuous(c) => (Vec::new(), c.history_observations.clone()),
+            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => (Vec::new(), Vec::new()),
         };
         learner = restore(&learner, snap.learner).map_err(&bad)?;
         history = snap
             .history
             .iter()
             .enumerate()
-            .map(|(i, t)| RingTick::from(t).with_known_fraction(known.get(i).copied().flatten()))
+            .map(|(i, t)| {
+                let tick = RingTick::from(t).with_known_fraction(known.get(i).copied().flatten());
+                match observations.get(i).and_then(Option::as_deref) {
+                    Some(x) => tick.with_observation(x),
+                    None => tick,
+                }
+            })
             .collect();
         after = Some(*seq);
     }
@@ -355,9 +362,20 @@ fn push_ring(history: &mut VecDeque<RingTick>, cap: usize, tick: RingTick, entry
 /// A recovered learner: `base` (built from the session record) resumed from
 /// a snapshot of the same kind.
 fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError> {
+    // docs/algorithm.md §9.7: the agent whole, on the record's model.
+    if let Some(c) = base.continuous() {
+        let LearnerSnapshot::Continuous(s) = snap else {
+            return Err(RecordError::Mismatch(
+                "its snapshot is of a numbered world's agent, its record a continuous world",
+            ));
+        };
+        return ContinuousAgent::restore(c.model().clone(), c.params().clone(), s.agent)
+            .map(|a| Learner::Continuous(Box::new(a)))
+            .map_err(RecordError::Restore);
+    }
     let Some(agent) = base.agent() else {
         return Err(RecordError::Mismatch(
-            "it has a snapshot, its record a continuous world (which takes none)",
+            "its record is of neither a numbered nor a continuous world",
         ));
     };
     let ctx = Arc::clone(agent.planning_model());
@@ -393,6 +411,9 @@ fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError
         )),
         (LearnerSnapshot::Curious(_), None) => Err(RecordError::Mismatch(
             "its snapshot has a curiosity channel, its record none",
+        )),
+        (LearnerSnapshot::Continuous(_), _) => Err(RecordError::Mismatch(
+            "its snapshot is of a continuous world's agent, its record a numbered world",
         )),
     }
 }

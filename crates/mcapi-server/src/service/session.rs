@@ -487,7 +487,7 @@ impl Session {
             return None;
         }
         match st.snapshot_write(&self.id) {
-            Ok(w) => Some(d.store.submit(vec![w?])),
+            Ok(w) => Some(d.store.submit(vec![w])),
             Err(e) => {
                 tracing::error!(session = %self.id, error = %e, "snapshot not written");
                 None
@@ -557,7 +557,6 @@ impl Session {
         }
         match st.snapshot_write(&self.id) {
             Ok(w) => {
-                let w = w?;
                 self.pristine.store(true, Ordering::Release);
                 Some(Some(d.store.submit(vec![w])))
             }
@@ -722,25 +721,32 @@ impl SessionState {
         Ok(out)
     }
 
-    /// A snapshot of the session; `None` for a continuous world's, which
-    /// takes none (its log is replayed whole).
-    fn snapshot_write(&mut self, id: &str) -> Result<Option<Write>, ServiceError> {
-        let Some(mut learner) = self.learner.snapshot() else {
-            return Ok(None);
-        };
-        if let LearnerSnapshot::Learned(l) = &mut learner {
-            l.history_known = self.history.iter().map(RingTick::known_fraction).collect();
+    /// A snapshot of the session.
+    fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
+        let mut learner = self.learner.snapshot();
+        match &mut learner {
+            LearnerSnapshot::Learned(l) => {
+                l.history_known = self.history.iter().map(RingTick::known_fraction).collect();
+            }
+            LearnerSnapshot::Continuous(c) => {
+                c.history_observations = self
+                    .history
+                    .iter()
+                    .map(|t| t.observation().map(<[f64]>::to_vec))
+                    .collect();
+            }
+            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => {}
         }
         let record = SnapshotRecord {
             learner,
             history: self.history.iter().map(TickRecord::from).collect(),
         };
         self.since_snapshot = 0;
-        Ok(Some(Write::Snapshot {
+        Ok(Write::Snapshot {
             id: Arc::from(id),
             seq: self.seq.saturating_sub(1),
             snapshot: encode(&record)?,
-        }))
+        })
     }
 
     /// Queues log entries, encoded (and a snapshot when one is due), for
@@ -767,7 +773,7 @@ impl SessionState {
         }
         if self.since_snapshot >= d.snapshot_every {
             match self.snapshot_write(&id) {
-                Ok(w) => writes.extend(w),
+                Ok(w) => writes.push(w),
                 Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
             }
         }

@@ -4,8 +4,9 @@
 //!   as often as it can, answer exactly as the same sessions on a server
 //!   that never evicts: every reply, then Q, π, V, R, Ξ and the history;
 //! - only sessions whose planner restores exactly leave memory once they
-//!   have observed (the functional-graph engine); PVF and learned-model
-//!   sessions leave only while they are as built;
+//!   have observed (the functional-graph engine, and continuous worlds,
+//!   whose snapshot holds the whole agent); PVF and learned-model sessions
+//!   leave only while they are as built;
 //! - after a restart every recovered session starts evicted: listing them
 //!   loads none, each loads on its first request with its state as it was,
 //!   an evicted session can be deleted;
@@ -424,4 +425,84 @@ fn concurrent_creations_at_a_full_quota_all_get_room() {
     assert_eq!(usage.sessions, 36);
     assert!(usage.bytes <= 20 * price, "{usage:?}");
     assert!(manager.evicted_len() >= 16);
+}
+
+/// A continuous world's session leaves memory between requests once it
+/// has observed, as the functional-graph ones do: its snapshot holds the
+/// whole agent (docs/algorithm.md §9.7), and the session loaded back from
+/// it answers as the one that never left.
+#[test]
+fn continuous_sessions_evicted_between_requests_answer_exactly_as_resident_ones() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let evicting = durable(Arc::clone(&store));
+    let resident = in_memory();
+    let model = json!({
+        "observation_space": {"low": [0, 0], "high": [1, 1]},
+        "actions": ["north", "south", "east", "west"],
+        "stimuli": ["food", "rest"],
+        "basis": {"kind": "fourier", "order": 3},
+        "samples": {"max": 256},
+    });
+    let agent = json!({"seed": 5});
+    let (a, b) = (
+        create(&evicting, &model, &agent),
+        create(&resident, &model, &agent),
+    );
+    let mut x = [0.5f64, 0.5];
+    let mut evictions = 0;
+    for tick in 0..150 {
+        let obs = || {
+            let food = x[0] < 0.2 && x[1] < 0.2;
+            let rest = x[0] > 0.8 && x[1] > 0.8;
+            vec![ObservationIn {
+                state: None,
+                observation: Some(x.to_vec()),
+                stimulus: (tick > 0)
+                    .then(|| vec![f64::from(u8::from(food)), f64::from(u8::from(rest))]),
+                action_taken: None,
+                signal: None,
+                signal_source: None,
+                seq: None,
+            }]
+        };
+        let got = rt
+            .block_on(evicting.observe(Caller::Anyone, &a, obs()))
+            .expect("observe (evicting)");
+        let want = rt
+            .block_on(resident.observe(Caller::Anyone, &b, obs()))
+            .expect("observe (resident)");
+        assert_same_step(&got[0], &want[0], &format!("tick {tick}"));
+        let (dx, dy) = [(0.0, 0.07), (0.0, -0.07), (0.07, 0.0), (-0.07, 0.0)][got[0].action_index];
+        x = [(x[0] + dx).clamp(0.0, 1.0), (x[1] + dy).clamp(0.0, 1.0)];
+        evictions += evicting.evict_idle(Duration::ZERO);
+    }
+    assert_eq!(
+        evictions, 150,
+        "the session left memory after every request"
+    );
+    let all = |manager: &SessionManager, id: &str| {
+        let selection = ValueSelection::parse(Some("v,q,policy")).expect("selection");
+        let values = manager
+            .values(Caller::Anyone, id, selection)
+            .expect("values")
+            .value;
+        let history = manager
+            .history(Caller::Anyone, id, None)
+            .expect("history")
+            .value;
+        let info = manager.get(Caller::Anyone, id).expect("get");
+        json!({"values": values, "history": history, "drive": info.drive, "tick": info.tick,
+               "policy_version": info.policy_version, "stats": info.stats})
+    };
+    assert_eq!(
+        all(&evicting, &a),
+        all(&resident, &b),
+        "values, history and info"
+    );
+    assert!(
+        all(&resident, &b)["stats"]["continuous"]["samples"].as_u64() > Some(20),
+        "the store filled"
+    );
 }

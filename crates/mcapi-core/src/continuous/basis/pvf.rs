@@ -28,6 +28,8 @@
 //! feature e_1: the agent explores on the optimism of unknown pairs alone
 //! until the graph has [`super::pvf_graph::FIRST_BUILD_NODES`] nodes.
 
+use serde::{Deserialize, Serialize};
+
 use crate::basis::{StateGraph, sparse_pvfs};
 use crate::error::{AlgoError, Result};
 
@@ -36,7 +38,7 @@ use crate::error::{AlgoError, Result};
 pub const DENSE_PVF_NODES: usize = 300;
 
 /// A built PVF basis: the nodes, their neighbours and ψ at each.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct Pvf {
     d: usize,
     k: usize,
@@ -87,6 +89,22 @@ impl Pvf {
     /// d.
     pub fn dim(&self) -> usize {
         self.d
+    }
+
+    /// Whether a basis read from a snapshot is one of dimension `d` with
+    /// `k` features, and every index in it points inside it.
+    pub fn fits(&self, d: usize, k: usize) -> bool {
+        let n = self.nodes.len() / d.max(1);
+        self.d == d
+            && self.k == k
+            && self.nodes.len() == n * d
+            && self.ptr.len() == n + 1
+            && self.ptr.first() == Some(&0)
+            && self.ptr.windows(2).all(|w| w[0] <= w[1])
+            && self.ptr.last() == Some(&self.idx.len())
+            && self.idx.iter().all(|&j| (j as usize) < n)
+            && self.psi.len() == n * k
+            && self.inv_sigma.is_finite()
     }
 
     /// The largest node set.

@@ -25,6 +25,8 @@
 //! Everything depends only on the observations, in order: a replay
 //! rebuilds at the same ticks with the same bits.
 
+use serde::{Deserialize, Serialize};
+
 use super::pvf::{Pvf, nearest, sq_dist};
 use crate::error::Result;
 
@@ -48,7 +50,7 @@ pub enum Edges {
 pub const EDGES: Edges = Edges::Transitions;
 
 /// The growing node set and edges, and the build schedule.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct PvfGraph {
     d: usize,
     max_nodes: usize,
@@ -70,6 +72,17 @@ pub struct PvfGraph {
 }
 
 impl PvfGraph {
+    /// Whether a graph read from a snapshot is one of dimension `d`, and
+    /// every index in it points inside it.
+    pub fn fits(&self, d: usize) -> bool {
+        let n = self.nodes.len() / d.max(1);
+        self.d == d
+            && self.nodes.len() == n * d
+            && self.adj.len() == n
+            && self.adj.iter().flatten().all(|&j| (j as usize) < n)
+            && self.last.is_none_or(|j| (j as usize) < n)
+    }
+
     /// An empty graph for the basis `pvf` describes.
     pub fn new(pvf: &Pvf) -> Self {
         let (d, max_nodes) = (pvf.dim(), pvf.max_nodes());
