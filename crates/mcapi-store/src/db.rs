@@ -383,6 +383,52 @@ fn write_back(
     Ok(())
 }
 
+/// A session's log key as a hash key: the key is a ULID's bits or a
+/// SHA-256 prefix, random enough as it is (no SipHash of it per record).
+#[derive(Default)]
+pub(crate) struct KeyHasher(u64);
+
+impl std::hash::Hasher for KeyHasher {
+    fn finish(&self) -> u64 {
+        self.0
+    }
+    fn write(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 = self.0.rotate_left(8) ^ u64::from(*b);
+        }
+    }
+    fn write_u128(&mut self, key: u128) {
+        // A ULID's low 80 bits are random, its high 48 a timestamp.
+        self.0 = (key as u64) ^ ((key >> 64) as u64).rotate_left(29);
+    }
+}
+
+/// Chunks with appended records not yet written back, by session key.
+pub(crate) type Touched =
+    HashMap<u128, Vec<(u64, Vec<u8>)>, std::hash::BuildHasherDefault<KeyHasher>>;
+
+/// The chunk that record `seq` of session `key` is appended to: read from
+/// the database the first time a checkpoint touches it.
+fn chunk_for<'t>(
+    touched: &'t mut Touched,
+    log: &redb::Table<'_, (u128, u64), &'static [u8]>,
+    key: u128,
+    seq: u64,
+) -> Result<&'t mut Vec<u8>, DbFailure> {
+    let c = seq / CHUNK;
+    let chunks = touched.entry(key).or_default();
+    if chunks.last().is_none_or(|(last, _)| *last != c) {
+        let bytes = log
+            .get((key, c))
+            .map_err(DbFailure::of)?
+            .map(|v| v.value().to_vec())
+            .unwrap_or_default();
+        chunks.push((c, bytes));
+    }
+    let last = chunks.len() - 1;
+    Ok(&mut chunks[last].1)
+}
+
 /// Applies writes to the database in one durable transaction that also
 /// records `lsn` as the last applied log frame: a checkpoint, or the replay
 /// of one segment at open. Appends to one chunk are gathered, so each chunk
@@ -405,8 +451,7 @@ pub(super) fn apply<'a>(
         let mut sessions = txn.open_table(SESSIONS).map_err(DbFailure::of)?;
         let mut snapshots = txn.open_table(SNAPSHOTS).map_err(DbFailure::of)?;
         let mut log = txn.open_table(LOG).map_err(DbFailure::of)?;
-        // Chunks with appended records not yet written back, by session key.
-        let mut touched: HashMap<u128, Vec<(u64, Vec<u8>)>> = HashMap::new();
+        let mut touched = Touched::default();
         for write in writes {
             match write {
                 Write::Session { id, record } => {
@@ -415,19 +460,12 @@ pub(super) fn apply<'a>(
                         .map_err(DbFailure::of)?;
                 }
                 Write::Append { id, seq, entry } => {
-                    let key = log_key(id);
-                    let c = seq / CHUNK;
-                    let chunks = touched.entry(key).or_default();
-                    if chunks.last().is_none_or(|(last, _)| *last != c) {
-                        let bytes = log
-                            .get((key, c))
-                            .map_err(DbFailure::of)?
-                            .map(|v| v.value().to_vec())
-                            .unwrap_or_default();
-                        chunks.push((c, bytes));
-                    }
-                    if let Some((_, bytes)) = chunks.last_mut() {
-                        push_entry(bytes, *seq, entry);
+                    let bytes = chunk_for(&mut touched, &log, log_key(id), *seq)?;
+                    push_entry(bytes, *seq, entry);
+                }
+                Write::Appends(appends) => {
+                    for (key, seq, framed) in appends.records() {
+                        chunk_for(&mut touched, &log, key, seq)?.extend_from_slice(framed);
                     }
                 }
                 Write::Snapshot { id, seq, snapshot } => {

@@ -36,12 +36,18 @@
 //! after a failed checkpoint the checkpointer reopens the database. While
 //! either is down, [`Store::health`] says why.
 //!
+//! Many sessions' appends can be sent as one write ([`Batch`], what a group
+//! step writes): one record of the log, one commit, expanded into the
+//! sessions' logs by the checkpoint that applies it (or the replay at
+//! open), so that readers see nothing but ordinary logs.
+//!
 //! Files, one idea each: [`Store`]'s public API (`store.rs`), the write and
-//! its commit (`write.rs`), the errors (`error.rs`), the state the threads
+//! its commit (`write.rs`), the batch (`batch.rs`), the errors (`error.rs`), the state the threads
 //! share (`shared.rs`), the writer thread (`writer.rs`), retry with backoff
 //! after a storage fault (`retry.rs`), the log ([`wal`]), the redb layout
 //! (`db.rs`) and the checkpointer (`checkpoint.rs`).
 
+mod batch;
 mod checkpoint;
 mod db;
 mod error;
@@ -53,12 +59,13 @@ pub mod wal;
 mod write;
 mod writer;
 
+pub use batch::{Batch, Outcome, Sent};
 pub use db::{CHUNK, RECORD_V2};
 pub use error::StoreError;
 pub use format::FORMAT_VERSION;
 pub use store::{DEFAULT_CACHE_BYTES, ExportedSession, FILE_NAME, Store, StoredSession};
 pub use wal::{Durability, OS_SYNC_INTERVAL};
-pub use write::{Commit, Write};
+pub use write::{Appends, Commit, Write};
 
 #[cfg(test)]
 mod tests;

@@ -569,3 +569,139 @@ fn a_format_3_file_is_upgraded_to_4() {
     let v = meta.get("format_version").expect("get").map(|v| v.value());
     assert_eq!(v, Some(FORMAT_VERSION));
 }
+
+/// Appends to `batch` a record for each of sessions `ids` at each of
+/// `seqs`, as a group step per seq would: the entry is the id's first byte
+/// and the seq.
+fn fill(batch: &Batch, ids: &[Arc<str>], seqs: std::ops::Range<u64>) {
+    for seq in seqs {
+        for s in ids {
+            batch
+                .append(s, seq, |out| {
+                    out.extend_from_slice(&[s.as_bytes()[0], seq as u8]);
+                    Ok::<(), StoreError>(())
+                })
+                .expect("append");
+        }
+    }
+}
+
+#[test]
+fn batches_left_in_the_log_by_a_crash_are_replayed_into_each_sessions_log() {
+    // A ULID id (the log key is its 128 bits) and any other id (a hash).
+    let ids = [id("s0001.01ARZ3NDEKTSV4RRFFQ69G5FAV"), id("b"), id("c")];
+    for durability in [Durability::Sync, Durability::Os] {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Arc::new(Store::open_with(dir.path(), durability).expect("open"));
+        // Across a chunk's end, half of it applied by a checkpoint before
+        // the crash; a lone append and a snapshot between batches.
+        let first = Batch::new(Arc::clone(&store));
+        fill(&first, &ids, 0..CHUNK - 2);
+        first
+            .finish()
+            .wait_blocking()
+            .of(0..3)
+            .expect("first batch");
+        store.checkpoint().expect("checkpoint");
+        store
+            .submit(vec![Write::Append {
+                id: id("b"),
+                seq: CHUNK - 2,
+                entry: vec![b'b', (CHUNK - 2) as u8],
+            }])
+            .wait_blocking()
+            .expect("lone append");
+        let second = Batch::new(Arc::clone(&store));
+        fill(&second, &ids[..1], CHUNK - 2..CHUNK + 5);
+        second.push(Write::Snapshot {
+            id: id("c"),
+            seq: 3,
+            snapshot: b"snap".to_vec(),
+        });
+        // Sent in two parts, as a write to one of its sessions would make it.
+        second.send();
+        fill(&second, &ids[2..], CHUNK - 2..CHUNK);
+        let outcome = second.finish().wait_blocking();
+        outcome.of(0..10).expect("second batch");
+        store.crash();
+        drop(store);
+        assert!(
+            !segments(dir.path()).is_empty(),
+            "{durability}: the log stays"
+        );
+        for round in 0..2 {
+            let store = Store::open_with(dir.path(), durability).expect("reopen");
+            let want = |i: u8, seqs: std::ops::Range<u64>| {
+                seqs.map(|s| (s, vec![i, s as u8])).collect::<Vec<_>>()
+            };
+            let what = format!("{durability}, round {round}");
+            assert_eq!(
+                entries(&store, &ids[0], None),
+                want(b's', 0..CHUNK + 5),
+                "{what}"
+            );
+            assert_eq!(
+                entries(&store, "b", None),
+                want(b'b', 0..CHUNK - 1),
+                "{what}"
+            );
+            // Read after its snapshot, which a batch's part carried.
+            assert_eq!(
+                entries(&store, "c", Some(3)),
+                want(b'c', 4..CHUNK),
+                "{what}"
+            );
+            store.crash();
+        }
+    }
+}
+
+#[test]
+fn a_batch_part_that_fails_or_is_refused_breaks_every_session_it_extends() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = Arc::new(Store::open(dir.path()).expect("open"));
+    let (a, b, c) = (id("a"), id("b"), id("c"));
+    let batch = Batch::new(Arc::clone(&store));
+    fill(&batch, &[Arc::clone(&a), Arc::clone(&b)], 0..1);
+    store.fail_next_commits(1);
+    batch.send();
+    // Once this returns the first part is committed (or failed), so the
+    // second is a commit of its own, not one group commit with it.
+    let _ = store.submit(Vec::new()).wait_blocking();
+    fill(&batch, std::slice::from_ref(&c), 0..1);
+    let outcome = batch.finish().wait_blocking();
+    // Positions 0 and 1 were the failed part, 2 the one after it.
+    assert!(matches!(outcome.of(0..1), Err(StoreError::Failed(_))));
+    assert!(outcome.of(1..3).is_err());
+    outcome.of(2..3).expect("the second part");
+    assert!(store.is_broken("a") && store.is_broken("b") && !store.is_broken("c"));
+    // A part refused for one broken session leaves a hole in the others'.
+    let batch = Batch::new(Arc::clone(&store));
+    fill(&batch, &[Arc::clone(&c), Arc::clone(&a)], 1..2);
+    let outcome = batch.finish().wait_blocking();
+    assert!(matches!(outcome.of(0..1), Err(StoreError::Broken(_))));
+    assert!(store.is_broken("c"));
+    for s in ["a", "b", "c"] {
+        store
+            .submit(vec![Write::Resume { id: id(s) }])
+            .wait_blocking()
+            .expect("resume");
+    }
+    assert!(entries(&store, "a", None).is_empty());
+    assert_eq!(entries(&store, "c", None), vec![(0, vec![b'c', 0])]);
+}
+
+#[test]
+fn a_batch_dropped_unfinished_is_sent() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let store = Arc::new(Store::open(dir.path()).expect("open"));
+    let batch = Batch::new(Arc::clone(&store));
+    fill(&batch, &[id("a")], 0..3);
+    drop(batch);
+    // Queued before this append, so committed before it returns.
+    store
+        .submit(appends("a", 3..4, 2))
+        .wait_blocking()
+        .expect("append");
+    assert_eq!(entries(&store, "a", None).len(), 4);
+}

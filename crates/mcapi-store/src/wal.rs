@@ -65,7 +65,7 @@ use std::sync::Arc;
 use std::thread::JoinHandle;
 
 use crate::error::StoreError;
-use crate::write::Write;
+use crate::write::{Appends, Write};
 
 /// Under [`Durability::Os`], how long a frame may stay unsynced.
 pub const OS_SYNC_INTERVAL: std::time::Duration = std::time::Duration::from_millis(5);
@@ -123,6 +123,10 @@ const KIND_SESSION: u8 = 1;
 const KIND_APPEND: u8 = 2;
 const KIND_SNAPSHOT: u8 = 3;
 const KIND_DELETE: u8 = 4;
+/// Records appended to many sessions' logs in one write ([`Appends`]):
+/// their bytes as they are, session keys included (a group step's; added
+/// after the four above, which keep their bytes).
+const KIND_APPENDS: u8 = 5;
 
 /// Appends one write to a frame's payload. `Resume` is not logged: it
 /// changes what the writer accepts, not what is stored.
@@ -160,6 +164,10 @@ fn encode_write(w: &Write, out: &mut Vec<u8>) {
         Write::Delete { id: i } => {
             out.push(KIND_DELETE);
             id(out, i);
+        }
+        Write::Appends(a) => {
+            out.push(KIND_APPENDS);
+            bytes(out, &a.records);
         }
         Write::Resume { .. } => {}
     }
@@ -215,6 +223,7 @@ fn decode_payload(payload: &[u8]) -> Option<Vec<Write>> {
                 snapshot: c.bytes()?.to_vec(),
             },
             KIND_DELETE => Write::Delete { id: c.id()? },
+            KIND_APPENDS => Write::Appends(Appends::decoded(c.bytes()?.to_vec())?),
             _ => return None,
         };
         out.push(w);
@@ -849,6 +858,17 @@ mod tests {
     use super::*;
 
     fn writes() -> Vec<Write> {
+        let mut appends = Appends::default();
+        for (id, seq) in [("s0001.x", 8), ("s0001.z", 0)] {
+            appends
+                .push(&Arc::from(id), seq, |out| {
+                    out.extend_from_slice(&[4, 5, 6]);
+                    Ok::<(), ()>(())
+                })
+                .expect("push");
+        }
+        // The log keeps the records' keys, not their ids.
+        appends.ids.clear();
         vec![
             Write::Session {
                 id: Arc::from("s0001.x"),
@@ -867,6 +887,7 @@ mod tests {
             Write::Resume {
                 id: Arc::from("s0001.x"),
             },
+            Write::Appends(appends),
             Write::Delete {
                 id: Arc::from("s0001.x"),
             },

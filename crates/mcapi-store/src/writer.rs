@@ -111,10 +111,13 @@ impl Writer {
                         broken.remove(id);
                     }
                 }
+                if broken.is_empty() {
+                    continue;
+                }
                 if let Some(id) = p
                     .writes
                     .iter()
-                    .filter_map(Write::extends)
+                    .flat_map(Write::extends)
                     .find(|id| broken.contains(*id))
                 {
                     refused.push((i, Arc::clone(id)));
@@ -123,6 +126,13 @@ impl Writer {
         }
         for (i, id) in refused.iter().rev() {
             let mut p = group.remove(*i);
+            // A refused write leaves a hole in the log of every session it
+            // extends (a batch's part holds many): they are broken too.
+            let mut broken = shared.broken.lock();
+            for other in p.writes.iter().flat_map(Write::extends) {
+                broken.insert(Arc::clone(other));
+            }
+            drop(broken);
             if let Some(done) = p.done.take() {
                 let _ = done.send(Err(StoreError::Broken(Arc::clone(id))));
             }
@@ -131,7 +141,7 @@ impl Writer {
         if result.is_err() {
             let mut broken = shared.broken.lock();
             for w in group.iter().flat_map(|p| &p.writes) {
-                if let Some(id) = w.extends() {
+                for id in w.extends() {
                     broken.insert(Arc::clone(id));
                 }
             }

@@ -131,8 +131,23 @@ impl LogEntryRef<'_> {
         let len = |x: Option<&[f64]>| x.map_or(0, <[f64]>::len);
         let floats = len(self.observation) + len(self.stimulus) + len(self.signal.map(|(_, x)| x));
         let mut out = Vec::with_capacity(64 + 8 * floats);
+        self.encode_into(&mut out)?;
+        Ok(out)
+    }
+
+    /// Encodes the entry as [`Self::encode`] does, at the end of `out` (a
+    /// batch's buffer, which many entries share).
+    pub fn encode_into(&self, out: &mut Vec<u8>) -> Result<(), ServiceError> {
+        /// The end of a buffer borrowed, as postcard's writer.
+        struct Tail<'b>(&'b mut Vec<u8>);
+        impl Extend<u8> for Tail<'_> {
+            fn extend<I: IntoIterator<Item = u8>>(&mut self, bytes: I) {
+                self.0.extend(bytes);
+            }
+        }
         out.push(RECORD_V5);
-        postcard::to_extend(self, out)
+        postcard::to_extend(self, Tail(out))
+            .map(drop)
             .map_err(|e| ServiceError::Internal(format!("encoding a record: {e}")))
     }
 }

@@ -2,8 +2,9 @@
 //! and the synchronous operations the tick loop and handlers call.
 
 use std::collections::VecDeque;
-use std::sync::Arc;
+use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::{Arc, Weak};
 use std::time::Instant;
 
 use parking_lot::Mutex;
@@ -11,7 +12,7 @@ use parking_lot::Mutex;
 use mcapi_core::continuous::ContinuousObservation;
 use mcapi_core::spec::ActionRef;
 use mcapi_core::{AlgoError, Observation};
-use mcapi_store::{Commit, Store, Write};
+use mcapi_store::{Batch, Commit, Outcome, Store, Write};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::cost;
@@ -46,6 +47,10 @@ pub struct SessionState {
     /// since the last logged observation (the next entry says so, so a
     /// replay plans where the live session did).
     planned_since_log: bool,
+    /// The batch holding this session's newest log entry, while it may not
+    /// have been sent: sent first by whatever writes next to the session,
+    /// so the session's writes reach the store in order (`Batch`'s docs).
+    batch: Weak<Batch>,
 }
 
 /// Where a session's observations are made durable.
@@ -70,6 +75,10 @@ pub struct Observed {
     /// Every observation was a replay: the commit awaited carries none of
     /// this session's writes, so its failure is not this session's.
     pub replay_only: bool,
+    /// Logged into a batch ([`Session::observe_into`]): the positions of
+    /// its writes there, durable once the batch's parts holding them are
+    /// committed ([`Observed::durable_in`]).
+    pub batched: Option<Range<usize>>,
 }
 
 impl Observed {
@@ -79,7 +88,18 @@ impl Observed {
             result: Err(e),
             commit: None,
             replay_only: false,
+            batched: None,
         }
+    }
+
+    /// [`Self::durable`] for observations logged into a batch, once the
+    /// batch's parts are committed: the outcome of the parts that hold its
+    /// writes.
+    pub async fn durable_in(self, outcome: &Outcome) -> Result<Vec<StepOut>, ServiceError> {
+        if let Some(positions) = &self.batched {
+            outcome.of(positions.clone())?;
+        }
+        self.durable().await
     }
 
     /// Waits for durability, then hands back the replies.
@@ -108,6 +128,8 @@ impl Observed {
 pub struct Session {
     /// The session id.
     pub id: String,
+    /// The id as the store's writes carry it (made once, not per write).
+    store_id: Arc<str>,
     /// Lockstep or async.
     pub mode: UpdateMode,
     /// Model summary, shared by every session of the same model.
@@ -199,6 +221,7 @@ impl Session {
             ..resumed
         };
         Self {
+            store_id: Arc::from(id.as_str()),
             id,
             mode: config.update_mode,
             history_cap: config.history,
@@ -217,6 +240,7 @@ impl Session {
                 fail_plans: 0,
                 learned_cap,
                 planned_since_log: resumed.planned_since_log,
+                batch: Weak::new(),
             }),
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
@@ -316,6 +340,18 @@ impl Session {
     /// With a store, the applied observations are queued for the next group
     /// commit while the lock is held, so the log keeps their order.
     pub fn observe(&self, batch: &[ObservationIn], plan: bool) -> Observed {
+        self.observe_into(batch, plan, None)
+    }
+
+    /// [`Self::observe`], logging into `log_batch` if given (a group
+    /// step's, sent once its members are applied) instead of queuing a
+    /// commit of its own: the result's [`Observed::batched`] says where.
+    pub fn observe_into(
+        &self,
+        batch: &[ObservationIn],
+        plan: bool,
+        log_batch: Option<&Arc<Batch>>,
+    ) -> Observed {
         let mut st = self.state.lock();
         if st.deleted {
             return Observed::refused(ServiceError::NotFound(self.id.clone()));
@@ -349,8 +385,12 @@ impl Session {
             // once a commit queued after it returns.
             return Observed {
                 result: Ok(out),
-                commit: self.durability.as_ref().map(|d| d.store.submit(Vec::new())),
+                commit: self
+                    .durability
+                    .as_ref()
+                    .map(|d| st.submit(&d.store, Vec::new())),
                 replay_only: true,
+                batched: None,
             };
         }
         self.pristine.store(false, Ordering::Release);
@@ -367,9 +407,12 @@ impl Session {
         if out.len() > start {
             self.last_observed_ns.store(clock_ns(), Ordering::Relaxed);
         }
-        let commit = match &self.durability {
-            Some(d) if !log.is_empty() => Some(st.log(&self.id, d, log)),
-            _ => None,
+        let (commit, batched) = match &self.durability {
+            Some(d) if !log.is_empty() => match log_batch {
+                Some(b) => (None, Some(st.log_into(&self.store_id, d, log, b))),
+                None => (Some(st.log(&self.store_id, d, log)), None),
+            },
+            _ => (None, None),
         };
         drop(st);
         if plan {
@@ -379,6 +422,7 @@ impl Session {
             result: result.map(|()| out),
             commit,
             replay_only: false,
+            batched,
         }
     }
 
@@ -402,8 +446,14 @@ impl Session {
     /// Marks the session stale after a failed commit: no observation is
     /// applied to it any more (the manager replaces it by a reload).
     pub fn mark_stale(&self) {
-        // Under the lock: an observation being applied finishes first.
-        let _st = self.state.lock();
+        // Under the lock: an observation being applied finishes first. Its
+        // entry, if in a batch not sent yet, is sent now: it reaches the
+        // store before the reload's `Resume`, so it is refused as the
+        // session's later writes are until then.
+        let mut st = self.state.lock();
+        if let Some(batch) = std::mem::take(&mut st.batch).upgrade() {
+            batch.send();
+        }
         self.stale.store(true, Ordering::Release);
     }
 
@@ -418,9 +468,12 @@ impl Session {
         let mut st = self.state.lock();
         st.deleted = true;
         self.durability.as_ref().map(|d| {
-            d.store.submit(vec![Write::Delete {
-                id: Arc::from(self.id.as_str()),
-            }])
+            st.submit(
+                &d.store,
+                vec![Write::Delete {
+                    id: Arc::clone(&self.store_id),
+                }],
+            )
         })
     }
 
@@ -444,9 +497,12 @@ impl Session {
         }
         st.deleting = true;
         Ok(self.durability.as_ref().map(|d| {
-            d.store.submit(vec![Write::Delete {
-                id: Arc::from(self.id.as_str()),
-            }])
+            st.submit(
+                &d.store,
+                vec![Write::Delete {
+                    id: Arc::clone(&self.store_id),
+                }],
+            )
         }))
     }
 
@@ -487,7 +543,7 @@ impl Session {
             return None;
         }
         match st.snapshot_write(&self.id) {
-            Ok(w) => Some(d.store.submit(vec![w])),
+            Ok(w) => Some(st.submit(&d.store, vec![w])),
             Err(e) => {
                 tracing::error!(session = %self.id, error = %e, "snapshot not written");
                 None
@@ -558,7 +614,7 @@ impl Session {
         match st.snapshot_write(&self.id) {
             Ok(w) => {
                 self.pristine.store(true, Ordering::Release);
-                Some(Some(d.store.submit(vec![w])))
+                Some(Some(st.submit(&d.store, vec![w])))
             }
             Err(e) => {
                 tracing::error!(session = %self.id, error = %e, "snapshot for eviction not written");
@@ -749,20 +805,24 @@ impl SessionState {
         })
     }
 
+    /// Queues writes of this session for commit, after the batch holding
+    /// its newest log entry if that was not sent yet (so they commit after
+    /// it). Every write of a session goes through here or [`Self::log_into`].
+    fn submit(&mut self, store: &Store, writes: Vec<Write>) -> Commit {
+        if let Some(batch) = std::mem::take(&mut self.batch).upgrade() {
+            batch.send();
+        }
+        store.submit(writes)
+    }
+
     /// Queues log entries, encoded (and a snapshot when one is due), for
     /// commit.
-    fn log(
-        &mut self,
-        id: &str,
-        d: &Durability,
-        entries: Vec<Result<Vec<u8>, ServiceError>>,
-    ) -> Commit {
-        let id: Arc<str> = Arc::from(id);
+    fn log(&mut self, id: &Arc<str>, d: &Durability, entries: Vec<LogEntryRef<'_>>) -> Commit {
         let mut writes = Vec::with_capacity(entries.len() + 1);
         for entry in entries {
-            match entry {
+            match entry.encode() {
                 Ok(bytes) => writes.push(Write::Append {
-                    id: Arc::clone(&id),
+                    id: Arc::clone(id),
                     seq: self.seq,
                     entry: bytes,
                 }),
@@ -772,23 +832,62 @@ impl SessionState {
             self.since_snapshot += 1;
         }
         if self.since_snapshot >= d.snapshot_every {
-            match self.snapshot_write(&id) {
+            match self.snapshot_write(id) {
                 Ok(w) => writes.push(w),
                 Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
             }
         }
-        d.store.submit(writes)
+        self.submit(&d.store, writes)
+    }
+
+    /// [`Self::log`] into `batch`: each entry encoded into the batch's
+    /// buffer, nothing queued for commit until the batch is sent. Returns
+    /// the positions of the writes in the batch.
+    fn log_into(
+        &mut self,
+        id: &Arc<str>,
+        d: &Durability,
+        entries: Vec<LogEntryRef<'_>>,
+        batch: &Arc<Batch>,
+    ) -> Range<usize> {
+        if !std::ptr::eq(self.batch.as_ptr(), Arc::as_ptr(batch)) {
+            // An earlier batch still unsent holds an earlier entry.
+            if let Some(earlier) = std::mem::take(&mut self.batch).upgrade() {
+                earlier.send();
+            }
+            self.batch = Arc::downgrade(batch);
+        }
+        let mut positions: Option<Range<usize>> = None;
+        let mut added = |p: usize| {
+            let r = positions.get_or_insert(p..p);
+            r.end = p + 1;
+        };
+        for entry in entries {
+            match batch.append(id, self.seq, |out| entry.encode_into(out)) {
+                Ok(p) => added(p),
+                Err(e) => tracing::error!(session = %id, error = %e, "log entry not encoded"),
+            }
+            self.seq += 1;
+            self.since_snapshot += 1;
+        }
+        if self.since_snapshot >= d.snapshot_every {
+            match self.snapshot_write(id) {
+                Ok(w) => added(batch.push(w)),
+                Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
+            }
+        }
+        positions.unwrap_or(0..0)
     }
 
     /// Applies `batch[start..]` (those before `start` were replays).
-    fn apply_all(
+    fn apply_all<'a>(
         &mut self,
-        batch: &[ObservationIn],
+        batch: &'a [ObservationIn],
         start: usize,
         plan: bool,
         history_cap: usize,
         out: &mut Vec<StepOut>,
-        mut log: Option<&mut Vec<Result<Vec<u8>, ServiceError>>>,
+        mut log: Option<&mut Vec<LogEntryRef<'a>>>,
     ) -> Result<(), ServiceError> {
         for (i, obs) in batch.iter().enumerate().skip(start) {
             // The action whose pair this observation updates, resolved now.
@@ -802,28 +901,25 @@ impl SessionState {
                     plan_failed,
                 }) => {
                     if let Some(log) = log.as_deref_mut() {
-                        log.push(
-                            LogEntryRef {
-                                state: obs.state.unwrap_or(0) as u32,
-                                observation: obs.observation.as_deref(),
-                                planned_before,
-                                stimulus: obs.stimulus.as_deref(),
-                                taken: obs
-                                    .stimulus
-                                    .as_ref()
-                                    .and(taken.or(advised_before))
-                                    .map(|a| a as u32),
-                                advised: step.action_index as u32,
-                                lstdq_error: self.learner.lstdq_error(),
-                                policy_version: step.policy_version,
-                                signal: obs
-                                    .signal
-                                    .as_deref()
-                                    .map(|x| (obs.signal_source.unwrap_or(0) as u32, x)),
-                                digest,
-                            }
-                            .encode(),
-                        );
+                        log.push(LogEntryRef {
+                            state: obs.state.unwrap_or(0) as u32,
+                            observation: obs.observation.as_deref(),
+                            planned_before,
+                            stimulus: obs.stimulus.as_deref(),
+                            taken: obs
+                                .stimulus
+                                .as_ref()
+                                .and(taken.or(advised_before))
+                                .map(|a| a as u32),
+                            advised: step.action_index as u32,
+                            lstdq_error: self.learner.lstdq_error(),
+                            policy_version: step.policy_version,
+                            signal: obs
+                                .signal
+                                .as_deref()
+                                .map(|x| (obs.signal_source.unwrap_or(0) as u32, x)),
+                            digest,
+                        });
                     }
                     if let Some(e) = plan_failed {
                         // The observation is applied (Ξ, D, the tick) and

@@ -3,13 +3,17 @@
 //! whole; read, deleted and stepped by columns. A step applies each
 //! member's observation as [`SessionManager::observe`] applies one alone
 //! (the same checks, update and log entry): the cheap members in chunks on
-//! the blocking pool, the others through `observe` itself; their log
-//! entries reach the store's writer together and are made durable by one
-//! group commit before the reply.
+//! the blocking pool, the others through `observe` itself. With a store,
+//! the cheap members' log entries go into one [`Batch`] per chunk: a write
+//! of the log (and a commit) per chunk, not per member, expanded into each
+//! member's own log by the store's checkpoint (so each member recovers,
+//! moves with its shard and is read as any session); made durable before
+//! the reply.
 
 use std::collections::BTreeMap;
 
 use futures_util::future::join_all;
+use mcapi_store::Sent;
 
 use super::*;
 use crate::service::groups::{
@@ -472,23 +476,31 @@ impl SessionManager {
                 }));
             }
             let mut applied = Vec::with_capacity(m);
-            for chunk in join_all(chunks).await {
-                let chunk = chunk.map_err(|e| {
+            let mut sent = Vec::with_capacity(chunks.len());
+            for (c, chunk) in join_all(chunks).await.into_iter().enumerate() {
+                let (chunk, batch) = chunk.map_err(|e| {
                     ServiceError::Internal(format!("a group step task failed: {e}"))
                 })?;
+                sent.push(batch);
                 for (pos, index, outcome) in chunk {
                     match outcome {
-                        Applied::Done(session, observed) => applied.push((pos, session, observed)),
+                        Applied::Done(session, observed) => {
+                            applied.push((c, pos, session, observed));
+                        }
                         Applied::Refused(e) => results[pos] = Some(Err(e)),
                         Applied::Elsewhere(obs) => slow.push((pos, index, obs)),
                     }
                 }
             }
             tick::meters().observations.increment(applied.len() as u64);
-            // One group commit holds every entry queued above: the first
-            // wait is the only one that waits.
-            for (pos, session, observed) in applied {
-                let result = observed.durable().await.and_then(|out| {
+            // The chunks' batches were sent one after the other and share
+            // group commits: the first wait is the only one that waits.
+            let mut outcomes = Vec::with_capacity(sent.len());
+            for batch in sent {
+                outcomes.push(batch.wait().await);
+            }
+            for (c, pos, session, observed) in applied {
+                let result = observed.durable_in(&outcomes[c]).await.and_then(|out| {
                     super::observe::replays_stand(&session, &out)?;
                     only_step(out)
                 });
@@ -524,14 +536,19 @@ impl SessionManager {
 
     /// Applies a chunk of a group step's members on this (blocking) thread:
     /// each resident member whose update is cheap, as [`Self::observe`]
-    /// would; the rest are left to its path.
+    /// would, its log entry into the chunk's batch (sent at the end); the
+    /// rest are left to its path.
     fn apply_members(
         &self,
         caller: Caller,
         group: &Group,
         chunk: Vec<(usize, (usize, ObservationIn))>,
-    ) -> Vec<(usize, usize, Applied)> {
-        chunk
+    ) -> (Vec<(usize, usize, Applied)>, Sent) {
+        let batch = self
+            .durability
+            .as_ref()
+            .map(|d| Arc::new(Batch::new(Arc::clone(&d.store))));
+        let applied = chunk
             .into_iter()
             .map(|(pos, (index, obs))| {
                 let Some(member) = &group.members[index] else {
@@ -547,13 +564,16 @@ impl SessionManager {
                     let e = ServiceError::SessionFailed(session.id.clone());
                     return (pos, index, Applied::Refused(e));
                 }
-                let outcome = match self.observe_inline(&session, std::slice::from_ref(&obs)) {
+                let observed =
+                    self.observe_inline(&session, std::slice::from_ref(&obs), batch.as_ref());
+                let outcome = match observed {
                     Some(observed) => Applied::Done(session, observed),
                     None => Applied::Elsewhere(obs),
                 };
                 (pos, index, outcome)
             })
-            .collect()
+            .collect();
+        (applied, batch.map(|b| b.finish()).unwrap_or_default())
     }
 
     /// Registers the groups of these sessions (recovered at start, or

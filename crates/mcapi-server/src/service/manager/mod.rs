@@ -22,7 +22,7 @@ use std::time::{Duration, Instant};
 use parking_lot::{Mutex, RwLock};
 use tokio::sync::oneshot;
 
-use mcapi_store::{Store, Write};
+use mcapi_store::{Batch, Store, Write};
 
 use super::agent_config::{SessionConfig, UpdateMode};
 use super::auth::{ApiKeys, Caller};

@@ -110,7 +110,7 @@ impl SessionManager {
         batch: Vec<ObservationIn>,
     ) -> Result<Vec<StepOut>, ServiceError> {
         let n = batch.len() as u64;
-        let out = match self.observe_inline(session, &batch) {
+        let out = match self.observe_inline(session, &batch, None) {
             Some(observed) => observed.durable().await?,
             None if session.mode == UpdateMode::Lockstep => {
                 let (tx, rx) = oneshot::channel();
@@ -154,11 +154,14 @@ impl SessionManager {
     /// it, observed, then planned here or queued for the tick loop. `None`
     /// when it is not cheap: nothing was applied, and the caller hands it
     /// to the pool. Never waits for a commit (the [`Observed`] carries it),
-    /// so a group step applies many members and then waits once.
+    /// so a group step applies many members and then waits once; with
+    /// `log_batch` (a group step's) the entries go into it, not to a commit
+    /// of their own.
     pub(super) fn observe_inline(
         &self,
         session: &SessionRef,
         batch: &[ObservationIn],
+        log_batch: Option<&Arc<Batch>>,
     ) -> Option<session::Observed> {
         let n = batch.len() as u64;
         match session.mode {
@@ -167,7 +170,7 @@ impl SessionManager {
                     return None;
                 }
                 let started = Instant::now();
-                let observed = session.observe(batch, true);
+                let observed = session.observe_into(batch, true, log_batch);
                 tick::meters()
                     .tick_seconds
                     .record(started.elapsed().as_secs_f64());
@@ -185,7 +188,7 @@ impl SessionManager {
                 if observe_ns > self.inline_plan_ns.max(50_000) {
                     return None;
                 }
-                let observed = session.observe(batch, false);
+                let observed = session.observe_into(batch, false, log_batch);
                 self.plan_after_observe(session, &observed, n);
                 Some(observed)
             }
