@@ -152,7 +152,13 @@ fn assert_same_step(got: &StepOut, want: &StepOut, ctx: &str) {
 
 /// Everything a client can read of a session, as JSON (f64s print exactly).
 fn everything(manager: &SessionManager, id: &str) -> Value {
-    let all = ValueSelection::parse(Some("v,q,policy,r,xi")).expect("selection");
+    read(manager, id, "v,q,policy,r,xi")
+}
+
+/// The value tables `selection` names, the history and the session's
+/// info, as JSON.
+fn read(manager: &SessionManager, id: &str, selection: &str) -> Value {
+    let all = ValueSelection::parse(Some(selection)).expect("selection");
     let values = manager
         .values(Caller::Anyone, id, all)
         .expect("values")
@@ -169,6 +175,7 @@ fn everything(manager: &SessionManager, id: &str) -> Value {
         "tick": info.tick,
         "policy_version": info.policy_version,
         "state": info.state,
+        "stats": info.stats,
     })
 }
 
@@ -482,20 +489,8 @@ fn continuous_sessions_evicted_between_requests_answer_exactly_as_resident_ones(
         evictions, 150,
         "the session left memory after every request"
     );
-    let all = |manager: &SessionManager, id: &str| {
-        let selection = ValueSelection::parse(Some("v,q,policy")).expect("selection");
-        let values = manager
-            .values(Caller::Anyone, id, selection)
-            .expect("values")
-            .value;
-        let history = manager
-            .history(Caller::Anyone, id, None)
-            .expect("history")
-            .value;
-        let info = manager.get(Caller::Anyone, id).expect("get");
-        json!({"values": values, "history": history, "drive": info.drive, "tick": info.tick,
-               "policy_version": info.policy_version, "stats": info.stats})
-    };
+    // A continuous world has V, Q and π (no R or Ξ tables).
+    let all = |manager: &SessionManager, id: &str| read(manager, id, "v,q,policy");
     assert_eq!(
         all(&evicting, &a),
         all(&resident, &b),
