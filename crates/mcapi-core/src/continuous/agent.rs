@@ -396,6 +396,7 @@ impl ContinuousAgent {
     /// the stored transitions, their unknown successor pairs, every action
     /// at the current point and at the probe points (where Ξ may still
     /// hold its optimistic prior).
+    #[inline(always)]
     fn refresh_reward_weights(&mut self, v_now: &[f64]) {
         for ((s, d), l) in self
             .scaled_drive
@@ -438,6 +439,7 @@ impl ContinuousAgent {
     }
 
     /// R(s, a) = |v(s) · u_a| (line 8).
+    #[inline(always)]
     fn reward(&self, v: &[f64], a: usize) -> f64 {
         let k = v.len();
         dot(v, &self.u[a * k..(a + 1) * k]).abs()
@@ -454,6 +456,7 @@ impl ContinuousAgent {
     }
 
     /// Q_opt(s, a) = R(s, a) + γ R_max / (1 − γ): an unknown pair.
+    #[inline(always)]
     fn q_opt(&self, v: &[f64], a: usize) -> f64 {
         let g = self.params.gamma;
         self.reward(v, a) + g * self.r_max / (1.0 - g)
@@ -464,6 +467,7 @@ impl ContinuousAgent {
     /// they are the same or tied).
     /// `cached`: R(s′_i, ·) is in `next_rewards` (it is after
     /// [`Self::refresh_reward_weights`], for the transitions stored then).
+    #[inline(always)]
     fn greedy_successor(&self, i: usize, cached: bool) -> (usize, bool, f64) {
         let sample = self.store.get(i);
         let mask = self.known_next[i];
@@ -496,38 +500,7 @@ impl ContinuousAgent {
     /// Line 8 and line 9: rewards of the stored transitions, one LSTDQ
     /// evaluation, one bounded greedy improvement of the successor actions.
     fn plan_at(&mut self, v_now: &[f64]) {
-        self.refresh_reward_weights(v_now);
-        let g = self.params.gamma;
-        let na = self.model.n_actions();
-        let opt = g * self.r_max / (1.0 - g);
-        for i in 0..self.store.len() {
-            if let Some((pi, false)) = self.planner.successor(i) {
-                self.targets[i] += g * (self.next_rewards[i * na + pi] + opt);
-            }
-        }
-        self.planner.maybe_rebuild(&self.store);
-        self.planner.evaluate(&self.store, &self.targets);
-        // The improvement: every successor whose greedy action differs from
-        // the one A holds is a candidate; at most MAX_SWITCHES of them, the
-        // largest advantages first (ties by index), change this tick.
-        self.switches.clear();
-        for i in 0..self.store.len() {
-            let (pi, known, advantage) = self.greedy_successor(i, true);
-            if self.planner.successor(i) != Some((pi, known)) {
-                self.switches.push((advantage, i, pi, known));
-            }
-        }
-        if self.switches.len() > MAX_SWITCHES {
-            self.switches
-                .select_nth_unstable_by(MAX_SWITCHES - 1, |x, y| {
-                    y.0.total_cmp(&x.0).then(x.1.cmp(&y.1))
-                });
-            self.switches.truncate(MAX_SWITCHES);
-            self.switches.sort_unstable_by_key(|s| s.1);
-        }
-        for &(_, i, pi, known) in &self.switches {
-            self.planner.set_successor(i, self.store.get(i), pi, known);
-        }
+        plan_kernel(self, v_now);
     }
 
     /// Line 10: the greedy action at s (ties keep the previous action, else
@@ -584,6 +557,56 @@ impl ContinuousAgent {
             .into_iter()
             .fold(f64::NEG_INFINITY, f64::max))
     }
+}
+
+/// [`ContinuousAgent::plan_at`]'s body, compiled for AVX-512, AVX2, AVX and
+/// NEON as well and picked at run time: its passes over the sample store
+/// are inner products ([`dot`]'s four fixed accumulators) and elementwise
+/// sums, done in the same order whatever the vector width (no FMA
+/// contraction), so every version gives the same bits.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx",
+    "aarch64+neon"
+))]
+fn plan_kernel(agent: &mut ContinuousAgent, v_now: &[f64]) {
+    agent.refresh_reward_weights(v_now);
+    let g = agent.params.gamma;
+    let na = agent.model.n_actions();
+    let opt = g * agent.r_max / (1.0 - g);
+    for i in 0..agent.store.len() {
+        if let Some((pi, false)) = agent.planner.successor(i) {
+            agent.targets[i] += g * (agent.next_rewards[i * na + pi] + opt);
+        }
+    }
+    agent.planner.maybe_rebuild(&agent.store);
+    agent.planner.evaluate(&agent.store, &agent.targets);
+    // The improvement: every successor whose greedy action differs from
+    // the one A holds is a candidate; at most MAX_SWITCHES of them, the
+    // largest advantages first (ties by index), change this tick.
+    agent.switches.clear();
+    for i in 0..agent.store.len() {
+        let (pi, known, advantage) = agent.greedy_successor(i, true);
+        if agent.planner.successor(i) != Some((pi, known)) {
+            agent.switches.push((advantage, i, pi, known));
+        }
+    }
+    if agent.switches.len() > MAX_SWITCHES {
+        agent
+            .switches
+            .select_nth_unstable_by(MAX_SWITCHES - 1, |x, y| {
+                y.0.total_cmp(&x.0).then(x.1.cmp(&y.1))
+            });
+        agent.switches.truncate(MAX_SWITCHES);
+        agent.switches.sort_unstable_by_key(|s| s.1);
+    }
+    for &(_, i, pi, known) in &agent.switches {
+        agent
+            .planner
+            .set_successor(i, agent.store.get(i), pi, known);
+    }
+    agent.planner.flush();
 }
 
 #[cfg(test)]

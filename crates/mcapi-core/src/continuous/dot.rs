@@ -5,7 +5,7 @@
 //! every run.
 
 /// Σ aᵢ bᵢ over the shorter of the two slices.
-#[inline]
+#[inline(always)]
 pub fn dot(a: &[f64], b: &[f64]) -> f64 {
     let n = a.len().min(b.len());
     let (a, b) = (&a[..n], &b[..n]);

@@ -38,6 +38,11 @@ use super::samples::{SampleRef, SampleStore};
 /// Ticks between rebuilds of A⁻¹ from the samples.
 pub const REBUILD_EVERY: u64 = 256;
 
+/// Rank-one terms of A held back and applied to A⁻¹ in one pass: a tick's
+/// successor changes ([`crate::continuous::agent`] bounds them to 32) and
+/// a few more.
+pub const MAX_PENDING: usize = 40;
+
 /// |1 + vᵀA⁻¹u| below this makes a rank-one update a rebuild instead.
 const MIN_PIVOT: f64 = 1e-8;
 
@@ -68,8 +73,20 @@ pub struct SamplePlanner {
     pub updates: u64,
     /// Rebuilds since the agent started (a statistic).
     pub rebuilds: u64,
-    x: Vec<f64>,
-    y: Vec<f64>,
+    /// The rows of A⁻¹ a rank-one update weighs (scratch, empty between
+    /// updates).
+    #[serde(skip)]
+    weighed: Vec<(usize, f64)>,
+    /// Pending rank-one terms, x_i then y_i of each, k|A| entries each:
+    /// the inverse of A is A⁻¹ − Σ_i x_i y_iᵀ until [`Self::flush`]. Empty
+    /// between the agent's steps (a snapshot never holds any).
+    #[serde(skip)]
+    pending_x: Vec<f64>,
+    #[serde(skip)]
+    pending_y: Vec<f64>,
+    /// The pending x_i transposed, while they are applied (scratch).
+    #[serde(skip)]
+    pending_t: Vec<f64>,
 }
 
 impl SamplePlanner {
@@ -93,8 +110,10 @@ impl SamplePlanner {
             since_rebuild: 0,
             updates: 0,
             rebuilds: 0,
-            x: vec![0.0; n],
-            y: vec![0.0; n],
+            weighed: Vec::new(),
+            pending_x: Vec::new(),
+            pending_y: Vec::new(),
+            pending_t: Vec::new(),
         }
     }
 
@@ -105,9 +124,8 @@ impl SamplePlanner {
         self.k == k
             && self.actions == actions
             && self.ainv.len() == n * n
-            && [&self.w, &self.b, &self.x, &self.y]
-                .iter()
-                .all(|v| v.len() == n)
+            && self.w.len() == n
+            && self.b.len() == n
             && self.succ.len() == samples
             && self.succ.iter().all(|&(pi, _)| pi < actions)
     }
@@ -118,12 +136,14 @@ impl SamplePlanner {
     }
 
     /// Q(s, a) = v(s) · w_a.
+    #[inline(always)]
     pub fn q(&self, v: &[f64], a: usize) -> f64 {
         let k = self.k;
         dot(v, &self.w[a * k..(a + 1) * k])
     }
 
     /// The successor action and knownness A holds for transition i.
+    #[inline(always)]
     pub fn successor(&self, i: usize) -> Option<(usize, bool)> {
         self.succ.get(i).copied()
     }
@@ -138,46 +158,41 @@ impl SamplePlanner {
     }
 
     /// A ← A + sign · u vᵀ with u = e_a ⊗ f and v = Σ terms, by
-    /// Sherman–Morrison (`sign` also carries the transition's weight); marks A stale instead when the pivot is tiny.
+    /// Sherman–Morrison (`sign` also carries the transition's weight),
+    /// deferred: the term joins the pending ones, applied to A⁻¹ together
+    /// by [`Self::flush`]. Marks A stale instead when the pivot is tiny.
     fn rank_one(&mut self, sign: f64, a: usize, f: &[f64], terms: &[Term<'_>]) {
         if self.stale {
             return;
         }
-        let (k, n) = (self.k, self.k * self.actions);
-        // x = A⁻¹ u: the columns of block a, weighted by f.
-        for (r, x) in self.x.iter_mut().enumerate() {
-            let row = &self.ainv[r * n + a * k..r * n + (a + 1) * k];
-            *x = sign * dot(row, f);
+        let n = self.k * self.actions;
+        if self.pending_x.len() >= MAX_PENDING * n {
+            self.flush();
         }
-        // y = vᵀ A⁻¹, and vᵀx.
-        self.y.iter_mut().for_each(|y| *y = 0.0);
-        let mut vx = 0.0;
-        for &(block, coef, g) in terms {
-            for (j, &gj) in g.iter().enumerate() {
-                let c = coef * gj;
-                if c != 0.0 {
-                    let r = block * k + j;
-                    vx += c * self.x[r];
-                    for (y, m) in self.y.iter_mut().zip(&self.ainv[r * n..(r + 1) * n]) {
-                        *y += c * m;
-                    }
-                }
-            }
-        }
-        let pivot = 1.0 + vx;
-        if pivot.is_nan() || pivot.abs() < MIN_PIVOT {
+        let update = RankOne { sign, a, f, terms };
+        let pending = (&mut self.pending_x, &mut self.pending_y);
+        let done = defer_rank_one(&self.ainv, (self.k, n), update, pending, &mut self.weighed);
+        self.weighed.clear();
+        if done {
+            self.updates += 1;
+        } else {
             self.stale = true;
+            self.pending_x.clear();
+            self.pending_y.clear();
+        }
+    }
+
+    /// Applies the pending rank-one terms to A⁻¹, in one pass over it.
+    pub fn flush(&mut self) {
+        if self.pending_x.is_empty() {
             return;
         }
-        for (r, &xr) in self.x.iter().enumerate() {
-            let s = xr / pivot;
-            if s != 0.0 {
-                for (m, y) in self.ainv[r * n..(r + 1) * n].iter_mut().zip(&self.y) {
-                    *m -= s * y;
-                }
-            }
-        }
-        self.updates += 1;
+        let n = self.k * self.actions;
+        let pending = (self.pending_x.as_slice(), self.pending_y.as_slice());
+        apply_pending(&mut self.ainv, n, pending, &mut self.pending_t);
+        self.pending_x.clear();
+        self.pending_y.clear();
+        self.pending_t.clear();
     }
 
     /// Removes transition `old`'s term from A (it was at index i).
@@ -196,9 +211,12 @@ impl SamplePlanner {
         }
         let (terms, len) = self.terms(sample, pi, known);
         self.rank_one(sample.weight, sample.a, sample.v, &terms[..len]);
+        self.flush();
     }
 
-    /// Changes transition i's successor action (line 9's improvement at s′_i).
+    /// Changes transition i's successor action (line 9's improvement at
+    /// s′_i). The change is pending until [`Self::flush`] (or the next
+    /// evaluation) applies it.
     pub fn set_successor(&mut self, i: usize, sample: SampleRef<'_>, pi: usize, known: bool) {
         let (old_pi, old_known) = self.succ[i];
         if (old_pi, old_known) == (pi, known) {
@@ -227,6 +245,8 @@ impl SamplePlanner {
     pub fn rebase(&mut self, ridge: f64) {
         self.ridge = ridge;
         self.stale = true;
+        self.pending_x.clear();
+        self.pending_y.clear();
     }
 
     /// Rebuilds A from the samples and inverts it, when stale or due.
@@ -236,6 +256,9 @@ impl SamplePlanner {
         if !self.stale && self.since_rebuild < REBUILD_EVERY {
             return false;
         }
+        // Rebuilt from the samples: what was pending is in A already.
+        self.pending_x.clear();
+        self.pending_y.clear();
         let (k, n) = (self.k, self.k * self.actions);
         // A, row-major while it is summed (each term adds k-long runs to a
         // row), then handed to nalgebra, which stores columns: so `a` below
@@ -281,7 +304,9 @@ impl SamplePlanner {
 
     /// b = Σ_i u_i y_i and w = A⁻¹ b (one evaluation of line 9).
     /// `targets[i]` is y_i.
+    #[inline(always)]
     pub fn evaluate(&mut self, store: &SampleStore, targets: &[f64]) {
+        self.flush();
         let (k, n) = (self.k, self.k * self.actions);
         self.b.iter_mut().for_each(|b| *b = 0.0);
         for (sample, &y) in store.iter().zip(targets) {
@@ -298,6 +323,172 @@ impl SamplePlanner {
             // Never let a NaN reach Q: start over from A = λI next tick.
             self.w.iter_mut().for_each(|w| *w = 0.0);
             self.stale = true;
+        }
+    }
+}
+
+/// One rank-one term u vᵀ of A, u = e_a ⊗ f scaled by `sign`, v = Σ terms.
+#[derive(Clone, Copy)]
+struct RankOne<'a, 't> {
+    sign: f64,
+    a: usize,
+    f: &'a [f64],
+    terms: &'t [Term<'a>],
+}
+
+/// Sherman–Morrison for one more term u vᵀ of A, deferred: with the
+/// pending terms (x_i, y_i) so far, A⁻¹ stands for M = A⁻¹ − Σ_i x_i y_iᵀ,
+/// and the new term's x = M u and y = vᵀM / (1 + vᵀMu) are appended to
+/// them, so that (A + u vᵀ)⁻¹ = M − x yᵀ. `ainv` is row-major of `shape` =
+/// (k, k|A|); `pending` holds the x_i and the y_i, k|A| entries each.
+/// Returns false, appending nothing, when the pivot is tiny or NaN.
+///
+/// Every entry is computed by the same operations in the same order
+/// whatever the vector width (elementwise products and differences, and
+/// [`dot`]'s four fixed accumulators; no FMA contraction), so the versions
+/// compiled for AVX-512, AVX2, AVX and NEON, picked at run time, give the
+/// same bits as the baseline one.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx",
+    "aarch64+neon"
+))]
+fn defer_rank_one<'a, 't>(
+    ainv: &[f64],
+    shape: (usize, usize),
+    update: RankOne<'a, 't>,
+    pending: (&mut Vec<f64>, &mut Vec<f64>),
+    rows: &mut Vec<(usize, f64)>,
+) -> bool {
+    let (k, n) = shape;
+    let RankOne { sign, a, f, terms } = update;
+    let (pending_x, pending_y) = pending;
+    let p = pending_x.len() / n;
+    pending_x.resize((p + 1) * n, 0.0);
+    pending_y.resize((p + 1) * n, 0.0);
+    let (xs, x) = pending_x.split_at_mut(p * n);
+    let (ys, y) = pending_y.split_at_mut(p * n);
+    // x = A⁻¹u: the columns of block a, weighted by f ...
+    for (r, x) in x.iter_mut().enumerate() {
+        *x = sign * dot(&ainv[r * n + a * k..r * n + (a + 1) * k], f);
+    }
+    // ... minus Σ_i x_i (y_i · u).
+    for (xi, yi) in xs.chunks_exact(n).zip(ys.chunks_exact(n)) {
+        let c = sign * dot(&yi[a * k..(a + 1) * k], f);
+        if c != 0.0 {
+            for (x, xi) in x.iter_mut().zip(xi) {
+                *x -= c * xi;
+            }
+        }
+    }
+    // vᵀx, and the rows of A⁻¹ that v weighs, with their weights.
+    let mut vx = 0.0;
+    rows.clear();
+    for &(block, coef, g) in terms {
+        for (j, &gj) in g.iter().enumerate() {
+            let c = coef * gj;
+            if c != 0.0 {
+                let r = block * k + j;
+                vx += c * x[r];
+                rows.push((r, c));
+            }
+        }
+    }
+    let pivot = 1.0 + vx;
+    if pivot.is_nan() || pivot.abs() < MIN_PIVOT {
+        pending_x.truncate(p * n);
+        pending_y.truncate(p * n);
+        return false;
+    }
+    // y = vᵀA⁻¹, four rows at a time, (c₀m₀ + c₁m₁) + (c₂m₂ + c₃m₃) ...
+    y.iter_mut().for_each(|y| *y = 0.0);
+    let row = |r: usize| &ainv[r * n..(r + 1) * n];
+    let mut quads = rows.chunks_exact(4);
+    for q in &mut quads {
+        let [(r0, c0), (r1, c1), (r2, c2), (r3, c3)] = [q[0], q[1], q[2], q[3]];
+        let m = row(r0).iter().zip(row(r1)).zip(row(r2)).zip(row(r3));
+        for (y, (((m0, m1), m2), m3)) in y.iter_mut().zip(m) {
+            *y += (c0 * m0 + c1 * m1) + (c2 * m2 + c3 * m3);
+        }
+    }
+    for &(r, c) in quads.remainder() {
+        for (y, m) in y.iter_mut().zip(row(r)) {
+            *y += c * m;
+        }
+    }
+    // ... minus Σ_i (v · x_i) y_i, over the pivot.
+    for (xi, yi) in xs.chunks_exact(n).zip(ys.chunks_exact(n)) {
+        let c: f64 = terms
+            .iter()
+            .map(|&(block, coef, g)| coef * dot(g, &xi[block * k..(block + 1) * k]))
+            .sum();
+        if c != 0.0 {
+            for (y, yi) in y.iter_mut().zip(yi) {
+                *y -= c * yi;
+            }
+        }
+    }
+    y.iter_mut().for_each(|y| *y /= pivot);
+    true
+}
+
+/// Columns of A⁻¹ updated at once in registers by [`apply_pending`].
+const APPLY_COLS: usize = 32;
+
+/// A⁻¹ ← A⁻¹ − Σ_i x_i y_iᵀ for the pending terms (x_i, y_i), in one pass:
+/// A⁻¹ in blocks of [`APPLY_COLS`] columns, each row's block kept in
+/// registers while every term is taken from it in order (so each entry is
+/// m − c₀y₀ − c₁y₁ − …, whatever the vector width). `xt` is scratch for
+/// the x_i transposed.
+#[multiversion::multiversion(targets(
+    "x86_64+avx512f+avx512vl+avx2+fma",
+    "x86_64+avx2+fma",
+    "x86_64+avx",
+    "aarch64+neon"
+))]
+fn apply_pending(ainv: &mut [f64], n: usize, pending: (&[f64], &[f64]), xt: &mut Vec<f64>) {
+    let (xs, ys) = pending;
+    let p = xs.len() / n;
+    xt.clear();
+    xt.resize(n * p, 0.0);
+    for (i, xi) in xs.chunks_exact(n).enumerate() {
+        for (r, &x) in xi.iter().enumerate() {
+            xt[r * p + i] = x;
+        }
+    }
+    // The y_i's columns of one block, packed together (y_i of k|A| = 2^m
+    // entries apart would fall into the same few cache sets).
+    let mut packed = [0.0f64; MAX_PENDING * APPLY_COLS];
+    let mut c0 = 0;
+    while n - c0 >= APPLY_COLS {
+        for (pack, yi) in packed.chunks_exact_mut(APPLY_COLS).zip(ys.chunks_exact(n)) {
+            pack.copy_from_slice(&yi[c0..c0 + APPLY_COLS]);
+        }
+        for (row, c) in ainv.chunks_exact_mut(n).zip(xt.chunks_exact(p)) {
+            let block = &mut row[c0..c0 + APPLY_COLS];
+            let mut acc = [0.0f64; APPLY_COLS];
+            acc.copy_from_slice(block);
+            for (&ci, yi) in c.iter().zip(packed.chunks_exact(APPLY_COLS)) {
+                if ci != 0.0 {
+                    for (m, y) in acc.iter_mut().zip(yi) {
+                        *m -= ci * y;
+                    }
+                }
+            }
+            block.copy_from_slice(&acc);
+        }
+        c0 += APPLY_COLS;
+    }
+    if c0 < n {
+        for (row, c) in ainv.chunks_exact_mut(n).zip(xt.chunks_exact(p)) {
+            for (&ci, yi) in c.iter().zip(ys.chunks_exact(n)) {
+                if ci != 0.0 {
+                    for (m, y) in row[c0..].iter_mut().zip(&yi[c0..]) {
+                        *m -= ci * y;
+                    }
+                }
+            }
         }
     }
 }
@@ -339,6 +530,7 @@ mod tests {
                 planner.set_successor(0, store.get(0), (t % 2) as usize, true);
             }
         }
+        planner.flush();
         let incremental = planner.ainv.clone();
         planner.stale = true;
         assert!(planner.maybe_rebuild(&store));
@@ -352,5 +544,69 @@ mod tests {
             max_err <= 1e-8 * scale.max(1.0),
             "drift {max_err} at scale {scale}"
         );
+    }
+
+    /// Successor changes held back (more of them than [`MAX_PENDING`], so
+    /// that some are applied on the way) give the inverse of a rebuild, and
+    /// so do the rank-one updates applied one at a time.
+    #[test]
+    fn pending_changes_applied_together_match_a_rebuild() {
+        let (k, actions) = (5, 3);
+        let samples = 24;
+        let mut store = SampleStore::new(1, k, 8, 4, samples, 1);
+        let feats = |x: f64| -> Vec<f64> {
+            (0..k)
+                .map(|j| (-(x - j as f64 / 4.0).powi(2) * 8.0).exp())
+                .collect()
+        };
+        let mut planner = SamplePlanner::new(k, actions, 0.9, 0.1);
+        for t in 0..samples as u64 {
+            let x = (t as f64 * 0.29).fract();
+            let x2 = (x + 0.05).min(1.0);
+            let ins = store.insert(
+                t,
+                &[x],
+                (t % 3) as usize,
+                &[x2],
+                &feats(x),
+                &feats(x2),
+                &[0.0],
+            );
+            assert!(ins.replaced.is_none());
+            planner.add(ins.index, store.get(ins.index), 0, t % 4 != 0);
+        }
+        let mut one_at_a_time = planner.clone();
+        let mut changes = 0;
+        for round in 1..4 {
+            for i in 0..samples {
+                let pi = (i + round) % actions;
+                let known = (i + round) % 5 != 0;
+                planner.set_successor(i, store.get(i), pi, known);
+                one_at_a_time.set_successor(i, store.get(i), pi, known);
+                one_at_a_time.flush();
+                changes += 1;
+            }
+        }
+        assert!(changes > MAX_PENDING);
+        assert!(!planner.pending_x.is_empty(), "some changes still pending");
+        planner.flush();
+        assert!(planner.pending_x.is_empty() && planner.pending_y.is_empty());
+        let mut rebuilt = planner.clone();
+        rebuilt.stale = true;
+        assert!(rebuilt.maybe_rebuild(&store));
+        let scale = rebuilt.ainv.iter().map(|v| v.abs()).fold(0.0, f64::max);
+        for (name, got) in [("together", &planner), ("one at a time", &one_at_a_time)] {
+            assert!(!got.stale, "{name}: no update was refused");
+            let err = got
+                .ainv
+                .iter()
+                .zip(&rebuilt.ainv)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0, f64::max);
+            assert!(
+                err <= 1e-9 * scale.max(1.0),
+                "{name}: drift {err} at scale {scale}"
+            );
+        }
     }
 }

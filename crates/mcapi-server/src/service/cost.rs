@@ -213,7 +213,7 @@ fn continuous(
     spec: &mcapi_core::continuous::ContinuousSpec,
     config: &EffectiveConfig,
 ) -> SessionCost {
-    use mcapi_core::continuous::planner::REBUILD_EVERY;
+    use mcapi_core::continuous::planner::{MAX_PENDING, REBUILD_EVERY};
     use mcapi_core::continuous::stimulus::PROBES;
     let k = model.basis.k as u64;
     let na = model.actions.len() as u64;
@@ -227,7 +227,9 @@ fn continuous(
     let f = k * na;
     let names = names_bytes(model);
     let mut bytes = names + mul(mul(na, mul(k, k) + mul(k, n)), 8);
-    bytes += mul(mul(f, f), 8) + mul(f, 24);
+    // A⁻¹, its vectors, and its pending rank-one terms (x, y and x
+    // transposed while they are applied).
+    bytes += mul(mul(f, f), 8) + mul(f, 24) + mul(f, 24 * MAX_PENDING as u64);
     bytes += mul(samples, mul(2 * d + 2 * k + 8, 8));
     bytes += mul(mul(PROBES as u64, k), 8) + mul(mul(k, d), 16);
     let history = config.history as u64;
