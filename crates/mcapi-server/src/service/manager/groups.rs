@@ -548,13 +548,19 @@ impl SessionManager {
             .durability
             .as_ref()
             .map(|d| Arc::new(Batch::new(Arc::clone(&d.store))));
+        let resident = self.resident_all(
+            chunk
+                .iter()
+                .map(|(_, (index, _))| group.members[*index].as_deref()),
+        );
         let applied = chunk
             .into_iter()
-            .map(|(pos, (index, obs))| {
-                let Some(member) = &group.members[index] else {
+            .zip(resident)
+            .map(|((pos, (index, obs)), resident)| {
+                if group.members[index].is_none() {
                     return (pos, index, Applied::Refused(unrecovered(&group.id, index)));
-                };
-                let session = match self.resident(member) {
+                }
+                let session = match resident {
                     Some(s) if caller.may_see(s.owner.as_ref()) && !s.is_stale() => s,
                     // Evicted, deleted, or to be rolled back first: as a
                     // lone observation is.
