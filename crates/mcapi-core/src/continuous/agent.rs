@@ -21,7 +21,7 @@ mod snapshot;
 pub use snapshot::ContinuousSnapshot;
 
 use super::basis::{FeatureMap, PvfGraph};
-use super::dot::dot;
+use super::dot::{dot, rows_times};
 use super::model::ContinuousModel;
 use super::planner::SamplePlanner;
 use super::samples::SampleStore;
@@ -136,6 +136,10 @@ pub struct ContinuousAgent {
     graph: Option<PvfGraph>,
     /// Scratch: the successor actions to change (advantage, index, π, known).
     switches: Vec<(f64, usize, usize, bool)>,
+    /// Scratch: per-action weights (u or w) transposed, `k × actions`.
+    by_action: Vec<f64>,
+    /// Scratch: Q(s′_i, a) = v(s′_i) · w_a, row-major, during a plan.
+    next_q: Vec<f64>,
 }
 
 impl ContinuousAgent {
@@ -186,6 +190,8 @@ impl ContinuousAgent {
                 _ => None,
             },
             switches: Vec::new(),
+            by_action: Vec::new(),
+            next_q: Vec::new(),
             model,
         }
     }
@@ -417,22 +423,30 @@ impl ContinuousAgent {
                 r_max = r_max.max(self.reward(v, a));
             }
         }
-        self.targets.clear();
+        // R(s′_i, a) for every action in one product over the store ...
+        let na = self.model.n_actions();
+        transpose_into(&self.u, k, na, &mut self.by_action);
         self.next_rewards.clear();
-        for (sample, &mask) in self.store.iter().zip(&self.known_next) {
-            let r = self.reward(sample.v, sample.a);
+        self.next_rewards.resize(self.store.len() * na, 0.0);
+        let rows = self.store.v_next_rows();
+        rows_times(rows, k, &self.by_action, na, &mut self.next_rewards);
+        self.targets.clear();
+        let u = &self.u;
+        for ((sample, &mask), next) in self
+            .store
+            .iter()
+            .zip(&self.known_next)
+            .zip(self.next_rewards.chunks_exact_mut(na))
+        {
+            let r = dot(sample.v, &u[sample.a * k..(sample.a + 1) * k]).abs();
             self.targets.push(r);
             r_max = r_max.max(r);
-            // Only unknown successor pairs need R (for Q_opt); a known
-            // one's reward is among the stored transitions' own.
-            for a in 0..self.model.n_actions() {
-                let r = if mask >> a & 1 == 1 {
-                    0.0
-                } else {
-                    self.reward(sample.v_next, a)
-                };
-                self.next_rewards.push(r);
-                r_max = r_max.max(r);
+            // ... of which only unknown successor pairs need R (for
+            // Q_opt); a known one's reward is among the stored
+            // transitions' own.
+            for (a, r) in next.iter_mut().enumerate() {
+                *r = if mask >> a & 1 == 1 { 0.0 } else { r.abs() };
+                r_max = r_max.max(*r);
             }
         }
         self.r_max = r_max;
@@ -465,8 +479,9 @@ impl ContinuousAgent {
     /// The greedy action at transition i's successor, whether that pair
     /// is known, and its advantage over the action A holds for i (0 when
     /// they are the same or tied).
-    /// `cached`: R(s′_i, ·) is in `next_rewards` (it is after
-    /// [`Self::refresh_reward_weights`], for the transitions stored then).
+    /// `cached`: R(s′_i, ·) is in `next_rewards` and Q(s′_i, ·) in
+    /// `next_q` (as they are in [`plan_kernel`] after the evaluation, for
+    /// the transitions stored then).
     #[inline(always)]
     fn greedy_successor(&self, i: usize, cached: bool) -> (usize, bool, f64) {
         let sample = self.store.get(i);
@@ -478,7 +493,11 @@ impl ContinuousAgent {
         let g = self.params.gamma;
         for (a, q) in qs.iter_mut().enumerate().take(na) {
             *q = if mask >> a & 1 == 1 {
-                self.planner.q(sample.v_next, a)
+                if cached {
+                    self.next_q[i * na + a]
+                } else {
+                    self.planner.q(sample.v_next, a)
+                }
             } else if cached {
                 self.next_rewards[i * na + a] + g * self.r_max / (1.0 - g)
             } else {
@@ -559,6 +578,19 @@ impl ContinuousAgent {
     }
 }
 
+/// out (k × actions, row-major) = the `actions` blocks of k in `blocks`,
+/// transposed.
+#[inline(always)]
+fn transpose_into(blocks: &[f64], k: usize, actions: usize, out: &mut Vec<f64>) {
+    out.clear();
+    out.resize(k * actions, 0.0);
+    for (a, block) in blocks.chunks_exact(k).take(actions).enumerate() {
+        for (j, &b) in block.iter().enumerate() {
+            out[j * actions + a] = b;
+        }
+    }
+}
+
 /// [`ContinuousAgent::plan_at`]'s body, compiled for AVX-512, AVX2, AVX and
 /// NEON as well and picked at run time: its passes over the sample store
 /// are inner products ([`dot`]'s four fixed accumulators) and elementwise
@@ -582,6 +614,14 @@ fn plan_kernel(agent: &mut ContinuousAgent, v_now: &[f64]) {
     }
     agent.planner.maybe_rebuild(&agent.store);
     agent.planner.evaluate(&agent.store, &agent.targets);
+    // Q(s′_i, a) = v(s′_i) · w_a for every transition and action, in one
+    // product over the store.
+    let k = v_now.len();
+    transpose_into(agent.planner.weights(), k, na, &mut agent.by_action);
+    agent.next_q.clear();
+    agent.next_q.resize(agent.store.len() * na, 0.0);
+    let rows = agent.store.v_next_rows();
+    rows_times(rows, k, &agent.by_action, na, &mut agent.next_q);
     // The improvement: every successor whose greedy action differs from
     // the one A holds is a candidate; at most MAX_SWITCHES of them, the
     // largest advantages first (ties by index), change this tick.

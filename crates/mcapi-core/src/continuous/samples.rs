@@ -201,6 +201,11 @@ impl SampleStore {
         }
     }
 
+    /// v(s′_i) of every stored transition, row-major (`len() × k`).
+    pub fn v_next_rows(&self) -> &[f64] {
+        &self.v_next[..self.samples.len() * self.k]
+    }
+
     /// Every stored transition as the planner reads it, in index order.
     pub fn iter(&self) -> impl Iterator<Item = SampleRef<'_>> {
         let k = self.k.max(1);
