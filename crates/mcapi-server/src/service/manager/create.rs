@@ -45,6 +45,14 @@ impl Drop for AbandonOnDrop {
     }
 }
 
+/// Passes of [`SessionManager::make_room`] one creation may ask for, when
+/// concurrent creations of the same key keep taking the room made for it.
+/// A creation is refused at its quota when a pass neither finds room nor
+/// evicts a session (none of the key's is idle), or after this many
+/// passes. With eight creations racing at a full quota, three passes that
+/// also had to find room were measured too few.
+pub(super) const ROOM_PASSES: usize = 16;
+
 impl SessionManager {
     /// Creates a session. Synchronous and possibly slow (a PVF basis costs
     /// an eigendecomposition; with a store, the creation is committed before
@@ -163,7 +171,8 @@ impl SessionManager {
         ));
         // Checked again under the lock: concurrent creates see each other.
         // One that took the room this one was admitted to is made room for
-        // again (a few times at most: each pass leaves a tenth free).
+        // again ([`ROOM_PASSES`] times at most: each pass leaves a tenth
+        // free).
         let mut passes = 0;
         loop {
             let mut sessions = self.sessions.write();
@@ -179,8 +188,8 @@ impl SessionManager {
             };
             drop(sessions);
             if matches!(e, ServiceError::QuotaExceeded(_))
-                && passes < 3
-                && self.make_room(&owner, cost.bytes)
+                && passes < ROOM_PASSES
+                && self.room_or_progress(&owner, cost.bytes)
             {
                 passes += 1;
                 continue;
@@ -203,18 +212,23 @@ impl SessionManager {
         owner: &session::Owner,
         cost: &SessionCost,
     ) -> Result<(), ServiceError> {
-        // The table's lock is not held past this line: making room takes
-        // it to write.
-        let held = self.sessions.read().usage(owner);
-        match self.limits.check_cost(cost, held) {
-            Err(ServiceError::QuotaExceeded(_))
-                if cost.bytes <= self.limits.max_session_bytes
-                    && self.make_room(owner, cost.bytes) =>
-            {
-                self.limits
-                    .check_cost(cost, self.sessions.read().usage(owner))
+        // The table's lock is not held past the check: making room takes
+        // it to write. A concurrent creation may take the room made before
+        // this one checks again: room is then made again ([`ROOM_PASSES`]
+        // times at most, as when the session is inserted).
+        let mut passes = 0;
+        loop {
+            let held = self.sessions.read().usage(owner);
+            match self.limits.check_cost(cost, held) {
+                Err(ServiceError::QuotaExceeded(_))
+                    if passes < ROOM_PASSES
+                        && cost.bytes <= self.limits.max_session_bytes
+                        && self.room_or_progress(owner, cost.bytes) =>
+                {
+                    passes += 1;
+                }
+                other => return other,
             }
-            other => other,
         }
     }
 

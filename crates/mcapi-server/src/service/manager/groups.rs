@@ -324,8 +324,8 @@ impl SessionManager {
             };
             drop(table);
             if matches!(e, ServiceError::QuotaExceeded(_))
-                && passes < 3
-                && self.make_room(&owner, total.bytes)
+                && passes < super::create::ROOM_PASSES
+                && self.room_or_progress(&owner, total.bytes)
             {
                 passes += 1;
                 continue;

@@ -295,17 +295,33 @@ impl SessionManager {
     /// quota free besides `need`, so that a run of creations does not pay
     /// a pass each. True if `need` then fits. One pass at a time; blocking.
     pub(super) fn make_room(&self, owner: &session::Owner, need: u64) -> bool {
+        self.room_pass(owner, need).fits
+    }
+
+    /// [`Self::make_room`] for a caller that checks the quota again and
+    /// retries (a bounded number of times) when a concurrent creation took
+    /// the room: true when `need` fits now, or when this pass evicted
+    /// sessions (so a retry may find room). A pass that evicts nothing
+    /// and finds no room ends the retries.
+    pub(super) fn room_or_progress(&self, owner: &session::Owner, need: u64) -> bool {
+        let pass = self.room_pass(owner, need);
+        pass.fits || pass.evicted > 0
+    }
+
+    /// One pass of [`Self::make_room`].
+    fn room_pass(&self, owner: &session::Owner, need: u64) -> RoomPass {
         let quota = self.limits.max_key_bytes;
         let fits = |m: &Self| m.sessions.read().usage(owner).bytes.saturating_add(need) <= quota;
+        let done = |fits| RoomPass { fits, evicted: 0 };
         if fits(self) {
-            return true;
+            return done(true);
         }
         if self.evict_after.is_none() || need > quota {
-            return false;
+            return done(false);
         }
         let _one_pass = self.pressure.lock();
         if fits(self) {
-            return true;
+            return done(true);
         }
         let target = (quota - need).saturating_sub(quota / 10);
         // The owner's evictable sessions, least recently active first.
@@ -346,6 +362,17 @@ impl SessionManager {
             sessions = evicted,
             "sessions evicted to make room within a key's quota"
         );
-        fits(self)
+        RoomPass {
+            fits: fits(self),
+            evicted,
+        }
     }
+}
+
+/// What one pass of [`SessionManager::make_room`] did.
+struct RoomPass {
+    /// The bytes asked for fit the quota when the pass ended.
+    fits: bool,
+    /// Sessions it evicted.
+    evicted: usize,
 }
