@@ -593,7 +593,8 @@ fn transpose_into(blocks: &[f64], k: usize, actions: usize, out: &mut Vec<f64>) 
 
 /// [`ContinuousAgent::plan_at`]'s body, compiled for AVX-512, AVX2, AVX and
 /// NEON as well and picked at run time: its passes over the sample store
-/// are inner products ([`dot`]'s four fixed accumulators) and elementwise
+/// are inner products ([`dot`]'s four fixed accumulators), products over
+/// the store ([`rows_times`], each entry summed in order) and elementwise
 /// sums, done in the same order whatever the vector width (no FMA
 /// contraction), so every version gives the same bits.
 #[multiversion::multiversion(targets(

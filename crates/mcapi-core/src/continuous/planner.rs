@@ -177,9 +177,15 @@ impl SamplePlanner {
             self.updates += 1;
         } else {
             self.stale = true;
-            self.pending_x.clear();
-            self.pending_y.clear();
+            self.drop_pending();
         }
+    }
+
+    /// Forgets the pending terms: A is stale, or rebuilt from the samples
+    /// (which hold them already).
+    fn drop_pending(&mut self) {
+        self.pending_x.clear();
+        self.pending_y.clear();
     }
 
     /// Applies the pending rank-one terms to A⁻¹, in one pass over it.
@@ -190,8 +196,7 @@ impl SamplePlanner {
         let n = self.k * self.actions;
         let pending = (self.pending_x.as_slice(), self.pending_y.as_slice());
         apply_pending(&mut self.ainv, n, pending, &mut self.pending_t);
-        self.pending_x.clear();
-        self.pending_y.clear();
+        self.drop_pending();
         self.pending_t.clear();
     }
 
@@ -245,8 +250,7 @@ impl SamplePlanner {
     pub fn rebase(&mut self, ridge: f64) {
         self.ridge = ridge;
         self.stale = true;
-        self.pending_x.clear();
-        self.pending_y.clear();
+        self.drop_pending();
     }
 
     /// Rebuilds A from the samples and inverts it, when stale or due.
@@ -256,9 +260,7 @@ impl SamplePlanner {
         if !self.stale && self.since_rebuild < REBUILD_EVERY {
             return false;
         }
-        // Rebuilt from the samples: what was pending is in A already.
-        self.pending_x.clear();
-        self.pending_y.clear();
+        self.drop_pending();
         let (k, n) = (self.k, self.k * self.actions);
         // A, row-major while it is summed (each term adds k-long runs to a
         // row), then handed to nalgebra, which stores columns: so `a` below
