@@ -81,8 +81,44 @@ fn bench_tick(c: &mut Criterion) {
         let mut sim = simulation(exp, &basis, epsilon);
         group.bench_function(name, |b| b.iter(|| black_box(sim.tick().expect("tick"))));
     }
+    // The hallway tick again, with 10,000 agents stepped in turn as a
+    // server's group step touches them: when an agent's turn comes, none
+    // of its state is in any cache any more (10,000 agents of about 9 KiB
+    // are beyond L3), so this is the tick when its memory comes from DRAM.
+    let model = hallway.preset.model.clone();
+    let basis = Basis::build(&BasisSpec::Indicator, &model).expect("basis");
+    let ctx = Arc::new(PlanningModel::new(model, basis));
+    let mut many: Vec<Simulation<'_>> = (0..MANY_AGENTS as u64)
+        .map(|i| {
+            let params = AgentParams {
+                eta: Some(hallway.eta),
+                gamma: Some(hallway.gamma),
+                seed: Some(i),
+                ..Default::default()
+            }
+            .check(hallway.dims(), i)
+            .expect("params");
+            let mut sim =
+                Simulation::new(&hallway, Arc::clone(&ctx), params, i).expect("simulation");
+            for _ in 0..MANY_WARM_UP_TICKS {
+                sim.tick().expect("warm-up tick");
+            }
+            sim
+        })
+        .collect();
+    let mut turn = 0;
+    group.bench_function("hallway_indicator_10000_agents", |b| {
+        b.iter(|| {
+            turn = (turn + 1) % many.len();
+            black_box(many[turn].tick().expect("tick"))
+        })
+    });
     group.finish();
 }
+
+/// Agents of `tick/hallway_indicator_10000_agents`, and their warm-up.
+const MANY_AGENTS: usize = 10_000;
+const MANY_WARM_UP_TICKS: usize = 200;
 
 fn bench_evaluation(c: &mut Criterion) {
     let maze = Experiment::new(ExperimentKind::ThreeRoom);

@@ -6,15 +6,37 @@
 
 use super::*;
 
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub(super) struct FunctionalGraph {
     /// V^π of the last evaluation (warm start of Gauss–Seidel when a
     /// learned P̂ stops being deterministic, [`Planner::model_changed`]).
     pub(super) v: Vec<f64>,
+    /// The successor of every state under the policy of the last walk.
+    succ: Vec<u32>,
+    /// That walk's order of solving: a state u < |S| is back-substituted,
+    /// V(u) = r(u) + γ V(succ(u)); an entry |S| + L − 1 is followed by the
+    /// L states c_0 … c_{L−1} of a cycle, solved in closed form. Depends
+    /// only on `succ`, so an evaluation whose successors are the last
+    /// one's (π and P unchanged: most ticks) replays it without walking.
+    order: Vec<u32>,
 }
 
 impl FunctionalGraph {
+    /// The engine for `states` states, before any evaluation.
+    pub(super) fn new(states: usize) -> Self {
+        Self {
+            v: vec![0.0; states],
+            ..Self::default()
+        }
+    }
+
     /// Exact Q^π for a deterministic model and Φ = I (see module docs).
+    ///
+    /// The walk over the graph (marks, a path, cycles found) is done only
+    /// when a state's successor under π changed since the last evaluation;
+    /// otherwise its recorded order is replayed. Either way every V(s) is
+    /// computed by the same operations on the same values, so the bits do
+    /// not depend on whether the order was recorded or replayed.
     pub(super) fn evaluate(
         &mut self,
         model: &EnvModel,
@@ -23,21 +45,58 @@ impl FunctionalGraph {
         gamma: f64,
         scratch: &mut Scratch,
     ) {
-        pub(super) const UNSEEN: u8 = 0;
-        pub(super) const ON_PATH: u8 = 1;
-        pub(super) const DONE: u8 = 2;
         let n = model.states();
-        let next = |s: usize| model.next_state(policy[s] as usize);
+        let next = |s: usize| model.next_state(policy[s] as usize) as u32;
+        let unchanged = self.succ.len() == n && (0..n).all(|s| self.succ[s] == next(s));
+        if !unchanged {
+            self.succ.clear();
+            self.succ.extend((0..n).map(next));
+            self.walk(scratch);
+        }
+        let Self { v, succ, order } = self;
         let reward = |s: usize| r[policy[s] as usize];
-        let Scratch {
-            q_next: q,
-            mark,
-            stack,
-            ..
-        } = scratch;
+        let mut i = 0;
+        while let Some(&e) = order.get(i) {
+            i += 1;
+            let e = e as usize;
+            if e < n {
+                v[e] = reward(e) + gamma * v[succ[e] as usize];
+                continue;
+            }
+            // A cycle c_0, c_1, ..., c_{L-1}:
+            // V(c_0) = Σ_i γ^i r(c_i) / (1 − γ^L), summed backwards (Horner).
+            let len = e - n + 1;
+            let cycle = &order[i..i + len];
+            i += len;
+            let mut sum = 0.0;
+            for &c in cycle.iter().rev() {
+                sum = reward(c as usize) + gamma * sum;
+            }
+            let v0 = sum / (1.0 - gamma.powi(len as i32));
+            v[cycle[0] as usize] = v0;
+            let mut after = v0;
+            for &c in cycle[1..].iter().rev() {
+                after = reward(c as usize) + gamma * after;
+                v[c as usize] = after;
+            }
+        }
+        for (p, qp) in scratch.q_next.iter_mut().enumerate() {
+            *qp = r[p] + gamma * v[model.next_state(p)];
+        }
+    }
+
+    /// Records the order of solving the functional graph `succ`: from
+    /// each state not yet solved, follow successors until a solved state
+    /// or a cycle; the cycle first, then the path back to the start.
+    fn walk(&mut self, scratch: &mut Scratch) {
+        const UNSEEN: u8 = 0;
+        const ON_PATH: u8 = 1;
+        const DONE: u8 = 2;
+        let n = self.succ.len();
+        let Scratch { mark, stack, .. } = scratch;
         mark.clear();
         mark.resize(n, UNSEEN);
-        let v = &mut self.v;
+        self.order.clear();
         for start in 0..n {
             if mark[start] == DONE {
                 continue;
@@ -47,39 +106,24 @@ impl FunctionalGraph {
             while mark[s] == UNSEEN {
                 mark[s] = ON_PATH;
                 stack.push(s as u32);
-                s = next(s);
+                s = self.succ[s] as usize;
             }
             if mark[s] == ON_PATH {
-                // The walk closed a cycle c_0 = s, c_1, ..., c_{L-1} (the stack's tail):
-                // V(c_0) = Σ_i γ^i r(c_i) / (1 − γ^L), summed backwards (Horner).
+                // The walk closed a cycle c_0 = s, ..., c_{L-1} (the stack's tail).
                 let pos = stack.iter().rposition(|&x| x as usize == s).unwrap_or(0);
                 let cycle = &stack[pos..];
-                let len = cycle.len();
-                let mut sum = 0.0;
-                for &c in cycle.iter().rev() {
-                    sum = reward(c as usize) + gamma * sum;
-                }
-                let v0 = sum / (1.0 - gamma.powi(len as i32));
-                v[s] = v0;
-                mark[s] = DONE;
-                let mut after = v0;
-                for &c in cycle[1..].iter().rev() {
-                    let c = c as usize;
-                    after = reward(c) + gamma * after;
-                    v[c] = after;
-                    mark[c] = DONE;
+                self.order.push((n + cycle.len() - 1) as u32);
+                self.order.extend_from_slice(cycle);
+                for &c in cycle {
+                    mark[c as usize] = DONE;
                 }
                 stack.truncate(pos);
             }
-            // The rest of the path leads into solved states: back-substitute.
+            // The rest of the path leads into solved states.
             while let Some(u) = stack.pop() {
-                let u = u as usize;
-                v[u] = reward(u) + gamma * v[next(u)];
-                mark[u] = DONE;
+                self.order.push(u);
+                mark[u as usize] = DONE;
             }
-        }
-        for (p, qp) in q.iter_mut().enumerate() {
-            *qp = r[p] + gamma * v[model.next_state(p)];
         }
     }
 }

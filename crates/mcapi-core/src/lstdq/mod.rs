@@ -239,9 +239,7 @@ impl Planner {
         let model = &ctx.model;
         debug_assert_eq!(policy.len(), model.states());
         let engine = match (&ctx.features, model.is_deterministic()) {
-            (None, true) => Engine::FunctionalGraph(FunctionalGraph {
-                v: vec![0.0; model.states()],
-            }),
+            (None, true) => Engine::FunctionalGraph(FunctionalGraph::new(model.states())),
             (None, false) => Engine::GaussSeidel {
                 v: vec![0.0; model.states()],
             },

@@ -308,3 +308,44 @@ fn feature_engine_matches_indicator_when_features_are_complete() {
     }
     assert!(pf.stats().rank_one_updates > 0, "{:?}", pf.stats());
 }
+
+/// The functional-graph engine replays its recorded order while the
+/// successors stay the same and walks again when they change; either way
+/// V and Q have the bits of a walk from scratch.
+#[test]
+fn functional_graph_replays_its_order_with_the_bits_of_a_fresh_walk() {
+    let states = 40;
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    let succ: Vec<Vec<Option<usize>>> = (0..states)
+        .map(|_| (0..3).map(|_| Some(rng.random_range(0..states))).collect())
+        .collect();
+    let model =
+        EnvModel::deterministic(succ, names(&["a", "b", "c"]), names(&["x"])).expect("model");
+    let pairs = model.n_pairs();
+    let mut kept = functional::FunctionalGraph::new(states);
+    let mut policy = first_action_policy(&model);
+    let mut walks = 0;
+    for t in 0..60 {
+        // Every third evaluation under a changed policy (a few states).
+        if t % 3 == 0 {
+            for _ in 0..1 + t % 4 {
+                let s = rng.random_range(0..states);
+                let range = model.pairs_of(s);
+                policy[s] = rng.random_range(range.start..range.end) as u32;
+            }
+            walks += 1;
+        }
+        let r: Vec<f64> = (0..pairs).map(|_| rng.random::<f64>() - 0.3).collect();
+        let mut scratch = Scratch::take(pairs);
+        kept.evaluate(&model, &policy, &r, 0.9, &mut scratch);
+        let q_kept: Vec<u64> = scratch.q_next.iter().map(|x| x.to_bits()).collect();
+        let mut fresh = functional::FunctionalGraph::new(states);
+        fresh.evaluate(&model, &policy, &r, 0.9, &mut scratch);
+        let q_fresh: Vec<u64> = scratch.q_next.iter().map(|x| x.to_bits()).collect();
+        scratch.put_back();
+        assert_eq!(q_kept, q_fresh, "evaluation {t}");
+        let bits = |v: &[f64]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&kept.v), bits(&fresh.v), "evaluation {t}");
+    }
+    assert!(walks > 10 && walks < 60, "both paths taken");
+}

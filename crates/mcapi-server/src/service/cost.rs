@@ -149,11 +149,13 @@ fn estimate_with(
         bytes += mul(transitions, 12) + mul(pairs + 1, 16) + mul(mul(states + 1, actions), 4);
         bytes += mul(pairs, 8 + 24) + mul(transitions, 16);
     }
-    // The planner's engine.
+    // The planner's engine (for the functional graph of a deterministic
+    // model: V, and the successors and order of its last walk, 12 bytes a
+    // state at most).
     bytes += if feature_basis {
         mul(mul(features, features), 16) + mul(features, 40) + mul(states, 8)
     } else {
-        mul(states, 16)
+        mul(states, 28)
     };
     // The history ring: D and the stimulus per tick.
     let history = config.history as u64;
