@@ -11,14 +11,15 @@ pub(super) struct FunctionalGraph {
     /// V^π of the last evaluation (warm start of Gauss–Seidel when a
     /// learned P̂ stops being deterministic, [`Planner::model_changed`]).
     pub(super) v: Vec<f64>,
-    /// The successor of every state under the policy of the last walk.
-    succ: Vec<u32>,
-    /// That walk's order of solving: a state u < |S| is back-substituted,
-    /// V(u) = r(u) + γ V(succ(u)); an entry |S| + L − 1 is followed by the
-    /// L states c_0 … c_{L−1} of a cycle, solved in closed form. Depends
-    /// only on `succ`, so an evaluation whose successors are the last
-    /// one's (π and P unchanged: most ticks) replays it without walking.
-    order: Vec<u32>,
+    /// The last walk over the graph, in one allocation: the successor of
+    /// every state under its policy (the first |S| entries), then its order
+    /// of solving: a state u < |S| is back-substituted, V(u) = r(u) +
+    /// γ V(succ(u)); an entry |S| + L − 1 is followed by the L states
+    /// c_0 … c_{L−1} of a cycle, solved in closed form. The order depends
+    /// only on the successors, so an evaluation whose successors are the
+    /// last walk's (π and P unchanged: most ticks) replays it without
+    /// walking. Empty until the first evaluation.
+    walk: Vec<u32>,
 }
 
 impl FunctionalGraph {
@@ -47,13 +48,14 @@ impl FunctionalGraph {
     ) {
         let n = model.states();
         let next = |s: usize| model.next_state(policy[s] as usize) as u32;
-        let unchanged = self.succ.len() == n && (0..n).all(|s| self.succ[s] == next(s));
+        let unchanged = self.walk.len() > n && (0..n).all(|s| self.walk[s] == next(s));
         if !unchanged {
-            self.succ.clear();
-            self.succ.extend((0..n).map(next));
-            self.walk(scratch);
+            self.walk.clear();
+            self.walk.extend((0..n).map(next));
+            self.record_walk(n, scratch);
         }
-        let Self { v, succ, order } = self;
+        let (succ, order) = self.walk.split_at(n);
+        let v = &mut self.v;
         let reward = |s: usize| r[policy[s] as usize];
         let mut i = 0;
         while let Some(&e) = order.get(i) {
@@ -85,18 +87,18 @@ impl FunctionalGraph {
         }
     }
 
-    /// Records the order of solving the functional graph `succ`: from
-    /// each state not yet solved, follow successors until a solved state
-    /// or a cycle; the cycle first, then the path back to the start.
-    fn walk(&mut self, scratch: &mut Scratch) {
+    /// Appends to `walk` (which holds the n successors) the order of
+    /// solving their functional graph: from each state not yet solved,
+    /// follow successors until a solved state or a cycle; the cycle first,
+    /// then the path back to the start.
+    fn record_walk(&mut self, n: usize, scratch: &mut Scratch) {
         const UNSEEN: u8 = 0;
         const ON_PATH: u8 = 1;
         const DONE: u8 = 2;
-        let n = self.succ.len();
         let Scratch { mark, stack, .. } = scratch;
         mark.clear();
         mark.resize(n, UNSEEN);
-        self.order.clear();
+        let walk = &mut self.walk;
         for start in 0..n {
             if mark[start] == DONE {
                 continue;
@@ -106,14 +108,14 @@ impl FunctionalGraph {
             while mark[s] == UNSEEN {
                 mark[s] = ON_PATH;
                 stack.push(s as u32);
-                s = self.succ[s] as usize;
+                s = walk[s] as usize;
             }
             if mark[s] == ON_PATH {
                 // The walk closed a cycle c_0 = s, ..., c_{L-1} (the stack's tail).
                 let pos = stack.iter().rposition(|&x| x as usize == s).unwrap_or(0);
                 let cycle = &stack[pos..];
-                self.order.push((n + cycle.len() - 1) as u32);
-                self.order.extend_from_slice(cycle);
+                walk.push((n + cycle.len() - 1) as u32);
+                walk.extend_from_slice(cycle);
                 for &c in cycle {
                     mark[c as usize] = DONE;
                 }
@@ -121,7 +123,7 @@ impl FunctionalGraph {
             }
             // The rest of the path leads into solved states.
             while let Some(u) = stack.pop() {
-                self.order.push(u);
+                walk.push(u);
                 mark[u as usize] = DONE;
             }
         }
