@@ -5,7 +5,7 @@ use std::collections::VecDeque;
 use std::ops::Range;
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Weak};
-use std::time::Instant;
+use std::time::{Duration, Instant};
 
 use parking_lot::Mutex;
 
@@ -314,12 +314,11 @@ impl Session {
         self.plan_cost_ns.load(Ordering::Relaxed)
     }
 
-    fn record_plan_cost(&self, started: Instant, updates: usize) {
+    fn record_plan_cost(&self, took: Duration, updates: usize) {
         if updates == 0 {
             return;
         }
-        let x =
-            u64::try_from(started.elapsed().as_nanos() / updates as u128).unwrap_or(u64::MAX - 1);
+        let x = u64::try_from(took.as_nanos() / updates as u128).unwrap_or(u64::MAX - 1);
         let old = self.plan_cost_ns.load(Ordering::Relaxed);
         let new = if old == u64::MAX {
             x
@@ -394,7 +393,8 @@ impl Session {
             };
         }
         self.pristine.store(false, Ordering::Release);
-        let started = Instant::now();
+        // Timed only when it plans (the cost of a plan is what is learned).
+        let started = plan.then(Instant::now);
         out.reserve(batch.len() - start);
         let mut log = Vec::new();
         let log_to = self.durability.as_ref().map(|_| &mut log);
@@ -415,8 +415,8 @@ impl Session {
             _ => (None, None),
         };
         drop(st);
-        if plan {
-            self.record_plan_cost(started, out.len() - start);
+        if let Some(started) = started {
+            self.record_plan_cost(started.elapsed(), out.len() - start);
         }
         Observed {
             result: result.map(|()| out),
@@ -552,11 +552,12 @@ impl Session {
     }
 
     /// One policy update if the reward changed since the last one (the tick
-    /// loop's work for async sessions).
-    pub fn plan_if_needed(&self) -> Result<bool, ServiceError> {
+    /// loop's work for async sessions): how long it took, or `None` if
+    /// none was needed.
+    pub fn plan_if_needed(&self) -> Result<Option<Duration>, ServiceError> {
         let mut st = self.state.lock();
         if self.is_failed() || !st.learner.needs_plan() {
-            return Ok(false);
+            return Ok(None);
         }
         self.pristine.store(false, Ordering::Release);
         let started = Instant::now();
@@ -566,8 +567,9 @@ impl Session {
             Ok(())
         })?;
         drop(st);
-        self.record_plan_cost(started, 1);
-        Ok(true)
+        let took = started.elapsed();
+        self.record_plan_cost(took, 1);
+        Ok(Some(took))
     }
 
     /// Deleted, being deleted, rolled back or quarantined: its state is

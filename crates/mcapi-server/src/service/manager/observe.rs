@@ -201,12 +201,9 @@ impl SessionManager {
     fn plan_after_observe(&self, session: &SessionRef, observed: &session::Observed, n: u64) {
         let inline = session.plan_cost_ns().saturating_mul(n) <= self.inline_plan_ns;
         if inline && observed.result.is_ok() {
-            let started = Instant::now();
             match session.plan_if_needed() {
-                Ok(true) => tick::meters()
-                    .tick_seconds
-                    .record(started.elapsed().as_secs_f64()),
-                Ok(false) => {}
+                Ok(Some(took)) => tick::meters().tick_seconds.record(took.as_secs_f64()),
+                Ok(None) => {}
                 Err(e) => tick::log_plan_error(session, &e),
             }
         } else if session.try_enqueue()
