@@ -150,8 +150,9 @@ fn estimate_with(
         bytes += mul(pairs, 8 + 24) + mul(transitions, 16);
     }
     // The planner's engine (for the functional graph of a deterministic
-    // model: V, and the successors and order of its last walk, 12 bytes a
-    // state at most).
+    // model: V, 8 bytes a state, and the successors and order of its last
+    // walk, at most 12 bytes a state held and 16 with the vector's spare
+    // room).
     bytes += if feature_basis {
         mul(mul(features, features), 16) + mul(features, 40) + mul(states, 8)
     } else {
