@@ -1,8 +1,9 @@
 //! The continuous experiments end to end (docs/algorithm.md §9.6): the CLI
-//! writes `summary.json`, the CSV series and the figures, and on a short
-//! run of the continuous hallway the agent balances food and rest and
-//! travels between them far more often than a random walk (the full
-//! 20-trial numbers are in BENCHMARKS.md §12).
+//! writes `summary.json`, the CSV series and the figures; on a short run
+//! of the continuous hallway the agent balances food and rest and travels
+//! between them far more often than a random walk, and on four trials of
+//! the continuous three-room it meets the targets of the 20-trial run in
+//! BENCHMARKS.md §12.
 
 use std::fs;
 use std::path::Path;
@@ -57,7 +58,7 @@ fn continuous_hallway_balances_and_travels_between_the_sources() {
     assert_eq!(s["trials"], 4);
     assert_eq!(s["steps"], 3000);
     assert_eq!(
-        s["model"]["basis"]["kind"], "rbf",
+        s["model"]["basis"]["kind"], "grid",
         "the default basis of d = 1"
     );
     let balance = stat(&s, "mca_pi", "balance", "mean");
@@ -92,17 +93,20 @@ fn continuous_hallway_balances_and_travels_between_the_sources() {
     assert_eq!(csv.lines().count(), 3001);
 }
 
+/// Four trials of 20,000 ticks (about 10 s of a debug build): every
+/// source found in every trial, balance at least 0.85 in every trial, and
+/// at least 0.7 of the discrete agent's cumulative stimulus on the map.
 #[test]
-fn continuous_three_room_runs_against_the_discrete_reference() {
+fn continuous_three_room_meets_its_targets_against_the_discrete_reference() {
     let dir = tempfile::tempdir().expect("tempdir");
     let out = dir.path().to_str().expect("utf-8 path");
     run_cli(&[
         "experiment",
         "continuous-three-room",
         "--trials",
+        "4",
+        "--seed",
         "1",
-        "--steps",
-        "300",
         "--no-figures",
         "--no-csv",
         "-q",
@@ -110,26 +114,33 @@ fn continuous_three_room_runs_against_the_discrete_reference() {
         out,
     ]);
     let s = summary(dir.path());
+    assert_eq!(s["steps"], 20_000);
     let configs = s["configs"].as_object().expect("configs");
     let names: Vec<&str> = configs.keys().map(String::as_str).collect();
     assert_eq!(
         names,
         ["discrete_mca_pi", "map_navigator", "mca_pi", "random_walk"]
     );
+    assert_eq!(
+        s["model"]["basis"]["kind"], "grid",
+        "the default basis of d = 2"
+    );
+    assert_eq!(
+        stat(&s, "mca_pi", "sources_found", "min"),
+        3.0,
+        "every trial finds every source"
+    );
+    let balance = stat(&s, "mca_pi", "balance", "min");
+    assert!(balance >= 0.85, "balance {balance} in the worst trial");
+    let ratio = s["ratios"]["stimulus_vs_discrete"].as_f64().expect("ratio");
     assert!(
-        stat(&s, "discrete_mca_pi", "total_stimulus", "mean") > 0.0,
-        "the discrete agent finds a source in 300 ticks"
+        ratio >= 0.7,
+        "{ratio} of the discrete agent's cumulative stimulus"
     );
     assert_eq!(
         stat(&s, "map_navigator", "sources_found", "mean"),
         3.0,
-        "the navigator knows the map: every source in 300 ticks"
-    );
-    assert!(
-        s["ratios"]["navigator_vs_discrete"]
-            .as_f64()
-            .expect("ratio")
-            > 0.0
+        "the navigator knows the map"
     );
     assert_eq!(
         s["model"]["observation_space"]["low"],

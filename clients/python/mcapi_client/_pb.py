@@ -225,6 +225,7 @@ _CONTINUOUS_BASES: dict[str, tuple[tuple[str, ...], tuple[str, ...]]] = {
     "rbf": (("centres_per_dim",), ("width",)),
     "tiles": (("tilings", "tiles_per_dim"), ("table",)),
     "pvf": (("k",), ("nodes", "neighbours")),
+    "grid": (("cells_per_dim",), ("neighbours", "reach")),
 }
 
 
@@ -243,7 +244,7 @@ def _continuous_basis(spec: Any, out: pb.ContinuousBasis) -> None:
         value = spec.get(field)
         if value is None:
             continue
-        setattr(msg, field, _number(value) if field == "width" else _uint32(value))
+        setattr(msg, field, _number(value) if field in ("width", "reach") else _uint32(value))
 
 
 def _continuous(model: dict[str, Any], out: pb.ContinuousModel) -> None:

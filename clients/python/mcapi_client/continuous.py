@@ -62,6 +62,7 @@ BASIS_KEYS: dict[str, tuple[str, ...]] = {
     "rbf": ("centres_per_dim", "width"),
     "tiles": ("tilings", "tiles_per_dim", "table"),
     "pvf": ("k", "nodes", "neighbours"),
+    "grid": ("cells_per_dim", "neighbours", "reach"),
 }
 """The bases of a continuous world, by ``kind``, and the fields each takes
 (the server checks their values: docs/sessions.md, "Continuous worlds")."""

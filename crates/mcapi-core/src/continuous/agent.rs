@@ -18,10 +18,11 @@ use rand_chacha::ChaCha8Rng;
 mod rebuild;
 mod snapshot;
 
-pub use snapshot::ContinuousSnapshot;
+pub use snapshot::{ContinuousSnapshot, ContinuousState, GridSnapshot};
 
 use super::basis::{FeatureMap, PvfGraph};
 use super::dot::{dot, rows_times};
+use super::grid::GridPlanner;
 use super::model::ContinuousModel;
 use super::planner::SamplePlanner;
 use super::samples::SampleStore;
@@ -86,9 +87,10 @@ pub struct ContinuousObserved {
 pub struct ContinuousStats {
     /// Observations clipped into the box.
     pub clipped: u64,
-    /// Transitions stored now.
+    /// Transitions stored now (on a grid: kept per (cell, action), a
+    /// transition counting once for each pair it teaches).
     pub samples: usize,
-    /// (cell, action) slots visited.
+    /// (cell, action) slots visited (on a grid: pairs with a successor).
     pub slots: usize,
     /// Rank-one updates of A⁻¹.
     pub updates: u64,
@@ -134,6 +136,9 @@ pub struct ContinuousAgent {
     probes: Vec<f64>,
     /// The graph of a PVF basis, grown by every observation.
     graph: Option<PvfGraph>,
+    /// The planner of a grid basis (docs/algorithm.md §9.8), which then
+    /// replaces Ξ's linear model, the sample store and LSTDQ.
+    grid: Option<Box<GridPlanner>>,
     /// Scratch: the successor actions to change (advantage, index, π, known).
     switches: Vec<(f64, usize, usize, bool)>,
     /// Scratch: per-action weights (u or w) transposed, `k × actions`.
@@ -153,7 +158,27 @@ impl ContinuousAgent {
             model.n_stimuli(),
         );
         let drive = Drive::new(&params.priorities, params.eta, &mut rng);
-        let typical = mean_sq_norm(&model.features, d);
+        // A grid plans without features: its prior is Ξ's (one draw per
+        // cell and stimulus), and the feature machinery stays empty.
+        let grid = match &model.features {
+            FeatureMap::Grid(shape) => Some(Box::new(GridPlanner::new(
+                d,
+                shape.cells_per_dim,
+                na,
+                n,
+                shape.neighbours,
+                shape.reach,
+                params.gamma,
+                params.optimistic_sd,
+                &mut rng,
+            ))),
+            _ => None,
+        };
+        let typical = if grid.is_some() {
+            1.0
+        } else {
+            mean_sq_norm(&model.features, d)
+        };
         let xi = LinearStimulus::new(na, k, n, params.optimistic_sd, typical, &mut rng);
         let sp = model.samples;
         let store = SampleStore::new(
@@ -184,7 +209,12 @@ impl ContinuousAgent {
             targets: Vec::new(),
             next_rewards: Vec::new(),
             r_max: 0.0,
-            probes: probe_features(&model.features, d),
+            probes: if grid.is_some() {
+                Vec::new()
+            } else {
+                probe_features(&model.features, d)
+            },
+            grid,
             graph: match &model.features {
                 FeatureMap::Pvf(p) => Some(PvfGraph::new(p)),
                 _ => None,
@@ -218,6 +248,17 @@ impl ContinuousAgent {
 
     /// Counters.
     pub fn stats(&self) -> ContinuousStats {
+        if let Some(grid) = &self.grid {
+            let g = grid.stats();
+            return ContinuousStats {
+                clipped: self.clipped,
+                samples: g.kept,
+                slots: g.known,
+                updates: 0,
+                rebuilds: 0,
+                basis_builds: 0,
+            };
+        }
         ContinuousStats {
             clipped: self.clipped,
             samples: self.store.len(),
@@ -291,6 +332,9 @@ impl ContinuousAgent {
         if clipped {
             self.clipped += 1;
         }
+        if self.grid.is_some() {
+            return Ok(self.observe_on_grid(s, obs, clipped));
+        }
         if let Some(graph) = &mut self.graph {
             graph.observe(&s, self.s.is_some());
         }
@@ -317,6 +361,50 @@ impl ContinuousAgent {
         })
     }
 
+    /// [`Self::observe`] for a grid: the transition and ξ go to the grid
+    /// planner; on the first observation, R is computed for the action.
+    fn observe_on_grid(
+        &mut self,
+        s: Vec<f64>,
+        obs: &ContinuousObservation<'_>,
+        clipped: bool,
+    ) -> ContinuousObserved {
+        let mut reward = 0.0;
+        if let (Some((prev_s, _)), Some(xi)) = (self.s.take(), obs.stimulus) {
+            let a = obs.action_taken.or(self.advised).unwrap_or(0);
+            if let Some(grid) = &mut self.grid {
+                grid.observe(&prev_s, a, &s, xi);
+            }
+            reward = self.drive.update(xi).abs();
+            debug_assert!((crate::drive::norm(self.drive.vector()) - 1.0).abs() < 1e-9);
+            self.tick += 1;
+            self.needs_plan = true;
+        } else {
+            self.scale_drive();
+            if let Some(grid) = &mut self.grid {
+                grid.rewards(&self.scaled_drive);
+            }
+        }
+        self.s = Some((s, Vec::new()));
+        ContinuousObserved {
+            tick: self.tick,
+            reward,
+            clipped,
+        }
+    }
+
+    /// `scaled_drive` = Λ D.
+    fn scale_drive(&mut self) {
+        for ((s, d), l) in self
+            .scaled_drive
+            .iter_mut()
+            .zip(self.drive.vector())
+            .zip(self.drive.inv_rho())
+        {
+            *s = d * l;
+        }
+    }
+
     /// Whether an observation was taken since the last [`Self::plan`].
     pub fn needs_plan(&self) -> bool {
         self.needs_plan
@@ -325,6 +413,15 @@ impl ContinuousAgent {
     /// Lines 8-9, once, if an observation came since the last plan.
     pub fn plan(&mut self) {
         if !self.needs_plan {
+            return;
+        }
+        if self.grid.is_some() {
+            self.scale_drive();
+            if let Some(grid) = &mut self.grid {
+                grid.plan(&self.scaled_drive);
+            }
+            self.needs_plan = false;
+            self.policy_version += 1;
             return;
         }
         self.maybe_rebuild_basis();
@@ -404,14 +501,7 @@ impl ContinuousAgent {
     /// hold its optimistic prior).
     #[inline(always)]
     fn refresh_reward_weights(&mut self, v_now: &[f64]) {
-        for ((s, d), l) in self
-            .scaled_drive
-            .iter_mut()
-            .zip(self.drive.vector())
-            .zip(self.drive.inv_rho())
-        {
-            *s = d * l;
-        }
+        self.scale_drive();
         self.xi.reward_weights_into(&self.scaled_drive, &mut self.u);
         let mut r_max: f64 = 0.0;
         for a in 0..self.model.n_actions() {
@@ -462,6 +552,9 @@ impl ContinuousAgent {
     /// Q(s, a) as the agent acts on it: v(s) · w_a for a known pair, Q_opt
     /// for an unknown one.
     fn q_at(&self, s: &[f64], v: &[f64], a: usize) -> f64 {
+        if let Some(grid) = &self.grid {
+            return grid.q(grid.cell_of(s), a);
+        }
         if self.store.is_known(s, a) {
             self.planner.q(v, a)
         } else {
@@ -664,7 +757,11 @@ mod tests {
             },
             actions: vec!["a".into(), "b".into(), "c".into()],
             stimuli: vec!["food".into(), "rest".into()],
-            basis: None,
+            // The RBFs that were the default of d = 2 before the grid.
+            basis: Some(crate::continuous::ContinuousBasisSpec::Rbf {
+                centres_per_dim: 10,
+                width: None,
+            }),
             out_of_bounds,
             samples: Default::default(),
         }
@@ -751,6 +848,30 @@ mod tests {
         // Past a rebuild of A⁻¹ (every 256 ticks) and with observations clipped (x beyond ±1).
         assert!(a.stats().rebuilds >= 2, "{:?}", a.stats());
         assert!(a.stats().clipped > 0, "{:?}", a.stats());
+    }
+
+    /// The default basis of this space is a grid (docs/algorithm.md §9.8).
+    #[test]
+    fn a_grid_agent_gives_the_same_bits_for_the_same_seed() {
+        let mut s = spec(OutOfBounds::Clip);
+        s.basis = None;
+        let (mut a, mut b, mut c) = (
+            agent_on(3, s.clone()),
+            agent_on(3, s.clone()),
+            agent_on(4, s),
+        );
+        assert!(matches!(
+            a.model().features,
+            crate::continuous::FeatureMap::Grid(_)
+        ));
+        let (ra, rb, rc) = (drive(&mut a, 700), drive(&mut b, 700), drive(&mut c, 700));
+        assert_eq!(ra, rb);
+        assert_ne!(ra, rc);
+        assert!(
+            a.stats().slots > 0 && a.stats().clipped > 0,
+            "{:?}",
+            a.stats()
+        );
     }
 
     /// A PVF basis is rebuilt as its graph grows; the rebuilds happen at

@@ -11,6 +11,7 @@
 pub mod agent;
 pub mod basis;
 mod dot;
+pub mod grid;
 pub mod model;
 pub mod planner;
 pub mod samples;
@@ -19,8 +20,8 @@ pub mod stimulus;
 
 pub use agent::{
     ContinuousAgent, ContinuousObservation, ContinuousObserved, ContinuousSnapshot,
-    ContinuousStats, ContinuousStep,
+    ContinuousState, ContinuousStats, ContinuousStep, GridSnapshot,
 };
-pub use basis::{ContinuousBasisSpec, FeatureMap};
+pub use basis::{ContinuousBasisSpec, FeatureMap, GridShape};
 pub use model::{ContinuousModel, ContinuousSpec, SampleParams, ValidSampleParams};
 pub use space::{ObservationSpace, OutOfBounds};

@@ -218,6 +218,9 @@ fn continuous(
 ) -> SessionCost {
     use mcapi_core::continuous::planner::{MAX_PENDING, REBUILD_EVERY};
     use mcapi_core::continuous::stimulus::PROBES;
+    if let Some(grid) = grid_shape(spec) {
+        return continuous_grid(model, spec, config, grid);
+    }
     let k = model.basis.k as u64;
     let na = model.actions.len() as u64;
     let n = model.stimuli.len() as u64;
@@ -254,6 +257,53 @@ fn continuous(
         let (mf, gf) = (m as f64, g as f64);
         ops += sf * gf * kf * naf + (mf * mf * kf + sf * kf * kf * naf) / 50.0;
     }
+    SessionCost {
+        bytes: bytes.saturating_add(FIXED_BYTES),
+        tick_us: us(ops),
+    }
+}
+
+/// The grid of a continuous session (docs/algorithm.md §9.8): its cells
+/// per dimension, moves kept per pair and reach in cells, if its basis is
+/// a grid.
+fn grid_shape(spec: &mcapi_core::continuous::ContinuousSpec) -> Option<(u64, u64, f64)> {
+    use mcapi_core::continuous::grid::{DEFAULT_GRID_NEIGHBOURS, DEFAULT_GRID_REACH};
+    match spec.basis {
+        Some(mcapi_core::continuous::ContinuousBasisSpec::Grid {
+            cells_per_dim,
+            neighbours,
+            reach,
+        }) => Some((
+            u64::from(cells_per_dim),
+            u64::from(neighbours.unwrap_or(DEFAULT_GRID_NEIGHBOURS)),
+            reach.unwrap_or(DEFAULT_GRID_REACH),
+        )),
+        _ => None,
+    }
+}
+
+/// The cost of a continuous session on a grid: per (cell, action) its kept
+/// moves (a distance and a displacement each) and its successor; per cell
+/// Ξ's sums, nearest stimulus and prior, the arrivals, π, V, R and the
+/// evaluation's marks and walk; and the history ring. A tick computes R
+/// in every cell, walks π's graph once and re-chooses every cell's action.
+fn continuous_grid(
+    model: &ModelSummary,
+    spec: &mcapi_core::continuous::ContinuousSpec,
+    config: &EffectiveConfig,
+    (res, neighbours, _): (u64, u64, f64),
+) -> SessionCost {
+    let na = model.actions.len() as u64;
+    let n = model.stimuli.len() as u64;
+    let d = spec.observation_space.dim() as u64;
+    let cells = (0..d).fold(1u64, |acc, _| mul(acc, res));
+    let pairs = mul(cells, na);
+    let mut bytes = names_bytes(model);
+    bytes += mul(pairs, mul(mul(neighbours, 1 + d), 8) + 4);
+    bytes += mul(cells, mul(n, 24) + 34);
+    let history = config.history as u64;
+    bytes += mul(history, RING_TICK_BYTES + mul(2 * n + 1 + d, 8));
+    let ops = cells as f64 * (2.0 * n as f64 + 10.0) + 4.0 * pairs as f64;
     SessionCost {
         bytes: bytes.saturating_add(FIXED_BYTES),
         tick_us: us(ops),
@@ -309,6 +359,16 @@ pub fn evicted_bytes(id: &str) -> u64 {
 /// Estimated CPU time of one observation without its policy update (what
 /// an async-mode observation costs the request), in microseconds.
 pub fn observe_us(model: &ModelSummary, config: &EffectiveConfig) -> u64 {
+    if let Some(spec) = &model.continuous
+        && let Some((_, neighbours, reach)) = grid_shape(spec)
+    {
+        // The cells a move teaches, each a sorted insert of a kept move
+        // and a mean over them; the stimulus's cells.
+        let d = spec.observation_space.dim() as i32;
+        let taught = (2.0 * reach + 1.0).powi(d);
+        let kept = neighbours as f64 * (1.0 + f64::from(d));
+        return us(taught * (2.0 * kept + 16.0) + 3f64.powi(d) * 8.0);
+    }
     if let Some(spec) = &model.continuous {
         // Ξ's update, the new sample's rank-one term, the known marks.
         let (k, na) = (model.basis.k as f64, model.actions.len() as f64);

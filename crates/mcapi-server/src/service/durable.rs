@@ -34,7 +34,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use mcapi_core::continuous::ContinuousSnapshot;
+use mcapi_core::continuous::{ContinuousSnapshot, GridSnapshot};
 use mcapi_core::{AgentSnapshot, CuriousSnapshot, LearnedSnapshot};
 pub use mcapi_store::RECORD_V2;
 
@@ -246,13 +246,29 @@ pub enum LearnerSnapshot {
     /// A continuous world's agent (docs/algorithm.md §9.7). After the
     /// variants above, for the same reason.
     Continuous(Box<ContinuousRecord>),
+    /// A continuous world's agent on a grid (docs/algorithm.md §9.8).
+    /// Last, for the same reason.
+    ContinuousGrid(Box<ContinuousRecord<GridSnapshot>>),
 }
 
-/// A continuous world's agent as a snapshot keeps it.
+impl LearnerSnapshot {
+    /// The observations of a continuous world's history ring, if this is
+    /// a continuous world's agent.
+    pub fn history_observations_mut(&mut self) -> Option<&mut Vec<Option<Vec<f64>>>> {
+        match self {
+            Self::Continuous(c) => Some(&mut c.history_observations),
+            Self::ContinuousGrid(c) => Some(&mut c.history_observations),
+            Self::Plain(_) | Self::Curious(_) | Self::Learned(_) => None,
+        }
+    }
+}
+
+/// A continuous world's agent as a snapshot keeps it: on features
+/// ([`ContinuousSnapshot`]) or on a grid ([`GridSnapshot`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ContinuousRecord {
+pub struct ContinuousRecord<A = ContinuousSnapshot> {
     /// The agent.
-    pub agent: ContinuousSnapshot,
+    pub agent: A,
     /// The observation of each tick of the history ring, oldest first
     /// ([`TickRecord`] has no field for it).
     pub history_observations: Vec<Option<Vec<f64>>>,
@@ -629,7 +645,8 @@ mod tests {
             LearnerSnapshot::Plain(a) => assert_eq!(a, agent.snapshot()),
             LearnerSnapshot::Curious(_)
             | LearnerSnapshot::Learned(_)
-            | LearnerSnapshot::Continuous(_) => {
+            | LearnerSnapshot::Continuous(_)
+            | LearnerSnapshot::ContinuousGrid(_) => {
                 panic!("a format-2 snapshot is a plain agent's")
             }
         }
@@ -733,7 +750,8 @@ mod tests {
             LearnerSnapshot::Learned(s) => assert_eq!(*s, snap),
             LearnerSnapshot::Plain(_)
             | LearnerSnapshot::Curious(_)
-            | LearnerSnapshot::Continuous(_) => {
+            | LearnerSnapshot::Continuous(_)
+            | LearnerSnapshot::ContinuousGrid(_) => {
                 panic!("decoded as another variant")
             }
         }
@@ -766,7 +784,7 @@ mod tests {
                 .expect("step");
         }
         let record = ContinuousRecord {
-            agent: agent.snapshot(),
+            agent: agent.snapshot().features().expect("a feature basis"),
             history_observations: vec![Some(vec![0.2, 0.5]), None],
         };
         let bytes = encode(&LearnerSnapshot::Continuous(Box::new(record.clone()))).expect("encode");
@@ -780,9 +798,51 @@ mod tests {
             }
             LearnerSnapshot::Plain(_)
             | LearnerSnapshot::Curious(_)
-            | LearnerSnapshot::Learned(_) => {
+            | LearnerSnapshot::Learned(_)
+            | LearnerSnapshot::ContinuousGrid(_) => {
                 panic!("decoded as another variant")
             }
         }
+    }
+
+    /// A grid agent's snapshot is a variant of its own, after the others,
+    /// so that the snapshots stored before it still decode.
+    #[test]
+    fn a_grid_snapshot_round_trips_as_the_last_variant() {
+        let spec: mcapi_core::continuous::ContinuousSpec =
+            serde_json::from_value(serde_json::json!({
+                "observation_space": {"low": [0, 0], "high": [1, 1]},
+                "actions": ["north", "south"],
+                "stimuli": ["food"],
+                "basis": {"kind": "grid", "cells_per_dim": 8},
+            }))
+            .expect("spec");
+        let params = mcapi_core::AgentParams::default()
+            .check(1, 7)
+            .expect("params");
+        let mut agent =
+            mcapi_core::continuous::ContinuousAgent::new(spec.build().expect("model"), params);
+        for (i, x) in [0.1, 0.2, 0.3, 0.2].into_iter().enumerate() {
+            agent
+                .step(&mcapi_core::continuous::ContinuousObservation {
+                    observation: &[x, 0.5],
+                    stimulus: (i > 0).then_some(&[1.0][..]),
+                    action_taken: None,
+                })
+                .expect("step");
+        }
+        let mcapi_core::continuous::ContinuousState::Grid(grid) = agent.snapshot() else {
+            panic!("a grid agent's snapshot is a grid snapshot");
+        };
+        let record = ContinuousRecord {
+            agent: *grid,
+            history_observations: vec![Some(vec![0.2, 0.5])],
+        };
+        let bytes =
+            encode(&LearnerSnapshot::ContinuousGrid(Box::new(record.clone()))).expect("encode");
+        assert_eq!(bytes[1], 4, "ContinuousGrid is the fifth variant");
+        let back = postcard::from_bytes::<LearnerSnapshot>(&bytes[1..]).expect("decode");
+        let again = encode(&back).expect("encode");
+        assert_eq!(again, bytes);
     }
 }

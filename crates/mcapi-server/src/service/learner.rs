@@ -2,7 +2,7 @@
 //! with its curiosity channel, or the agent of a continuous world, behind
 //! one interface.
 
-use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation};
+use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation, ContinuousState};
 use mcapi_core::drive::Drive;
 use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation};
 
@@ -317,10 +317,20 @@ impl Learner {
             },
             Self::Curious(c) => LearnerSnapshot::Curious(Box::new(c.snapshot())),
             // The session adds its ring's observations.
-            Self::Continuous(c) => LearnerSnapshot::Continuous(Box::new(ContinuousRecord {
-                agent: c.snapshot(),
-                history_observations: Vec::new(),
-            })),
+            Self::Continuous(c) => match c.snapshot() {
+                ContinuousState::Features(agent) => {
+                    LearnerSnapshot::Continuous(Box::new(ContinuousRecord {
+                        agent: *agent,
+                        history_observations: Vec::new(),
+                    }))
+                }
+                ContinuousState::Grid(agent) => {
+                    LearnerSnapshot::ContinuousGrid(Box::new(ContinuousRecord {
+                        agent: *agent,
+                        history_observations: Vec::new(),
+                    }))
+                }
+            },
         }
     }
 }

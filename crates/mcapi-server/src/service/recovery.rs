@@ -15,7 +15,7 @@
 use std::collections::VecDeque;
 use std::sync::Arc;
 
-use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation};
+use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation, ContinuousState};
 use mcapi_core::{Agent, CuriousAgent};
 use mcapi_shards::Placement;
 use mcapi_store::{StoreError, StoredSession};
@@ -171,11 +171,16 @@ pub(super) fn rebuild(
     let mut after = None;
     if let Some((seq, bytes)) = &stored.snapshot {
         let snap = durable::decode_snapshot(bytes, "its snapshot").map_err(|e| bad(e.into()))?;
-        let (known, observations) = match &snap.learner {
-            LearnerSnapshot::Learned(l) => (l.history_known.clone(), Vec::new()),
-            LearnerSnapshot::Continuous(c) => (Vec::new(), c.history_observations.clone()),
-            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => (Vec::new(), Vec::new()),
+        let mut snap = snap;
+        let known = match &snap.learner {
+            LearnerSnapshot::Learned(l) => l.history_known.clone(),
+            _ => Vec::new(),
         };
+        let observations = snap
+            .learner
+            .history_observations_mut()
+            .map(std::mem::take)
+            .unwrap_or_default();
         learner = restore(&learner, snap.learner).map_err(&bad)?;
         history = snap
             .history
@@ -364,12 +369,16 @@ fn push_ring(history: &mut VecDeque<RingTick>, cap: usize, tick: RingTick, entry
 fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError> {
     // docs/algorithm.md §9.7: the agent whole, on the record's model.
     if let Some(c) = base.continuous() {
-        let LearnerSnapshot::Continuous(s) = snap else {
-            return Err(RecordError::Mismatch(
-                "its snapshot is of a numbered world's agent, its record a continuous world",
-            ));
+        let state = match snap {
+            LearnerSnapshot::Continuous(s) => ContinuousState::from(s.agent),
+            LearnerSnapshot::ContinuousGrid(s) => ContinuousState::from(s.agent),
+            _ => {
+                return Err(RecordError::Mismatch(
+                    "its snapshot is of a numbered world's agent, its record a continuous world",
+                ));
+            }
         };
-        return ContinuousAgent::restore(c.model().clone(), c.params().clone(), s.agent)
+        return ContinuousAgent::restore(c.model().clone(), c.params().clone(), state)
             .map(|a| Learner::Continuous(Box::new(a)))
             .map_err(RecordError::Restore);
     }
@@ -412,8 +421,10 @@ fn restore(base: &Learner, snap: LearnerSnapshot) -> Result<Learner, RecordError
         (LearnerSnapshot::Curious(_), None) => Err(RecordError::Mismatch(
             "its snapshot has a curiosity channel, its record none",
         )),
-        (LearnerSnapshot::Continuous(_), _) => Err(RecordError::Mismatch(
-            "its snapshot is of a continuous world's agent, its record a numbered world",
-        )),
+        (LearnerSnapshot::Continuous(_) | LearnerSnapshot::ContinuousGrid(_), _) => {
+            Err(RecordError::Mismatch(
+                "its snapshot is of a continuous world's agent, its record a numbered world",
+            ))
+        }
     }
 }

@@ -782,18 +782,15 @@ impl SessionState {
     /// A snapshot of the session.
     fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
         let mut learner = self.learner.snapshot();
-        match &mut learner {
-            LearnerSnapshot::Learned(l) => {
-                l.history_known = self.history.iter().map(RingTick::known_fraction).collect();
-            }
-            LearnerSnapshot::Continuous(c) => {
-                c.history_observations = self
-                    .history
-                    .iter()
-                    .map(|t| t.observation().map(<[f64]>::to_vec))
-                    .collect();
-            }
-            LearnerSnapshot::Plain(_) | LearnerSnapshot::Curious(_) => {}
+        if let LearnerSnapshot::Learned(l) = &mut learner {
+            l.history_known = self.history.iter().map(RingTick::known_fraction).collect();
+        }
+        if let Some(observations) = learner.history_observations_mut() {
+            *observations = self
+                .history
+                .iter()
+                .map(|t| t.observation().map(<[f64]>::to_vec))
+                .collect();
         }
         let record = SnapshotRecord {
             learner,

@@ -134,6 +134,14 @@ fn continuous_summary(model: &ContinuousModel) -> ModelSummary {
         Some(ContinuousBasisSpec::Rbf { .. }) => ("rbf", model.features.len()),
         Some(ContinuousBasisSpec::Tiles { .. }) => ("tiles", model.features.len()),
         Some(ContinuousBasisSpec::Pvf { .. }) => ("pvf", model.features.len()),
+        // The indicator basis of the cells, which the grid plans on exactly.
+        Some(ContinuousBasisSpec::Grid { .. }) => (
+            "grid",
+            match &model.features {
+                mcapi_core::continuous::FeatureMap::Grid(shape) => shape.cells(),
+                _ => 0,
+            },
+        ),
         // `build` fills the effective basis in.
         None => ("default", model.features.len()),
     };

@@ -24,6 +24,7 @@ use serde::{Deserialize, Serialize};
 use super::ContinuousAgent;
 use crate::agent::RngState;
 use crate::continuous::basis::{FeatureMap, Pvf, PvfGraph};
+use crate::continuous::grid::GridPlanner;
 use crate::continuous::model::ContinuousModel;
 use crate::continuous::planner::SamplePlanner;
 use crate::continuous::samples::SampleStore;
@@ -32,8 +33,58 @@ use crate::drive::Drive;
 use crate::error::{AlgoError, Result};
 use crate::params::ValidParams;
 
-/// The state of a [`ContinuousAgent`]; [`ContinuousAgent::snapshot`] makes
-/// one and [`ContinuousAgent::restore`] resumes it.
+/// The state of a [`ContinuousAgent`]: [`ContinuousAgent::snapshot`] makes
+/// one and [`ContinuousAgent::restore`] resumes it. An agent on a grid
+/// (docs/algorithm.md §9.8) keeps other things than one on features, so
+/// each has its own form.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub enum ContinuousState {
+    /// An agent on a feature basis.
+    Features(Box<ContinuousSnapshot>),
+    /// An agent on a grid.
+    Grid(Box<GridSnapshot>),
+}
+
+impl From<ContinuousSnapshot> for ContinuousState {
+    fn from(s: ContinuousSnapshot) -> Self {
+        Self::Features(Box::new(s))
+    }
+}
+
+impl From<GridSnapshot> for ContinuousState {
+    fn from(s: GridSnapshot) -> Self {
+        Self::Grid(Box::new(s))
+    }
+}
+
+impl ContinuousState {
+    /// The snapshot of an agent on a feature basis, if this is one.
+    pub fn features(self) -> Option<ContinuousSnapshot> {
+        match self {
+            Self::Features(s) => Some(*s),
+            Self::Grid(_) => None,
+        }
+    }
+}
+
+/// The state of an agent on a grid: the drive, the grid planner whole
+/// (its kept transitions, Ξ's cells, π, and V and R as of its last plan,
+/// which the next action reads), and the loop's counters.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct GridSnapshot {
+    rng: RngState,
+    drive: Drive,
+    grid: GridPlanner,
+    /// The current normalised observation.
+    s: Option<Vec<f64>>,
+    advised: Option<usize>,
+    tick: u64,
+    clipped: u64,
+    needs_plan: bool,
+    policy_version: u64,
+}
+
+/// The state of an agent on a feature basis.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ContinuousSnapshot {
     rng: RngState,
@@ -62,8 +113,21 @@ pub struct ContinuousSnapshot {
 
 impl ContinuousAgent {
     /// The agent's state, for a durable store.
-    pub fn snapshot(&self) -> ContinuousSnapshot {
-        ContinuousSnapshot {
+    pub fn snapshot(&self) -> ContinuousState {
+        if let Some(grid) = &self.grid {
+            return ContinuousState::Grid(Box::new(GridSnapshot {
+                rng: RngState::of(&self.rng),
+                drive: self.drive.clone(),
+                grid: (**grid).clone(),
+                s: self.s.as_ref().map(|(s, _)| s.clone()),
+                advised: self.advised,
+                tick: self.tick,
+                clipped: self.clipped,
+                needs_plan: self.needs_plan,
+                policy_version: self.policy_version,
+            }));
+        }
+        ContinuousState::Features(Box::new(ContinuousSnapshot {
             rng: RngState::of(&self.rng),
             drive: self.drive.clone(),
             xi: self.xi.clone(),
@@ -84,13 +148,72 @@ impl ContinuousAgent {
                 FeatureMap::Pvf(p) => Some(p.clone()),
                 _ => None,
             },
-        }
+        }))
     }
 
     /// Resumes a snapshot on the model and parameters of the session that
     /// wrote it. A snapshot that does not fit them (its shapes, or a basis
     /// of another kind) is refused, never half restored.
     pub fn restore(
+        model: ContinuousModel,
+        params: ValidParams,
+        state: impl Into<ContinuousState>,
+    ) -> Result<Self> {
+        match (state.into(), &model.features) {
+            (ContinuousState::Grid(snap), FeatureMap::Grid(_)) => {
+                Self::restore_grid(model, params, *snap)
+            }
+            (ContinuousState::Features(snap), map) if !matches!(map, FeatureMap::Grid(_)) => {
+                Self::restore_features(model, params, *snap)
+            }
+            _ => Err(AlgoError::InvalidSnapshot(
+                "its basis (a grid or features) does not fit the model".into(),
+            )),
+        }
+    }
+
+    fn restore_grid(
+        model: ContinuousModel,
+        params: ValidParams,
+        snap: GridSnapshot,
+    ) -> Result<Self> {
+        let bad = |what: &str| {
+            Err(AlgoError::InvalidSnapshot(format!(
+                "its {what} does not fit the model"
+            )))
+        };
+        let (d, na, n) = (model.dim(), model.n_actions(), model.n_stimuli());
+        let FeatureMap::Grid(shape) = model.features else {
+            return bad("basis");
+        };
+        if !drive_fits(&snap.drive, n) {
+            return bad("drive");
+        }
+        if !snap.grid.fits(&shape, na, n) {
+            return bad("grid");
+        }
+        if snap
+            .s
+            .as_ref()
+            .is_some_and(|s| s.len() != d || !s.iter().all(|x| (0.0..=1.0).contains(x)))
+            || snap.advised.is_some_and(|a| a >= na)
+        {
+            return bad("observation");
+        }
+        let mut agent = Self::new(model, params);
+        agent.rng = snap.rng.resume();
+        agent.drive = snap.drive;
+        agent.grid = Some(Box::new(snap.grid));
+        agent.s = snap.s.map(|s| (s, Vec::new()));
+        agent.advised = snap.advised;
+        agent.tick = snap.tick;
+        agent.clipped = snap.clipped;
+        agent.needs_plan = snap.needs_plan;
+        agent.policy_version = snap.policy_version;
+        Ok(agent)
+    }
+
+    fn restore_features(
         mut model: ContinuousModel,
         params: ValidParams,
         snap: ContinuousSnapshot,
@@ -118,11 +241,7 @@ impl ContinuousAgent {
             (_, _, _) => return bad("basis (a PVF basis, the model has another)"),
         }
         let len = snap.store.len();
-        if snap.drive.vector().len() != n
-            || snap.drive.inv_rho().len() != n
-            || !snap.drive.vector().iter().all(|x| x.is_finite())
-            || (crate::drive::norm(snap.drive.vector()) - 1.0).abs() > 1e-6
-        {
+        if !drive_fits(&snap.drive, n) {
             return bad("drive");
         }
         if !snap.xi.fits(na, k, n) {
@@ -170,6 +289,14 @@ impl ContinuousAgent {
     }
 }
 
+/// A drive of n finite components and unit length.
+fn drive_fits(drive: &Drive, n: usize) -> bool {
+    drive.vector().len() == n
+        && drive.inv_rho().len() == n
+        && drive.vector().iter().all(|x| x.is_finite())
+        && (crate::drive::norm(drive.vector()) - 1.0).abs() <= 1e-6
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -186,7 +313,11 @@ mod tests {
             },
             actions: vec!["a".into(), "b".into(), "c".into()],
             stimuli: vec!["food".into(), "rest".into()],
-            basis,
+            // None: the RBFs that were the default of d = 2 before the grid.
+            basis: basis.or(Some(ContinuousBasisSpec::Rbf {
+                centres_per_dim: 10,
+                width: None,
+            })),
             out_of_bounds: OutOfBounds::Clip,
             samples: Default::default(),
         }
@@ -263,7 +394,7 @@ mod tests {
 
     /// The agent's snapshot as a store gives it back (scratch buffers
     /// empty).
-    fn stored(agent: &ContinuousAgent) -> ContinuousSnapshot {
+    fn stored(agent: &ContinuousAgent) -> ContinuousState {
         let bytes = postcard::to_allocvec(&agent.snapshot()).expect("encode");
         postcard::from_bytes(&bytes).expect("decode")
     }
@@ -272,6 +403,7 @@ mod tests {
     /// both 600 more.
     fn round_trip(basis: Option<ContinuousBasisSpec>, before: usize) {
         let is_pvf = matches!(basis, Some(ContinuousBasisSpec::Pvf { .. }));
+        let is_grid = matches!(basis, Some(ContinuousBasisSpec::Grid { .. }));
         let model = spec(basis).build().expect("model");
         let mut a = ContinuousAgent::new(model.clone(), params(5));
         let mut world = World::new();
@@ -300,8 +432,12 @@ mod tests {
                 a.stats().basis_builds
             );
         }
-        // Past a rebuild of A⁻¹ from the samples, after the restore.
-        assert!(a.stats().rebuilds >= 1, "{:?}", a.stats());
+        if is_grid {
+            assert!(a.stats().slots > 0, "{:?}", a.stats());
+        } else {
+            // Past a rebuild of A⁻¹ from the samples, after the restore.
+            assert!(a.stats().rebuilds >= 1, "{:?}", a.stats());
+        }
     }
 
     #[test]
@@ -316,12 +452,53 @@ mod tests {
         round_trip(pvf(), 152);
     }
 
+    /// A grid agent's snapshot holds its planner whole (kept moves, Ξ's
+    /// cells, π, V and R of its last plan).
+    #[test]
+    fn a_restored_grid_agent_continues_bit_for_bit() {
+        round_trip(grid(), 401);
+    }
+
+    #[test]
+    fn a_grid_snapshot_fits_only_a_grid_of_its_shape() {
+        let model = spec(grid()).build().expect("model");
+        let mut a = ContinuousAgent::new(model.clone(), params(5));
+        run(&mut a, &mut World::new(), 50);
+        let snap = a.snapshot();
+        assert!(matches!(snap, ContinuousState::Grid(_)));
+        let other = spec(Some(ContinuousBasisSpec::Grid {
+            cells_per_dim: 8,
+            neighbours: None,
+            reach: None,
+        }));
+        let err = ContinuousAgent::restore(other.build().expect("model"), params(5), snap.clone());
+        assert!(matches!(err, Err(AlgoError::InvalidSnapshot(_))), "{err:?}");
+        let err =
+            ContinuousAgent::restore(spec(None).build().expect("model"), params(5), snap.clone());
+        assert!(matches!(err, Err(AlgoError::InvalidSnapshot(_))), "{err:?}");
+        let mut bad = snap.clone();
+        if let ContinuousState::Grid(g) = &mut bad {
+            g.advised = Some(3);
+        }
+        let err = ContinuousAgent::restore(model.clone(), params(5), bad);
+        assert!(matches!(err, Err(AlgoError::InvalidSnapshot(_))), "{err:?}");
+        assert!(ContinuousAgent::restore(model, params(5), snap).is_ok());
+    }
+
+    fn grid() -> Option<ContinuousBasisSpec> {
+        Some(ContinuousBasisSpec::Grid {
+            cells_per_dim: 12,
+            neighbours: Some(3),
+            reach: Some(2.5),
+        })
+    }
+
     #[test]
     fn a_snapshot_that_does_not_fit_the_model_is_refused() {
         let model = spec(None).build().expect("model");
         let mut a = ContinuousAgent::new(model.clone(), params(5));
         run(&mut a, &mut World::new(), 50);
-        let snap = a.snapshot();
+        let snap = a.snapshot().features().expect("a feature basis");
         // Another basis (Fourier order 2: other k).
         let mut other = spec(None);
         other.basis = Some(ContinuousBasisSpec::Fourier {

@@ -26,6 +26,11 @@ use serde::{Deserialize, Serialize};
 
 use crate::error::{AlgoError, Result};
 
+use super::grid::{
+    DEFAULT_GRID_CELLS_PER_DIM, DEFAULT_GRID_NEIGHBOURS, DEFAULT_GRID_REACH, MAX_GRID_CELLS,
+    MAX_GRID_NEIGHBOURS, MAX_GRID_PAIRS, MAX_GRID_REACH,
+};
+
 pub use fourier::Fourier;
 pub use pvf::Pvf;
 pub use pvf_graph::PvfGraph;
@@ -111,18 +116,48 @@ pub enum ContinuousBasisSpec {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         neighbours: Option<u32>,
     },
+    /// No features: a grid of `cells_per_dim`^d cells over the box,
+    /// planned on exactly with a transition model learned from the
+    /// `neighbours` nearest moves of each cell and action (default
+    /// [`DEFAULT_GRID_NEIGHBOURS`]) within `reach` cells (default
+    /// [`DEFAULT_GRID_REACH`]); docs/algorithm.md §9.8.
+    Grid {
+        /// Cells per dimension (at least 2).
+        cells_per_dim: u32,
+        /// Transitions kept per (cell, action).
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        neighbours: Option<u32>,
+        /// How far a move teaches, in cells.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        reach: Option<f64>,
+    },
 }
 
 impl ContinuousBasisSpec {
     /// The default basis of a d-dimensional space with `actions` actions:
-    /// normalised RBFs for d ≤ 2 (fine enough to find a source of 4 % of
-    /// the range: docs/algorithm.md §9.2 has the measurements), a Fourier
-    /// basis above that, couplings limited to pairs, then to none, sized
-    /// so that k·|A| stays near 300; where even the uncoupled Fourier
-    /// basis of order 1 does not fit, hashed tiles that do.
+    /// for d ≤ 2, a grid of up to 64 cells per dimension (the most that
+    /// fit [`MAX_GRID_CELLS`] and [`MAX_GRID_PAIRS`]; docs/algorithm.md
+    /// §9.8 has the measurements), or normalised RBFs where fewer than 16
+    /// cells per dimension would fit; above that, a Fourier basis,
+    /// couplings limited to pairs, then to none, sized so that k·|A| stays
+    /// near 300; where even the uncoupled Fourier basis of order 1 does
+    /// not fit, hashed tiles that do.
     pub fn default_for(d: usize, actions: usize) -> Self {
         let actions = actions.max(1);
         let budget = (DEFAULT_PAIR_FEATURES / actions).max(8);
+        if (1..=2).contains(&d) {
+            let fits = |c: usize| {
+                let cells = c.pow(d as u32);
+                cells <= MAX_GRID_CELLS && cells * actions <= MAX_GRID_PAIRS
+            };
+            if let Some(c) = (16..=DEFAULT_GRID_CELLS_PER_DIM).rev().find(|&c| fits(c)) {
+                return Self::Grid {
+                    cells_per_dim: c as u32,
+                    neighbours: None,
+                    reach: None,
+                };
+            }
+        }
         match d {
             0 | 1 => Self::Rbf {
                 centres_per_dim: budget.min(MAX_CENTRES_PER_DIM as usize) as u32,
@@ -274,6 +309,51 @@ impl ContinuousBasisSpec {
                     neighbours as usize,
                 ))
             }
+            Self::Grid {
+                cells_per_dim,
+                neighbours,
+                reach,
+            } => {
+                let res = cells_per_dim as usize;
+                let cells = (2..=MAX_GRID_CELLS)
+                    .contains(&res)
+                    .then(|| {
+                        (0..d).try_fold(1usize, |acc, _| {
+                            acc.checked_mul(res).filter(|&c| c <= MAX_GRID_CELLS)
+                        })
+                    })
+                    .flatten()
+                    .ok_or_else(|| {
+                        bad(format!(
+                            "grid `cells_per_dim` {cells_per_dim} is not in 2.. with \
+                             cells_per_dim^{d} at most {MAX_GRID_CELLS} cells"
+                        ))
+                    })?;
+                if cells.saturating_mul(actions) > MAX_GRID_PAIRS {
+                    return Err(bad(format!(
+                        "a grid of {cells} cells × {actions} actions exceeds \
+                         {MAX_GRID_PAIRS} (cell, action) pairs"
+                    )));
+                }
+                let neighbours = neighbours.unwrap_or(DEFAULT_GRID_NEIGHBOURS);
+                if !(1..=MAX_GRID_NEIGHBOURS).contains(&neighbours) {
+                    return Err(bad(format!(
+                        "grid `neighbours` {neighbours} is not in 1..={MAX_GRID_NEIGHBOURS}"
+                    )));
+                }
+                let reach = reach.unwrap_or(DEFAULT_GRID_REACH);
+                if !(reach.is_finite() && (1.0..=MAX_GRID_REACH).contains(&reach)) {
+                    return Err(bad(format!(
+                        "grid `reach` {reach} is not in 1..={MAX_GRID_REACH} (cells)"
+                    )));
+                }
+                FeatureMap::Grid(GridShape {
+                    d,
+                    cells_per_dim: res,
+                    neighbours: neighbours as usize,
+                    reach,
+                })
+            }
         };
         Ok(map)
     }
@@ -290,6 +370,28 @@ pub enum FeatureMap {
     Tiles(Tiles),
     /// Proto-value functions of the observed graph.
     Pvf(Pvf),
+    /// No features: the agent plans on a grid (docs/algorithm.md §9.8).
+    Grid(GridShape),
+}
+
+/// The shape of a grid planner, checked.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridShape {
+    /// The space's dimension.
+    pub d: usize,
+    /// Cells per dimension.
+    pub cells_per_dim: usize,
+    /// Transitions kept per (cell, action).
+    pub neighbours: usize,
+    /// How far a move teaches, in cells.
+    pub reach: f64,
+}
+
+impl GridShape {
+    /// cells_per_dim^d.
+    pub fn cells(&self) -> usize {
+        self.cells_per_dim.pow(self.d as u32)
+    }
 }
 
 impl FeatureMap {
@@ -300,10 +402,11 @@ impl FeatureMap {
             Self::Rbf(b) => b.len(),
             Self::Tiles(b) => b.len(),
             Self::Pvf(b) => b.len(),
+            Self::Grid(_) => 0,
         }
     }
 
-    /// Never: every basis has at least one feature.
+    /// Only for a grid, which plans without features.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
@@ -316,6 +419,7 @@ impl FeatureMap {
             Self::Rbf(b) => b.features_into(s, out),
             Self::Tiles(b) => b.features_into(s, out),
             Self::Pvf(b) => b.features_into(s, out),
+            Self::Grid(_) => {}
         }
         debug_assert!(out.iter().all(|v| v.is_finite()));
     }
@@ -327,6 +431,7 @@ impl FeatureMap {
             Self::Rbf(b) => b.len() * 2 + b.dim() * b.centres() * 16,
             Self::Tiles(b) => b.len() + b.tilings() * b.dim() * 4,
             Self::Pvf(b) => b.eval_cost(),
+            Self::Grid(_) => 0,
         }
     }
 }

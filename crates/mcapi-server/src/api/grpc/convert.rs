@@ -643,6 +643,15 @@ fn continuous_model_pb(spec: ContinuousSpec) -> pb::ContinuousModel {
                     nodes,
                     neighbours,
                 }),
+                ContinuousBasisSpec::Grid {
+                    cells_per_dim,
+                    neighbours,
+                    reach,
+                } => Kind::Grid(pb::GridBasis {
+                    cells_per_dim,
+                    neighbours,
+                    reach,
+                }),
             }),
         }),
         out_of_bounds: match out_of_bounds {
@@ -677,7 +686,7 @@ fn continuous_spec(m: pb::ContinuousModel) -> Result<ModelInput, ServiceError> {
         Some(pb::ContinuousBasis { kind: None }) => {
             return Err(ServiceError::field(
                 "model.basis",
-                "has no kind: set one of `fourier`, `rbf` or `tiles`",
+                "has no kind: set one of `fourier`, `rbf`, `tiles`, `pvf` or `grid`",
             ));
         }
         Some(pb::ContinuousBasis { kind: Some(k) }) => Some(match k {
@@ -712,6 +721,15 @@ fn continuous_spec(m: pb::ContinuousModel) -> Result<ModelInput, ServiceError> {
                 k,
                 nodes,
                 neighbours,
+            },
+            Kind::Grid(pb::GridBasis {
+                cells_per_dim,
+                neighbours,
+                reach,
+            }) => ContinuousBasisSpec::Grid {
+                cells_per_dim,
+                neighbours,
+                reach,
             },
         }),
     };

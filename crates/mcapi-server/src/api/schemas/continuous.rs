@@ -14,6 +14,7 @@ use mcapi_core::continuous::basis::{
     MAX_CENTRES_PER_DIM, MAX_ORDER, MAX_PVF_K, MAX_PVF_NEIGHBOURS, MAX_PVF_NODES,
     MAX_STATE_FEATURES, MAX_TILES_PER_DIM, MAX_TILINGS,
 };
+use mcapi_core::continuous::grid::{MAX_GRID_CELLS, MAX_GRID_NEIGHBOURS, MAX_GRID_REACH};
 use mcapi_core::continuous::model::{
     MAX_ACTIONS, MAX_CELLS_PER_DIM, MAX_KNOWN_AFTER, MAX_PER_CELL, MAX_SAMPLES,
 };
@@ -153,14 +154,52 @@ pub(super) fn schemas(limits: &Limits) -> Vec<(&'static str, RefOr<Schema>)> {
     )
     .required("kind")
     .required("k");
+    let grid = closed(
+        "No features: a grid of `cells_per_dim`^d cells over the box, planned on exactly, \
+         each (cell, action)'s successor learned from the `neighbours` nearest moves within \
+         `reach` cells (docs/algorithm.md §9.8). At most 4096 cells and 16384 (cell, action) \
+         pairs.",
+    )
+    .property("kind", kind("grid"))
+    .property(
+        "cells_per_dim",
+        integer(
+            2,
+            MAX_GRID_CELLS as u64,
+            false,
+            "cells per dimension (cells_per_dim^d at most 4096)",
+        ),
+    )
+    .property(
+        "neighbours",
+        integer(
+            1,
+            u64::from(MAX_GRID_NEIGHBOURS),
+            true,
+            "moves kept per (cell, action) (default 5)",
+        ),
+    )
+    .property(
+        "reach",
+        number(
+            Bound::Incl(1.0),
+            Bound::Incl(MAX_GRID_REACH),
+            true,
+            "how far a move teaches, in cells (default 3.5)",
+        ),
+    )
+    .required("kind")
+    .required("cells_per_dim");
     let basis = OneOfBuilder::new()
         .item(fourier)
         .item(rbf)
         .item(tiles)
         .item(pvf)
+        .item(grid)
         .description(Some(
             "The basis over the space (default: by dimension, shown in the session's \
-             summary). At most 4096 features per action and 2048 over all actions.",
+             summary: a grid for d ≤ 2). At most 4096 features per action and 2048 over all \
+             actions.",
         ));
     let count = |max: u32, what: &str| integer(1, u64::from(max), true, what);
     let samples = closed("How the sample store is cut; every field optional.")

@@ -82,16 +82,28 @@ class ContinuousModel(_message.Message):
     def __init__(self, low: _Optional[_Iterable[float]] = ..., high: _Optional[_Iterable[float]] = ..., actions: _Optional[_Iterable[str]] = ..., stimuli: _Optional[_Iterable[str]] = ..., basis: _Optional[_Union[ContinuousBasis, _Mapping]] = ..., out_of_bounds: _Optional[_Union[OutOfBounds, str]] = ..., samples: _Optional[_Union[SampleParams, _Mapping]] = ...) -> None: ...
 
 class ContinuousBasis(_message.Message):
-    __slots__ = ("fourier", "rbf", "tiles", "pvf")
+    __slots__ = ("fourier", "rbf", "tiles", "pvf", "grid")
     FOURIER_FIELD_NUMBER: _ClassVar[int]
     RBF_FIELD_NUMBER: _ClassVar[int]
     TILES_FIELD_NUMBER: _ClassVar[int]
     PVF_FIELD_NUMBER: _ClassVar[int]
+    GRID_FIELD_NUMBER: _ClassVar[int]
     fourier: FourierBasis
     rbf: RbfBasis
     tiles: TileBasis
     pvf: NystromPvfBasis
-    def __init__(self, fourier: _Optional[_Union[FourierBasis, _Mapping]] = ..., rbf: _Optional[_Union[RbfBasis, _Mapping]] = ..., tiles: _Optional[_Union[TileBasis, _Mapping]] = ..., pvf: _Optional[_Union[NystromPvfBasis, _Mapping]] = ...) -> None: ...
+    grid: GridBasis
+    def __init__(self, fourier: _Optional[_Union[FourierBasis, _Mapping]] = ..., rbf: _Optional[_Union[RbfBasis, _Mapping]] = ..., tiles: _Optional[_Union[TileBasis, _Mapping]] = ..., pvf: _Optional[_Union[NystromPvfBasis, _Mapping]] = ..., grid: _Optional[_Union[GridBasis, _Mapping]] = ...) -> None: ...
+
+class GridBasis(_message.Message):
+    __slots__ = ("cells_per_dim", "neighbours", "reach")
+    CELLS_PER_DIM_FIELD_NUMBER: _ClassVar[int]
+    NEIGHBOURS_FIELD_NUMBER: _ClassVar[int]
+    REACH_FIELD_NUMBER: _ClassVar[int]
+    cells_per_dim: int
+    neighbours: int
+    reach: float
+    def __init__(self, cells_per_dim: _Optional[int] = ..., neighbours: _Optional[int] = ..., reach: _Optional[float] = ...) -> None: ...
 
 class NystromPvfBasis(_message.Message):
     __slots__ = ("k", "nodes", "neighbours")
