@@ -5,8 +5,12 @@
 //!
 //! Each iteration is a real tick of an agent living in its world, after
 //! a warm-up long enough to fill the sample store:
-//! - `hallway_d1`: the continuous hallway, default basis (64 RBFs × 3 actions);
-//! - `three_room_d2`: the continuous three-room, default basis (8 × 8 RBFs × 4 actions);
+//! - `hallway_d1`: the continuous hallway on 64 RBFs × 3 actions;
+//! - `three_room_d2`: the continuous three-room on 8 × 8 RBFs × 4 actions
+//!   (the default bases of d = 1 and 2 before the grid planner);
+//! - `hallway_d1_grid`, `three_room_d2_grid`: the same worlds on their
+//!   default, the grid planner (docs/algorithm.md §9.8: 64 cells per
+//!   dimension, one exact evaluation and improvement over every cell);
 //! - `three_room_d2_pvf`: the same on 75 PVFs × 4 actions (the basis is
 //!   rebuilt as its graph grows; `rebuild` below times one rebuild alone);
 //! - `box_d8`: a point in [0, 1]^8 moved by 16 actions (each axis, either
@@ -158,8 +162,10 @@ impl Running {
 fn bench_continuous(c: &mut Criterion) {
     let mut group = c.benchmark_group("continuous");
     for (name, bench) in [
-        ("hallway_d1", Bench::World(World::hallway())),
-        ("three_room_d2", Bench::World(World::three_room())),
+        ("hallway_d1", Bench::WorldOn(World::hallway(), rbf(64))),
+        ("three_room_d2", Bench::WorldOn(World::three_room(), rbf(8))),
+        ("hallway_d1_grid", Bench::World(World::hallway())),
+        ("three_room_d2_grid", Bench::World(World::three_room())),
         (
             "three_room_d2_pvf",
             Bench::WorldOn(World::three_room(), pvf()),
@@ -180,6 +186,14 @@ fn bench_continuous(c: &mut Criterion) {
         )
     });
     group.finish();
+}
+
+/// Normalised RBFs, `c` centres per dimension.
+fn rbf(c: u32) -> ContinuousBasisSpec {
+    ContinuousBasisSpec::Rbf {
+        centres_per_dim: c,
+        width: None,
+    }
 }
 
 /// 75 PVFs × 4 actions: 300 state-action features, as the default aims at.

@@ -6,13 +6,13 @@
 //! cargo run --release -p mcapi-experiments --example continuous_tick -- [TICKS]
 //! ```
 //!
-//! Runs the default agent (8 × 8 RBFs × 4 actions, the default sample
-//! store) for TICKS ticks (default 12,000), times each `step` of the last
+//! Runs the agent on 8 × 8 RBFs × 4 actions (the default basis of d = 2
+//! before the grid planner; the sample store's default) for TICKS ticks (default 12,000), times each `step` of the last
 //! quarter (the store is full by then), and prints the store's state every
 //! 1000 ticks, then the median, 90th and 99th percentiles.
 
 use mcapi_core::AgentParams;
-use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation};
+use mcapi_core::continuous::{ContinuousAgent, ContinuousBasisSpec, ContinuousObservation};
 use mcapi_experiments::continuous::{World, spec_of};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
@@ -29,7 +29,12 @@ fn main() -> anyhow::Result<()> {
         ..Default::default()
     }
     .check(world.stimuli().len(), 7)?;
-    let mut agent = ContinuousAgent::new(spec_of(&world).build()?, params);
+    let mut spec = spec_of(&world);
+    spec.basis = Some(ContinuousBasisSpec::Rbf {
+        centres_per_dim: 8,
+        width: None,
+    });
+    let mut agent = ContinuousAgent::new(spec.build()?, params);
     let mut rng = ChaCha8Rng::seed_from_u64(11);
     let mut x = world.start(&mut rng);
     let mut action = agent

@@ -6,7 +6,8 @@
 //! the same bits before the kill and after the recovery (its plans, made
 //! by the tick loop whenever it ran, are replayed where they were made).
 //! Snapshots are taken every 120 observations, so a recovery restores one
-//! and replays the log after it, through basis rebuilds on both sides.
+//! and replays the log after it, through basis rebuilds on both sides; a
+//! session on the grid planner is restored from its own snapshot form.
 
 use crate::common;
 
@@ -290,6 +291,17 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
         grpc: false,
         model: pvf_model,
     };
+    // The grid planner (docs/algorithm.md §9.8): its own snapshot form.
+    let mut grid_model = model();
+    grid_model["basis"] = json!({"kind": "grid", "cells_per_dim": 32});
+    let mut grid = Driven {
+        id: rest_create(35, "lockstep", grid_model.clone()).await,
+        world: Point::new(5),
+        sent: Vec::new(),
+        replies: Vec::new(),
+        grpc: false,
+        model: grid_model,
+    };
     let mut typed = Driven {
         id: info.id,
         world: Point::new(3),
@@ -298,9 +310,10 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
         grpc: true,
         model: model(),
     };
-    for d in [&mut lockstep, &mut async_, &mut typed, &mut pvf] {
+    for d in [&mut lockstep, &mut async_, &mut typed, &mut pvf, &mut grid] {
         d.ticks(&client, &base, &mut grpc, 300).await;
     }
+    let grid_before = values(&client, &base, &grid.id).await;
     let builds = |info: &Value| info["stats"]["continuous"]["basis_builds"].as_u64();
     let (_, info) = rest_get(&client, &base, None, &pvf.id).await;
     let builds_before = builds(&info).expect("basis_builds");
@@ -330,10 +343,10 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
     // them) restored, and only the ones after it replayed.
     let recovered = log_events(&server.log_text(), "sessions recovered");
     assert_eq!(recovered.len(), 1, "{recovered:?}");
-    assert_eq!(recovered[0]["sessions"], json!(4), "{recovered:?}");
+    assert_eq!(recovered[0]["sessions"], json!(5), "{recovered:?}");
     let replayed = recovered[0]["replayed"].as_u64().expect("replayed");
     assert!(
-        replayed > 0 && replayed <= 4 * 120,
+        replayed > 0 && replayed <= 5 * 120,
         "a snapshot, then the log after it: {replayed} entries replayed"
     );
     let base = server.base();
@@ -348,7 +361,14 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
         &common::floats(&before["v"]),
         "V at every grid point",
     );
-    for d in [&mut lockstep, &mut async_, &mut typed, &mut pvf] {
+    let grid_after = values(&client, &base, &grid.id).await;
+    for table in ["v", "q", "policy"] {
+        assert_eq!(
+            grid_before[table], grid_after[table],
+            "grid {table} after kill -9"
+        );
+    }
+    for d in [&mut lockstep, &mut async_, &mut typed, &mut pvf, &mut grid] {
         d.ticks(&client, &base, &mut grpc, 200).await;
     }
     let (_, info) = rest_get(&client, &base, None, &pvf.id).await;
@@ -359,7 +379,7 @@ async fn continuous_sessions_survive_kill_9_bit_for_bit() {
         "the pvf basis was rebuilt before the kill: {builds_before}"
     );
     assert!(builds_after > builds_before, "and after it: {builds_after}");
-    for (d, seed) in [(&lockstep, 31), (&typed, 33), (&pvf, 34)] {
+    for (d, seed) in [(&lockstep, 31), (&typed, 33), (&pvf, 34), (&grid, 35)] {
         let want = d.core_replies(seed);
         assert_eq!(want.len(), 500);
         for (i, (got, want)) in d.replies.iter().zip(&want).enumerate() {

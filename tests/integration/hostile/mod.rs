@@ -120,6 +120,24 @@ async fn hostile_requests_get_precise_refusals_and_the_server_stays_up() {
             "invalid_model",
         ),
         (
+            "continuous grid of 4294967295 cells per dimension",
+            json!({"basis": {"kind": "grid", "cells_per_dim": u32::MAX}}),
+            400,
+            "invalid_basis",
+        ),
+        (
+            "continuous grid keeping 4294967295 moves per cell",
+            json!({"basis": {"kind": "grid", "cells_per_dim": 64, "neighbours": u32::MAX}}),
+            400,
+            "invalid_basis",
+        ),
+        (
+            "continuous grid reaching 1e300 cells",
+            json!({"basis": {"kind": "grid", "cells_per_dim": 64, "reach": 1e300}}),
+            400,
+            "invalid_basis",
+        ),
+        (
             "continuous 2025 features over 16384 samples (gigabytes)",
             json!({"basis": {"kind": "fourier", "order": 44}, "samples": {"max": 16384}}),
             413,

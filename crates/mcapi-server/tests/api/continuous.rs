@@ -53,11 +53,14 @@ async fn a_continuous_session_is_driven_with_vectors() {
     )
     .await;
     assert_eq!(status, 201, "{info}");
-    // The default basis for d = 2 is shown in the summary, as built.
+    // The default basis for d = 2 is shown in the summary, as built: the
+    // grid of 64 × 64 cells.
     assert_eq!(
-        info["model"]["continuous"]["basis"]["kind"], "rbf",
+        info["model"]["continuous"]["basis"],
+        json!({"kind": "grid", "cells_per_dim": 64}),
         "{info}"
     );
+    assert_eq!(info["model"]["basis"]["k"], 4096, "{info}");
     assert_eq!(info["model"]["states"], 0);
     assert!(
         info["cost"]["bytes"].as_u64().unwrap_or(0) > 100_000,
@@ -72,7 +75,7 @@ async fn a_continuous_session_is_driven_with_vectors() {
         let a = step["action_index"].as_u64().expect("action") as usize;
         let (dx, dy) = [(0.0, 0.05), (0.0, -0.05), (0.05, 0.0), (-0.05, 0.0)][a];
         // Now and then a step out of the box, clipped.
-        let out = if t % 40 == 39 { 0.5 } else { 0.0 };
+        let out = if t % 40 == 39 { 2.0 } else { 0.0 };
         x = [
             (x[0] + dx).clamp(0.0, 1.0) + out,
             (x[1] + dy).clamp(0.0, 1.0),
@@ -312,6 +315,67 @@ async fn absurd_continuous_models_and_observations_are_refused_precisely() {
             "always learned",
         ),
         (square(json!({"grid": ["#a#"]})), 400, "unknown field"),
+        // The grid: every count bounded before anything is allocated.
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 4_294_967_295u64}})),
+            400,
+            "`cells_per_dim` 4294967295",
+        ),
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 65}})),
+            400,
+            "at most 4096 cells",
+        ),
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 1}})),
+            400,
+            "`cells_per_dim` 1",
+        ),
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 4_294_967_296u64}})),
+            400,
+            "expected u32",
+        ),
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 64},
+                          "actions": (0..5).map(|i| format!("a{i}")).collect::<Vec<_>>()})),
+            400,
+            "16384 (cell, action) pairs",
+        ),
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 16, "neighbours": 0}})),
+            400,
+            "`neighbours` 0",
+        ),
+        (
+            square(
+                json!({"basis": {"kind": "grid", "cells_per_dim": 16, "neighbours": 1_000_000}}),
+            ),
+            400,
+            "`neighbours` 1000000",
+        ),
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 16, "reach": 1e308}})),
+            400,
+            "`reach`",
+        ),
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 16, "reach": -1}})),
+            400,
+            "`reach`",
+        ),
+        (
+            square(json!({"basis": {"kind": "grid", "cells_per_dim": 16, "width": 1}})),
+            400,
+            "unknown field",
+        ),
+        (
+            json!({"observation_space": {"low": [0, 0, 0], "high": [1, 1, 1]},
+                   "actions": ["n"], "stimuli": ["food"],
+                   "basis": {"kind": "grid", "cells_per_dim": 17}}),
+            400,
+            "cells_per_dim^3",
+        ),
     ];
     for (model, status, needle) in creates {
         let (got, reply) = call(&client, "POST", &create, Some(&json!({"model": model}))).await;
@@ -436,7 +500,8 @@ async fn absurd_continuous_models_and_observations_are_refused_precisely() {
         &client,
         "POST",
         &format!("{tight}/v1/sessions"),
-        Some(&json!({"model": square(json!({"samples": {"max": 16384}}))})),
+        Some(&json!({"model": square(json!({"samples": {"max": 16384},
+            "basis": {"kind": "rbf", "centres_per_dim": 8}}))})),
     )
     .await;
     assert_eq!(got, 413, "{reply}");

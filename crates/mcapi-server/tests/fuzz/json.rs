@@ -67,6 +67,8 @@ const KEYS: &[&str] = &[
     "per_cell",
     "max",
     "known_after",
+    "neighbours",
+    "reach",
 ];
 
 const WORDS: &[&str] = &[
@@ -97,6 +99,8 @@ const WORDS: &[&str] = &[
     "fourier",
     "rbf",
     "tiles",
+    "grid",
+    "pvf",
     "clip",
     "refuse",
 ];
@@ -337,6 +341,10 @@ pub(crate) fn create_bases() -> Vec<Value> {
                "actions": ["l", "r"], "stimuli": ["x", "y"],
                "basis": {"kind": "rbf", "centres_per_dim": 10, "width": 0.5},
                "samples": {"cells_per_dim": 20, "known_after": 2}}}),
+        json!({"model": {"observation_space": {"low": [0, 0], "high": [2, 1]},
+               "actions": ["n", "s", "e", "w"], "stimuli": ["food"],
+               "basis": {"kind": "grid", "cells_per_dim": 12, "neighbours": 3, "reach": 2.0}},
+               "agent": {"update_mode": "async", "seed": 9}}),
     ]
 }
 
