@@ -7,7 +7,7 @@ not state numbers. The world is simulated here in a few lines of Python: a
 move shifts the point by 0.05 (with a little noise) and stops at the walls;
 while the point is inside a disc, that disc's stimulus is delivered.
 The server learns the dynamics from the observed transitions and plans on
-a basis over the square (its default for d = 2: normalised RBFs); the drive
+its default for d = 2, a grid of 64 x 64 cells over the square; the drive
 sends the agent to whichever source it received least recently.
 
 This prints, every ``--report-every`` ticks, what the agent seeks and how
