@@ -12,8 +12,9 @@ sends the agent to whichever source it received least recently.
 
 This prints, every ``--report-every`` ticks, what the agent seeks and how
 often it arrived at each source coming from another one, then the totals,
-the same numbers for a random walk on the same seed, and the session's
-sample store.
+the same numbers for a random walk on the same seed, and what the session's
+model holds (on the grid: the moves kept and the (cell, action) pairs whose
+successor it knows).
 
     mcapi serve                               # in another terminal
     python clients/python/examples/continuous_point.py --steps 3000
@@ -149,10 +150,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     print(f"random: {args.steps} ticks, arrivals {report(walk)}; balance {balance(walk):.2f}")
     stats = info.stats.continuous
     if stats is not None:
-        print(
-            f"sample store: {stats.samples} transitions, {stats.slots} (cell, action) slots; "
-            f"{stats.clipped} observations clipped"
+        on_grid = isinstance(basis, dict) and basis.get("kind") == "grid"
+        held = (
+            f"grid: {stats.samples} moves kept, {stats.slots} (cell, action) pairs known"
+            if on_grid
+            else f"sample store: {stats.samples} transitions, {stats.slots} (cell, action) slots"
         )
+        print(f"{held}; {stats.clipped} observations clipped")
     return 0
 
 

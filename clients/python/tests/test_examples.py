@@ -175,7 +175,8 @@ def test_continuous_point(server: Server, examples_path: Path, capsys: pytest.Ca
     out = _run(
         "continuous_point", ["--url", server.http_url, "--steps", "600", "--report-every", "300"], capsys
     )
-    assert "point world: [0, 1]^2, 4 moves, sources food, water, rest; basis {'kind': 'rbf'" in out, out
+    # The default for d = 2: the grid planner.
+    assert "point world: [0, 1]^2, 4 moves, sources food, water, rest; basis {'kind': 'grid'" in out, out
     assert len(re.findall(r"^tick +\d+: seeking (food|water|rest); arrivals", out, re.MULTILINE)) == 2, out
     agent = re.search(
         r"agent : 600 ticks, arrivals food (\d+), water (\d+), rest (\d+); balance ([0-9.]+)", out
@@ -183,10 +184,13 @@ def test_continuous_point(server: Server, examples_path: Path, capsys: pytest.Ca
     walk = re.search(r"random: 600 ticks, arrivals food (\d+), water (\d+), rest (\d+)", out)
     assert agent and walk, out
     assert sum(map(int, agent.groups()[:3])) >= 1, f"the agent reaches a source: {out}"
-    store = re.search(
-        r"sample store: (\d+) transitions, (\d+) \(cell, action\) slots; 0 observations clipped", out
+    held = re.search(
+        r"^grid: (\d+) moves kept, (\d+) \(cell, action\) pairs known; 0 observations clipped$",
+        out,
+        re.MULTILINE,
     )
-    assert store and 0 < int(store.group(1)) <= 600, out
+    # A move teaches every cell within reach; at most 4 actions × 64² pairs.
+    assert held and int(held.group(1)) > 600 and 0 < int(held.group(2)) <= 4 * 64 * 64, out
 
 
 def test_examples_say_in_one_line_what_went_wrong(tmp_path: Path, examples_path: Path) -> None:

@@ -9,10 +9,12 @@
 //!   that did not move (a push into a wall) reaches only 1.5 cells, one
 //!   that moved `reach` cells (default 3.5), so a blocked move teaches the
 //!   cells along the wall and one free move teaches the open space around
-//!   it. When the nearest kept transition did not move, the pair stays in
-//!   its cell. A transition that starts inside a cell counts as the
-//!   nearest possible for that cell, newest first, so what the agent just
-//!   saw where it stands overrides what it saw elsewhere.
+//!   it. When most of its kept transitions did not move, the pair stays in
+//!   its cell (a majority, so that the noise that blocks some moves along
+//!   a wall does not make a free move look blocked). A transition that
+//!   starts inside a cell counts as the nearest possible for that cell,
+//!   newest first, so what the agent just saw where it stands outweighs
+//!   what it saw elsewhere.
 //! - **Knownness and optimism.** A pair with no transition within reach is
 //!   unknown and worth Q_opt = R_max / (1 − γ) (R-max, as §8 and §9.4).
 //! - **Ξ (line 5).** The stimulus of a cell is the mean of what was
@@ -278,7 +280,12 @@ impl GridPlanner {
     pub fn observe(&mut self, s: &[f64], a: usize, s_next: &[f64], xi: &[f64]) {
         let d = self.d;
         let cell_width = 1.0 / self.res as f64;
-        let delta: Vec<f64> = s_next.iter().zip(s).map(|(y, x)| y - x).collect();
+        let mut delta = [0.0f64; MAX_DIM];
+        let delta = &mut delta[..d];
+        for ((m, y), x) in delta.iter_mut().zip(s_next).zip(s) {
+            *m = y - x;
+        }
+        let delta = &*delta;
         let moved = delta.iter().any(|x| x.abs() >= BLOCKED_MOVE * cell_width);
         let radius = if moved {
             self.reach
@@ -288,7 +295,7 @@ impl GridPlanner {
         let own = 0.5 * (d as f64).sqrt() * cell_width;
         self.for_cells_near(s, radius, |g, cell, dist| {
             let dist = if dist <= own { 0.0 } else { dist };
-            g.keep(cell * g.actions + a, dist, &delta);
+            g.keep(cell * g.actions + a, dist, delta);
         });
         // Ξ: the arrival cell, and the cells never entered near s′.
         let arrived = self.cell_of(s_next);
