@@ -447,8 +447,10 @@ class ContinuousStats:
 
     Attributes:
         clipped: Observations outside the box, clipped into it.
-        samples: Transitions in the sample store now.
-        slots: (cell, action) slots visited.
+        samples: Transitions in the sample store now (on a grid: the moves
+            kept, each counted once for every (cell, action) it teaches).
+        slots: (cell, action) slots visited (on a grid: the pairs whose
+            successor is known).
         updates: Rank-one updates of the planner's inverse.
         rebuilds: Rebuilds of the planner's inverse.
         basis_builds: Builds of a ``pvf`` basis (0 for the other bases).

@@ -465,9 +465,11 @@ pub struct SessionStats {
 pub struct ContinuousStatsOut {
     /// Observations outside the box, clipped into it.
     pub clipped: u64,
-    /// Transitions in the sample store now.
+    /// Transitions in the sample store now (on a grid: the moves kept, each
+    /// counted once for every (cell, action) it teaches).
     pub samples: usize,
-    /// (cell, action) slots visited.
+    /// (cell, action) slots visited (on a grid: the pairs whose successor
+    /// is known).
     pub slots: usize,
     /// Rank-one updates of the planner's inverse.
     pub updates: u64,
