@@ -757,16 +757,17 @@ mod tests {
         }
     }
 
-    /// A continuous world's snapshot is the fourth variant, after those
-    /// that stores already hold, and keeps the ring's observations.
-    #[test]
-    fn continuous_snapshots_decode_as_written() {
+    /// An agent on the unit square with two actions and one stimulus, on
+    /// `basis`, after four observations.
+    fn stepped_continuous_agent(
+        basis: serde_json::Value,
+    ) -> mcapi_core::continuous::ContinuousAgent {
         let spec: mcapi_core::continuous::ContinuousSpec =
             serde_json::from_value(serde_json::json!({
                 "observation_space": {"low": [0, 0], "high": [1, 1]},
                 "actions": ["north", "south"],
                 "stimuli": ["food"],
-                "basis": {"kind": "fourier", "order": 2},
+                "basis": basis,
             }))
             .expect("spec");
         let params = mcapi_core::AgentParams::default()
@@ -783,6 +784,14 @@ mod tests {
                 })
                 .expect("step");
         }
+        agent
+    }
+
+    /// A continuous world's snapshot is the fourth variant, after those
+    /// that stores already hold, and keeps the ring's observations.
+    #[test]
+    fn continuous_snapshots_decode_as_written() {
+        let agent = stepped_continuous_agent(serde_json::json!({"kind": "fourier", "order": 2}));
         let record = ContinuousRecord {
             agent: agent.snapshot().features().expect("a feature basis"),
             history_observations: vec![Some(vec![0.2, 0.5]), None],
@@ -809,28 +818,8 @@ mod tests {
     /// so that the snapshots stored before it still decode.
     #[test]
     fn a_grid_snapshot_round_trips_as_the_last_variant() {
-        let spec: mcapi_core::continuous::ContinuousSpec =
-            serde_json::from_value(serde_json::json!({
-                "observation_space": {"low": [0, 0], "high": [1, 1]},
-                "actions": ["north", "south"],
-                "stimuli": ["food"],
-                "basis": {"kind": "grid", "cells_per_dim": 8},
-            }))
-            .expect("spec");
-        let params = mcapi_core::AgentParams::default()
-            .check(1, 7)
-            .expect("params");
-        let mut agent =
-            mcapi_core::continuous::ContinuousAgent::new(spec.build().expect("model"), params);
-        for (i, x) in [0.1, 0.2, 0.3, 0.2].into_iter().enumerate() {
-            agent
-                .step(&mcapi_core::continuous::ContinuousObservation {
-                    observation: &[x, 0.5],
-                    stimulus: (i > 0).then_some(&[1.0][..]),
-                    action_taken: None,
-                })
-                .expect("step");
-        }
+        let agent =
+            stepped_continuous_agent(serde_json::json!({"kind": "grid", "cells_per_dim": 8}));
         let mcapi_core::continuous::ContinuousState::Grid(grid) = agent.snapshot() else {
             panic!("a grid agent's snapshot is a grid snapshot");
         };

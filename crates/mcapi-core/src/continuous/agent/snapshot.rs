@@ -177,11 +177,7 @@ impl ContinuousAgent {
         params: ValidParams,
         snap: GridSnapshot,
     ) -> Result<Self> {
-        let bad = |what: &str| {
-            Err(AlgoError::InvalidSnapshot(format!(
-                "its {what} does not fit the model"
-            )))
-        };
+        let bad = |what: &str| Err(misfit(what));
         let (d, na, n) = (model.dim(), model.n_actions(), model.n_stimuli());
         let FeatureMap::Grid(shape) = model.features else {
             return bad("basis");
@@ -218,11 +214,7 @@ impl ContinuousAgent {
         params: ValidParams,
         snap: ContinuousSnapshot,
     ) -> Result<Self> {
-        let bad = |what: &str| {
-            Err(AlgoError::InvalidSnapshot(format!(
-                "its {what} does not fit the model"
-            )))
-        };
+        let bad = |what: &str| Err(misfit(what));
         let (d, k, na, n) = (
             model.dim(),
             model.features.len(),
@@ -287,6 +279,11 @@ impl ContinuousAgent {
         agent.graph = snap.graph;
         Ok(agent)
     }
+}
+
+/// The refusal of a snapshot whose `what` does not fit the model.
+fn misfit(what: &str) -> AlgoError {
+    AlgoError::InvalidSnapshot(format!("its {what} does not fit the model"))
 }
 
 /// A drive of n finite components and unit length.
