@@ -294,7 +294,7 @@ impl Agent {
         };
         // `advised` is always set once `state` is (act follows every observe).
         pair.map(Some)
-            .ok_or(AlgoError::Numerical("no advised action to update".into()))
+            .ok_or_else(|| AlgoError::Numerical("no advised action to update".into()))
     }
 
     /// Lines 5-7 and Eq. 3: learns Ξ(s_t, a_t) and updates D. Nothing changes on error.

@@ -22,8 +22,9 @@
 //! numbered observation is: one already applied is answered with its
 //! recorded step (`replayed`) and applied nothing.
 
-use std::sync::Arc;
+use std::sync::{Arc, Weak};
 
+use parking_lot::Mutex;
 use serde::{Deserialize, Serialize};
 
 use mcapi_core::AlgoError;
@@ -31,7 +32,8 @@ use mcapi_core::spec::ActionRef;
 
 use super::agent_config::{SessionConfig, UpdateMode};
 use super::error::ServiceError;
-use super::session::Owner;
+use super::session::{Owner, Session, SessionRef};
+use super::table::{Entry, SessionTable};
 use super::wire::{ModelSummary, ObservationIn};
 
 /// In a step's `action_taken` column: the member took the advised action.
@@ -107,6 +109,59 @@ pub struct Group {
     /// One member's estimated CPU time per observation (they share their
     /// model and configuration).
     pub tick_us: u64,
+    /// Where each member was last found in the session table, and the
+    /// table's generation then ([`Resolved`]).
+    pub resolved: Resolved,
+}
+
+/// Each member's session as a group step last found it in the session
+/// table, with the table's generation at that lookup
+/// ([`super::table::SessionTable::generation`]). While the generation is
+/// unchanged, the table still maps the member's id to that entry, so a step
+/// takes the member from here instead of searching the table's ordered map
+/// of string ids (a search touches a dozen cold nodes per member; BENCHMARKS.md,
+/// "Vectorised stepping"). Weak: an evicted or deleted member's memory is
+/// not held, and an eviction's count of who holds a session is unchanged.
+#[derive(Debug, Default)]
+pub struct Resolved(Mutex<Vec<(u64, Weak<Session>)>>);
+
+impl Resolved {
+    /// The resident session of member `index` of `members` in `table` (read
+    /// under its lock by the caller), from what is remembered if `table`'s
+    /// generation is the one it was found with, else looked up and
+    /// remembered.
+    pub fn resident(
+        slots: &mut Vec<(u64, Weak<Session>)>,
+        table: &SessionTable,
+        members: &[Option<String>],
+        index: usize,
+    ) -> Option<SessionRef> {
+        let generation = table.generation();
+        if slots.len() != members.len() {
+            slots.clear();
+            slots.resize(members.len(), (0, Weak::new()));
+        }
+        let slot = slots.get_mut(index)?;
+        if slot.0 == generation {
+            return slot.1.upgrade();
+        }
+        let found = members
+            .get(index)?
+            .as_deref()
+            .and_then(|id| table.get(id))
+            .and_then(Entry::resident)
+            .cloned();
+        *slot = (
+            generation,
+            found.as_ref().map_or_else(Weak::new, Arc::downgrade),
+        );
+        found
+    }
+
+    /// The slots, locked.
+    pub fn lock(&self) -> parking_lot::MutexGuard<'_, Vec<(u64, Weak<Session>)>> {
+        self.0.lock()
+    }
 }
 
 /// A group as the API shows it.

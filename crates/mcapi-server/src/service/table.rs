@@ -65,6 +65,10 @@ pub struct SessionTable {
     map: BTreeMap<String, Entry>,
     usage: HashMap<Owner, Usage>,
     evicted: usize,
+    /// Bumped by every change of which entry an id maps to (an insert, a
+    /// removal, a swap), so a lookup remembered with it stands for as long
+    /// as it is unchanged ([`SessionTable::generation`]).
+    generation: u64,
 }
 
 impl SessionTable {
@@ -81,6 +85,15 @@ impl SessionTable {
     /// Number of evicted sessions.
     pub fn evicted(&self) -> usize {
         self.evicted
+    }
+
+    /// Which version of the id → entry mapping this is: never 0, and
+    /// different after every insert, removal or swap. A caller that
+    /// remembers what [`SessionTable::get`] returned for some ids (a
+    /// group's members) may use it instead of looking them up again while
+    /// the generation is the one it was read with.
+    pub fn generation(&self) -> u64 {
+        self.generation.wrapping_add(1).max(1)
     }
 
     /// The session with this id.
@@ -115,6 +128,7 @@ impl SessionTable {
         usage.sessions += 1;
         usage.bytes = usage.bytes.saturating_add(entry.charge());
         self.evicted += usize::from(matches!(entry, Entry::Evicted(_)));
+        self.generation += 1;
         let old = self.map.insert(id, entry);
         if let Some(old) = &old {
             self.refund(old);
@@ -125,6 +139,7 @@ impl SessionTable {
     /// Removes a session, refunding its owner.
     pub fn remove(&mut self, id: &str) -> Option<Entry> {
         let old = self.map.remove(id)?;
+        self.generation += 1;
         self.refund(&old);
         Some(old)
     }
@@ -154,6 +169,7 @@ impl SessionTable {
         }
         *entry = with;
         self.evicted = self.evicted + now - was;
+        self.generation += 1;
         true
     }
 
@@ -172,5 +188,66 @@ impl SessionTable {
     /// What `owner` holds now.
     pub fn usage(&self, owner: &Owner) -> Usage {
         self.usage.get(owner).copied().unwrap_or_default()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::service::agent_config::UpdateMode;
+    use crate::service::session::Evicted;
+
+    fn stub(tick: u64) -> Entry {
+        Entry::Evicted(Arc::new(Evicted {
+            owner: None,
+            cost: SessionCost {
+                bytes: 1000,
+                tick_us: 1,
+            },
+            held: 100,
+            tick,
+            states: 50,
+            mode: UpdateMode::Async,
+            last_observed_ns: 0,
+            lsn: 0,
+        }))
+    }
+
+    /// The generation changes with every change of what an id maps to and
+    /// with nothing else, so a lookup remembered with it stands exactly as
+    /// long as the table still gives the same answer.
+    #[test]
+    fn the_generation_changes_with_every_insert_removal_and_swap_only() {
+        let mut table = SessionTable::default();
+        let mut seen = vec![table.generation()];
+        let mut changed = |table: &SessionTable, expected: bool, what: &str| {
+            let now = table.generation();
+            assert_ne!(now, 0, "never 0");
+            assert_eq!(!seen.contains(&now), expected, "{what}");
+            seen.push(now);
+        };
+        let first = stub(1);
+        table.insert_entry("a".into(), first.clone());
+        changed(&table, true, "insert");
+        table.insert_entry("a".into(), stub(2));
+        changed(&table, true, "replace");
+        let _ = (
+            table.get("a"),
+            table.len(),
+            table.values().count(),
+            table.after(None).count(),
+        );
+        changed(&table, false, "reads");
+        assert!(!table.swap("a", &first, stub(3)), "no longer the entry");
+        changed(&table, false, "a swap refused");
+        assert!(!table.swap("b", &first, stub(3)), "no such id");
+        changed(&table, false, "a swap of no entry");
+        let now = table.get("a").cloned().expect("a");
+        assert!(table.swap("a", &now, stub(4)));
+        changed(&table, true, "swap");
+        assert!(table.remove("b").is_none());
+        changed(&table, false, "removal of no entry");
+        assert!(table.remove("a").is_some());
+        changed(&table, true, "removal");
     }
 }

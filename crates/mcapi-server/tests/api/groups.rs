@@ -482,6 +482,120 @@ fn a_group_and_its_stepped_members_survive_a_restart() {
     manager.shutdown();
 }
 
+/// A group step finds each member where the session table has it now:
+/// members evicted to the store between steps are loaded back and step on
+/// bit for bit as the members of a twin group (same seed) that never left
+/// memory; a member deleted alone is refused as not found while the others
+/// step; a member evicted again after stepping from memory is found again.
+/// (A step remembers where it found each member while the table is
+/// unchanged; every eviction, load and delete changes it.)
+#[test]
+fn a_group_steps_on_through_its_members_evicted_loaded_back_and_deleted() {
+    let rt = tokio::runtime::Runtime::new().expect("runtime");
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(Store::open(data.path()).expect("store"));
+    let manager = SessionManager::with_options(ManagerOptions {
+        store: Some(store),
+        ..ManagerOptions::new(Limits::default(), 1)
+    })
+    .expect("manager");
+    manager.recover().expect("recovery");
+    let manager = Arc::new(manager);
+    let create = || {
+        manager
+            .create_group(
+                Caller::Anyone,
+                serde_json::from_value::<CreateGroup>(
+                    json!({"model": {"preset": "hallway"}, "n": 6, "seed": 11}),
+                )
+                .expect("body"),
+            )
+            .expect("create")
+    };
+    let (evicted, twin) = (create(), create());
+    let states = [3, 9, 10, 25, 40, 41];
+    let step = |group: &str, first: bool| {
+        rt.block_on(manager.step_group(
+            Caller::Anyone,
+            group,
+            Columns {
+                states: states.to_vec(),
+                stimuli: if first {
+                    Vec::new()
+                } else {
+                    (0..6).flat_map(|i| [i as f64 * 0.5, 1.0]).collect()
+                },
+                ..Columns::default()
+            },
+        ))
+        .expect("step")
+    };
+    let same = |a: &[mcapi_server::service::groups::MemberStep],
+                b: &[mcapi_server::service::groups::MemberStep],
+                what: &str| {
+        assert_eq!(a.len(), b.len());
+        for (x, y) in a.iter().zip(b) {
+            let (x, y) = (
+                x.result.as_ref().expect(what),
+                y.result.as_ref().expect(what),
+            );
+            assert_eq!((x.tick, x.action_index), (y.tick, y.action_index), "{what}");
+            assert_bits_eq(&x.drive, &y.drive, what);
+        }
+    };
+    for t in 0..5 {
+        same(
+            &step(&evicted.id, t == 0),
+            &step(&twin.id, t == 0),
+            "in memory",
+        );
+    }
+    // Both groups leave memory; only the first is stepped (and so loaded
+    // back) while the twin is loaded back by its own steps later.
+    assert_eq!(
+        manager.evict_idle(std::time::Duration::ZERO),
+        12,
+        "all evicted"
+    );
+    let loaded = step(&evicted.id, false);
+    same(&loaded, &step(&twin.id, false), "loaded back");
+    assert_eq!(
+        manager.evict_idle(std::time::Duration::ZERO),
+        12,
+        "evicted again"
+    );
+    for _ in 0..3 {
+        same(
+            &step(&evicted.id, false),
+            &step(&twin.id, false),
+            "after a reload",
+        );
+    }
+    // One member deleted alone: refused by the group step, the rest step.
+    let gone = evicted.members[2].as_deref().expect("member");
+    rt.block_on(manager.delete(Caller::Anyone, gone))
+        .expect("delete");
+    let after = step(&evicted.id, false);
+    let twin_after = step(&twin.id, false);
+    for (i, (x, y)) in after.iter().zip(&twin_after).enumerate() {
+        if i == 2 {
+            let e = x
+                .result
+                .as_ref()
+                .expect_err("the deleted member is refused");
+            assert!(e.to_string().contains(gone), "{e}");
+        } else {
+            let (x, y) = (
+                x.result.as_ref().expect("step"),
+                y.result.as_ref().expect("step"),
+            );
+            assert_eq!(x.tick, y.tick);
+            assert_bits_eq(&x.drive, &y.drive, "beside a deleted member");
+        }
+    }
+    manager.shutdown();
+}
+
 /// A crash (the store stopped as `kill -9` leaves its files) with group
 /// steps still in the write-ahead log, none applied to the database: each
 /// member comes back as it stood, its history too, though its entries were

@@ -17,7 +17,7 @@ use mcapi_store::Sent;
 
 use super::*;
 use crate::service::groups::{
-    Columns, CreateGroup, Group, GroupInfo, GroupTag, MemberStep, member_seed,
+    Columns, CreateGroup, Group, GroupInfo, GroupTag, MemberStep, Resolved, member_seed,
 };
 
 /// The groups in memory by id.
@@ -292,6 +292,7 @@ impl SessionManager {
             model,
             mode,
             tick_us: cost.tick_us,
+            resolved: Resolved::default(),
         });
         // Checked again under the lock: concurrent creates see each other
         // (room made again, a few times at most, for one that took it).
@@ -548,11 +549,16 @@ impl SessionManager {
             .durability
             .as_ref()
             .map(|d| Arc::new(Batch::new(Arc::clone(&d.store))));
-        let resident = self.resident_all(
+        let resident: Vec<Option<SessionRef>> = {
+            let table = self.sessions.read();
+            let mut slots = group.resolved.lock();
             chunk
                 .iter()
-                .map(|(_, (index, _))| group.members[*index].as_deref()),
-        );
+                .map(|(_, (index, _))| {
+                    Resolved::resident(&mut slots, &table, &group.members, *index)
+                })
+                .collect()
+        };
         let applied = chunk
             .into_iter()
             .zip(resident)
@@ -610,6 +616,7 @@ impl SessionManager {
                 model,
                 mode,
                 tick_us,
+                resolved: Resolved::default(),
             });
             if let Some(slot) = group.members.get_mut(index) {
                 *slot = Some(id);

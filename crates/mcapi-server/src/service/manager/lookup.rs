@@ -30,23 +30,6 @@ impl SessionManager {
             .cloned()
     }
 
-    /// [`Self::resident`] of each of `ids`, under one read lock of the
-    /// table: a group step's chunk of members (the lock's cache line is
-    /// shared by the threads that apply the other chunks).
-    pub(super) fn resident_all<'a>(
-        &self,
-        ids: impl IntoIterator<Item = Option<&'a str>>,
-    ) -> Vec<Option<SessionRef>> {
-        let table = self.sessions.read();
-        ids.into_iter()
-            .map(|id| {
-                id.and_then(|id| table.get(id))
-                    .and_then(Entry::resident)
-                    .cloned()
-            })
-            .collect()
-    }
-
     /// The session of `entry`, loaded back if it is evicted (blocking).
     pub(super) fn loaded(&self, id: &str, entry: Entry) -> Result<SessionRef, ServiceError> {
         match entry {
