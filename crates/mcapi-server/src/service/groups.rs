@@ -120,8 +120,12 @@ pub struct Group {
 /// unchanged, the table still maps the member's id to that entry, so a step
 /// takes the member from here instead of searching the table's ordered map
 /// of string ids (a search touches a dozen cold nodes per member; BENCHMARKS.md,
-/// "Vectorised stepping"). Weak: an evicted or deleted member's memory is
-/// not held, and an eviction's count of who holds a session is unchanged.
+/// "Vectorised stepping"). Weak, so an eviction's count of who holds a
+/// session is unchanged and a member that leaves memory is freed: all but
+/// its session's own struct (about 1.4 KiB), which a weak reference keeps
+/// allocated until it is dropped; an eviction drops its member's
+/// ([`Resolved::forget`]), the next step of the group drops a deleted
+/// member's.
 #[derive(Debug, Default)]
 pub struct Resolved(Mutex<Vec<(u64, Weak<Session>)>>);
 
@@ -156,6 +160,13 @@ impl Resolved {
             found.as_ref().map_or_else(Weak::new, Arc::downgrade),
         );
         found
+    }
+
+    /// Forgets where member `index` was found (it left memory).
+    pub fn forget(&self, index: usize) {
+        if let Some(slot) = self.0.lock().get_mut(index) {
+            *slot = (0, Weak::new());
+        }
     }
 
     /// The slots, locked.

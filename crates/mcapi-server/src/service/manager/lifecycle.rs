@@ -280,6 +280,16 @@ impl SessionManager {
         }
         metrics::gauge!("mcapi_sessions_evicted").set(sessions.evicted() as f64);
         drop(sessions);
+        // A group remembers its members by weak references, which would
+        // keep each evicted session's struct allocated until the group
+        // steps again.
+        let groups = self.groups.read();
+        for tag in ready.iter().filter_map(|s| s.group.as_ref()) {
+            if let Some(group) = groups.get(&tag.group) {
+                group.resolved.forget(tag.index as usize);
+            }
+        }
+        drop(groups);
         // The sessions are freed here, outside the lock.
         drop(ready);
         metrics::counter!("mcapi_session_evictions_total").increment(evicted as u64);

@@ -152,3 +152,62 @@ fn the_same_seed_and_observations_give_the_same_session() {
     assert_eq!(ia.drive, ib.drive);
     assert_eq!(ia.tick, ib.tick);
 }
+
+/// A group remembers where it found its members by weak references (no
+/// search of the table per member and step); an eviction drops its
+/// members' references, so an idle group whose members left memory keeps
+/// none of them allocated.
+#[test]
+fn an_eviction_drops_what_a_group_remembers_of_its_members() {
+    use crate::service::groups::{Columns, CreateGroup};
+    let rt = rt();
+    let data = tempfile::tempdir().expect("data dir");
+    let store = Arc::new(mcapi_store::Store::open(data.path()).expect("store"));
+    let m = Arc::new(
+        SessionManager::with_options(ManagerOptions {
+            store: Some(store),
+            ..ManagerOptions::new(Limits::default(), 1)
+        })
+        .expect("manager"),
+    );
+    m.recover().expect("recovery");
+    let body: CreateGroup =
+        serde_json::from_value(json!({"model": {"preset": "hallway"}, "n": 3, "seed": 5}))
+            .expect("body");
+    let info = m.create_group(Caller::Anyone, body).expect("create");
+    let step = |stimuli: Vec<f64>| {
+        let steps = rt
+            .block_on(m.step_group(
+                Caller::Anyone,
+                &info.id,
+                Columns {
+                    states: vec![1, 2, 3],
+                    stimuli,
+                    ..Columns::default()
+                },
+            ))
+            .expect("step");
+        assert!(steps.iter().all(|s| s.result.is_ok()));
+    };
+    step(Vec::new());
+    step(vec![0.5; 6]);
+    let group = Arc::clone(m.groups.read().get(&info.id).expect("group"));
+    let remembered = || {
+        group
+            .resolved
+            .lock()
+            .iter()
+            .filter(|(_, s)| !s.ptr_eq(&std::sync::Weak::new()))
+            .count()
+    };
+    assert_eq!(remembered(), 3, "each member found once is remembered");
+    assert_eq!(m.evict_idle(std::time::Duration::ZERO), 3);
+    assert_eq!(remembered(), 0, "the evicted members are forgotten");
+    // This step finds them evicted and loads them back (which changes the
+    // table); the next finds them in memory and remembers them again.
+    step(vec![0.0, 1.0, 0.0, 1.0, 0.0, 1.0]);
+    assert_eq!(remembered(), 0, "found evicted");
+    step(vec![0.0; 6]);
+    assert_eq!(remembered(), 3, "found again once loaded back");
+    m.shutdown();
+}
