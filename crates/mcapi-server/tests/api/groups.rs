@@ -30,6 +30,20 @@ async fn start(limits: Limits) -> String {
     format!("http://{addr}")
 }
 
+/// A manager on the durable store in `dir`, recovered from it, with
+/// `threads` planning threads; the store too, for tests that stop it as a
+/// crash would.
+fn durable_manager(dir: &std::path::Path, threads: usize) -> (Arc<SessionManager>, Arc<Store>) {
+    let store = Arc::new(Store::open(dir).expect("store"));
+    let manager = SessionManager::with_options(ManagerOptions {
+        store: Some(Arc::clone(&store)),
+        ..ManagerOptions::new(Limits::default(), threads)
+    })
+    .expect("manager");
+    manager.recover().expect("recovery");
+    (Arc::new(manager), store)
+}
+
 async fn call(method: reqwest::Method, url: &str, body: Option<&Value>) -> (u16, Value) {
     let client = reqwest::Client::new();
     let mut req = client.request(method, url);
@@ -412,16 +426,7 @@ async fn every_malformed_rest_step_and_group_gets_its_status() {
 fn a_group_and_its_stepped_members_survive_a_restart() {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
     let data = tempfile::tempdir().expect("data dir");
-    let open = || {
-        let store = Arc::new(Store::open(data.path()).expect("store"));
-        let manager = SessionManager::with_options(ManagerOptions {
-            store: Some(store),
-            ..ManagerOptions::new(Limits::default(), 1)
-        })
-        .expect("manager");
-        manager.recover().expect("recovery");
-        Arc::new(manager)
-    };
+    let open = || durable_manager(data.path(), 1).0;
     let manager = open();
     let group = manager
         .create_group(
@@ -493,14 +498,7 @@ fn a_group_and_its_stepped_members_survive_a_restart() {
 fn a_group_steps_on_through_its_members_evicted_loaded_back_and_deleted() {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
     let data = tempfile::tempdir().expect("data dir");
-    let store = Arc::new(Store::open(data.path()).expect("store"));
-    let manager = SessionManager::with_options(ManagerOptions {
-        store: Some(store),
-        ..ManagerOptions::new(Limits::default(), 1)
-    })
-    .expect("manager");
-    manager.recover().expect("recovery");
-    let manager = Arc::new(manager);
+    let (manager, _) = durable_manager(data.path(), 1);
     let create = || {
         manager
             .create_group(
@@ -606,16 +604,7 @@ fn a_group_steps_on_through_its_members_evicted_loaded_back_and_deleted() {
 fn group_steps_left_in_the_log_by_a_crash_are_recovered_member_by_member() {
     let rt = tokio::runtime::Runtime::new().expect("runtime");
     let data = tempfile::tempdir().expect("data dir");
-    let open = || {
-        let store = Arc::new(Store::open(data.path()).expect("store"));
-        let manager = SessionManager::with_options(ManagerOptions {
-            store: Some(Arc::clone(&store)),
-            ..ManagerOptions::new(Limits::default(), 1)
-        })
-        .expect("manager");
-        manager.recover().expect("recovery");
-        (Arc::new(manager), store)
-    };
+    let open = || durable_manager(data.path(), 1);
     let (manager, store) = open();
     let group = manager
         .create_group(
@@ -718,14 +707,7 @@ fn measure_group_steps_against_single_observations() {
         "1000 hallway members x 200 ticks, lockstep, in memory: {group_us:.2} µs per member-observation by group steps, {single_us:.2} µs by single observations"
     );
     let data = tempfile::tempdir().expect("data dir");
-    let store = Arc::new(Store::open(data.path()).expect("store"));
-    let manager = SessionManager::with_options(ManagerOptions {
-        store: Some(store),
-        ..ManagerOptions::new(Limits::default(), 2)
-    })
-    .expect("manager");
-    manager.recover().expect("recovery");
-    let manager = Arc::new(manager);
+    let (manager, _) = durable_manager(data.path(), 2);
     let (group_us, single_us) = measure(&manager, 200, 10);
     eprintln!(
         "200 hallway members x 10 ticks, lockstep, durable store (fsync): {group_us:.2} µs per member-observation by group steps, {single_us:.2} µs by single observations"
