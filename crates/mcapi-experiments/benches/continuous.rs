@@ -17,6 +17,13 @@
 //!   way), sources in a corner and at the centre; default basis (for 16
 //!   actions: Fourier of order 2, uncoupled, 17 features a block).
 //!
+//! - `snapshot_1936_owned`, `snapshot_1936_borrowed`: encoding the
+//!   snapshot of an agent on 22 × 22 RBFs × 4 actions (k|A| = 1936, an
+//!   A⁻¹ of 30 MiB) as a durable store did before, a copy of the agent
+//!   encoded into a growing buffer, and as it does now, the agent borrowed
+//!   ([`ContinuousAgent::snapshot_ref`]) and encoded into a buffer sized
+//!   by a counting pass first.
+//!
 //! Run: `cargo bench --bench continuous`.
 
 use std::hint::black_box;
@@ -184,6 +191,61 @@ fn bench_continuous(c: &mut Criterion) {
             |mut agent| black_box(agent.force_basis_rebuild()),
             criterion::BatchSize::LargeInput,
         )
+    });
+    group.finish();
+    bench_snapshot(c);
+}
+
+/// Ticks of the agent whose snapshot is encoded: its A⁻¹ is dense from the
+/// start, so the size hardly depends on them.
+const SNAPSHOT_TICKS: usize = if cfg!(debug_assertions) { 3 } else { 40 };
+
+fn bench_snapshot(c: &mut Criterion) {
+    let spec = ContinuousSpec {
+        basis: Some(rbf(22)),
+        ..spec_of(&World::three_room())
+    };
+    let params = AgentParams {
+        seed: Some(7),
+        ..Default::default()
+    }
+    .check(spec.stimuli.len(), 7)
+    .expect("params");
+    let mut agent = ContinuousAgent::new(spec.build().expect("model"), params);
+    let world = World::three_room();
+    let mut rng = ChaCha8Rng::seed_from_u64(11);
+    let mut x = world.start(&mut rng);
+    let mut stimulus = None;
+    for _ in 0..SNAPSHOT_TICKS {
+        let step = agent
+            .step(&ContinuousObservation {
+                observation: &x,
+                stimulus: stimulus.as_deref(),
+                action_taken: None,
+            })
+            .expect("tick");
+        x = world.step(&x, step.action, &mut rng);
+        stimulus = Some(world.stimulus(&x, &mut rng));
+    }
+    let owned = |agent: &ContinuousAgent| {
+        postcard::to_extend(&agent.snapshot(), vec![5u8]).expect("encode")
+    };
+    let borrowed = |agent: &ContinuousAgent| {
+        let state = agent.snapshot_ref();
+        let len = postcard::serialize_with_flavor(&state, postcard::ser_flavors::Size::default())
+            .expect("size");
+        let mut out = Vec::with_capacity(1 + len);
+        out.push(5u8);
+        postcard::to_extend(&state, out).expect("encode")
+    };
+    assert!(owned(&agent) == borrowed(&agent), "the same bytes");
+    let mut group = c.benchmark_group("continuous");
+    group.sample_size(20);
+    group.bench_function("snapshot_1936_owned", |b| {
+        b.iter(|| black_box(owned(&agent)))
+    });
+    group.bench_function("snapshot_1936_borrowed", |b| {
+        b.iter(|| black_box(borrowed(&agent)))
     });
     group.finish();
 }

@@ -18,7 +18,10 @@ use rand_chacha::ChaCha8Rng;
 mod rebuild;
 mod snapshot;
 
-pub use snapshot::{ContinuousSnapshot, ContinuousState, GridSnapshot};
+pub use snapshot::{
+    ContinuousSnapshot, ContinuousSnapshotRef, ContinuousState, ContinuousStateRef, GridSnapshot,
+    GridSnapshotRef,
+};
 
 use super::basis::{FeatureMap, PvfGraph};
 use super::dot::{dot, rows_times};

@@ -20,7 +20,8 @@ pub mod stimulus;
 
 pub use agent::{
     ContinuousAgent, ContinuousObservation, ContinuousObserved, ContinuousSnapshot,
-    ContinuousState, ContinuousStats, ContinuousStep, GridSnapshot,
+    ContinuousSnapshotRef, ContinuousState, ContinuousStateRef, ContinuousStats, ContinuousStep,
+    GridSnapshot, GridSnapshotRef,
 };
 pub use basis::{ContinuousBasisSpec, FeatureMap, GridShape};
 pub use model::{ContinuousModel, ContinuousSpec, SampleParams, ValidSampleParams};

@@ -34,7 +34,9 @@
 
 use serde::{Deserialize, Serialize};
 
-use mcapi_core::continuous::{ContinuousSnapshot, GridSnapshot};
+use mcapi_core::continuous::{
+    ContinuousSnapshot, ContinuousSnapshotRef, ContinuousStateRef, GridSnapshot, GridSnapshotRef,
+};
 use mcapi_core::{AgentSnapshot, CuriousSnapshot, LearnedSnapshot};
 pub use mcapi_store::RECORD_V2;
 
@@ -263,6 +265,53 @@ impl LearnerSnapshot {
     }
 }
 
+/// What a session writes as its learner ([`super::learner::Learner::snapshot`]):
+/// the bytes of a [`LearnerSnapshot`], with a continuous world's agent
+/// borrowed rather than copied ([`ContinuousStateRef`]; its A⁻¹ alone is
+/// 32 MiB at k|A| = 2048). The variants are [`LearnerSnapshot`]'s, in its
+/// order and under its name; the others are small and owned.
+#[derive(Debug, Serialize)]
+#[serde(rename = "LearnerSnapshot")]
+#[expect(clippy::large_enum_variant, reason = "built once per snapshot write")]
+pub enum LearnerSnapshotRef<'a> {
+    /// [`LearnerSnapshot::Plain`].
+    Plain(AgentSnapshot),
+    /// [`LearnerSnapshot::Curious`].
+    Curious(Box<CuriousSnapshot>),
+    /// [`LearnerSnapshot::Learned`].
+    Learned(Box<LearnedRecord>),
+    /// [`LearnerSnapshot::Continuous`].
+    Continuous(ContinuousRecord<ContinuousSnapshotRef<'a>>),
+    /// [`LearnerSnapshot::ContinuousGrid`].
+    ContinuousGrid(ContinuousRecord<GridSnapshotRef<'a>>),
+}
+
+impl<'a> LearnerSnapshotRef<'a> {
+    /// A continuous world's agent, borrowed, with no ring observations yet
+    /// (the session adds them).
+    pub fn continuous(agent: ContinuousStateRef<'a>) -> Self {
+        match agent {
+            ContinuousStateRef::Features(agent) => Self::Continuous(ContinuousRecord {
+                agent,
+                history_observations: Vec::new(),
+            }),
+            ContinuousStateRef::Grid(agent) => Self::ContinuousGrid(ContinuousRecord {
+                agent,
+                history_observations: Vec::new(),
+            }),
+        }
+    }
+
+    /// As [`LearnerSnapshot::history_observations_mut`].
+    pub fn history_observations_mut(&mut self) -> Option<&mut Vec<Option<Vec<f64>>>> {
+        match self {
+            Self::Continuous(c) => Some(&mut c.history_observations),
+            Self::ContinuousGrid(c) => Some(&mut c.history_observations),
+            Self::Plain(_) | Self::Curious(_) | Self::Learned(_) => None,
+        }
+    }
+}
+
 /// A continuous world's agent as a snapshot keeps it: on features
 /// ([`ContinuousSnapshot`]) or on a grid ([`GridSnapshot`]).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -290,6 +339,17 @@ pub struct LearnedRecord {
 pub struct SnapshotRecord {
     /// The learner.
     pub learner: LearnerSnapshot,
+    /// The history ring, oldest first.
+    pub history: Vec<TickRecord>,
+}
+
+/// A session snapshot as a session writes it: the bytes of a
+/// [`SnapshotRecord`], its learner borrowed ([`LearnerSnapshotRef`]).
+#[derive(Debug, Serialize)]
+#[serde(rename = "SnapshotRecord")]
+pub struct SnapshotRecordRef<'a> {
+    /// The learner.
+    pub learner: LearnerSnapshotRef<'a>,
     /// The history ring, oldest first.
     pub history: Vec<TickRecord>,
 }
@@ -352,9 +412,20 @@ struct TickRecordV2 {
 }
 
 /// Encodes a log entry or snapshot: [`RECORD_V5`], then postcard.
+///
+/// The value is sized first (a pass that only counts), so that it is
+/// written once into a buffer of its size: grown by doubling, a snapshot
+/// of tens of megabytes was copied at each growth and its buffer could
+/// reserve twice its size.
 pub fn encode<T: Serialize>(value: &T) -> Result<Vec<u8>, ServiceError> {
-    postcard::to_extend(value, vec![RECORD_V5])
-        .map_err(|e| ServiceError::Internal(format!("encoding a record: {e}")))
+    let failed = |e: postcard::Error| ServiceError::Internal(format!("encoding a record: {e}"));
+    let len = postcard::serialize_with_flavor(value, postcard::ser_flavors::Size::default())
+        .map_err(failed)?;
+    let mut out = Vec::with_capacity(1 + len);
+    out.push(RECORD_V5);
+    let out = postcard::to_extend(value, out).map_err(failed)?;
+    debug_assert_eq!(out.len(), 1 + len, "the sizing pass and the encoding agree");
+    Ok(out)
 }
 
 fn split<'a>(bytes: &'a [u8], what: &str) -> Result<(u8, &'a [u8]), DecodeError> {
@@ -798,6 +869,14 @@ mod tests {
         };
         let bytes = encode(&LearnerSnapshot::Continuous(Box::new(record.clone()))).expect("encode");
         assert_eq!(bytes[1], 3, "Continuous is the fourth variant");
+        let mut borrowed = LearnerSnapshotRef::continuous(agent.snapshot_ref());
+        *borrowed
+            .history_observations_mut()
+            .expect("a continuous record") = record.history_observations.clone();
+        assert!(
+            encode(&borrowed).expect("encode") == bytes,
+            "what a session writes is the owned record's bytes"
+        );
         match postcard::from_bytes::<LearnerSnapshot>(&bytes[1..]).expect("decode") {
             LearnerSnapshot::Continuous(back) => {
                 assert_eq!(back.history_observations, record.history_observations);
@@ -830,6 +909,14 @@ mod tests {
         let bytes =
             encode(&LearnerSnapshot::ContinuousGrid(Box::new(record.clone()))).expect("encode");
         assert_eq!(bytes[1], 4, "ContinuousGrid is the fifth variant");
+        let mut borrowed = LearnerSnapshotRef::continuous(agent.snapshot_ref());
+        *borrowed
+            .history_observations_mut()
+            .expect("a continuous record") = record.history_observations.clone();
+        assert!(
+            encode(&borrowed).expect("encode") == bytes,
+            "what a session writes is the owned record's bytes"
+        );
         let back = postcard::from_bytes::<LearnerSnapshot>(&bytes[1..]).expect("decode");
         let again = encode(&back).expect("encode");
         assert_eq!(again, bytes);

@@ -2,11 +2,11 @@
 //! with its curiosity channel, or the agent of a continuous world, behind
 //! one interface.
 
-use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation, ContinuousState};
+use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation};
 use mcapi_core::drive::Drive;
 use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation};
 
-use super::durable::{ContinuousRecord, LearnedRecord, LearnerSnapshot};
+use super::durable::{LearnedRecord, LearnerSnapshotRef};
 use super::error::ServiceError;
 use super::wire::TickCuriosity;
 
@@ -302,35 +302,24 @@ impl Learner {
         }
     }
 
-    /// The resumable state (with the learned counts for an agent that
-    /// learns its transitions, docs/algorithm.md §8; a continuous world's
-    /// agent whole, docs/algorithm.md §9.7).
-    pub fn snapshot(&self) -> LearnerSnapshot {
+    /// The resumable state, for encoding (with the learned counts for an
+    /// agent that learns its transitions, docs/algorithm.md §8; a
+    /// continuous world's agent whole, docs/algorithm.md §9.7, borrowed
+    /// rather than copied): it encodes to the bytes of the
+    /// [`super::durable::LearnerSnapshot`] that recovery decodes.
+    pub fn snapshot(&self) -> LearnerSnapshotRef<'_> {
         match self {
             Self::Plain(a) => match a.learned_snapshot() {
                 // The history's known fractions are the session's to add.
-                Some(agent) => LearnerSnapshot::Learned(Box::new(LearnedRecord {
+                Some(agent) => LearnerSnapshotRef::Learned(Box::new(LearnedRecord {
                     agent,
                     history_known: Vec::new(),
                 })),
-                None => LearnerSnapshot::Plain(a.snapshot()),
+                None => LearnerSnapshotRef::Plain(a.snapshot()),
             },
-            Self::Curious(c) => LearnerSnapshot::Curious(Box::new(c.snapshot())),
+            Self::Curious(c) => LearnerSnapshotRef::Curious(Box::new(c.snapshot())),
             // The session adds its ring's observations.
-            Self::Continuous(c) => match c.snapshot() {
-                ContinuousState::Features(agent) => {
-                    LearnerSnapshot::Continuous(Box::new(ContinuousRecord {
-                        agent: *agent,
-                        history_observations: Vec::new(),
-                    }))
-                }
-                ContinuousState::Grid(agent) => {
-                    LearnerSnapshot::ContinuousGrid(Box::new(ContinuousRecord {
-                        agent: *agent,
-                        history_observations: Vec::new(),
-                    }))
-                }
-            },
+            Self::Continuous(c) => LearnerSnapshotRef::continuous(c.snapshot_ref()),
         }
     }
 }

@@ -16,7 +16,7 @@ use mcapi_store::{Batch, Commit, Outcome, Store, Write};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::cost;
-use super::durable::{LearnerSnapshot, LogEntryRef, SnapshotRecord, TickRecord, encode};
+use super::durable::{LearnerSnapshotRef, LogEntryRef, SnapshotRecordRef, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
 use super::groups::GroupTag;
 use super::history::{self, RingTick, push_tick};
@@ -782,7 +782,7 @@ impl SessionState {
     /// A snapshot of the session.
     fn snapshot_write(&mut self, id: &str) -> Result<Write, ServiceError> {
         let mut learner = self.learner.snapshot();
-        if let LearnerSnapshot::Learned(l) = &mut learner {
+        if let LearnerSnapshotRef::Learned(l) = &mut learner {
             l.history_known = self.history.iter().map(RingTick::known_fraction).collect();
         }
         if let Some(observations) = learner.history_observations_mut() {
@@ -792,7 +792,7 @@ impl SessionState {
                 .map(|t| t.observation().map(<[f64]>::to_vec))
                 .collect();
         }
-        let record = SnapshotRecord {
+        let record = SnapshotRecordRef {
             learner,
             history: self.history.iter().map(TickRecord::from).collect(),
         };

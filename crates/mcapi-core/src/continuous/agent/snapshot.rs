@@ -111,7 +111,103 @@ pub struct ContinuousSnapshot {
     pvf: Option<Pvf>,
 }
 
+/// A [`ContinuousState`] borrowed from a live agent
+/// ([`ContinuousAgent::snapshot_ref`]): it serialises to the same bytes
+/// as the owned snapshot (serde writes a reference, a slice and a `Box` as
+/// what they point at, and the names are the owned types'), without
+/// copying the agent's matrices first. A⁻¹ alone is 32 MiB at k|A| =
+/// 2048, and the owned snapshot held a copy of it while it was encoded.
+#[derive(Debug, Serialize)]
+#[serde(rename = "ContinuousState")]
+pub enum ContinuousStateRef<'a> {
+    /// [`ContinuousState::Features`].
+    Features(ContinuousSnapshotRef<'a>),
+    /// [`ContinuousState::Grid`].
+    Grid(GridSnapshotRef<'a>),
+}
+
+/// [`GridSnapshot`] borrowed: the same fields, in the same order.
+#[derive(Debug, Serialize)]
+#[serde(rename = "GridSnapshot")]
+pub struct GridSnapshotRef<'a> {
+    rng: RngState,
+    drive: &'a Drive,
+    grid: &'a GridPlanner,
+    s: Option<&'a [f64]>,
+    advised: Option<usize>,
+    tick: u64,
+    clipped: u64,
+    needs_plan: bool,
+    policy_version: u64,
+}
+
+/// [`ContinuousSnapshot`] borrowed: the same fields, in the same order.
+#[derive(Debug, Serialize)]
+#[serde(rename = "ContinuousSnapshot")]
+pub struct ContinuousSnapshotRef<'a> {
+    rng: RngState,
+    drive: &'a Drive,
+    xi: &'a LinearStimulus,
+    store: &'a SampleStore,
+    planner: &'a SamplePlanner,
+    known_next: &'a [u64],
+    s: Option<&'a [f64]>,
+    advised: Option<usize>,
+    tick: u64,
+    clipped: u64,
+    needs_plan: bool,
+    policy_version: u64,
+    u: &'a [f64],
+    r_max: f64,
+    probes: &'a [f64],
+    graph: Option<&'a PvfGraph>,
+    pvf: Option<&'a Pvf>,
+}
+
 impl ContinuousAgent {
+    /// The agent's state borrowed, for encoding: the bytes of
+    /// [`Self::snapshot`]'s, with nothing copied (what a durable store
+    /// writes; [`Self::snapshot`] is for keeping a state apart from the
+    /// agent).
+    pub fn snapshot_ref(&self) -> ContinuousStateRef<'_> {
+        let s = self.s.as_ref().map(|(s, _)| s.as_slice());
+        if let Some(grid) = &self.grid {
+            return ContinuousStateRef::Grid(GridSnapshotRef {
+                rng: RngState::of(&self.rng),
+                drive: &self.drive,
+                grid,
+                s,
+                advised: self.advised,
+                tick: self.tick,
+                clipped: self.clipped,
+                needs_plan: self.needs_plan,
+                policy_version: self.policy_version,
+            });
+        }
+        ContinuousStateRef::Features(ContinuousSnapshotRef {
+            rng: RngState::of(&self.rng),
+            drive: &self.drive,
+            xi: &self.xi,
+            store: &self.store,
+            planner: &self.planner,
+            known_next: &self.known_next,
+            s,
+            advised: self.advised,
+            tick: self.tick,
+            clipped: self.clipped,
+            needs_plan: self.needs_plan,
+            policy_version: self.policy_version,
+            u: &self.u,
+            r_max: self.r_max,
+            probes: &self.probes,
+            graph: self.graph.as_ref(),
+            pvf: match &self.model.features {
+                FeatureMap::Pvf(p) => Some(p),
+                _ => None,
+            },
+        })
+    }
+
     /// The agent's state, for a durable store.
     pub fn snapshot(&self) -> ContinuousState {
         if let Some(grid) = &self.grid {
@@ -393,6 +489,11 @@ mod tests {
     /// empty).
     fn stored(agent: &ContinuousAgent) -> ContinuousState {
         let bytes = postcard::to_allocvec(&agent.snapshot()).expect("encode");
+        let borrowed = postcard::to_allocvec(&agent.snapshot_ref()).expect("encode");
+        assert!(
+            bytes == borrowed,
+            "the borrowed snapshot encodes to other bytes than the owned one"
+        );
         postcard::from_bytes(&bytes).expect("decode")
     }
 
