@@ -115,8 +115,8 @@ pub struct ContinuousSnapshot {
 /// ([`ContinuousAgent::snapshot_ref`]): it serialises to the same bytes
 /// as the owned snapshot (serde writes a reference, a slice and a `Box` as
 /// what they point at, and the names are the owned types'), without
-/// copying the agent's matrices first. A⁻¹ alone is 32 MiB at k|A| =
-/// 2048, and the owned snapshot held a copy of it while it was encoded.
+/// copying the agent's matrices first: A⁻¹ alone is 32 MiB at k|A| =
+/// 2048, which encoding the owned snapshot holds twice.
 #[derive(Debug, Serialize)]
 #[serde(rename = "ContinuousState")]
 pub enum ContinuousStateRef<'a> {
