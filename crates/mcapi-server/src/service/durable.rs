@@ -858,6 +858,24 @@ mod tests {
         agent
     }
 
+    /// What a session writes for `agent` with the ring's `observations`
+    /// (its learner borrowed, [`LearnerSnapshotRef`]) is `bytes`, the owned
+    /// record's encoding.
+    fn assert_written_as(
+        agent: &mcapi_core::continuous::ContinuousAgent,
+        observations: &[Option<Vec<f64>>],
+        bytes: &[u8],
+    ) {
+        let mut borrowed = LearnerSnapshotRef::continuous(agent.snapshot_ref());
+        *borrowed
+            .history_observations_mut()
+            .expect("a continuous record") = observations.to_vec();
+        assert!(
+            encode(&borrowed).expect("encode") == bytes,
+            "what a session writes is the owned record's bytes"
+        );
+    }
+
     /// A continuous world's snapshot is the fourth variant, after those
     /// that stores already hold, and keeps the ring's observations.
     #[test]
@@ -869,14 +887,7 @@ mod tests {
         };
         let bytes = encode(&LearnerSnapshot::Continuous(Box::new(record.clone()))).expect("encode");
         assert_eq!(bytes[1], 3, "Continuous is the fourth variant");
-        let mut borrowed = LearnerSnapshotRef::continuous(agent.snapshot_ref());
-        *borrowed
-            .history_observations_mut()
-            .expect("a continuous record") = record.history_observations.clone();
-        assert!(
-            encode(&borrowed).expect("encode") == bytes,
-            "what a session writes is the owned record's bytes"
-        );
+        assert_written_as(&agent, &record.history_observations, &bytes);
         match postcard::from_bytes::<LearnerSnapshot>(&bytes[1..]).expect("decode") {
             LearnerSnapshot::Continuous(back) => {
                 assert_eq!(back.history_observations, record.history_observations);
@@ -909,14 +920,7 @@ mod tests {
         let bytes =
             encode(&LearnerSnapshot::ContinuousGrid(Box::new(record.clone()))).expect("encode");
         assert_eq!(bytes[1], 4, "ContinuousGrid is the fifth variant");
-        let mut borrowed = LearnerSnapshotRef::continuous(agent.snapshot_ref());
-        *borrowed
-            .history_observations_mut()
-            .expect("a continuous record") = record.history_observations.clone();
-        assert!(
-            encode(&borrowed).expect("encode") == bytes,
-            "what a session writes is the owned record's bytes"
-        );
+        assert_written_as(&agent, &record.history_observations, &bytes);
         let back = postcard::from_bytes::<LearnerSnapshot>(&bytes[1..]).expect("decode");
         let again = encode(&back).expect("encode");
         assert_eq!(again, bytes);

@@ -208,7 +208,9 @@ impl ContinuousAgent {
         })
     }
 
-    /// The agent's state, for a durable store.
+    /// The agent's state, copied: kept apart from the agent, and what a
+    /// stored snapshot decodes to. A durable store encodes
+    /// [`Self::snapshot_ref`] instead (the same bytes, nothing copied).
     pub fn snapshot(&self) -> ContinuousState {
         if let Some(grid) = &self.grid {
             return ContinuousState::Grid(Box::new(GridSnapshot {
