@@ -18,9 +18,9 @@ use super::wire::{HistoryEntry, ObservationIn, StepOut, TickCuriosity};
 use mcapi_core::spec::ActionRef;
 
 /// One tick of the history ring as kept in memory: D and the stimulus in
-/// one allocation and the curiosity part boxed (plain sessions have none),
-/// so a full ring costs about what it did before ticks kept their stimulus.
-/// [`HistoryEntry`] is what readers get, [`TickRecord`] what snapshots keep.
+/// the entry itself when they fit ([`Values`]), the curiosity part boxed
+/// (plain sessions have none). [`HistoryEntry`] is what readers get,
+/// [`TickRecord`] what snapshots keep.
 #[derive(Debug, Clone, PartialEq)]
 pub struct RingTick {
     tick: u64,
@@ -30,7 +30,7 @@ pub struct RingTick {
     lstdq_error: f64,
     /// D, then the stimulus if there was one, then the known fraction of a
     /// learned model (docs/algorithm.md §8) if [`KNOWN_FLAG`] is set.
-    values: Box<[f64]>,
+    values: Values,
     /// Components of D in `values`, and [`KNOWN_FLAG`], [`FIRST_FLAG`],
     /// [`REPLAYABLE_FLAG`].
     drive_len: u32,
@@ -43,6 +43,53 @@ pub struct RingTick {
     /// from a log written before digests were kept), which any content
     /// matches.
     digest: u64,
+}
+
+/// The numbers of a tick (D, the stimulus, the known fraction): in the
+/// entry when there are at most [`INLINE`] of them, as there are for a
+/// world of one or two stimuli, else in an allocation of their own. A
+/// session's ring then allocates nothing per tick, and frees nothing when
+/// it drops its oldest tick (a free that reached memory as cold as the
+/// tick it freed); the entry is 24 bytes larger and the 32-byte allocation
+/// it no longer makes is gone, so a full ring of a two-stimulus session is
+/// smaller than before.
+#[derive(Debug, Clone)]
+enum Values {
+    /// `len` numbers at the front of `xs`; the rest are 0.
+    Inline { len: u8, xs: [f64; INLINE] },
+    /// More than [`INLINE`] numbers.
+    Heap(Box<[f64]>),
+}
+
+/// Numbers a tick keeps without an allocation: D and ξ of two stimuli.
+const INLINE: usize = 4;
+
+impl Values {
+    fn new(values: impl Iterator<Item = f64> + Clone) -> Self {
+        let mut xs = [0.0; INLINE];
+        let mut len = 0;
+        for x in values.clone() {
+            if len == INLINE {
+                return Self::Heap(values.collect());
+            }
+            xs[len] = x;
+            len += 1;
+        }
+        Self::Inline { len: len as u8, xs }
+    }
+
+    fn as_slice(&self) -> &[f64] {
+        match self {
+            Self::Inline { len, xs } => &xs[..usize::from(*len)],
+            Self::Heap(xs) => xs,
+        }
+    }
+}
+
+impl PartialEq for Values {
+    fn eq(&self, other: &Self) -> bool {
+        self.as_slice() == other.as_slice()
+    }
 }
 
 /// The part of a tick only some sessions have.
@@ -168,13 +215,14 @@ impl RingTick {
             action: index32(action),
             reward,
             lstdq_error,
-            values: drive
-                .iter()
-                .copied()
-                .chain(stimulus)
-                .chain(xi_cur)
-                .chain(known_fraction)
-                .collect(),
+            values: Values::new(
+                drive
+                    .iter()
+                    .copied()
+                    .chain(stimulus)
+                    .chain(xi_cur)
+                    .chain(known_fraction),
+            ),
             drive_len: (index32(drive.len()) & !FLAGS) | flag,
             extra: curiosity.map(|c| Box::new(Extra::Curiosity(c))),
             policy_version: 0,
@@ -257,7 +305,7 @@ impl RingTick {
     /// The known fraction of a learned model after this tick.
     pub fn known_fraction(&self) -> Option<f64> {
         (self.drive_len & KNOWN_FLAG != 0)
-            .then(|| self.values.last().copied())
+            .then(|| self.values.as_slice().last().copied())
             .flatten()
     }
 
@@ -287,9 +335,10 @@ impl RingTick {
     /// The entry readers get.
     pub fn entry(&self) -> HistoryEntry {
         let known_fraction = self.known_fraction();
-        let end = self.values.len() - usize::from(known_fraction.is_some());
+        let values = self.values.as_slice();
+        let end = values.len() - usize::from(known_fraction.is_some());
         let (drive, stimulus) =
-            self.values[..end].split_at(((self.drive_len & !FLAGS) as usize).min(end));
+            values[..end].split_at(((self.drive_len & !FLAGS) as usize).min(end));
         HistoryEntry {
             tick: self.tick,
             state: self.state as usize,
@@ -389,11 +438,45 @@ mod tests {
     use super::*;
 
     #[test]
+    fn up_to_four_numbers_stay_in_the_entry_and_more_are_given_back_whole() {
+        let tick = |drive: &[f64], stimulus: Option<&[f64]>, known: Option<f64>| {
+            RingTick::new(1, 2, 0, drive, stimulus, None, 0.5, 0.0, None, known)
+        };
+        // Two stimuli: D and ξ are four numbers, kept in the entry.
+        let two = tick(&[0.6, 0.8], Some(&[1.0, -2.0]), None);
+        assert!(matches!(two.values, Values::Inline { len: 4, .. }));
+        let e = two.entry();
+        assert_eq!(
+            (e.drive, e.stimulus),
+            (vec![0.6, 0.8], Some(vec![1.0, -2.0]))
+        );
+        // The first observation has no stimulus.
+        let first = tick(&[0.6, 0.8], None, None);
+        assert!(matches!(first.values, Values::Inline { len: 2, .. }));
+        assert_eq!(first.entry().stimulus, None);
+        // Three stimuli, or a learned model's known fraction beside two:
+        // more than four, in an allocation of their own.
+        let three = tick(&[0.0, 0.6, 0.8], Some(&[1.0, 2.0, 3.0]), None);
+        assert!(matches!(three.values, Values::Heap(_)));
+        let e = three.entry();
+        assert_eq!(e.drive, vec![0.0, 0.6, 0.8]);
+        assert_eq!(e.stimulus, Some(vec![1.0, 2.0, 3.0]));
+        let learned = tick(&[0.6, 0.8], Some(&[1.0, -2.0]), Some(0.25));
+        assert!(matches!(learned.values, Values::Heap(_)));
+        assert_eq!(learned.known_fraction(), Some(0.25));
+        assert_eq!(learned.entry().stimulus, Some(vec![1.0, -2.0]));
+        // Equal numbers are equal entries, whatever the unused slots hold.
+        assert_eq!(two, RingTick::from(&TickRecord::from(&two)));
+        assert_ne!(two, first);
+    }
+
+    #[test]
     fn ring_ticks_are_compact_and_give_back_their_entries() {
-        // D and ξ in one allocation; the curiosity part boxed; the reply's
-        // policy version and the observation's digest (exactly-once
-        // delivery) are the 16 bytes past 64.
-        assert!(std::mem::size_of::<RingTick>() <= 80);
+        // Up to four numbers of D and ξ in the entry (40 bytes with the
+        // variant), more in one allocation; the curiosity part boxed; the
+        // reply's policy version and the observation's digest
+        // (exactly-once delivery) 16 bytes.
+        assert!(std::mem::size_of::<RingTick>() <= 104);
         let curious = RingTick::new(
             7,
             3,
@@ -433,7 +516,7 @@ mod tests {
             None,
             Some(0.375),
         );
-        assert!(std::mem::size_of::<RingTick>() <= 80);
+        assert!(std::mem::size_of::<RingTick>() <= 104);
         let e = learned.entry();
         assert_eq!(
             (e.drive, e.stimulus),
@@ -457,7 +540,7 @@ mod tests {
             None,
         )
         .with_observation(&[0.25, -3.0]);
-        assert!(std::mem::size_of::<RingTick>() <= 80);
+        assert!(std::mem::size_of::<RingTick>() <= 104);
         let e = continuous.entry();
         assert_eq!(e.observation, Some(vec![0.25, -3.0]));
         assert_eq!(e.curiosity, None);
