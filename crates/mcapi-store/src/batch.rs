@@ -37,6 +37,9 @@ impl std::fmt::Debug for Batch {
 
 #[derive(Default)]
 struct Inner {
+    /// Records the owner expects to append ([`Batch::expecting`]); 0 once
+    /// the first is appended and room made for them all.
+    expected: usize,
     /// Writes queued and not sent yet; consecutive appends share the last
     /// [`Write::Appends`].
     writes: Vec<Write>,
@@ -57,6 +60,17 @@ impl Batch {
         }
     }
 
+    /// An empty batch whose owner expects to append about `records`
+    /// records of one size (a group step's chunk: one per member). Once the
+    /// first is encoded, its buffer is sized for all of them, so it is
+    /// written once instead of growing by doubling: each doubling copied
+    /// what was there and took fresh memory.
+    pub fn expecting(store: Arc<Store>, records: usize) -> Self {
+        let batch = Self::new(store);
+        batch.inner.lock().expected = records;
+        batch
+    }
+
     /// Appends one record to session `id`'s log at sequence number `seq`;
     /// `encode` writes the entry's bytes at the end of the buffer it is
     /// given (nothing is added if it fails). Returns the record's position
@@ -71,8 +85,19 @@ impl Batch {
         if !matches!(inner.writes.last(), Some(Write::Appends(_))) {
             inner.writes.push(Write::Appends(Appends::default()));
         }
+        let expected = std::mem::take(&mut inner.expected);
         if let Some(Write::Appends(appends)) = inner.writes.last_mut() {
             appends.push(id, seq, encode)?;
+            if expected > 1 {
+                // The rest at the first one's size, and 1/16 for their
+                // differences (varints, optional fields). Once only: a
+                // part begun after a snapshot or an early send grows as it
+                // goes (a group's members snapshot at the same step, so
+                // reserving for every part would reserve for the chunk
+                // again and again).
+                let rest = (expected - 1) * appends.records.len();
+                appends.records.reserve_exact(rest + rest / 16);
+            }
         }
         inner.added += 1;
         Ok(inner.added - 1)
@@ -161,5 +186,60 @@ impl Outcome {
             return Err(StoreError::Closed);
         }
         Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The capacity of each part's buffer, in order.
+    fn capacities(batch: &Batch) -> Vec<usize> {
+        let inner = batch.inner.lock();
+        inner
+            .writes
+            .iter()
+            .filter_map(|w| match w {
+                Write::Appends(a) => Some(a.records.capacity()),
+                _ => None,
+            })
+            .collect()
+    }
+
+    #[test]
+    fn a_batch_expecting_its_records_sizes_its_buffer_once() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let store = Arc::new(Store::open(dir.path()).expect("open"));
+        let ids: Vec<Arc<str>> = (0..100).map(|i| Arc::from(format!("m{i}"))).collect();
+        let append = |batch: &Batch, id: &Arc<str>| {
+            batch
+                .append(id, 7, |out| {
+                    out.extend_from_slice(&[1; 40]);
+                    Ok::<(), StoreError>(())
+                })
+                .expect("append")
+        };
+        let batch = Batch::expecting(Arc::clone(&store), ids.len());
+        append(&batch, &ids[0]);
+        let sized = capacities(&batch);
+        let record = 16 + 8 + 4 + 40;
+        assert_eq!(sized.len(), 1);
+        assert!(sized[0] >= 100 * record, "{sized:?}");
+        for id in &ids[1..] {
+            append(&batch, id);
+        }
+        assert_eq!(capacities(&batch), sized, "never grown again");
+        // A part begun after another write grows as it goes: the room for
+        // the whole batch is made once.
+        batch.push(Write::Resume {
+            id: Arc::clone(&ids[0]),
+        });
+        append(&batch, &ids[1]);
+        assert!(capacities(&batch)[1] < 10 * record);
+        batch
+            .finish()
+            .wait_blocking()
+            .of(0..102)
+            .expect("committed");
     }
 }

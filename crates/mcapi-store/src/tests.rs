@@ -611,7 +611,9 @@ fn batches_left_in_the_log_by_a_crash_are_replayed_into_each_sessions_log() {
             }])
             .wait_blocking()
             .expect("lone append");
-        let second = Batch::new(Arc::clone(&store));
+        // Sized for its records once the first is in (what a group
+        // step's chunk does), across a snapshot and an early send.
+        let second = Batch::expecting(Arc::clone(&store), 10);
         fill(&second, &ids[..1], CHUNK - 2..CHUNK + 5);
         second.push(Write::Snapshot {
             id: id("c"),

@@ -548,7 +548,7 @@ impl SessionManager {
         let batch = self
             .durability
             .as_ref()
-            .map(|d| Arc::new(Batch::new(Arc::clone(&d.store))));
+            .map(|d| Arc::new(Batch::expecting(Arc::clone(&d.store), chunk.len())));
         let resident: Vec<Option<SessionRef>> = {
             let table = self.sessions.read();
             let mut slots = group.resolved.lock();
