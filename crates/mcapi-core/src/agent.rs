@@ -155,6 +155,56 @@ pub struct LearnedSnapshot {
     pub counts: TransitionCounts,
 }
 
+/// [`AgentSnapshot`] borrowed from its agent: what a durable store encodes.
+/// It has the owned type's name and fields in its order, and serde writes
+/// a reference or a slice as what it points at, so it serialises to the
+/// same bytes (tested), without a copy of Ξ, π, Q and R (for a world of
+/// 100,000 states, megabytes held under the session's lock).
+#[derive(Debug, Serialize)]
+#[serde(rename = "AgentSnapshot")]
+pub struct AgentSnapshotRef<'a> {
+    /// The RNG's position.
+    pub rng: RngState,
+    /// D and its running statistics (its scratch is not serialised).
+    pub drive: &'a Drive,
+    /// Ξ and n(s, a).
+    pub stimulus: &'a StimulusFunction,
+    /// Chosen pair per state.
+    pub policy: &'a [u32],
+    /// Q over valid pairs.
+    pub q: &'a [f64],
+    /// R as of the last plan.
+    pub rewards: &'a [f64],
+    /// Planner work counters.
+    pub planner_stats: PlannerStats,
+    /// s_t.
+    pub state: Option<usize>,
+    /// The pair advised by the last `act`.
+    pub advised: Option<usize>,
+    /// Ticks so far.
+    pub tick: u64,
+    /// |r| of the last tick.
+    pub last_reward: f64,
+    /// The last planning step.
+    pub last_plan: PlanOutcome,
+    /// Policy updates applied.
+    pub policy_version: u64,
+    /// R changed since the last plan.
+    pub dirty: bool,
+}
+
+/// [`LearnedSnapshot`] borrowed from its agent; serialises to its bytes
+/// (the counts are one small vector per pair: a copy of them is an
+/// allocation per pair).
+#[derive(Debug, Serialize)]
+#[serde(rename = "LearnedSnapshot")]
+pub struct LearnedSnapshotRef<'a> {
+    /// The agent, borrowed.
+    pub agent: AgentSnapshotRef<'a>,
+    /// N(s, a, s′).
+    pub counts: &'a TransitionCounts,
+}
+
 /// One MCA-PI agent: its drive, stimulus function, policy and RNG.
 #[derive(Debug, Clone)]
 pub struct Agent {
@@ -558,7 +608,29 @@ impl Agent {
         Ok(())
     }
 
-    /// The agent's resumable state.
+    /// The agent's resumable state, borrowed: what a durable store encodes
+    /// (the bytes of [`Agent::snapshot`], without copying it).
+    pub fn snapshot_ref(&self) -> AgentSnapshotRef<'_> {
+        AgentSnapshotRef {
+            rng: RngState::of(&self.rng),
+            drive: &self.drive,
+            stimulus: &self.stimulus,
+            policy: self.planner.policy(),
+            q: self.planner.q(),
+            rewards: &self.rewards,
+            planner_stats: self.planner.stats(),
+            state: self.state,
+            advised: self.advised,
+            tick: self.tick,
+            last_reward: self.last_reward,
+            last_plan: self.last_plan,
+            policy_version: self.policy_version,
+            dirty: self.dirty,
+        }
+    }
+
+    /// The agent's resumable state, copied (what restores and in-memory
+    /// snapshots take; a store encodes [`Agent::snapshot_ref`]).
     pub fn snapshot(&self) -> AgentSnapshot {
         AgentSnapshot {
             rng: RngState::of(&self.rng),
@@ -594,6 +666,14 @@ impl Agent {
         self.learned.as_ref().map(|l| LearnedSnapshot {
             agent: self.snapshot(),
             counts: l.counts().clone(),
+        })
+    }
+
+    /// [`Agent::learned_snapshot`] borrowed: the same bytes, no copy.
+    pub fn learned_snapshot_ref(&self) -> Option<LearnedSnapshotRef<'_>> {
+        self.learned.as_ref().map(|l| LearnedSnapshotRef {
+            agent: self.snapshot_ref(),
+            counts: l.counts(),
         })
     }
 
@@ -711,6 +791,21 @@ mod tests {
         )
     }
 
+    /// A borrowed snapshot encodes to its owned twin's bytes, in the
+    /// store's format (postcard, no field names: order is all) and in JSON.
+    fn assert_same_encoding(owned: &impl Serialize, borrowed: &impl Serialize) {
+        assert_eq!(
+            postcard::to_allocvec(borrowed).expect("encode"),
+            postcard::to_allocvec(owned).expect("encode"),
+            "postcard"
+        );
+        assert_eq!(
+            serde_json::to_string(borrowed).expect("encode"),
+            serde_json::to_string(owned).expect("encode"),
+            "JSON"
+        );
+    }
+
     #[test]
     fn a_restored_agent_continues_exactly() {
         let mut a = hallway_agent(9);
@@ -721,6 +816,7 @@ mod tests {
         let bytes = serde_json::to_vec(&snap).expect("encode");
         let back: AgentSnapshot = serde_json::from_slice(&bytes).expect("decode");
         assert_eq!(back, snap);
+        assert_same_encoding(&snap, &a.snapshot_ref());
         assert!(
             a.restores_exactly(),
             "the hallway plans on a functional graph"
@@ -813,6 +909,7 @@ mod tests {
             let bytes = serde_json::to_vec(&snap).expect("encode");
             let back: LearnedSnapshot = serde_json::from_slice(&bytes).expect("decode");
             assert_eq!(back, snap);
+            assert_same_encoding(&snap, &a.learned_snapshot_ref().expect("learned"));
             let learned = a.learned().expect("learned").params();
             let mut b = Agent::restore_learned(
                 Arc::clone(a.planning_model()),

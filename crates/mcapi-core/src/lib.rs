@@ -30,7 +30,8 @@ pub mod spec;
 pub mod stimulus;
 
 pub use agent::{
-    Agent, AgentSnapshot, LearnedSnapshot, Observation, ObserveOutcome, RngState, Step,
+    Agent, AgentSnapshot, AgentSnapshotRef, LearnedSnapshot, LearnedSnapshotRef, Observation,
+    ObserveOutcome, RngState, Step,
 };
 pub use basis::{Basis, BuildBudget};
 pub use curiosity::{

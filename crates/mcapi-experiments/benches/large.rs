@@ -19,6 +19,13 @@
 //! - `large/tick_slip/*`: one tick on the slippery grid (slip 0.2, so P is
 //!   stochastic: Gauss–Seidel on the indicator basis), after a short
 //!   warm-up.
+//! - `large/snapshot_{owned,borrowed}/{known,learned}_100k`: encoding the
+//!   snapshot of an agent on the 100k grid (its known model, or the one it
+//!   learns, counts included) as a durable store writes it (postcard, a
+//!   record-version byte first), from a copy of the agent (`snapshot`,
+//!   `learned_snapshot`) or from the agent borrowed (`snapshot_ref`,
+//!   `learned_snapshot_ref`, into a buffer sized first, as the server's
+//!   `durable::encode` does). The session's lock is held for this time.
 //!
 //! Run: `cargo bench -p mcapi-experiments --bench large`.
 
@@ -29,7 +36,9 @@ use std::time::Duration;
 use criterion::{BenchmarkId, Criterion, criterion_group, criterion_main};
 use mcapi_core::basis::{StateGraph, sparse_pvfs};
 use mcapi_core::model::GridMap;
-use mcapi_core::{Agent, AgentParams, Basis, BasisSpec, EnvModel, Observation, PlanningModel};
+use mcapi_core::{
+    Agent, AgentParams, Basis, BasisSpec, EnvModel, LearnedParams, Observation, PlanningModel,
+};
 use mcapi_experiments::paper::slippery;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -192,5 +201,58 @@ fn bench_large(c: &mut Criterion) {
     group.finish();
 }
 
-criterion_group!(benches, bench_large);
+/// `value` encoded as the server's `durable::encode` does: a record-version
+/// byte, then postcard, into a buffer sized by a counting pass first.
+fn encode_sized(value: &impl serde::Serialize) -> Vec<u8> {
+    let len = postcard::serialize_with_flavor(value, postcard::ser_flavors::Size::default())
+        .expect("size");
+    let mut out = Vec::with_capacity(1 + len);
+    out.push(5u8);
+    postcard::to_extend(value, out).expect("encode")
+}
+
+/// `value` encoded as a session did before it borrowed its agent: the
+/// version byte, then postcard into a buffer that grows as it goes.
+fn encode_growing(value: &impl serde::Serialize) -> Vec<u8> {
+    postcard::to_extend(value, vec![5u8]).expect("encode")
+}
+
+fn bench_snapshots(c: &mut Criterion) {
+    let text = open_grid(316);
+    let known = Walk::new(agent(&text, &BasisSpec::Indicator, 0.0)).warm_up(WARM_UP_TICKS);
+    let (plain, sources) = agent(&text, &BasisSpec::Indicator, 0.0);
+    let ctx = Arc::clone(plain.planning_model());
+    let learned = Agent::new_learned(
+        ctx,
+        plain.params().clone(),
+        LearnedParams::default().check().expect("learned params"),
+    )
+    .expect("learned agent");
+    let learned = Walk::new((learned, sources)).warm_up(WARM_UP_TICKS);
+    let (known, learned) = (&known.agent, &learned.agent);
+    assert!(encode_growing(&known.snapshot()) == encode_sized(&known.snapshot_ref()));
+    let owned = || learned.learned_snapshot().expect("learned");
+    let borrowed = || learned.learned_snapshot_ref().expect("learned");
+    assert!(
+        encode_growing(&owned()) == encode_sized(&borrowed()),
+        "the same bytes"
+    );
+    let mut group = c.benchmark_group("large");
+    group.sample_size(20);
+    group.bench_function(BenchmarkId::new("snapshot_owned", "known_100k"), |b| {
+        b.iter(|| black_box(encode_growing(&known.snapshot())))
+    });
+    group.bench_function(BenchmarkId::new("snapshot_borrowed", "known_100k"), |b| {
+        b.iter(|| black_box(encode_sized(&known.snapshot_ref())))
+    });
+    group.bench_function(BenchmarkId::new("snapshot_owned", "learned_100k"), |b| {
+        b.iter(|| black_box(encode_growing(&owned())))
+    });
+    group.bench_function(BenchmarkId::new("snapshot_borrowed", "learned_100k"), |b| {
+        b.iter(|| black_box(encode_sized(&borrowed())))
+    });
+    group.finish();
+}
+
+criterion_group!(benches, bench_snapshots, bench_large);
 criterion_main!(benches);

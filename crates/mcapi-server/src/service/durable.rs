@@ -37,7 +37,9 @@ use serde::{Deserialize, Serialize};
 use mcapi_core::continuous::{
     ContinuousSnapshot, ContinuousSnapshotRef, ContinuousStateRef, GridSnapshot, GridSnapshotRef,
 };
-use mcapi_core::{AgentSnapshot, CuriousSnapshot, LearnedSnapshot};
+use mcapi_core::{
+    AgentSnapshot, AgentSnapshotRef, CuriousSnapshot, LearnedSnapshot, LearnedSnapshotRef,
+};
 pub use mcapi_store::RECORD_V2;
 
 use super::agent_config::EffectiveConfig;
@@ -266,20 +268,22 @@ impl LearnerSnapshot {
 }
 
 /// What a session writes as its learner ([`super::learner::Learner::snapshot`]):
-/// the bytes of a [`LearnerSnapshot`], with a continuous world's agent
-/// borrowed rather than copied ([`ContinuousStateRef`]; its A⁻¹ alone is
-/// 32 MiB at k|A| = 2048). The variants are [`LearnerSnapshot`]'s, in its
-/// order and under its name; the others are small and owned.
+/// the bytes of a [`LearnerSnapshot`], with the agent borrowed rather than
+/// copied: a continuous world's ([`ContinuousStateRef`]; its A⁻¹ alone is
+/// 32 MiB at k|A| = 2048), a plain agent's ([`AgentSnapshotRef`]: Ξ, π, Q
+/// and R, megabytes in a world of 100,000 states) and a learned model's
+/// with its counts ([`LearnedSnapshotRef`]: a vector per pair). The
+/// variants are [`LearnerSnapshot`]'s, in its order and under its name; a
+/// curious agent's (small worlds) is owned.
 #[derive(Debug, Serialize)]
 #[serde(rename = "LearnerSnapshot")]
-#[expect(clippy::large_enum_variant, reason = "built once per snapshot write")]
 pub enum LearnerSnapshotRef<'a> {
     /// [`LearnerSnapshot::Plain`].
-    Plain(AgentSnapshot),
+    Plain(AgentSnapshotRef<'a>),
     /// [`LearnerSnapshot::Curious`].
     Curious(Box<CuriousSnapshot>),
     /// [`LearnerSnapshot::Learned`].
-    Learned(Box<LearnedRecord>),
+    Learned(Box<LearnedRecordRef<'a>>),
     /// [`LearnerSnapshot::Continuous`].
     Continuous(ContinuousRecord<ContinuousSnapshotRef<'a>>),
     /// [`LearnerSnapshot::ContinuousGrid`].
@@ -331,6 +335,16 @@ pub struct LearnedRecord {
     /// The known fraction after each tick of the history ring, oldest
     /// first ([`TickRecord`] has no field for it; its layout is fixed by
     /// the record version).
+    pub history_known: Vec<Option<f64>>,
+}
+
+/// [`LearnedRecord`], its agent borrowed; serialises to its bytes.
+#[derive(Debug, Serialize)]
+#[serde(rename = "LearnedRecord")]
+pub struct LearnedRecordRef<'a> {
+    /// The agent and its counts.
+    pub agent: LearnedSnapshotRef<'a>,
+    /// As [`LearnedRecord::history_known`].
     pub history_known: Vec<Option<f64>>,
 }
 
@@ -804,6 +818,10 @@ mod tests {
         let plain = Agent::new(Arc::clone(&ctx), params.clone());
         let bytes = encode(&LearnerSnapshot::Plain(plain.snapshot())).expect("encode");
         assert_eq!(bytes[1], 0, "Plain keeps tag 0");
+        assert!(
+            encode(&LearnerSnapshotRef::Plain(plain.snapshot_ref())).expect("encode") == bytes,
+            "what a session writes for a plain agent is the owned record's bytes"
+        );
         let learned = LearnedParams::default().check().expect("learned params");
         let mut agent = Agent::new_learned(ctx, params, learned).expect("learned agent");
         agent.step(&Observation::first(3)).expect("first");
@@ -816,6 +834,14 @@ mod tests {
         };
         let bytes = encode(&LearnerSnapshot::Learned(Box::new(snap.clone()))).expect("encode");
         assert_eq!(bytes[1], 2, "Learned is the third variant");
+        let borrowed = LearnerSnapshotRef::Learned(Box::new(LearnedRecordRef {
+            agent: agent.learned_snapshot_ref().expect("a learned agent"),
+            history_known: snap.history_known.clone(),
+        }));
+        assert!(
+            encode(&borrowed).expect("encode") == bytes,
+            "what a session writes for a learned agent is the owned record's bytes"
+        );
         let back: LearnerSnapshot = postcard::from_bytes(&bytes[1..]).expect("decode");
         match back {
             LearnerSnapshot::Learned(s) => assert_eq!(*s, snap),

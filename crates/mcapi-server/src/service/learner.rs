@@ -6,7 +6,7 @@ use mcapi_core::continuous::{ContinuousAgent, ContinuousObservation};
 use mcapi_core::drive::Drive;
 use mcapi_core::{Agent, AlgoError, CuriousAgent, CuriousObservation, Observation};
 
-use super::durable::{LearnedRecord, LearnerSnapshotRef};
+use super::durable::{LearnedRecordRef, LearnerSnapshotRef};
 use super::error::ServiceError;
 use super::wire::TickCuriosity;
 
@@ -302,20 +302,20 @@ impl Learner {
         }
     }
 
-    /// The resumable state, for encoding (with the learned counts for an
-    /// agent that learns its transitions, docs/algorithm.md §8; a
-    /// continuous world's agent whole, docs/algorithm.md §9.7, borrowed
-    /// rather than copied): it encodes to the bytes of the
+    /// The resumable state, for encoding, borrowed rather than copied
+    /// (with the learned counts for an agent that learns its transitions,
+    /// docs/algorithm.md §8; a continuous world's agent whole,
+    /// docs/algorithm.md §9.7; a curious agent's copied): it encodes to the bytes of the
     /// [`super::durable::LearnerSnapshot`] that recovery decodes.
     pub fn snapshot(&self) -> LearnerSnapshotRef<'_> {
         match self {
-            Self::Plain(a) => match a.learned_snapshot() {
+            Self::Plain(a) => match a.learned_snapshot_ref() {
                 // The history's known fractions are the session's to add.
-                Some(agent) => LearnerSnapshotRef::Learned(Box::new(LearnedRecord {
+                Some(agent) => LearnerSnapshotRef::Learned(Box::new(LearnedRecordRef {
                     agent,
                     history_known: Vec::new(),
                 })),
-                None => LearnerSnapshotRef::Plain(a.snapshot()),
+                None => LearnerSnapshotRef::Plain(a.snapshot_ref()),
             },
             Self::Curious(c) => LearnerSnapshotRef::Curious(Box::new(c.snapshot())),
             // The session adds its ring's observations.
