@@ -25,12 +25,12 @@ pub const NS_PER_OP: f64 = 1.0;
 /// small vectors).
 const FIXED_BYTES: u64 = 4096;
 
-/// Bytes of one history-ring tick besides its vectors: the entry (104,
+/// Bytes of one history-ring tick besides its vectors: the entry (112,
 /// its reply's policy version and the observation's digest included, which
-/// replays of `seq` need, and room for four numbers of D and ξ, which the
-/// vectors counted beside it then do not take) and an allocation's
-/// overhead.
-const RING_TICK_BYTES: u64 = 104 + 16;
+/// replays of `seq` need, and room for the first four numbers of D and ξ,
+/// which the vectors counted beside it then do not take) and an
+/// allocation's overhead.
+const RING_TICK_BYTES: u64 = 112 + 16;
 
 /// Gauss–Seidel sweeps the planner allows before its dense fallback (see
 /// `algo::lstdq`).

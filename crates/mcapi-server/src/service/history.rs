@@ -18,7 +18,7 @@ use super::wire::{HistoryEntry, ObservationIn, StepOut, TickCuriosity};
 use mcapi_core::spec::ActionRef;
 
 /// One tick of the history ring as kept in memory: D and the stimulus in
-/// the entry itself when they fit ([`Values`]), the curiosity part boxed
+/// the entry itself as far as they fit ([`Values`]), the curiosity part boxed
 /// (plain sessions have none). [`HistoryEntry`] is what readers get,
 /// [`TickRecord`] what snapshots keep.
 #[derive(Debug, Clone, PartialEq)]
@@ -31,6 +31,8 @@ pub struct RingTick {
     /// D, then the stimulus if there was one, then the known fraction of a
     /// learned model (docs/algorithm.md §8) if [`KNOWN_FLAG`] is set.
     values: Values,
+    /// How many of `values` are in its head.
+    head_len: u8,
     /// Components of D in `values`, and [`KNOWN_FLAG`], [`FIRST_FLAG`],
     /// [`REPLAYABLE_FLAG`].
     drive_len: u32,
@@ -45,50 +47,58 @@ pub struct RingTick {
     digest: u64,
 }
 
-/// The numbers of a tick (D, the stimulus, the known fraction): in the
-/// entry when there are at most [`INLINE`] of them, as there are for a
-/// world of one or two stimuli, else in an allocation of their own. A
-/// session's ring then allocates nothing per tick, and frees nothing when
-/// it drops its oldest tick (a free that reached memory as cold as the
-/// tick it freed); the entry is 24 bytes larger and the 32-byte allocation
-/// it no longer makes is gone, so a full ring of a two-stimulus session is
-/// smaller than before.
-#[derive(Debug, Clone)]
-enum Values {
-    /// `len` numbers at the front of `xs`; the rest are 0.
-    Inline { len: u8, xs: [f64; INLINE] },
-    /// More than [`INLINE`] numbers.
-    Heap(Box<[f64]>),
+/// The numbers of a tick (D, the stimulus, the known fraction): the first
+/// [`HEAD`] in the entry, the rest, if any, in an allocation of their own.
+/// A session of one or two stimuli (D and ξ are at most four numbers) then
+/// allocates nothing per tick, and frees nothing when its ring drops its
+/// oldest tick (a free that reached memory as cold as the tick it freed);
+/// one of three or more allocates as before, for four numbers fewer. The
+/// entry is 32 bytes larger than with all of them behind a pointer, what
+/// an allocation of four numbers took: a ring of two or more stimuli is
+/// no larger than it was, one of a single stimulus 16 bytes a tick larger.
+#[derive(Debug, Clone, PartialEq)]
+struct Values {
+    /// The first numbers; `RingTick::head_len` of them are used, the
+    /// others are 0.
+    head: [f64; HEAD],
+    /// The numbers after the first [`HEAD`].
+    tail: Option<Box<[f64]>>,
 }
 
-/// Numbers a tick keeps without an allocation: D and ξ of two stimuli.
-const INLINE: usize = 4;
+/// Numbers a tick keeps in its entry: D and ξ of two stimuli.
+const HEAD: usize = 4;
+
+/// [`RingTick::numbers`]: a chain of two slices does not know its length.
+#[derive(Clone)]
+struct Numbers<I>(I, usize);
+
+impl<I: Iterator<Item = f64>> Iterator for Numbers<I> {
+    type Item = f64;
+    fn next(&mut self) -> Option<f64> {
+        let x = self.0.next()?;
+        self.1 -= 1;
+        Some(x)
+    }
+    fn size_hint(&self) -> (usize, Option<usize>) {
+        (self.1, Some(self.1))
+    }
+}
+
+impl<I: Iterator<Item = f64>> ExactSizeIterator for Numbers<I> {}
 
 impl Values {
-    fn new(values: impl Iterator<Item = f64> + Clone) -> Self {
-        let mut xs = [0.0; INLINE];
+    /// The numbers, and how many of them are in the head.
+    fn new(mut values: impl Iterator<Item = f64>) -> (Self, u8) {
+        let mut head = [0.0; HEAD];
         let mut len = 0;
-        for x in values.clone() {
-            if len == INLINE {
-                return Self::Heap(values.collect());
-            }
-            xs[len] = x;
+        for slot in &mut head {
+            let Some(x) = values.next() else { break };
+            *slot = x;
             len += 1;
         }
-        Self::Inline { len: len as u8, xs }
-    }
-
-    fn as_slice(&self) -> &[f64] {
-        match self {
-            Self::Inline { len, xs } => &xs[..usize::from(*len)],
-            Self::Heap(xs) => xs,
-        }
-    }
-}
-
-impl PartialEq for Values {
-    fn eq(&self, other: &Self) -> bool {
-        self.as_slice() == other.as_slice()
+        let tail: Box<[f64]> = values.collect();
+        let tail = (!tail.is_empty()).then_some(tail);
+        (Self { head, tail }, len)
     }
 }
 
@@ -204,6 +214,14 @@ impl RingTick {
         known_fraction: Option<f64>,
     ) -> Self {
         let stimulus = stimulus.into_iter().flatten().copied();
+        let (values, head_len) = Values::new(
+            drive
+                .iter()
+                .copied()
+                .chain(stimulus)
+                .chain(xi_cur)
+                .chain(known_fraction),
+        );
         let flag = if known_fraction.is_some() {
             KNOWN_FLAG
         } else {
@@ -215,14 +233,8 @@ impl RingTick {
             action: index32(action),
             reward,
             lstdq_error,
-            values: Values::new(
-                drive
-                    .iter()
-                    .copied()
-                    .chain(stimulus)
-                    .chain(xi_cur)
-                    .chain(known_fraction),
-            ),
+            values,
+            head_len,
             drive_len: (index32(drive.len()) & !FLAGS) | flag,
             extra: curiosity.map(|c| Box::new(Extra::Curiosity(c))),
             policy_version: 0,
@@ -305,7 +317,7 @@ impl RingTick {
     /// The known fraction of a learned model after this tick.
     pub fn known_fraction(&self) -> Option<f64> {
         (self.drive_len & KNOWN_FLAG != 0)
-            .then(|| self.values.as_slice().last().copied())
+            .then(|| self.numbers().last())
             .flatten()
     }
 
@@ -332,21 +344,29 @@ impl RingTick {
         tick
     }
 
+    /// D, the stimulus and the known fraction, in order.
+    fn numbers(&self) -> impl ExactSizeIterator<Item = f64> + Clone + '_ {
+        let head = &self.values.head[..usize::from(self.head_len)];
+        let tail = self.values.tail.as_deref().unwrap_or_default();
+        Numbers(head.iter().chain(tail).copied(), head.len() + tail.len())
+    }
+
     /// The entry readers get.
     pub fn entry(&self) -> HistoryEntry {
         let known_fraction = self.known_fraction();
-        let values = self.values.as_slice();
-        let end = values.len() - usize::from(known_fraction.is_some());
-        let (drive, stimulus) =
-            values[..end].split_at(((self.drive_len & !FLAGS) as usize).min(end));
+        let numbers = self.numbers();
+        let end = numbers.len() - usize::from(known_fraction.is_some());
+        let d = ((self.drive_len & !FLAGS) as usize).min(end);
+        let drive: Vec<f64> = numbers.clone().take(d).collect();
+        let stimulus: Vec<f64> = numbers.skip(d).take(end - d).collect();
         HistoryEntry {
             tick: self.tick,
             state: self.state as usize,
             action: self.action as usize,
-            drive: drive.to_vec(),
+            drive,
             reward: self.reward,
             lstdq_error: self.lstdq_error,
-            stimulus: (!stimulus.is_empty()).then(|| stimulus.to_vec()),
+            stimulus: (!stimulus.is_empty()).then_some(stimulus),
             curiosity: match self.extra.as_deref() {
                 Some(Extra::Curiosity(c)) => Some(*c),
                 Some(Extra::Observation(_)) | None => None,
@@ -438,13 +458,13 @@ mod tests {
     use super::*;
 
     #[test]
-    fn up_to_four_numbers_stay_in_the_entry_and_more_are_given_back_whole() {
+    fn four_numbers_stay_in_the_entry_and_the_rest_are_given_back_in_order() {
         let tick = |drive: &[f64], stimulus: Option<&[f64]>, known: Option<f64>| {
             RingTick::new(1, 2, 0, drive, stimulus, None, 0.5, 0.0, None, known)
         };
-        // Two stimuli: D and ξ are four numbers, kept in the entry.
+        // Two stimuli: D and ξ are four numbers, all in the entry.
         let two = tick(&[0.6, 0.8], Some(&[1.0, -2.0]), None);
-        assert!(matches!(two.values, Values::Inline { len: 4, .. }));
+        assert_eq!((two.head_len, two.values.tail.is_none()), (4, true));
         let e = two.entry();
         assert_eq!(
             (e.drive, e.stimulus),
@@ -452,31 +472,34 @@ mod tests {
         );
         // The first observation has no stimulus.
         let first = tick(&[0.6, 0.8], None, None);
-        assert!(matches!(first.values, Values::Inline { len: 2, .. }));
+        assert_eq!((first.head_len, first.values.tail.is_none()), (2, true));
         assert_eq!(first.entry().stimulus, None);
-        // Three stimuli, or a learned model's known fraction beside two:
-        // more than four, in an allocation of their own.
+        // Three stimuli: four numbers in the entry, two after them.
         let three = tick(&[0.0, 0.6, 0.8], Some(&[1.0, 2.0, 3.0]), None);
-        assert!(matches!(three.values, Values::Heap(_)));
+        assert_eq!(three.head_len, 4);
+        assert_eq!(three.values.tail.as_deref(), Some(&[2.0, 3.0][..]));
         let e = three.entry();
         assert_eq!(e.drive, vec![0.0, 0.6, 0.8]);
         assert_eq!(e.stimulus, Some(vec![1.0, 2.0, 3.0]));
+        // A learned model's known fraction, the last number, beyond the head.
         let learned = tick(&[0.6, 0.8], Some(&[1.0, -2.0]), Some(0.25));
-        assert!(matches!(learned.values, Values::Heap(_)));
+        assert_eq!(learned.values.tail.as_deref(), Some(&[0.25][..]));
         assert_eq!(learned.known_fraction(), Some(0.25));
         assert_eq!(learned.entry().stimulus, Some(vec![1.0, -2.0]));
-        // Equal numbers are equal entries, whatever the unused slots hold.
-        assert_eq!(two, RingTick::from(&TickRecord::from(&two)));
+        assert_eq!(two.known_fraction(), None);
+        // Through a snapshot's record and back, the same entries.
+        for t in [&two, &first, &three] {
+            assert_eq!(*t, RingTick::from(&TickRecord::from(t)));
+        }
         assert_ne!(two, first);
     }
 
     #[test]
     fn ring_ticks_are_compact_and_give_back_their_entries() {
-        // Up to four numbers of D and ξ in the entry (40 bytes with the
-        // variant), more in one allocation; the curiosity part boxed; the
-        // reply's policy version and the observation's digest
-        // (exactly-once delivery) 16 bytes.
-        assert!(std::mem::size_of::<RingTick>() <= 104);
+        // Four numbers of D and ξ in the entry, the rest behind a
+        // pointer; the curiosity part boxed; the reply's policy version and
+        // the observation's digest (exactly-once delivery) 16 bytes.
+        assert!(std::mem::size_of::<RingTick>() <= 112);
         let curious = RingTick::new(
             7,
             3,
@@ -516,7 +539,7 @@ mod tests {
             None,
             Some(0.375),
         );
-        assert!(std::mem::size_of::<RingTick>() <= 104);
+        assert!(std::mem::size_of::<RingTick>() <= 112);
         let e = learned.entry();
         assert_eq!(
             (e.drive, e.stimulus),
@@ -540,7 +563,7 @@ mod tests {
             None,
         )
         .with_observation(&[0.25, -3.0]);
-        assert!(std::mem::size_of::<RingTick>() <= 104);
+        assert!(std::mem::size_of::<RingTick>() <= 112);
         let e = continuous.entry();
         assert_eq!(e.observation, Some(vec![0.25, -3.0]));
         assert_eq!(e.curiosity, None);
