@@ -38,6 +38,9 @@ use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
 
+#[path = "support/encode.rs"]
+mod encode;
+
 /// Ticks before measuring; few when `cargo test --all-targets` runs the
 /// bench once as a test (a debug build), so `make test` stays quick.
 const WARM_UP_TICKS: usize = if cfg!(debug_assertions) { 100 } else { 3000 };
@@ -227,17 +230,8 @@ fn bench_snapshot(c: &mut Criterion) {
         x = world.step(&x, step.action, &mut rng);
         stimulus = Some(world.stimulus(&x, &mut rng));
     }
-    let owned = |agent: &ContinuousAgent| {
-        postcard::to_extend(&agent.snapshot(), vec![5u8]).expect("encode")
-    };
-    let borrowed = |agent: &ContinuousAgent| {
-        let state = agent.snapshot_ref();
-        let len = postcard::serialize_with_flavor(&state, postcard::ser_flavors::Size::default())
-            .expect("size");
-        let mut out = Vec::with_capacity(1 + len);
-        out.push(5u8);
-        postcard::to_extend(&state, out).expect("encode")
-    };
+    let owned = |agent: &ContinuousAgent| encode::growing(&agent.snapshot());
+    let borrowed = |agent: &ContinuousAgent| encode::sized(&agent.snapshot_ref());
     assert!(owned(&agent) == borrowed(&agent), "the same bytes");
     let mut group = c.benchmark_group("continuous");
     group.sample_size(20);

@@ -43,6 +43,9 @@ use mcapi_experiments::paper::slippery;
 use rand::{RngExt, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+#[path = "support/encode.rs"]
+mod encode;
+
 const WARM_UP_TICKS: usize = 300;
 
 /// An open `side` × `side` grid with sources `F` and `W` in opposite corners.
@@ -201,22 +204,6 @@ fn bench_large(c: &mut Criterion) {
     group.finish();
 }
 
-/// `value` encoded as the server's `durable::encode` does: a record-version
-/// byte, then postcard, into a buffer sized by a counting pass first.
-fn encode_sized(value: &impl serde::Serialize) -> Vec<u8> {
-    let len = postcard::serialize_with_flavor(value, postcard::ser_flavors::Size::default())
-        .expect("size");
-    let mut out = Vec::with_capacity(1 + len);
-    out.push(5u8);
-    postcard::to_extend(value, out).expect("encode")
-}
-
-/// `value` encoded as a session did before it borrowed its agent: the
-/// version byte, then postcard into a buffer that grows as it goes.
-fn encode_growing(value: &impl serde::Serialize) -> Vec<u8> {
-    postcard::to_extend(value, vec![5u8]).expect("encode")
-}
-
 fn bench_snapshots(c: &mut Criterion) {
     let text = open_grid(316);
     let known = Walk::new(agent(&text, &BasisSpec::Indicator, 0.0)).warm_up(WARM_UP_TICKS);
@@ -230,26 +217,26 @@ fn bench_snapshots(c: &mut Criterion) {
     .expect("learned agent");
     let learned = Walk::new((learned, sources)).warm_up(WARM_UP_TICKS);
     let (known, learned) = (&known.agent, &learned.agent);
-    assert!(encode_growing(&known.snapshot()) == encode_sized(&known.snapshot_ref()));
+    assert!(encode::growing(&known.snapshot()) == encode::sized(&known.snapshot_ref()));
     let owned = || learned.learned_snapshot().expect("learned");
     let borrowed = || learned.learned_snapshot_ref().expect("learned");
     assert!(
-        encode_growing(&owned()) == encode_sized(&borrowed()),
+        encode::growing(&owned()) == encode::sized(&borrowed()),
         "the same bytes"
     );
     let mut group = c.benchmark_group("large");
     group.sample_size(20);
     group.bench_function(BenchmarkId::new("snapshot_owned", "known_100k"), |b| {
-        b.iter(|| black_box(encode_growing(&known.snapshot())))
+        b.iter(|| black_box(encode::growing(&known.snapshot())))
     });
     group.bench_function(BenchmarkId::new("snapshot_borrowed", "known_100k"), |b| {
-        b.iter(|| black_box(encode_sized(&known.snapshot_ref())))
+        b.iter(|| black_box(encode::sized(&known.snapshot_ref())))
     });
     group.bench_function(BenchmarkId::new("snapshot_owned", "learned_100k"), |b| {
-        b.iter(|| black_box(encode_growing(&owned())))
+        b.iter(|| black_box(encode::growing(&owned())))
     });
     group.bench_function(BenchmarkId::new("snapshot_borrowed", "learned_100k"), |b| {
-        b.iter(|| black_box(encode_sized(&borrowed())))
+        b.iter(|| black_box(encode::sized(&borrowed())))
     });
     group.finish();
 }

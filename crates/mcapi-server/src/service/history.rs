@@ -68,24 +68,6 @@ struct Values {
 /// Numbers a tick keeps in its entry: D and ξ of two stimuli.
 const HEAD: usize = 4;
 
-/// [`RingTick::numbers`]: a chain of two slices does not know its length.
-#[derive(Clone)]
-struct Numbers<I>(I, usize);
-
-impl<I: Iterator<Item = f64>> Iterator for Numbers<I> {
-    type Item = f64;
-    fn next(&mut self) -> Option<f64> {
-        let x = self.0.next()?;
-        self.1 -= 1;
-        Some(x)
-    }
-    fn size_hint(&self) -> (usize, Option<usize>) {
-        (self.1, Some(self.1))
-    }
-}
-
-impl<I: Iterator<Item = f64>> ExactSizeIterator for Numbers<I> {}
-
 impl Values {
     /// The numbers, and how many of them are in the head.
     fn new(mut values: impl Iterator<Item = f64>) -> (Self, u8) {
@@ -317,7 +299,7 @@ impl RingTick {
     /// The known fraction of a learned model after this tick.
     pub fn known_fraction(&self) -> Option<f64> {
         (self.drive_len & KNOWN_FLAG != 0)
-            .then(|| self.numbers().last())
+            .then(|| self.numbers().0.last())
             .flatten()
     }
 
@@ -344,18 +326,18 @@ impl RingTick {
         tick
     }
 
-    /// D, the stimulus and the known fraction, in order.
-    fn numbers(&self) -> impl ExactSizeIterator<Item = f64> + Clone + '_ {
+    /// D, the stimulus and the known fraction, in order, and how many.
+    fn numbers(&self) -> (impl Iterator<Item = f64> + Clone + '_, usize) {
         let head = &self.values.head[..usize::from(self.head_len)];
         let tail = self.values.tail.as_deref().unwrap_or_default();
-        Numbers(head.iter().chain(tail).copied(), head.len() + tail.len())
+        (head.iter().chain(tail).copied(), head.len() + tail.len())
     }
 
     /// The entry readers get.
     pub fn entry(&self) -> HistoryEntry {
         let known_fraction = self.known_fraction();
-        let numbers = self.numbers();
-        let end = numbers.len() - usize::from(known_fraction.is_some());
+        let (numbers, len) = self.numbers();
+        let end = len - usize::from(known_fraction.is_some());
         let d = ((self.drive_len & !FLAGS) as usize).min(end);
         let drive: Vec<f64> = numbers.clone().take(d).collect();
         let stimulus: Vec<f64> = numbers.skip(d).take(end - d).collect();
