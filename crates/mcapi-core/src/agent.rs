@@ -495,6 +495,18 @@ impl Agent {
         self.learned.as_ref().map_or(1.0, |l| l.known_fraction())
     }
 
+    /// Hints the CPU to start loading the tables this agent's next
+    /// observation and plan touch: for a caller that steps many agents in
+    /// turn, called on the next agent before stepping this one, so that its
+    /// tables come from DRAM while this one computes. Changes nothing.
+    pub fn prefetch(&self) {
+        self.drive.prefetch();
+        self.stimulus.prefetch();
+        self.planner.prefetch();
+        crate::prefetch::slice(&self.rewards);
+        crate::prefetch::slice(&self.scaled_drive);
+    }
+
     /// Ticks so far.
     pub fn tick(&self) -> u64 {
         self.tick

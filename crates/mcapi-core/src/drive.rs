@@ -34,6 +34,15 @@ pub fn norm(x: &[f64]) -> f64 {
 }
 
 impl Drive {
+    /// Hints the CPU to load what [`Drive::update`] touches ([`crate::prefetch`]).
+    pub(crate) fn prefetch(&self) {
+        crate::prefetch::slice(&self.d);
+        crate::prefetch::slice(&self.inv_rho);
+        crate::prefetch::slice(&self.second_moment);
+        crate::prefetch::slice(&self.scaled);
+        crate::prefetch::slice(&self.next);
+    }
+
     /// D₀ = |N(0, I)| normalised (docs/algorithm.md §3).
     pub fn new(priorities: &[f64], eta: f64, rng: &mut impl Rng) -> Self {
         let n = priorities.len();

@@ -26,6 +26,7 @@ pub mod learned;
 pub mod lstdq;
 pub mod model;
 pub mod params;
+pub mod prefetch;
 pub mod spec;
 pub mod stimulus;
 

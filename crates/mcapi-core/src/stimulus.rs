@@ -40,6 +40,11 @@ pub struct OwnColumn {
 }
 
 impl StimulusFunction {
+    /// Hints the CPU to load Ξ, which every plan reads whole ([`crate::prefetch`]).
+    pub(crate) fn prefetch(&self) {
+        crate::prefetch::slice(&self.xi);
+    }
+
     /// Ξ ~ N(0, sd²) per entry, zero visits.
     pub fn new(pairs: usize, n: usize, sd: f64, rng: &mut impl Rng) -> Self {
         let xi = match Normal::new(0.0, sd) {

@@ -117,6 +117,15 @@ fn bench_tick(c: &mut Criterion) {
             black_box(many[turn].tick().expect("tick"))
         })
     });
+    // The same, with the next agent's tables prefetched before each tick,
+    // as a group step does.
+    group.bench_function("hallway_indicator_10000_agents_prefetched", |b| {
+        b.iter(|| {
+            turn = (turn + 1) % many.len();
+            many[(turn + 1) % many.len()].agent().prefetch();
+            black_box(many[turn].tick().expect("tick"))
+        })
+    });
     group.finish();
 }
 

@@ -31,6 +31,11 @@ impl FunctionalGraph {
         }
     }
 
+    /// The recorded walk (see the field).
+    pub(super) fn walk(&self) -> &[u32] {
+        &self.walk
+    }
+
     /// Exact Q^π for a deterministic model and Φ = I (see module docs).
     ///
     /// The walk over the graph (marks, a path, cycles found) is done only

@@ -234,6 +234,22 @@ impl Scratch {
 }
 
 impl Planner {
+    /// Hints the CPU to load Q, π and what the engine of a table-sized
+    /// world keeps ([`crate::prefetch`]); a feature engine's matrices are
+    /// left alone (too large to be worth a hint per tick).
+    pub(crate) fn prefetch(&self) {
+        crate::prefetch::slice(&self.q);
+        crate::prefetch::slice(&self.policy);
+        match &self.engine {
+            Engine::FunctionalGraph(fg) => {
+                crate::prefetch::slice(&fg.v);
+                crate::prefetch::slice(fg.walk());
+            }
+            Engine::GaussSeidel { v } => crate::prefetch::slice(v),
+            Engine::Features(_) => {}
+        }
+    }
+
     /// A planner for the initial policy π₀ (`policy[s]` = chosen pair of s).
     pub fn new(ctx: &PlanningModel, policy: Vec<u32>) -> Self {
         let model = &ctx.model;

@@ -39,6 +39,16 @@ pub struct LearnerObserved {
 }
 
 impl Learner {
+    /// Hints the CPU to load the agent's tables
+    /// ([`mcapi_core::prefetch`]); a continuous world's agent is left alone.
+    pub fn prefetch(&self) {
+        match self {
+            Self::Plain(a) => a.prefetch(),
+            Self::Curious(c) => c.agent().prefetch(),
+            Self::Continuous(_) => {}
+        }
+    }
+
     /// The MCA-PI agent of a model with numbered states; `None` for a
     /// continuous world.
     pub fn agent(&self) -> Option<&Agent> {

@@ -195,6 +195,26 @@ pub(super) fn idle_since(at: u64) -> Option<std::time::Duration> {
 }
 
 impl Session {
+    /// Hints the CPU to load what this session's next observation touches:
+    /// its agent's tables and the slot of the history ring its tick goes
+    /// to ([`mcapi_core::prefetch`]). A caller stepping many sessions in
+    /// turn (a group step) calls it on the next session before stepping
+    /// this one. Skipped while another thread holds the state; changes
+    /// nothing.
+    pub fn prefetch(&self) {
+        if let Some(st) = self.state.try_lock() {
+            st.learner.prefetch();
+            let slot = if st.history.len() >= self.history_cap {
+                st.history.front()
+            } else {
+                st.history.back()
+            };
+            if let Some(tick) = slot {
+                mcapi_core::prefetch::value(tick);
+            }
+        }
+    }
+
     /// Wraps a fresh learner.
     pub fn new(
         id: String,

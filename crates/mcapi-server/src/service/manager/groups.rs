@@ -559,10 +559,21 @@ impl SessionManager {
                 })
                 .collect()
         };
+        let mut resident = resident;
         let applied = chunk
             .into_iter()
-            .zip(resident)
-            .map(|((pos, (index, obs)), resident)| {
+            .enumerate()
+            .map(|(k, (pos, (index, obs)))| {
+                // Ten thousand members' tables are in no cache when their
+                // turn comes: the CPU loads the next member's while this
+                // one is stepped, and the one after's session struct.
+                if let Some(Some(next)) = resident.get(k + 2) {
+                    mcapi_core::prefetch::value::<Session>(next);
+                }
+                if let Some(Some(next)) = resident.get(k + 1) {
+                    next.prefetch();
+                }
+                let resident = resident[k].take();
                 if group.members[index].is_none() {
                     return (pos, index, Applied::Refused(unrecovered(&group.id, index)));
                 }
