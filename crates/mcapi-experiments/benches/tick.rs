@@ -122,6 +122,7 @@ fn bench_tick(c: &mut Criterion) {
     group.bench_function("hallway_indicator_10000_agents_prefetched", |b| {
         b.iter(|| {
             turn = (turn + 1) % many.len();
+            mcapi_core::prefetch::value(&many[(turn + 2) % many.len()]);
             many[(turn + 1) % many.len()].agent().prefetch();
             black_box(many[turn].tick().expect("tick"))
         })
