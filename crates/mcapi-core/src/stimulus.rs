@@ -40,9 +40,12 @@ pub struct OwnColumn {
 }
 
 impl StimulusFunction {
-    /// Hints the CPU to load Ξ, which every plan reads whole ([`crate::prefetch`]).
+    /// Hints the CPU to load Ξ, which every plan reads whole, and the
+    /// visit counts, one of which every observation updates
+    /// ([`crate::prefetch`]).
     pub(crate) fn prefetch(&self) {
         crate::prefetch::slice(&self.xi);
+        crate::prefetch::slice(&self.visits);
     }
 
     /// Ξ ~ N(0, sd²) per entry, zero visits.
