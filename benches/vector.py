@@ -26,7 +26,11 @@ Paths:
 
 Server CPU is read from ``/proc/PID/stat`` (user + system) over the
 measured window, so it counts everything the server did, the agents'
-ticks included. Prints one JSON object on stdout; progress on stderr.
+ticks included. The group path also reports the time between consecutive
+replies in the window (``reply_gap_p99_ms``, ``reply_gap_max_ms``): a
+stall of the server, such as every member writing its snapshot in the same
+step, shows in that tail. Prints one JSON object on stdout; progress on
+stderr.
 """
 
 from __future__ import annotations
@@ -89,6 +93,9 @@ def measure(
     """Runs `run_for` for the warm-up, then for the window, reading the
     server's CPU around the window."""
     run_for(warmup)
+    gaps: list[float] | None = getattr(run_for, "gaps", None)
+    if gaps is not None:
+        gaps.clear()
     cpu0 = cpu_seconds(pid) if pid else 0.0
     t0 = time.perf_counter()
     steps = run_for(duration)
@@ -98,6 +105,10 @@ def measure(
     if pid:
         out["server_cpu_s"] = cpu
         out["server_us_per_step"] = cpu / steps * 1e6
+    if gaps:
+        ordered = sorted(gaps)
+        out["reply_gap_p99_ms"] = ordered[int(0.99 * (len(ordered) - 1))] * 1e3
+        out["reply_gap_max_ms"] = ordered[-1] * 1e3
     return out
 
 
@@ -115,9 +126,13 @@ def group_path(args: argparse.Namespace) -> Callable[[float], int]:
     def run_for(seconds: float) -> int:
         steps = 0
         end = time.perf_counter() + seconds
+        last = time.perf_counter()
         while time.perf_counter() < end:
             i = queue.pop(0)
             reply = agents.recv()
+            now = time.perf_counter()
+            run_for.gaps.append(now - last)  # type: ignore[attr-defined]
+            last = now
             if reply.errors:
                 sys.exit(f"refused members: {reply.errors[:3]}")
             steps += len(reply.actions)
@@ -126,6 +141,9 @@ def group_path(args: argparse.Namespace) -> Callable[[float], int]:
             queue.append(i)
         return steps
 
+    # The time between consecutive replies, in the window: a stall of the
+    # server (every member snapshotting at once, say) shows in its tail.
+    run_for.gaps = []  # type: ignore[attr-defined]
     return run_for
 
 

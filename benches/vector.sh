@@ -130,7 +130,7 @@ if [ "${SKIP_TICK:-0}" != 1 ]; then
 fi
 
 row() {
-  jq -r --arg what "$2" '"| \($what) | \(.steps_per_s | floor) | \(.server_us_per_step * 100 | round / 100) |"' "$OUT/$1.json"
+  jq -r --arg what "$2" '"| \($what) | \(.steps_per_s | floor) | \(.server_us_per_step * 100 | round / 100) | \(.reply_gap_max_ms // null | if . == null then "–" else round end) |"' "$OUT/$1.json"
 }
 rate() { jq -r '.steps_per_s' "$OUT/$1.json"; }
 ratio() { python3 -c "print(f'{$1 / $2:.2f}')"; }
@@ -142,8 +142,8 @@ $STARTED, commit $COMMIT; server on core $SERVER_CORE, the Python process on cor
 $CLIENT_CORE; $MEMBERS hallway sessions; ${WARMUP} s warm-up + ${DURATION} s windows.
 Raw results: $OUT.
 
-| path (one Python process) | steps/s | server CPU µs/step |
-|---|---|---|
+| path (one Python process) | steps/s | server CPU µs/step | longest wait for a reply, ms |
+|---|---|---|---|
 $(row group-async "StepGroup, async, memory store, 2 in flight")
 $(row group-lockstep "StepGroup, lockstep, memory store, 2 in flight")
 $(row group-durable "StepGroup, async, durable store (sync), 2 in flight")

@@ -83,8 +83,9 @@ pub struct ServeConfig {
     /// [default: 300 with the durable store]
     #[arg(help_heading = "Storage", long, env = "MCAPI_EVICT_IDLE_SECS")]
     pub evict_idle_secs: Option<u64>,
-    /// Logged observations between two snapshots of a session (the log
-    /// before a snapshot is trimmed).
+    /// Most logged observations between two snapshots of a session (the
+    /// log before a snapshot is trimmed); a group's members spread theirs
+    /// over that many steps.
     #[arg(help_heading = "Storage", long, env = "MCAPI_SNAPSHOT_EVERY", default_value_t = crate::service::DEFAULT_SNAPSHOT_EVERY)]
     pub snapshot_every: u64,
     /// API key clients must send as `Authorization: Bearer <key>`; repeat

@@ -33,6 +33,9 @@ pub struct SessionState {
     seq: u64,
     /// Log entries since the last snapshot.
     since_snapshot: u64,
+    /// A group member's index and its group's size, which spread the
+    /// members' snapshots ([`SessionState::snapshot_due`]).
+    group_slot: Option<(u32, u32)>,
     /// Set by `delete`: the session takes no more observations.
     deleted: bool,
     /// Set while a delete's commit is in flight: no observation or
@@ -235,6 +238,7 @@ impl Session {
         resumed: Resumed,
     ) -> Self {
         let learned_cap = model.learned.as_ref().map(|l| l.max_transitions);
+        let group_slot = resumed.group.as_ref().map(|t| (t.index, t.size));
         // A session without a store has nowhere to be rebuilt from.
         let resumed = Resumed {
             pristine: resumed.pristine && durability.is_some(),
@@ -255,6 +259,7 @@ impl Session {
                 history: resumed.history,
                 seq: resumed.seq,
                 since_snapshot: resumed.since_snapshot,
+                group_slot,
                 deleted: false,
                 deleting: false,
                 fail_plans: 0,
@@ -834,10 +839,22 @@ impl SessionState {
         store.submit(writes)
     }
 
+    /// [`snapshot_due`] for the entries just logged.
+    fn snapshot_due(&self, logged: u64, every: u64) -> bool {
+        snapshot_due(
+            self.since_snapshot,
+            self.seq,
+            logged,
+            every,
+            self.group_slot,
+        )
+    }
+
     /// Queues log entries, encoded (and a snapshot when one is due), for
     /// commit.
     fn log(&mut self, id: &Arc<str>, d: &Durability, entries: Vec<LogEntryRef<'_>>) -> Commit {
         let mut writes = Vec::with_capacity(entries.len() + 1);
+        let logged = entries.len() as u64;
         for entry in entries {
             match entry.encode() {
                 Ok(bytes) => writes.push(Write::Append {
@@ -850,7 +867,7 @@ impl SessionState {
             self.seq += 1;
             self.since_snapshot += 1;
         }
-        if self.since_snapshot >= d.snapshot_every {
+        if self.snapshot_due(logged, d.snapshot_every) {
             match self.snapshot_write(id) {
                 Ok(w) => writes.push(w),
                 Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
@@ -877,6 +894,7 @@ impl SessionState {
             self.batch = Arc::downgrade(batch);
         }
         let mut positions: Option<Range<usize>> = None;
+        let logged = entries.len() as u64;
         let mut added = |p: usize| {
             let r = positions.get_or_insert(p..p);
             r.end = p + 1;
@@ -889,7 +907,7 @@ impl SessionState {
             self.seq += 1;
             self.since_snapshot += 1;
         }
-        if self.since_snapshot >= d.snapshot_every {
+        if self.snapshot_due(logged, d.snapshot_every) {
             match self.snapshot_write(id) {
                 Ok(w) => added(batch.push(w)),
                 Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
@@ -1108,6 +1126,30 @@ impl SessionState {
     }
 }
 
+/// Whether a snapshot is due after `logged` entries were just logged, the
+/// last of them `seq − 1`, `since` of them since the last snapshot: once
+/// `every` entries were logged since the last one. A group member's (`slot`:
+/// its index and its group's size) also comes when its sequence numbers
+/// cross the next multiple of `every` shifted by its phase, index × every /
+/// size. Members stepped together would otherwise all reach `every` at the
+/// same step and write their snapshots in one burst (10,000 hallway
+/// members: about a second in which the step waits); their phases spread
+/// them over `every` steps. The phase is derived from the member's record,
+/// so a recovered member keeps it; the log after a snapshot never exceeds
+/// `every` entries either way.
+fn snapshot_due(since: u64, seq: u64, logged: u64, every: u64, slot: Option<(u32, u32)>) -> bool {
+    if since >= every {
+        return true;
+    }
+    let Some((index, size)) = slot else {
+        return false;
+    };
+    let every = u128::from(every.max(1));
+    let phase = u128::from(index) * every / u128::from(size.max(1));
+    let before = u128::from(seq.saturating_sub(logged));
+    (before + phase) / every != (u128::from(seq) + phase) / every
+}
+
 /// One applied observation.
 struct Applied {
     /// The reply.
@@ -1159,4 +1201,92 @@ pub struct Evicted {
     /// Every write of the session is in the store's frames up to this one
     /// ([`mcapi_store::Store::committed`] when it left memory).
     pub lsn: u64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::snapshot_due;
+
+    /// Logs `steps` steps of `per_step` entries each for a session starting
+    /// at sequence number `seq`, `since` entries after its last snapshot;
+    /// returns the sequence numbers after which it snapshotted and the
+    /// most entries it held between two snapshots.
+    fn run(
+        slot: Option<(u32, u32)>,
+        every: u64,
+        mut seq: u64,
+        mut since: u64,
+        steps: u64,
+        per_step: u64,
+    ) -> (Vec<u64>, u64) {
+        let (mut at, mut most) = (Vec::new(), since);
+        for _ in 0..steps {
+            seq += per_step;
+            since += per_step;
+            most = most.max(since);
+            if snapshot_due(since, seq, per_step, every, slot) {
+                at.push(seq);
+                since = 0;
+            }
+        }
+        (at, most)
+    }
+
+    #[test]
+    fn a_lone_session_snapshots_every_n_entries() {
+        let (at, most) = run(None, 100, 0, 0, 350, 1);
+        assert_eq!(at, vec![100, 200, 300]);
+        assert_eq!(most, 100);
+        // After a snapshot taken elsewhere (an eviction at seq 130), the
+        // next comes `every` entries later.
+        let (at, _) = run(None, 100, 130, 0, 150, 1);
+        assert_eq!(at, vec![230]);
+    }
+
+    #[test]
+    fn group_members_spread_their_snapshots_over_n_steps() {
+        let (size, every, steps) = (1000u32, 100u64, 1000u64);
+        let mut per_step = vec![0u32; steps as usize + 1];
+        for index in 0..size {
+            let (at, most) = run(Some((index, size)), every, 0, 0, steps, 1);
+            assert!(most <= every, "member {index} held {most} entries");
+            assert!(
+                (10..=11).contains(&at.len()),
+                "member {index}: {} snapshots in {steps} steps",
+                at.len()
+            );
+            for seq in at {
+                per_step[seq as usize] += 1;
+            }
+        }
+        // Without phases all 1000 would snapshot at steps 100, 200, ...
+        let busiest = per_step.iter().max().copied().unwrap_or(0);
+        assert_eq!(busiest, size / every as u32, "{per_step:?}");
+        // Member 0's phase is 0: it snapshots as a lone session does.
+        assert_eq!(run(Some((0, size)), every, 0, 0, 250, 1).0, vec![100, 200]);
+    }
+
+    #[test]
+    fn batches_and_off_phase_snapshots_keep_the_bound() {
+        // Batches of 7 cross the member's phase (index 3 of 4: 75) between
+        // two calls; the crossing counts.
+        let (at, most) = run(Some((3, 4)), 100, 0, 0, 100, 7);
+        assert_eq!(at.first(), Some(&28));
+        assert!(most <= 100 + 6, "{most}");
+        // An eviction's snapshot at seq 60 of a member of phase 50: the
+        // next comes at the phase (150), not 100 entries after seq 60.
+        let (at, most) = run(Some((1, 2)), 100, 60, 0, 200, 1);
+        assert_eq!(at, vec![150, 250]);
+        assert!(most <= 100);
+        // Absurd settings: an interval of 1 snapshots every entry; the
+        // largest interval and index do not overflow.
+        assert_eq!(run(Some((5, 9)), 1, 0, 0, 3, 1).0, vec![1, 2, 3]);
+        assert!(!snapshot_due(
+            0,
+            u64::MAX,
+            1,
+            u64::MAX,
+            Some((u32::MAX - 1, u32::MAX))
+        ));
+    }
 }
