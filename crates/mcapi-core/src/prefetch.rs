@@ -7,12 +7,13 @@
 //! A hint changes no value and no result: the prefetched agent is only read
 //! through its ordinary methods afterwards.
 //!
-//! The lines go to the second-level cache (`T1`), not the first: criterion's
-//! `tick/hallway_indicator_10000_agents_prefetched`, next agent prefetched
-//! into L2, 1.45 µs a tick against 1.82 µs without; into L1 (`T0`), 1.83 µs
-//! against 1.69 µs, slower than no hint (the hinted lines evict the ticking
-//! agent's own from a 32 KiB L1). Prefetching two agents ahead instead of
-//! one: 1.60 µs.
+//! The lines go to the second-level cache (`T1`), not the first. Criterion's
+//! `tick/hallway_indicator_10000_agents_prefetched` (the next agent's
+//! tables and the struct of the agent after it, as the group step hints
+//! them): 1.19-1.22 µs a tick against 1.65-1.82 µs without. Into L1 (`T0`)
+//! the hint made the tick slower than none (1.83 µs against 1.69): the
+//! hinted lines evict the ticking agent's own from a 32 KiB L1. Two agents
+//! ahead instead of one: 1.60 µs against 1.45.
 
 /// Bytes per cache line on the machines this runs on (x86-64, most ARM).
 const LINE: usize = 64;

@@ -1135,8 +1135,9 @@ impl SessionState {
 /// same step and write their snapshots in one burst (10,000 hallway
 /// members: about a second in which the step waits); their phases spread
 /// them over `every` steps. The phase is derived from the member's record,
-/// so a recovered member keeps it; the log after a snapshot never exceeds
-/// `every` entries either way.
+/// so a recovered member keeps it. A member never holds more entries after
+/// its snapshot than a lone session would; a snapshot taken off its phase
+/// (at an eviction) may be followed by the phase's one soon after.
 fn snapshot_due(since: u64, seq: u64, logged: u64, every: u64, slot: Option<(u32, u32)>) -> bool {
     if since >= every {
         return true;
