@@ -423,16 +423,38 @@ impl From<&RingTick> for TickRecord {
 /// `VecDeque` does, but never past `cap` (`history: 300` keeps room for
 /// 300 ticks, not the 512 plain doubling would reserve).
 pub fn push_tick(ring: &mut VecDeque<RingTick>, cap: usize, tick: RingTick) {
+    push_tick_from(ring, cap, RING_FIRST, tick);
+}
+
+/// Room for this many ticks is what a ring reserves at its first tick.
+pub const RING_FIRST: usize = 4;
+
+/// [`push_tick`] with the first reservation `first` (at least one tick):
+/// the ring then doubles from there. Rings grown in lockstep (a group's
+/// members, stepped together) would all copy themselves into fresh memory
+/// at the same tick, each doubling a step in which the group waits; first
+/// reservations that differ ([`group_ring_first`]) spread the doublings
+/// over several ticks.
+pub fn push_tick_from(ring: &mut VecDeque<RingTick>, cap: usize, first: usize, tick: RingTick) {
     if cap == 0 {
         return;
     }
     if ring.len() >= cap {
         ring.pop_front();
     } else if ring.len() == ring.capacity() {
-        let want = ring.capacity().saturating_mul(2).max(4).min(cap);
+        let want = ring.capacity().saturating_mul(2).max(first.max(1)).min(cap);
         ring.reserve_exact(want - ring.len());
     }
     ring.push_back(tick);
+}
+
+/// The first reservation of the ring of member `index` of a group of
+/// `size`: 8 to 15 ticks, spread over the members, so that the rings of
+/// eight cohorts double at eight different ticks (at 8-15, 16-30, ..., the
+/// last to 256 at 128-240 ticks) instead of all at once.
+pub fn group_ring_first(index: u32, size: u32) -> usize {
+    let (index, size) = (u64::from(index), u64::from(size.max(1)));
+    8 + usize::try_from(index.min(size - 1) * 8 / size).unwrap_or(0)
 }
 
 #[cfg(test)]
@@ -584,5 +606,54 @@ mod tests {
         }
         assert_eq!(short.len(), 3);
         assert!(short.capacity() <= 3);
+    }
+
+    #[test]
+    fn a_groups_rings_double_at_different_ticks() {
+        let tick =
+            |t: u64| RingTick::new(t, 0, 0, &[1.0], Some(&[0.0]), None, 0.0, 0.0, None, None);
+        // The tick (ring length) at which each member's ring grows.
+        let growths = |first: usize| {
+            let mut ring = VecDeque::new();
+            let mut at = Vec::new();
+            for t in 0..400 {
+                let before = ring.capacity();
+                push_tick_from(&mut ring, 256, first, tick(t));
+                if ring.capacity() != before {
+                    at.push(t);
+                }
+                assert!(
+                    ring.capacity() <= 256,
+                    "member of first {first}: {}",
+                    ring.capacity()
+                );
+            }
+            assert_eq!(ring.len(), 256);
+            at
+        };
+        let size = 10_000u32;
+        let firsts: Vec<usize> = (0..size).map(|i| group_ring_first(i, size)).collect();
+        assert_eq!(firsts.iter().min(), Some(&8));
+        assert_eq!(firsts.iter().max(), Some(&15));
+        // How many members grow at the busiest tick after the first (where
+        // every ring makes its first, small reservation, with nothing to
+        // copy).
+        let mut per_tick = vec![0u32; 400];
+        for &f in &firsts {
+            for t in growths(f).into_iter().filter(|&t| t > 0) {
+                per_tick[t as usize] += 1;
+            }
+        }
+        let busiest = per_tick.iter().max().copied().unwrap_or(0);
+        assert!(
+            busiest <= size / 8 + 1,
+            "{busiest} members grow in one tick"
+        );
+        // A lone ring grows as before: 4, 8, 16, ...
+        assert_eq!(growths(RING_FIRST), vec![0, 4, 8, 16, 32, 64, 128]);
+        // Absurd inputs stay in range.
+        assert_eq!(group_ring_first(u32::MAX, u32::MAX), 15);
+        assert_eq!(group_ring_first(0, 0), 8);
+        assert_eq!(group_ring_first(7, 3), group_ring_first(2, 3));
     }
 }

@@ -19,7 +19,7 @@ use super::cost;
 use super::durable::{LearnerSnapshotRef, LogEntryRef, SnapshotRecordRef, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
 use super::groups::GroupTag;
-use super::history::{self, RingTick, push_tick};
+use super::history::{self, RingTick};
 use super::learner::Learner;
 use super::wire::{HistoryEntry, ModelSummary, ObservationIn, SessionCost, StepOut};
 
@@ -1108,7 +1108,10 @@ impl SessionState {
             None => tick,
         };
         let tick = if first { tick.as_first() } else { tick };
-        push_tick(&mut self.history, history_cap, tick);
+        let first = self.group_slot.map_or(history::RING_FIRST, |(i, n)| {
+            history::group_ring_first(i, n)
+        });
+        history::push_tick_from(&mut self.history, history_cap, first, tick);
         Ok(Applied {
             step: StepOut {
                 tick: observed.tick,
