@@ -34,7 +34,8 @@ pub struct SessionState {
     /// Log entries since the last snapshot.
     since_snapshot: u64,
     /// A group member's index and its group's size, which spread the
-    /// members' snapshots ([`SessionState::snapshot_due`]).
+    /// members' snapshots ([`SessionState::snapshot_due`]) and the
+    /// doublings of their history rings (`history::group_ring_first`).
     group_slot: Option<(u32, u32)>,
     /// Set by `delete`: the session takes no more observations.
     deleted: bool,
