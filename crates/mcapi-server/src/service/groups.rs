@@ -57,6 +57,18 @@ pub fn member_seed(seed: u64, index: u64) -> u64 {
     mix(seed.wrapping_add(index.wrapping_add(1).wrapping_mul(GOLDEN_GAMMA)))
 }
 
+/// Member `index`'s place in `0..span`, the members of a group of `size`
+/// spread evenly over it: index × span / size (an index past the group
+/// counts as its last). What staggers the work that members stepped
+/// together would otherwise all do at the same step: their snapshots and
+/// their history rings' doublings.
+pub fn spread(index: u32, size: u32, span: u64) -> u64 {
+    let size = size.max(1);
+    let place = u128::from(index.min(size - 1)) * u128::from(span) / u128::from(size);
+    // Below `span`, so it fits.
+    u64::try_from(place).unwrap_or(0)
+}
+
 /// A request to create a group (`POST /v1/groups`): a session's body, the
 /// number of members and the group's seed.
 #[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]

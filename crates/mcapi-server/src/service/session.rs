@@ -1149,8 +1149,8 @@ fn snapshot_due(since: u64, seq: u64, logged: u64, every: u64, slot: Option<(u32
     let Some((index, size)) = slot else {
         return false;
     };
+    let phase = u128::from(super::groups::spread(index, size, every));
     let every = u128::from(every.max(1));
-    let phase = u128::from(index) * every / u128::from(size.max(1));
     let before = u128::from(seq.saturating_sub(logged));
     (before + phase) / every != (u128::from(seq) + phase) / every
 }

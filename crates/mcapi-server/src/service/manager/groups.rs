@@ -549,7 +549,7 @@ impl SessionManager {
             .durability
             .as_ref()
             .map(|d| Arc::new(Batch::expecting(Arc::clone(&d.store), chunk.len())));
-        let resident: Vec<Option<SessionRef>> = {
+        let mut resident: Vec<Option<SessionRef>> = {
             let table = self.sessions.read();
             let mut slots = group.resolved.lock();
             chunk
@@ -559,7 +559,6 @@ impl SessionManager {
                 })
                 .collect()
         };
-        let mut resident = resident;
         let applied = chunk
             .into_iter()
             .enumerate()
