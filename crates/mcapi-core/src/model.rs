@@ -454,6 +454,16 @@ impl EnvModel {
         (&self.succ_state[r.clone()], &self.succ_prob[r])
     }
 
+    /// The single successor of every pair, in pair order, in a
+    /// deterministic model (each pair has exactly one successor, so the
+    /// successor table is indexed by the pair itself).
+    #[inline]
+    pub fn next_states(&self) -> &[u32] {
+        debug_assert!(self.deterministic);
+        debug_assert_eq!(self.succ_state.len(), self.n_pairs());
+        &self.succ_state
+    }
+
     /// The single successor of pair `p` in a deterministic model.
     #[inline]
     pub fn next_state(&self, p: usize) -> usize {

@@ -52,22 +52,36 @@ impl FunctionalGraph {
         scratch: &mut Scratch,
     ) {
         let n = model.states();
-        let next = |s: usize| model.next_state(policy[s] as usize) as u32;
-        let unchanged = self.walk.len() > n && (0..n).all(|s| self.walk[s] == next(s));
+        let next_states = model.next_states();
+        debug_assert_eq!(policy.len(), n);
+        debug_assert_eq!(scratch.q_next.len(), next_states.len());
+        debug_assert_eq!(r.len(), next_states.len());
+        let next = |&p: &u32| next_states[p as usize];
+        let unchanged =
+            self.walk.len() > n && self.walk[..n].iter().copied().eq(policy.iter().map(next));
         if !unchanged {
             self.walk.clear();
-            self.walk.extend((0..n).map(next));
+            self.walk.extend(policy.iter().map(next));
             self.record_walk(n, scratch);
         }
         let (succ, order) = self.walk.split_at(n);
         let v = &mut self.v;
         let reward = |s: usize| r[policy[s] as usize];
+        // The value written last, kept in a register: a tree's path is
+        // solved from its root outwards, so a state's successor is most
+        // often the state solved just before it, and reading its value
+        // back from `v` would wait for the store (the same bits either way).
+        let mut last = (usize::MAX, 0.0);
         let mut i = 0;
         while let Some(&e) = order.get(i) {
             i += 1;
             let e = e as usize;
             if e < n {
-                v[e] = reward(e) + gamma * v[succ[e] as usize];
+                let next = succ[e] as usize;
+                let v_next = if next == last.0 { last.1 } else { v[next] };
+                let value = reward(e) + gamma * v_next;
+                v[e] = value;
+                last = (e, value);
                 continue;
             }
             // A cycle c_0, c_1, ..., c_{L-1}:
@@ -81,14 +95,16 @@ impl FunctionalGraph {
             }
             let v0 = sum / (1.0 - gamma.powi(len as i32));
             v[cycle[0] as usize] = v0;
-            let mut after = v0;
+            let mut after = (cycle[0] as usize, v0);
             for &c in cycle[1..].iter().rev() {
-                after = reward(c as usize) + gamma * after;
-                v[c as usize] = after;
+                after = (c as usize, reward(c as usize) + gamma * after.1);
+                v[c as usize] = after.1;
             }
+            last = after;
         }
-        for (p, qp) in scratch.q_next.iter_mut().enumerate() {
-            *qp = r[p] + gamma * v[model.next_state(p)];
+        let v: &[f64] = v;
+        for ((qp, &rp), &next) in scratch.q_next.iter_mut().zip(r).zip(next_states) {
+            *qp = rp + gamma * v[next as usize];
         }
     }
 

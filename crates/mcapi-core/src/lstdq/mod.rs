@@ -471,7 +471,7 @@ impl Planner {
         })
     }
 
-    /// ‖Q_t − Q_{t+1}‖² over the valid pairs (in pair order), and, in the
+    /// ‖Q_t − Q_{t+1}‖² over every pair ([`squared_distance`]), and, in the
     /// same pass, the states whose current action is no longer within the
     /// tie tolerance of max_a Q_{t+1}(s, a) (§2.6) into `outdated`: the only
     /// states [`Planner::improve`] has to look at again.
@@ -480,14 +480,14 @@ impl Planner {
             q_next, outdated, ..
         } = scratch;
         outdated.clear();
-        let mut err_sq = 0.0;
+        let err_sq = squared_distance(&self.q, q_next);
         for s in 0..model.states() {
-            let range = model.pairs_of(s);
-            let mut max = f64::NEG_INFINITY;
-            for (old, &new) in self.q[range.clone()].iter().zip(&q_next[range]) {
-                err_sq += (old - new) * (old - new);
-                max = f64::max(max, new);
-            }
+            // A plain comparison, not `f64::max` and its NaN rule: a NaN in
+            // Q_{t+1} makes `err_sq` NaN, and the caller then refuses the
+            // whole update, so only finite values reach a decision here.
+            let max = q_next[model.pairs_of(s)]
+                .iter()
+                .fold(f64::NEG_INFINITY, |m, &q| if q > m { q } else { m });
             let floor = max - TIE_TOLERANCE * (1.0 + max.abs());
             if q_next[self.policy[s] as usize] >= floor {
                 continue;
@@ -528,6 +528,18 @@ impl Planner {
         }
         outdated.len()
     }
+}
+
+/// Σ (a_i − b_i)² over equally long slices, added in index order. The
+/// order is part of the result: the LSTDQ error it yields is pinned bit
+/// for bit (`tests/pvf_identity.rs`), so it stays one chain of additions
+/// (four partial sums measured 15% faster on a tick in cache, and no
+/// faster on the ticks of a group, whose agents are not in cache).
+fn squared_distance(a: &[f64], b: &[f64]) -> f64 {
+    debug_assert_eq!(a.len(), b.len());
+    a.iter()
+        .zip(b)
+        .fold(0.0, |sum, (x, y)| sum + (x - y) * (x - y))
 }
 
 /// `a` and `b` hold the same bits (so −0 ≠ 0 and NaN = NaN of the same payload).
