@@ -21,7 +21,7 @@ use parking_lot::Mutex;
 
 use crate::error::StoreError;
 use crate::store::Store;
-use crate::write::{Appends, Commit, Write};
+use crate::write::{Appends, Commit, LogId, Write};
 
 /// Appends to many sessions' logs, sent as few writes.
 pub struct Batch {
@@ -77,7 +77,7 @@ impl Batch {
     /// in the batch ([`Outcome::of`]).
     pub fn append<E>(
         &self,
-        id: &Arc<str>,
+        id: &LogId,
         seq: u64,
         encode: impl FnOnce(&mut Vec<u8>) -> Result<(), E>,
     ) -> Result<usize, E> {
@@ -210,8 +210,10 @@ mod tests {
     fn a_batch_expecting_its_records_sizes_its_buffer_once() {
         let dir = tempfile::tempdir().expect("tempdir");
         let store = Arc::new(Store::open(dir.path()).expect("open"));
-        let ids: Vec<Arc<str>> = (0..100).map(|i| Arc::from(format!("m{i}"))).collect();
-        let append = |batch: &Batch, id: &Arc<str>| {
+        let ids: Vec<LogId> = (0..100)
+            .map(|i| LogId::new(Arc::from(format!("m{i}"))))
+            .collect();
+        let append = |batch: &Batch, id: &LogId| {
             batch
                 .append(id, 7, |out| {
                     out.extend_from_slice(&[1; 40]);
@@ -232,7 +234,7 @@ mod tests {
         // A part begun after another write grows as it goes: the room for
         // the whole batch is made once.
         batch.push(Write::Resume {
-            id: Arc::clone(&ids[0]),
+            id: Arc::clone(ids[0].id()),
         });
         append(&batch, &ids[1]);
         assert!(capacities(&batch)[1] < 10 * record);

@@ -65,7 +65,7 @@ pub use error::StoreError;
 pub use format::FORMAT_VERSION;
 pub use store::{DEFAULT_CACHE_BYTES, ExportedSession, FILE_NAME, Store, StoredSession};
 pub use wal::{Durability, OS_SYNC_INTERVAL};
-pub use write::{Appends, Commit, Write};
+pub use write::{Appends, Commit, LogId, Write};
 
 #[cfg(test)]
 mod tests;

@@ -577,7 +577,7 @@ fn fill(batch: &Batch, ids: &[Arc<str>], seqs: std::ops::Range<u64>) {
     for seq in seqs {
         for s in ids {
             batch
-                .append(s, seq, |out| {
+                .append(&LogId::new(Arc::clone(s)), seq, |out| {
                     out.extend_from_slice(&[s.as_bytes()[0], seq as u8]);
                     Ok::<(), StoreError>(())
                 })

@@ -861,7 +861,7 @@ mod tests {
         let mut appends = Appends::default();
         for (id, seq) in [("s0001.x", 8), ("s0001.z", 0)] {
             appends
-                .push(&Arc::from(id), seq, |out| {
+                .push(&crate::LogId::new(Arc::from(id)), seq, |out| {
                     out.extend_from_slice(&[4, 5, 6]);
                     Ok::<(), ()>(())
                 })

@@ -100,18 +100,40 @@ pub struct Appends {
 /// number, length.
 const APPEND_HEADER: usize = 16 + 8 + 4;
 
+/// A session's id with its log key, worked out once (the key of a
+/// `s<shard>.<ULID>` id is the ULID's bits, parsed from the text): what a
+/// session that appends to [`Appends`] again and again keeps, instead of
+/// parsing its id per record.
+#[derive(Debug, Clone)]
+pub struct LogId {
+    id: Arc<str>,
+    key: u128,
+}
+
+impl LogId {
+    /// The log id of session `id`.
+    pub fn new(id: Arc<str>) -> Self {
+        let key = db::log_key(&id);
+        Self { id, key }
+    }
+
+    /// The session's id.
+    pub fn id(&self) -> &Arc<str> {
+        &self.id
+    }
+}
+
 impl Appends {
     /// Appends a record to session `id`'s log; `encode` writes the entry at
     /// the end of the buffer (nothing is added if it fails).
     pub(crate) fn push<E>(
         &mut self,
-        id: &Arc<str>,
+        id: &LogId,
         seq: u64,
         encode: impl FnOnce(&mut Vec<u8>) -> Result<(), E>,
     ) -> Result<(), E> {
         let start = self.records.len();
-        self.records
-            .extend_from_slice(&db::log_key(id).to_le_bytes());
+        self.records.extend_from_slice(&id.key.to_le_bytes());
         self.records.extend_from_slice(&seq.to_le_bytes());
         self.records.extend_from_slice(&[0; 4]);
         if let Err(e) = encode(&mut self.records) {
@@ -120,7 +142,7 @@ impl Appends {
         }
         let len = (self.records.len() - start - APPEND_HEADER) as u32;
         self.records[start + 16 + 8..start + APPEND_HEADER].copy_from_slice(&len.to_le_bytes());
-        self.ids.push(Arc::clone(id));
+        self.ids.push(Arc::clone(&id.id));
         Ok(())
     }
 

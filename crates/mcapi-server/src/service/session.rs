@@ -12,7 +12,7 @@ use parking_lot::Mutex;
 use mcapi_core::continuous::ContinuousObservation;
 use mcapi_core::spec::ActionRef;
 use mcapi_core::{AlgoError, Observation};
-use mcapi_store::{Batch, Commit, Outcome, Store, Write};
+use mcapi_store::{Batch, Commit, LogId, Outcome, Store, Write};
 
 use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::cost;
@@ -132,8 +132,9 @@ impl Observed {
 pub struct Session {
     /// The session id.
     pub id: String,
-    /// The id as the store's writes carry it (made once, not per write).
-    store_id: Arc<str>,
+    /// The id as the store's writes carry it, with its log key (made
+    /// once, not per write).
+    store_id: LogId,
     /// Lockstep or async.
     pub mode: UpdateMode,
     /// Model summary, shared by every session of the same model.
@@ -246,7 +247,7 @@ impl Session {
             ..resumed
         };
         Self {
-            store_id: Arc::from(id.as_str()),
+            store_id: LogId::new(Arc::from(id.as_str())),
             id,
             mode: config.update_mode,
             history_cap: config.history,
@@ -436,7 +437,7 @@ impl Session {
         let (commit, batched) = match &self.durability {
             Some(d) if !log.is_empty() => match log_batch {
                 Some(b) => (None, Some(st.log_into(&self.store_id, d, log, b))),
-                None => (Some(st.log(&self.store_id, d, log)), None),
+                None => (Some(st.log(self.store_id.id(), d, log)), None),
             },
             _ => (None, None),
         };
@@ -497,7 +498,7 @@ impl Session {
             st.submit(
                 &d.store,
                 vec![Write::Delete {
-                    id: Arc::clone(&self.store_id),
+                    id: Arc::clone(self.store_id.id()),
                 }],
             )
         })
@@ -526,7 +527,7 @@ impl Session {
             st.submit(
                 &d.store,
                 vec![Write::Delete {
-                    id: Arc::clone(&self.store_id),
+                    id: Arc::clone(self.store_id.id()),
                 }],
             )
         }))
@@ -882,7 +883,7 @@ impl SessionState {
     /// the positions of the writes in the batch.
     fn log_into(
         &mut self,
-        id: &Arc<str>,
+        id: &LogId,
         d: &Durability,
         entries: Vec<LogEntryRef<'_>>,
         batch: &Arc<Batch>,
@@ -903,15 +904,15 @@ impl SessionState {
         for entry in entries {
             match batch.append(id, self.seq, |out| entry.encode_into(out)) {
                 Ok(p) => added(p),
-                Err(e) => tracing::error!(session = %id, error = %e, "log entry not encoded"),
+                Err(e) => tracing::error!(session = %id.id(), error = %e, "log entry not encoded"),
             }
             self.seq += 1;
             self.since_snapshot += 1;
         }
         if self.snapshot_due(logged, d.snapshot_every) {
-            match self.snapshot_write(id) {
+            match self.snapshot_write(id.id()) {
                 Ok(w) => added(batch.push(w)),
-                Err(e) => tracing::error!(session = %id, error = %e, "snapshot not written"),
+                Err(e) => tracing::error!(session = %id.id(), error = %e, "snapshot not written"),
             }
         }
         positions.unwrap_or(0..0)
