@@ -426,9 +426,9 @@ impl SessionManager {
     /// same observation sent alone would be.
     ///
     /// Members whose update is cheap (the hallway's takes about a
-    /// microsecond) are applied in chunks of [`STEP_CHUNK`] on the blocking
-    /// pool, with one session lookup each and no task of their own, and
-    /// their commits are awaited together after the last is applied: the
+    /// microsecond) are applied in one chunk per tick worker (at least
+    /// [`STEP_CHUNK`] members each) on the blocking pool, with one session
+    /// lookup each and no task of their own, and their commits are awaited together after the last is applied: the
     /// cost of a member is then its update and little else. The others (an
     /// evicted member loaded back, an update beyond the inline budget, a
     /// step while the store refuses writes) take [`Self::observe`]'s path,
@@ -464,10 +464,11 @@ impl SessionManager {
             // Held until every commit is awaited, as `observe` holds it: a
             // shard is not frozen under a step half applied.
             let _guard = self.enter_shard(id)?;
-            let mut chunks = Vec::with_capacity(m.div_ceil(STEP_CHUNK));
+            let size = STEP_CHUNK.max(m.div_ceil(self.workers));
+            let mut chunks = Vec::with_capacity(m.div_ceil(size));
             let mut members = stepped.into_iter().enumerate();
             loop {
-                let chunk: Vec<_> = members.by_ref().take(STEP_CHUNK).collect();
+                let chunk: Vec<_> = members.by_ref().take(size).collect();
                 if chunk.is_empty() {
                     break;
                 }
@@ -650,10 +651,14 @@ impl SessionManager {
     }
 }
 
-/// Members of a group step applied per task of the blocking pool: enough
-/// that the hand-off (some microseconds) is small beside their updates
-/// (about a microsecond each for the hallway), few enough that a step of
-/// many members is spread over every core.
+/// The fewest members of a group step applied per task of the blocking
+/// pool: enough that the hand-off (some microseconds) is small beside
+/// their updates (about a microsecond each for the hallway). A larger step
+/// is cut into one part per tick worker (`--workers`, by default one per
+/// CPU the process may run on), so it is spread over every core and no
+/// more tasks than cores take turns on one: ten parts of 512 members on a
+/// server given one core switched threads and evicted each other's cached
+/// agents for nothing.
 const STEP_CHUNK: usize = 512;
 
 /// What became of one member in [`SessionManager::apply_members`].

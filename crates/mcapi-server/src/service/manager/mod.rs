@@ -124,6 +124,9 @@ pub struct SessionManager {
     /// The memory of value and history responses in flight.
     responses: ResponseBudget,
     pool: TickPool,
+    /// The tick threads' count (`--workers`, by default the CPUs this
+    /// process may run on): how many parts a group step is cut into.
+    workers: usize,
     inline_plan_ns: u64,
     durability: Option<Durability>,
     keys: ApiKeys,
@@ -182,6 +185,7 @@ impl SessionManager {
             panic_observations: std::sync::atomic::AtomicU32::new(0),
             evict_after,
             setup: Arc::new(Setup::new(workers)),
+            workers: workers.max(1),
             responses: ResponseBudget::new(limits.max_response_bytes_total),
             limits,
             pool,
