@@ -159,7 +159,7 @@ impl GridLayout {
 }
 
 /// One observation as a client sends it.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ObservationIn {
     /// The state the agent is in now (a model with numbered states).

@@ -464,35 +464,52 @@ impl SessionManager {
             // Held until every commit is awaited, as `observe` holds it: a
             // shard is not frozen under a step half applied.
             let _guard = self.enter_shard(id)?;
+            // The chunks read their members' observations where they are,
+            // in the one vector they share, instead of each moving its own
+            // out of it (an observation is about 150 bytes).
             let size = STEP_CHUNK.max(m.div_ceil(self.workers));
-            let mut chunks = Vec::with_capacity(m.div_ceil(size));
-            let mut members = stepped.into_iter().enumerate();
-            loop {
-                let chunk: Vec<_> = members.by_ref().take(size).collect();
-                if chunk.is_empty() {
-                    break;
-                }
-                let (manager, group) = (Arc::clone(self), Arc::clone(&group));
-                chunks.push(tokio::task::spawn_blocking(move || {
-                    manager.apply_members(caller, &group, chunk)
-                }));
-            }
+            let stepped = Arc::new(stepped);
+            let chunks: Vec<_> = (0..m)
+                .step_by(size)
+                .map(|start| {
+                    let range = start..(start + size).min(m);
+                    let (manager, group) = (Arc::clone(self), Arc::clone(&group));
+                    let stepped = Arc::clone(&stepped);
+                    tokio::task::spawn_blocking(move || {
+                        manager.apply_members(caller, &group, &stepped[range.clone()], range.start)
+                    })
+                })
+                .collect();
             let mut applied = Vec::with_capacity(m);
             let mut sent = Vec::with_capacity(chunks.len());
+            let mut elsewhere = Vec::new();
             for (c, chunk) in join_all(chunks).await.into_iter().enumerate() {
                 let (chunk, batch) = chunk.map_err(|e| {
                     ServiceError::Internal(format!("a group step task failed: {e}"))
                 })?;
                 sent.push(batch);
-                for (pos, index, outcome) in chunk {
+                for (pos, outcome) in chunk {
                     match outcome {
                         Applied::Done(session, observed) => {
                             applied.push((c, pos, session, observed));
                         }
                         Applied::Refused(e) => results[pos] = Some(Err(e)),
-                        Applied::Elsewhere(obs) => slow.push((pos, index, obs)),
+                        Applied::Elsewhere => elsewhere.push(pos),
                     }
                 }
+            }
+            if !elsewhere.is_empty() {
+                // Every chunk's task has ended and dropped its share.
+                let mut stepped = Arc::try_unwrap(stepped).map_err(|_| {
+                    ServiceError::Internal("a group step's chunks outlived it".into())
+                })?;
+                slow = elsewhere
+                    .into_iter()
+                    .map(|pos| {
+                        let (index, obs) = std::mem::take(&mut stepped[pos]);
+                        (pos, index, obs)
+                    })
+                    .collect();
             }
             tick::meters().observations.increment(applied.len() as u64);
             // The chunks' batches were sent one after the other and share
@@ -544,8 +561,9 @@ impl SessionManager {
         &self,
         caller: Caller,
         group: &Group,
-        chunk: Vec<(usize, (usize, ObservationIn))>,
-    ) -> (Vec<(usize, usize, Applied)>, Sent) {
+        chunk: &[(usize, ObservationIn)],
+        first: usize,
+    ) -> (Vec<(usize, Applied)>, Sent) {
         let batch = self
             .durability
             .as_ref()
@@ -555,15 +573,14 @@ impl SessionManager {
             let mut slots = group.resolved.lock();
             chunk
                 .iter()
-                .map(|(_, (index, _))| {
-                    Resolved::resident(&mut slots, &table, &group.members, *index)
-                })
+                .map(|(index, _)| Resolved::resident(&mut slots, &table, &group.members, *index))
                 .collect()
         };
         let applied = chunk
-            .into_iter()
+            .iter()
             .enumerate()
-            .map(|(k, (pos, (index, obs)))| {
+            .map(|(k, &(index, ref obs))| {
+                let pos = first + k;
                 // Ten thousand members' tables are in no cache when their
                 // turn comes: the CPU loads the next member's while this
                 // one is stepped, and the one after's session struct.
@@ -575,25 +592,25 @@ impl SessionManager {
                 }
                 let resident = resident[k].take();
                 if group.members[index].is_none() {
-                    return (pos, index, Applied::Refused(unrecovered(&group.id, index)));
+                    return (pos, Applied::Refused(unrecovered(&group.id, index)));
                 }
                 let session = match resident {
                     Some(s) if caller.may_see(s.owner.as_ref()) && !s.is_stale() => s,
                     // Evicted, deleted, or to be rolled back first: as a
                     // lone observation is.
-                    _ => return (pos, index, Applied::Elsewhere(obs)),
+                    _ => return (pos, Applied::Elsewhere),
                 };
                 if session.is_failed() {
                     let e = ServiceError::SessionFailed(session.id.clone());
-                    return (pos, index, Applied::Refused(e));
+                    return (pos, Applied::Refused(e));
                 }
                 let observed =
-                    self.observe_inline(&session, std::slice::from_ref(&obs), batch.as_ref());
+                    self.observe_inline(&session, std::slice::from_ref(obs), batch.as_ref());
                 let outcome = match observed {
                     Some(observed) => Applied::Done(session, observed),
-                    None => Applied::Elsewhere(obs),
+                    None => Applied::Elsewhere,
                 };
-                (pos, index, outcome)
+                (pos, outcome)
             })
             .collect();
         (applied, batch.map(|b| b.finish()).unwrap_or_default())
@@ -668,7 +685,7 @@ enum Applied {
     /// Refused before anything was applied.
     Refused(ServiceError),
     /// Not applied here: it takes [`SessionManager::observe`]'s path.
-    Elsewhere(ObservationIn),
+    Elsewhere,
 }
 
 /// The one step of a member's one observation.
