@@ -158,6 +158,10 @@ pub struct Session {
     /// Moving average of one policy update's cost in nanoseconds;
     /// `u64::MAX` until the first update is measured.
     plan_cost_ns: AtomicU64,
+    /// The estimated cost of one observation without its policy update
+    /// ([`cost::observe_us`]), in nanoseconds: the model and configuration
+    /// it depends on never change, so it is worked out once.
+    observe_ns: u64,
     /// [`clock_ns`] at the last applied observation; 0 if none since the
     /// server started.
     last_observed_ns: AtomicU64,
@@ -245,6 +249,7 @@ impl Session {
         resumed: Resumed,
     ) -> Self {
         let learned_cap = model.learned.as_ref().map(|l| l.max_transitions);
+        let observe_ns = super::cost::observe_us(&model, &config).saturating_mul(1000);
         let group_slot = resumed.group.as_ref().map(|t| (t.index, t.size));
         // A session without a store has nowhere to be rebuilt from.
         let resumed = Resumed {
@@ -277,6 +282,7 @@ impl Session {
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
+            observe_ns,
             last_observed_ns: AtomicU64::new(resumed.last_observed_ns),
             resident_since_ns: AtomicU64::new(clock_ns()),
             pristine: AtomicBool::new(resumed.pristine),
@@ -338,6 +344,12 @@ impl Session {
     /// server started.
     pub fn idle(&self) -> Option<std::time::Duration> {
         idle_since(self.last_observed_ns.load(Ordering::Relaxed))
+    }
+
+    /// The estimated cost of one observation without its policy update,
+    /// in nanoseconds.
+    pub fn observe_cost_ns(&self) -> u64 {
+        self.observe_ns
     }
 
     /// The measured cost of one policy update (a moving average over recent

@@ -182,9 +182,7 @@ impl SessionManager {
                 Some(observed)
             }
             UpdateMode::Async => {
-                let observe_ns = cost::observe_us(&session.model, &session.config)
-                    .saturating_mul(1000)
-                    .saturating_mul(n);
+                let observe_ns = session.observe_cost_ns().saturating_mul(n);
                 if observe_ns > self.inline_plan_ns.max(50_000) {
                     return None;
                 }
