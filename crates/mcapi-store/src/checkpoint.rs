@@ -109,6 +109,8 @@ pub(super) struct Checkpointer {
     oldest: Option<Instant>,
     /// While the database is down: when to try reopening next.
     retry: Retry,
+    /// The chunk buffers of the last checkpoints, for the next ones.
+    spare: db::Spare,
 }
 
 impl Checkpointer {
@@ -129,6 +131,7 @@ impl Checkpointer {
             newest: applied,
             oldest: None,
             retry: Retry::new(),
+            spare: db::Spare::default(),
         }
     }
 
@@ -142,7 +145,12 @@ impl Checkpointer {
                 self.oldest.map(|t| t + CHECKPOINT_INTERVAL)
             };
             let msg = match due {
-                None => rx.recv().map_err(|_| RecvTimeoutError::Disconnected),
+                None => {
+                    // Idle until the next write: the buffers kept for busy
+                    // checkpoints are given back.
+                    self.spare = db::Spare::default();
+                    rx.recv().map_err(|_| RecvTimeoutError::Disconnected)
+                }
                 Some(at) => rx.recv_timeout(at.saturating_duration_since(Instant::now())),
             };
             match msg {
@@ -230,7 +238,7 @@ impl Checkpointer {
         };
         let started = Instant::now();
         let writes = self.waiting.len();
-        let outcome = db::apply(&db, self.waiting.iter(), self.newest);
+        let outcome = db::apply(&db, self.waiting.iter(), self.newest, &mut self.spare);
         drop(db);
         metrics::histogram!("mcapi_store_checkpoint_seconds")
             .record(started.elapsed().as_secs_f64());

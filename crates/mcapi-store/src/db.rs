@@ -225,6 +225,7 @@ pub(super) fn replay_wal(
         ..Replayed::default()
     };
     let mut expected: Option<u64> = None;
+    let mut spare = Spare::default();
     for (i, (first, path)) in segments.iter().enumerate() {
         let last = i + 1 == segments.len();
         if let Some(e) = expected
@@ -255,7 +256,7 @@ pub(super) fn replay_wal(
             });
         }
         if let Some(f) = frames.last() {
-            apply(db, frames.iter().flat_map(|f| &f.writes), f.lsn).map_err(|f| {
+            apply(db, frames.iter().flat_map(|f| &f.writes), f.lsn, &mut spare).map_err(|f| {
                 StoreError::Io {
                     path: path.clone(),
                     reason: format!("applying the log to the database: {}", f.message),
@@ -370,17 +371,61 @@ pub(super) fn split_entry(chunk: &[u8]) -> Option<(u64, &[u8], &[u8])> {
     (rest.len() >= len).then(|| (u64::from_le_bytes(*seq), &rest[..len], &rest[len..]))
 }
 
-/// Writes back the chunks a checkpoint appended to.
+/// Writes back the chunks a checkpoint appended to; their buffers go to
+/// `spare`.
 fn write_back(
     log: &mut redb::Table<'_, (u128, u64), &'static [u8]>,
     key: u128,
     chunks: Vec<(u64, Vec<u8>)>,
+    spare: &mut Spare,
 ) -> Result<(), DbFailure> {
     for (c, bytes) in chunks {
         log.insert((key, c), bytes.as_slice())
             .map_err(DbFailure::of)?;
+        spare.put(bytes);
     }
     Ok(())
+}
+
+/// The buffers of chunks a checkpoint wrote back, kept for the next one's:
+/// a checkpoint of ten thousand sessions reads and extends ten thousand
+/// chunks of a few KiB, and buffers taken fresh each time (grown as records
+/// were appended, freed two seconds later) kept the kernel zeroing new
+/// pages for them. Holds at most [`Spare::MAX_BYTES`] of capacity; the
+/// checkpointer drops it when it goes idle.
+#[derive(Debug, Default)]
+pub(crate) struct Spare {
+    buffers: Vec<Vec<u8>>,
+    bytes: usize,
+}
+
+impl Spare {
+    /// The most capacity kept.
+    const MAX_BYTES: usize = 64 << 20;
+    /// A chunk's buffer is made with room for a chunk of records of this
+    /// size (a hallway record is about 60 bytes with its frame), so most
+    /// chunks never grow.
+    const RECORD_GUESS: usize = 80;
+
+    /// An empty buffer, kept or new.
+    fn take(&mut self) -> Vec<u8> {
+        match self.buffers.pop() {
+            Some(mut b) => {
+                self.bytes -= b.capacity();
+                b.clear();
+                b
+            }
+            None => Vec::with_capacity(CHUNK as usize * Self::RECORD_GUESS),
+        }
+    }
+
+    /// Keeps `buffer` if there is room for it.
+    fn put(&mut self, buffer: Vec<u8>) {
+        if self.bytes + buffer.capacity() <= Self::MAX_BYTES {
+            self.bytes += buffer.capacity();
+            self.buffers.push(buffer);
+        }
+    }
 }
 
 /// A session's log key as a hash key: the key is a ULID's bits or a
@@ -414,15 +459,15 @@ fn chunk_for<'t>(
     log: &redb::Table<'_, (u128, u64), &'static [u8]>,
     key: u128,
     seq: u64,
+    spare: &mut Spare,
 ) -> Result<&'t mut Vec<u8>, DbFailure> {
     let c = seq / CHUNK;
     let chunks = touched.entry(key).or_default();
     if chunks.last().is_none_or(|(last, _)| *last != c) {
-        let bytes = log
-            .get((key, c))
-            .map_err(DbFailure::of)?
-            .map(|v| v.value().to_vec())
-            .unwrap_or_default();
+        let mut bytes = spare.take();
+        if let Some(v) = log.get((key, c)).map_err(DbFailure::of)? {
+            bytes.extend_from_slice(v.value());
+        }
         chunks.push((c, bytes));
     }
     let last = chunks.len() - 1;
@@ -438,6 +483,7 @@ pub(super) fn apply<'a>(
     db: &Database,
     writes: impl Iterator<Item = &'a Write>,
     lsn: u64,
+    spare: &mut Spare,
 ) -> Result<(), DbFailure> {
     let mut txn = db.begin_write().map_err(DbFailure::of)?;
     txn.set_durability(Durability::Immediate)
@@ -460,18 +506,18 @@ pub(super) fn apply<'a>(
                         .map_err(DbFailure::of)?;
                 }
                 Write::Append { id, seq, entry } => {
-                    let bytes = chunk_for(&mut touched, &log, log_key(id), *seq)?;
+                    let bytes = chunk_for(&mut touched, &log, log_key(id), *seq, spare)?;
                     push_entry(bytes, *seq, entry);
                 }
                 Write::Appends(appends) => {
                     for (key, seq, framed) in appends.records() {
-                        chunk_for(&mut touched, &log, key, seq)?.extend_from_slice(framed);
+                        chunk_for(&mut touched, &log, key, seq, spare)?.extend_from_slice(framed);
                     }
                 }
                 Write::Snapshot { id, seq, snapshot } => {
                     let key = log_key(id);
                     if let Some(chunks) = touched.remove(&key) {
-                        write_back(&mut log, key, chunks)?;
+                        write_back(&mut log, key, chunks, spare)?;
                     }
                     snapshots
                         .insert(&**id, (*seq, snapshot.as_slice()))
@@ -494,9 +540,37 @@ pub(super) fn apply<'a>(
             }
         }
         for (key, chunks) in touched {
-            write_back(&mut log, key, chunks)?;
+            write_back(&mut log, key, chunks, spare)?;
         }
         meta.insert(WAL_LSN, lsn).map_err(DbFailure::of)?;
     }
     txn.commit().map_err(DbFailure::of)
+}
+
+#[cfg(test)]
+mod spare_tests {
+    use super::Spare;
+
+    #[test]
+    fn a_spare_hands_back_empty_buffers_and_keeps_no_more_than_its_bound() {
+        let mut spare = Spare::default();
+        let fresh = spare.take();
+        assert!(fresh.is_empty());
+        assert!(fresh.capacity() >= super::CHUNK as usize * Spare::RECORD_GUESS);
+        let mut used = fresh;
+        used.extend_from_slice(&[7; 100]);
+        let capacity = used.capacity();
+        spare.put(used);
+        let again = spare.take();
+        assert!(again.is_empty(), "a kept buffer comes back cleared");
+        assert_eq!(again.capacity(), capacity, "and is the one kept");
+        assert_eq!(spare.bytes, 0);
+        // Buffers beyond the bound are dropped, not kept.
+        let big = Spare::MAX_BYTES / 4 + 1;
+        for _ in 0..8 {
+            spare.put(Vec::with_capacity(big));
+        }
+        assert_eq!(spare.buffers.len(), 3);
+        assert!(spare.bytes <= Spare::MAX_BYTES);
+    }
 }
