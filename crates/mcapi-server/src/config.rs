@@ -100,7 +100,8 @@ pub struct ServeConfig {
     )]
     #[serde(skip)]
     pub api_keys: Vec<String>,
-    /// Tick-loop worker threads (default: number of cores).
+    /// Tick-loop worker threads (default: number of cores); also the number
+    /// of parts a group step is cut into.
     #[arg(help_heading = "Runtime", long, env = "MCAPI_WORKERS")]
     pub workers: Option<usize>,
     /// Policy updates measured to cost at most this many microseconds run
