@@ -249,7 +249,7 @@ impl Session {
         resumed: Resumed,
     ) -> Self {
         let learned_cap = model.learned.as_ref().map(|l| l.max_transitions);
-        let observe_ns = super::cost::observe_us(&model, &config).saturating_mul(1000);
+        let observe_ns = cost::observe_us(&model, &config).saturating_mul(1000);
         let group_slot = resumed.group.as_ref().map(|t| (t.index, t.size));
         // A session without a store has nowhere to be rebuilt from.
         let resumed = Resumed {

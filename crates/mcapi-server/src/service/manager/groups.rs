@@ -428,8 +428,9 @@ impl SessionManager {
     /// Members whose update is cheap (the hallway's takes about a
     /// microsecond) are applied in one chunk per tick worker (at least
     /// [`STEP_CHUNK`] members each) on the blocking pool, with one session
-    /// lookup each and no task of their own, and their commits are awaited together after the last is applied: the
-    /// cost of a member is then its update and little else. The others (an
+    /// lookup each and no task of their own, and their commits are awaited
+    /// together after the last is applied: the cost of a member is then its
+    /// update and little else. The others (an
     /// evicted member loaded back, an update beyond the inline budget, a
     /// step while the store refuses writes) take [`Self::observe`]'s path,
     /// concurrently.
