@@ -56,15 +56,17 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
         bail!("--http and --grpc must differ (both are {})", args.http);
     }
     let placements = Placements::parse(&args.netns)?;
-    // A router in a namespace of its own listens on addresses of that
-    // namespace, which cannot be bound from here.
-    if !placements.has(ROUTER) {
-        for (flag, addr) in [("--http", args.http), ("--grpc", args.grpc)] {
-            TcpListener::bind(addr).with_context(|| {
-                format!("{flag} {addr} is not free (another cluster or server running?); choose another address")
-            })?;
-        }
-    }
+    // The router's addresses are held until the replicas' ports are
+    // chosen, so that no replica is given one of them: a replica on the
+    // router's port would answer the router's readiness probe, and every
+    // request after it, in HAProxy's place. A router in a namespace of its
+    // own listens on addresses of that namespace, which cannot be bound
+    // from here.
+    let router_held = if placements.has(ROUTER) {
+        Vec::new()
+    } else {
+        hold_router_addresses(args.http, args.grpc)?
+    };
     let haproxy = match &args.haproxy {
         Some(p) if p.is_file() => p.clone(),
         Some(p) => bail!("--haproxy {}: no such file", p.display()),
@@ -118,6 +120,7 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
 
     let admin_key = admin_key(&dir)?;
     let ports = free_ports(map.replicas().len() * 2)?;
+    drop(router_held);
     let mut processes = Vec::new();
     let mut backends = Vec::new();
     let template = ReplicaTemplate {
@@ -358,6 +361,22 @@ pub(super) fn local_map(dir: &Path, replicas: Option<usize>) -> Result<ShardMap>
     let map = plan::plan(&names, None)?.map;
     write_atomic(&path, &map.to_text())?;
     Ok(map)
+}
+
+/// Binds the router's two addresses, to show they are free and to keep
+/// them from [`free_ports`] while the listeners live.
+pub(super) fn hold_router_addresses(
+    http: SocketAddr,
+    grpc: SocketAddr,
+) -> Result<Vec<TcpListener>> {
+    [("--http", http), ("--grpc", grpc)]
+        .into_iter()
+        .map(|(flag, addr)| {
+            TcpListener::bind(addr).with_context(|| {
+                format!("{flag} {addr} is not free (another cluster or server running?); choose another address")
+            })
+        })
+        .collect()
 }
 
 /// `n` distinct loopback ports free right now: all are held until all are

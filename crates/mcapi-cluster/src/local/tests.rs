@@ -8,7 +8,7 @@ use mcapi_shards::ReplicaName;
 use mcapi_shards::plan;
 
 use super::process::{Event, Process, Run};
-use super::setup::local_map;
+use super::setup::{self, local_map};
 use super::*;
 
 #[test]
@@ -161,4 +161,29 @@ fn netns_placements_are_checked_before_anything_starts() {
     let (program, args) = none.command("mcapi-0", "/bin/mcapi".into(), vec!["serve".into()]);
     assert_eq!(program, std::path::PathBuf::from("/bin/mcapi"));
     assert_eq!(args, [OsString::from("serve")]);
+}
+
+#[test]
+fn the_routers_ports_are_never_handed_to_a_replica() {
+    let [http, grpc]: [u16; 2] = setup::free_ports(2)
+        .expect("two ports")
+        .try_into()
+        .expect("two");
+    let addr = |port| std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let held = setup::hold_router_addresses(addr(http), addr(grpc)).expect("free");
+    // Held: a second cluster on them is refused, naming the flag...
+    let err = setup::hold_router_addresses(addr(http), addr(grpc))
+        .expect_err("--http is taken")
+        .to_string();
+    assert!(
+        err.contains("--http 127.0.0.1:") && err.contains("is not free"),
+        "{err}"
+    );
+    // ...and a thousand replica ports chosen meanwhile never include them.
+    for _ in 0..5 {
+        let ports = setup::free_ports(200).expect("ports");
+        assert!(!ports.contains(&http) && !ports.contains(&grpc));
+    }
+    drop(held);
+    setup::hold_router_addresses(addr(http), addr(grpc)).expect("free again once dropped");
 }
