@@ -17,7 +17,7 @@
 //! same kind of accept task ([`limited_incoming`]); each connection must
 //! deliver the 24-byte HTTP/2 preface within the header-read timeout (h2
 //! itself waits for it forever), then HTTP/2 keep-alive pings find dead
-//! peers.
+//! peers. Its writes are gathered ([`crate::api::coalesce`]).
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -41,6 +41,7 @@ use tokio_stream::wrappers::ReceiverStream;
 use tower::ServiceExt;
 use tower_http::catch_panic::{CatchPanicLayer, ResponseForPanic};
 
+use crate::api::coalesce::Coalesced;
 use crate::api::error::{ApiError, to_status};
 use crate::service::ServiceError;
 
@@ -328,7 +329,7 @@ pub fn limited_incoming(
                 return;
             };
             let io = LimitedIo {
-                inner: stream,
+                inner: Coalesced::new(stream),
                 _permit: permit,
                 preface: Some(Box::pin(tokio::time::sleep(preface_within))),
                 preface_left: H2_PREFACE_LEN,
@@ -347,7 +348,7 @@ const H2_PREFACE_LEN: usize = 24;
 /// A gRPC connection holding its slot of the port's budget; reads fail
 /// with `TimedOut` if the HTTP/2 preface has not arrived by its deadline.
 pub struct LimitedIo {
-    inner: TcpStream,
+    inner: Coalesced<TcpStream>,
     _permit: OwnedSemaphorePermit,
     preface: Option<Pin<Box<Sleep>>>,
     preface_left: usize,
@@ -357,7 +358,7 @@ impl tonic::transport::server::Connected for LimitedIo {
     type ConnectInfo = tonic::transport::server::TcpConnectInfo;
 
     fn connect_info(&self) -> Self::ConnectInfo {
-        self.inner.connect_info()
+        self.inner.get_ref().connect_info()
     }
 }
 

@@ -2,6 +2,7 @@
 //! (tonic), with one error mapping.
 
 pub mod admin;
+pub mod coalesce;
 pub mod conn;
 pub mod dashboard;
 pub mod error;
