@@ -32,6 +32,9 @@ use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
 /// Bytes a connection holds back before it writes them regardless.
 pub const COALESCE_BYTES: usize = 64 * 1024;
 
+/// Capacity of its buffer a connection keeps once it is written out.
+pub const KEPT_BYTES: usize = 8 * 1024;
+
 /// Flushes in a row whose wait gathered less than it held back before a
 /// connection stops waiting.
 pub const MISSES: u8 = 4;
@@ -111,11 +114,13 @@ impl<T: AsyncWrite + Unpin> Coalesced<T> {
             }
             self.sent += n;
         }
-        self.held.clear();
         self.sent = 0;
-        // A burst's buffer is not kept by an idle connection.
-        if self.held.capacity() > COALESCE_BYTES {
-            self.held.shrink_to(COALESCE_BYTES);
+        // A burst's buffer is not kept: 4096 idle connections keep at most
+        // `KEPT_BYTES` each.
+        if self.held.capacity() > KEPT_BYTES {
+            self.held = Vec::new();
+        } else {
+            self.held.clear();
         }
         Poll::Ready(Ok(()))
     }
@@ -361,6 +366,14 @@ mod tests {
         assert_eq!(writes[0], b"small");
         assert_eq!(writes[1].len(), COALESCE_BYTES);
         assert_eq!(io.waiting(), 0);
+        // A burst's buffer is given back once written.
+        for _ in 0..4 {
+            write(&mut io, &mut cx, &[1u8; COALESCE_BYTES / 4 - 1]);
+        }
+        assert!(io.held.capacity() > KEPT_BYTES);
+        assert_eq!(flush(&mut io, &mut cx), Poll::Pending);
+        assert_eq!(flush(&mut io, &mut cx), Poll::Ready(()));
+        assert_eq!(io.held.capacity(), 0);
     }
 
     #[test]
