@@ -119,7 +119,7 @@ pub(super) fn prepare(args: &LocalArgs) -> Result<Setup> {
     }
 
     let admin_key = admin_key(&dir)?;
-    let ports = free_ports(map.replicas().len() * 2)?;
+    let ports = free_ports(map.replicas().len() * 2, &[])?;
     drop(router_held);
     let mut processes = Vec::new();
     let mut backends = Vec::new();
@@ -379,15 +379,23 @@ pub(super) fn hold_router_addresses(
         .collect()
 }
 
-/// `n` distinct loopback ports free right now: all are held until all are
-/// known, so none is handed out twice.
-pub(super) fn free_ports(n: usize) -> Result<Vec<u16>> {
-    let listeners = (0..n)
-        .map(|_| TcpListener::bind("127.0.0.1:0"))
-        .collect::<std::io::Result<Vec<_>>>()
-        .context("finding free loopback ports")?;
-    listeners
-        .iter()
-        .map(|l| Ok(l.local_addr()?.port()))
-        .collect()
+/// `n` distinct loopback ports free right now and not in `taken` (the
+/// ports of processes that may be down for a moment, restarting): all are
+/// held until all are known, so none is handed out twice.
+pub(super) fn free_ports(n: usize, taken: &[u16]) -> Result<Vec<u16>> {
+    let mut held = Vec::with_capacity(n);
+    let mut ports = Vec::with_capacity(n);
+    // Each port `taken` can be handed out at most once while it is held.
+    while ports.len() < n {
+        if held.len() >= n + taken.len() {
+            bail!("finding free loopback ports: the kernel handed out only taken ones");
+        }
+        let l = TcpListener::bind("127.0.0.1:0").context("finding free loopback ports")?;
+        let port = l.local_addr()?.port();
+        if !taken.contains(&port) {
+            ports.push(port);
+        }
+        held.push(l);
+    }
+    Ok(ports)
 }

@@ -247,7 +247,14 @@ impl Cluster {
     /// refused connections until it listened again.
     async fn grow(&mut self, have: usize, want: usize, ready_timeout: Duration) -> Result<()> {
         let names = ordinal_names("mcapi", want).map_err(anyhow::Error::msg)?;
-        let ports = free_ports((want - have) * 2)?;
+        // Not the ports of a replica waiting to be started again.
+        let taken: Vec<u16> = self
+            .processes
+            .iter()
+            .filter_map(|p| p.listen)
+            .flat_map(|(http, grpc)| [http.port(), grpc.port()])
+            .collect();
+        let ports = free_ports((want - have) * 2, &taken)?;
         let router = self.processes.len() - 1;
         for (k, name) in names[have..].iter().enumerate() {
             let (http, grpc) = (ports[2 * k], ports[2 * k + 1]);

@@ -165,7 +165,7 @@ fn netns_placements_are_checked_before_anything_starts() {
 
 #[test]
 fn the_routers_ports_are_never_handed_to_a_replica() {
-    let [http, grpc]: [u16; 2] = setup::free_ports(2)
+    let [http, grpc]: [u16; 2] = setup::free_ports(2, &[])
         .expect("two ports")
         .try_into()
         .expect("two");
@@ -181,9 +181,22 @@ fn the_routers_ports_are_never_handed_to_a_replica() {
     );
     // ...and a thousand replica ports chosen meanwhile never include them.
     for _ in 0..5 {
-        let ports = setup::free_ports(200).expect("ports");
+        let ports = setup::free_ports(200, &[]).expect("ports");
         assert!(!ports.contains(&http) && !ports.contains(&grpc));
     }
     drop(held);
     setup::hold_router_addresses(addr(http), addr(grpc)).expect("free again once dropped");
+}
+
+#[test]
+fn ports_of_replicas_down_for_a_moment_are_not_handed_out() {
+    // Ports the kernel is about to hand out again: found free and released.
+    let taken = setup::free_ports(64, &[]).expect("ports");
+    for _ in 0..5 {
+        let ports = setup::free_ports(100, &taken).expect("ports");
+        assert_eq!(ports.len(), 100);
+        assert!(ports.iter().all(|p| !taken.contains(p)), "{ports:?}");
+        let distinct: std::collections::BTreeSet<_> = ports.iter().collect();
+        assert_eq!(distinct.len(), 100);
+    }
 }
