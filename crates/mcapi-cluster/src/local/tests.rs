@@ -163,8 +163,20 @@ fn netns_placements_are_checked_before_anything_starts() {
     assert_eq!(args, [OsString::from("serve")]);
 }
 
+/// Held by the tests that find ports free by binding port 0 and release
+/// them: run side by side, one would be handed the ports the other just
+/// released, and see them taken.
+static PORTS: std::sync::Mutex<()> = std::sync::Mutex::new(());
+
+fn ports_lock() -> std::sync::MutexGuard<'static, ()> {
+    PORTS
+        .lock()
+        .unwrap_or_else(std::sync::PoisonError::into_inner)
+}
+
 #[test]
 fn the_routers_ports_are_never_handed_to_a_replica() {
+    let _ports = ports_lock();
     let [http, grpc]: [u16; 2] = setup::free_ports(2, &[])
         .expect("two ports")
         .try_into()
@@ -190,6 +202,7 @@ fn the_routers_ports_are_never_handed_to_a_replica() {
 
 #[test]
 fn ports_of_replicas_down_for_a_moment_are_not_handed_out() {
+    let _ports = ports_lock();
     // Ports the kernel is about to hand out again: found free and released.
     let taken = setup::free_ports(64, &[]).expect("ports");
     for _ in 0..5 {
