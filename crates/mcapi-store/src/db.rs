@@ -25,6 +25,7 @@ use redb::{Database, Durability, ReadableTable, TableDefinition};
 
 use crate::error::StoreError;
 use crate::format::FORMAT_VERSION;
+use crate::record::{log_key, push_entry, split_entry};
 use crate::wal::{self, Frame};
 use crate::write::Write;
 
@@ -45,23 +46,6 @@ const WAL_LSN: &str = "wal_lsn";
 
 /// What the health probe writes (and removes again) after a reopen.
 pub(super) const PROBE_BYTES: usize = 256 * 1024;
-
-/// The log's key of a session: the 128 bits of the ULID in its id
-/// (`s<shard>.<ULID>`), or a 128-bit hash of the id for other ids. A number
-/// instead of the string keeps the log, which holds most of the file, small:
-/// the store's size is what opening (integrity check) and recovery cost.
-pub(super) fn log_key(id: &str) -> u128 {
-    if let Some((_, ulid)) = id.split_once('.')
-        && let Ok(u) = ulid::Ulid::from_string(ulid)
-    {
-        return u.0;
-    }
-    use sha2::Digest;
-    let d = sha2::Sha256::digest(id.as_bytes());
-    let mut b = [0u8; 16];
-    b.copy_from_slice(&d[..16]);
-    u128::from_be_bytes(b)
-}
 
 /// Whether a redb error leaves the `Database` unusable until it is closed and
 /// opened again: an I/O error is latched (every later call answers
@@ -354,21 +338,6 @@ fn tag_format_2_records(write: &redb::WriteTransaction) -> Result<u64, String> {
             .map_err(|x| e(x.into()))?;
     }
     Ok(n)
-}
-
-/// Frames one record of a chunk: sequence number, length, bytes.
-fn push_entry(chunk: &mut Vec<u8>, seq: u64, entry: &[u8]) {
-    chunk.extend_from_slice(&seq.to_le_bytes());
-    chunk.extend_from_slice(&(entry.len() as u32).to_le_bytes());
-    chunk.extend_from_slice(entry);
-}
-
-/// The first record of a chunk and the rest.
-pub(super) fn split_entry(chunk: &[u8]) -> Option<(u64, &[u8], &[u8])> {
-    let (seq, rest) = chunk.split_first_chunk::<8>()?;
-    let (len, rest) = rest.split_first_chunk::<4>()?;
-    let len = u32::from_le_bytes(*len) as usize;
-    (rest.len() >= len).then(|| (u64::from_le_bytes(*seq), &rest[..len], &rest[len..]))
 }
 
 /// Writes back the chunks a checkpoint appended to; their buffers go to

@@ -42,7 +42,8 @@
 //! open), so that readers see nothing but ordinary logs.
 //!
 //! Files, one idea each: [`Store`]'s public API (`store.rs`), the write and
-//! its commit (`write.rs`), the batch (`batch.rs`), the errors (`error.rs`), the state the threads
+//! its commit (`write.rs`), the batch (`batch.rs`), a record's log key and
+//! framing (`record.rs`), the errors (`error.rs`), the state the threads
 //! share (`shared.rs`), the writer thread (`writer.rs`), retry with backoff
 //! after a storage fault (`retry.rs`), the log ([`wal`]), the redb layout
 //! (`db.rs`) and the checkpointer (`checkpoint.rs`).
@@ -52,6 +53,7 @@ mod checkpoint;
 mod db;
 mod error;
 mod format;
+mod record;
 mod retry;
 mod shared;
 mod store;

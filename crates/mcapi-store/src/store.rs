@@ -13,8 +13,9 @@ use redb::{Database, ReadableDatabase, ReadableTable};
 use tokio::sync::oneshot;
 
 use crate::checkpoint::{Checkpointer, Frame, ToCheckpoint};
-use crate::db::{self, CHUNK, LOG, SESSIONS, SNAPSHOTS, log_key, split_entry};
+use crate::db::{self, CHUNK, LOG, SESSIONS, SNAPSHOTS};
 use crate::error::StoreError;
+use crate::record::{log_key, split_entry};
 use crate::retry::Retry;
 use crate::shared::Shared;
 use crate::wal::{self, Durability, Wal};

@@ -20,7 +20,7 @@
 //! this project's test machine an append's `fdatasync` took 1.8-2.2× as long
 //! as an overwrite's; BENCHMARKS.md §8).
 //!
-//! The first sector is the header ([`MAGIC`], the version, four reserved
+//! The first sector is the header (`MAGIC`, the version, four reserved
 //! zero bytes, zeros). Each frame begins on a sector boundary:
 //!
 //! | bytes | field |
@@ -29,7 +29,7 @@
 //! | 8 | frame number (LSN), little-endian; consecutive across segments |
 //! | 4 | CRC-32 of the 12 bytes above |
 //! | 4 | CRC-32 of the payload |
-//! | n | payload: the group's writes ([`encode_write`]) |
+//! | n | payload: the group's writes (`encode_write`) |
 //! | | zeros to the next sector boundary |
 //!
 //! The frames end at the first blank (all-zero) sector where a frame would

@@ -5,8 +5,8 @@ use std::sync::Arc;
 
 use tokio::sync::oneshot;
 
-use crate::db;
 use crate::error::StoreError;
+use crate::record::{self, FRAME};
 
 /// One write.
 #[derive(Debug, Clone)]
@@ -98,7 +98,7 @@ pub struct Appends {
 
 /// Bytes of a record of [`Appends`] before its entry: key, sequence
 /// number, length.
-const APPEND_HEADER: usize = 16 + 8 + 4;
+const APPEND_HEADER: usize = 16 + FRAME;
 
 /// A session's id with its log key, worked out once (the key of a
 /// `s<shard>.<ULID>` id is the ULID's bits, parsed from the text): what a
@@ -113,7 +113,7 @@ pub struct LogId {
 impl LogId {
     /// The log id of session `id`.
     pub fn new(id: Arc<str>) -> Self {
-        let key = db::log_key(&id);
+        let key = record::log_key(&id);
         Self { id, key }
     }
 
@@ -189,8 +189,8 @@ impl Appends {
 /// chunk frames it) and the rest.
 fn split_record(bytes: &[u8]) -> Option<(u128, &[u8], &[u8])> {
     let (key, framed) = bytes.split_first_chunk::<16>()?;
-    let (_, entry, _) = db::split_entry(framed)?;
-    let (framed, tail) = framed.split_at_checked(8 + 4 + entry.len())?;
+    let (_, entry, _) = record::split_entry(framed)?;
+    let (framed, tail) = framed.split_at_checked(FRAME + entry.len())?;
     Some((u128::from_le_bytes(*key), framed, tail))
 }
 
