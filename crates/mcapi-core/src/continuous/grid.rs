@@ -35,11 +35,11 @@ use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::{Deserialize, Serialize};
 
-use super::basis::GridShape;
 use super::space::MAX_DIM;
 
-/// Most cells of a grid (cells_per_dim^d): as many as a basis has features.
-pub const MAX_GRID_CELLS: usize = super::basis::MAX_STATE_FEATURES;
+/// Most cells of a grid (cells_per_dim^d): as many as a basis has features
+/// (`MAX_STATE_FEATURES`, checked where the basis is defined).
+pub const MAX_GRID_CELLS: usize = 4096;
 /// Cells per dimension of the default grid (d ≤ 2), where they fit.
 pub const DEFAULT_GRID_CELLS_PER_DIM: usize = 64;
 /// Most (cell, action) pairs of a grid.
@@ -66,6 +66,26 @@ const TIE: f64 = 1e-10;
 
 /// No successor: the pair is unknown.
 const UNKNOWN: u32 = u32::MAX;
+
+/// The shape of a grid planner, checked.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct GridShape {
+    /// The space's dimension.
+    pub d: usize,
+    /// Cells per dimension.
+    pub cells_per_dim: usize,
+    /// Transitions kept per (cell, action).
+    pub neighbours: usize,
+    /// How far a move teaches, in cells.
+    pub reach: f64,
+}
+
+impl GridShape {
+    /// cells_per_dim^d.
+    pub fn cells(&self) -> usize {
+        self.cells_per_dim.pow(self.d as u32)
+    }
+}
 
 /// The grid planner of one agent.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

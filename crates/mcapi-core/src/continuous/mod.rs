@@ -23,6 +23,7 @@ pub use agent::{
     ContinuousSnapshotRef, ContinuousState, ContinuousStateRef, ContinuousStats, ContinuousStep,
     GridSnapshot, GridSnapshotRef,
 };
-pub use basis::{ContinuousBasisSpec, FeatureMap, GridShape};
+pub use basis::{ContinuousBasisSpec, FeatureMap};
+pub use grid::GridShape;
 pub use model::{ContinuousModel, ContinuousSpec, SampleParams, ValidSampleParams};
 pub use space::{ObservationSpace, OutOfBounds};

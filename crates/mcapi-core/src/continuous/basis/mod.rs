@@ -27,8 +27,8 @@ use serde::{Deserialize, Serialize};
 use crate::error::{AlgoError, Result};
 
 use super::grid::{
-    DEFAULT_GRID_CELLS_PER_DIM, DEFAULT_GRID_NEIGHBOURS, DEFAULT_GRID_REACH, MAX_GRID_CELLS,
-    MAX_GRID_NEIGHBOURS, MAX_GRID_PAIRS, MAX_GRID_REACH,
+    DEFAULT_GRID_CELLS_PER_DIM, DEFAULT_GRID_NEIGHBOURS, DEFAULT_GRID_REACH, GridShape,
+    MAX_GRID_CELLS, MAX_GRID_NEIGHBOURS, MAX_GRID_PAIRS, MAX_GRID_REACH,
 };
 
 pub use fourier::Fourier;
@@ -39,6 +39,8 @@ pub use tiles::Tiles;
 
 /// Largest number of state features k of a continuous basis.
 pub const MAX_STATE_FEATURES: usize = 4096;
+// A grid has at most as many cells as a basis has features.
+const _: () = assert!(MAX_GRID_CELLS == MAX_STATE_FEATURES);
 
 /// Largest number of state-action features k·|A|: the planner keeps a
 /// dense inverse of (k|A|)² numbers (32 MiB at this bound).
@@ -372,26 +374,6 @@ pub enum FeatureMap {
     Pvf(Pvf),
     /// No features: the agent plans on a grid (docs/algorithm.md §9.8).
     Grid(GridShape),
-}
-
-/// The shape of a grid planner, checked.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct GridShape {
-    /// The space's dimension.
-    pub d: usize,
-    /// Cells per dimension.
-    pub cells_per_dim: usize,
-    /// Transitions kept per (cell, action).
-    pub neighbours: usize,
-    /// How far a move teaches, in cells.
-    pub reach: f64,
-}
-
-impl GridShape {
-    /// cells_per_dim^d.
-    pub fn cells(&self) -> usize {
-        self.cells_per_dim.pow(self.d as u32)
-    }
 }
 
 impl FeatureMap {
