@@ -345,17 +345,17 @@ pub fn basis_build_ms(basis: &mcapi_core::BasisSpec, model: &mcapi_core::EnvMode
 }
 
 /// Bytes an evicted session holds in memory (docs/sessions.md, "Idle
-/// sessions"): its stub ([`super::session::Evicted`]) behind its `Arc`, its
-/// id as the table's key, and its slot of the table's B-tree with the
-/// nodes' slack. What its owner is charged while it is evicted, instead of
-/// its full [`estimate`] (charged again when it is loaded back);
-/// `tests/cost_calibration.rs` checks it against what the stubs hold.
-pub fn evicted_bytes(id: &str) -> u64 {
+/// sessions"): its stub of `stub` bytes (`session::Evicted`, see
+/// `Evicted::held_bytes`) behind its `Arc`, its id as the table's key, and
+/// its slot of the table's B-tree with the nodes' slack. What its owner is
+/// charged while it is evicted, instead of its full [`estimate`] (charged
+/// again when it is loaded back); `tests/cost_calibration.rs` checks it
+/// against what the stubs hold.
+pub fn evicted_bytes(stub: usize, id: &str) -> u64 {
     /// An `Arc`'s two counts, and a B-tree slot (a `String` key and an
     /// `Entry`) with the slack of nodes about two-thirds full.
     const OVERHEAD: u64 = 16 + 64;
-    let stub = std::mem::size_of::<super::session::Evicted>() as u64;
-    stub.div_ceil(16) * 16 + (id.len() as u64).div_ceil(16) * 16 + OVERHEAD
+    (stub as u64).div_ceil(16) * 16 + (id.len() as u64).div_ceil(16) * 16 + OVERHEAD
 }
 
 /// Estimated CPU time of one observation without its policy update (what

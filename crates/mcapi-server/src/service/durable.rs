@@ -67,7 +67,7 @@ pub struct SessionRecord {
     /// The group it was created in, if any (docs/groups.md): the groups
     /// are rebuilt at start from their members' records.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub group: Option<super::groups::GroupTag>,
+    pub group: Option<super::membership::GroupTag>,
 }
 
 /// One observation as logged.

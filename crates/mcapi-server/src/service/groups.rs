@@ -3,7 +3,7 @@
 //! by columns (`StepGroup`, `POST /v1/groups/{id}/steps`). Each member is an
 //! ordinary session; the group is its list of members, kept in memory and
 //! rebuilt at start from the members' creation records, each of which names
-//! its group ([`GroupTag`]).
+//! its group ([`GroupTag`](super::membership::GroupTag)).
 //!
 //! What a step carries is [`Columns`], checked here against the group's
 //! shape ([`Group::observations`]) before anything is applied, so both
@@ -57,18 +57,6 @@ pub fn member_seed(seed: u64, index: u64) -> u64 {
     mix(seed.wrapping_add(index.wrapping_add(1).wrapping_mul(GOLDEN_GAMMA)))
 }
 
-/// Member `index`'s place in `0..span`, the members of a group of `size`
-/// spread evenly over it: index × span / size (an index past the group
-/// counts as its last). What staggers the work that members stepped
-/// together would otherwise all do at the same step: their snapshots and
-/// their history rings' doublings.
-pub fn spread(index: u32, size: u32, span: u64) -> u64 {
-    let size = size.max(1);
-    let place = u128::from(index.min(size - 1)) * u128::from(span) / u128::from(size);
-    // Below `span`, so it fits.
-    u64::try_from(place).unwrap_or(0)
-}
-
 /// A request to create a group (`POST /v1/groups`): a session's body, the
 /// number of members and the group's seed.
 #[derive(Debug, Clone, Deserialize, utoipa::ToSchema)]
@@ -85,21 +73,6 @@ pub struct CreateGroup {
     /// The group's seed; drawn when absent.
     #[serde(default)]
     pub seed: Option<u64>,
-}
-
-/// What a member's creation record says of its group (in
-/// [`super::durable::SessionRecord`]): enough to rebuild the group's member
-/// list at start from its members alone.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-pub struct GroupTag {
-    /// The group's id.
-    pub group: String,
-    /// The member's index, `0..size`.
-    pub index: u32,
-    /// Members of the group.
-    pub size: u32,
-    /// The group's seed.
-    pub seed: u64,
 }
 
 /// A group in memory.

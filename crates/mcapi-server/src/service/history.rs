@@ -453,7 +453,7 @@ pub fn push_tick_from(ring: &mut VecDeque<RingTick>, cap: usize, first: usize, t
 /// eight cohorts double at eight different ticks (at 8-15, 16-30, ..., the
 /// last to 256 at 128-240 ticks) instead of all at once.
 pub fn group_ring_first(index: u32, size: u32) -> usize {
-    8 + usize::try_from(super::groups::spread(index, size, 8)).unwrap_or(0)
+    8 + usize::try_from(super::membership::spread(index, size, 8)).unwrap_or(0)
 }
 
 #[cfg(test)]

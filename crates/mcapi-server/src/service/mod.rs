@@ -25,6 +25,7 @@ pub mod history;
 pub mod learner;
 pub mod limits;
 pub mod manager;
+pub mod membership;
 pub mod recovery;
 pub mod session;
 pub mod setup;

@@ -18,9 +18,9 @@ use super::agent_config::{EffectiveConfig, UpdateMode};
 use super::cost;
 use super::durable::{LearnerSnapshotRef, LogEntryRef, SnapshotRecordRef, TickRecord, encode};
 use super::error::{ServiceError, StorageError};
-use super::groups::GroupTag;
 use super::history::{self, RingTick};
 use super::learner::Learner;
+use super::membership::GroupTag;
 use super::wire::{HistoryEntry, ModelSummary, ObservationIn, SessionCost, StepOut};
 
 /// Mutable state of a session, behind its lock.
@@ -689,7 +689,7 @@ impl Session {
         Some(Evicted {
             owner: self.owner,
             cost,
-            held: cost::evicted_bytes(&self.id),
+            held: Evicted::held_bytes(&self.id),
             tick: st.learner.tick(),
             states: self.model.states,
             mode: self.mode,
@@ -1167,7 +1167,7 @@ fn snapshot_due(since: u64, seq: u64, logged: u64, every: u64, slot: Option<(u32
     let Some((index, size)) = slot else {
         return false;
     };
-    let phase = u128::from(super::groups::spread(index, size, every));
+    let phase = u128::from(super::membership::spread(index, size, every));
     let every = u128::from(every.max(1));
     let before = u128::from(seq.saturating_sub(logged));
     (before + phase) / every != (u128::from(seq) + phase) / every
@@ -1210,7 +1210,7 @@ pub struct Evicted {
     /// while it is resident).
     pub cost: SessionCost,
     /// What its owner is charged while it is evicted: what it holds in
-    /// memory ([`cost::evicted_bytes`]).
+    /// memory ([`Evicted::held_bytes`]).
     pub held: u64,
     /// Ticks so far.
     pub tick: u64,
@@ -1224,6 +1224,14 @@ pub struct Evicted {
     /// Every write of the session is in the store's frames up to this one
     /// ([`mcapi_store::Store::committed`] when it left memory).
     pub lsn: u64,
+}
+
+impl Evicted {
+    /// What session `id` holds in memory once evicted, this stub included
+    /// ([`cost::evicted_bytes`]).
+    pub fn held_bytes(id: &str) -> u64 {
+        cost::evicted_bytes(std::mem::size_of::<Self>(), id)
+    }
 }
 
 #[cfg(test)]

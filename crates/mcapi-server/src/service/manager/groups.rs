@@ -17,8 +17,9 @@ use mcapi_store::Sent;
 
 use super::*;
 use crate::service::groups::{
-    Columns, CreateGroup, Group, GroupInfo, GroupTag, MemberStep, Resolved, member_seed,
+    Columns, CreateGroup, Group, GroupInfo, MemberStep, Resolved, member_seed,
 };
+use crate::service::membership::GroupTag;
 
 /// The groups in memory by id.
 pub(crate) type GroupTable = BTreeMap<String, Arc<Group>>;

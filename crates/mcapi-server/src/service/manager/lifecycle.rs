@@ -345,7 +345,9 @@ impl SessionManager {
                 {
                     let inactive = s.inactive();
                     if inactive >= PRESSURE_MIN_IDLE {
-                        let freed = entry.charge().saturating_sub(cost::evicted_bytes(&s.id));
+                        let freed = entry
+                            .charge()
+                            .saturating_sub(session::Evicted::held_bytes(&s.id));
                         idle.push((inactive, freed, Arc::clone(s)));
                     }
                 }
