@@ -17,10 +17,10 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._columns import F64, Columns, GroupInfo, GroupSeqs, GroupStep, MemberStatus, check_columns, stepped
 from ._pb import rpc_error
 from ._proto.mcapi.v1 import agents_pb2 as pb
 from .errors import Unavailable
-from .groups import F64, Columns, GroupInfo, GroupSeqs, GroupStep, MemberStatus, check_columns, stepped
 
 if TYPE_CHECKING:
     import numpy.typing as npt

@@ -64,7 +64,7 @@ from .types import (
 )
 
 if TYPE_CHECKING:
-    from .groups import GroupInfo, GroupSeqs, GroupSeqTable
+    from ._columns import GroupInfo, GroupSeqs, GroupSeqTable
 
 SESSION_METADATA = "x-mcapi-session"
 """Metadata key naming the session a call concerns."""
@@ -920,7 +920,7 @@ class GrpcProtocol:
         if self.seqs is None:
             return None
         if self._group_seqs is None:
-            from .groups import GroupSeqTable
+            from ._columns import GroupSeqTable
 
             self._group_seqs = GroupSeqTable()
         return self._group_seqs.created(info) if created else self._group_seqs.of(info)

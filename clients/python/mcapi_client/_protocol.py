@@ -41,7 +41,7 @@ from .types import (
 )
 
 if TYPE_CHECKING:
-    from .groups import GroupInfo, GroupSeqs, GroupSeqTable, GroupStep
+    from ._columns import GroupInfo, GroupSeqs, GroupSeqTable, GroupStep
     from .types import AgentKwargs
 
 __all__ = [
@@ -155,7 +155,7 @@ class RestProtocol:
         if self.seqs is None:
             return None
         if self._group_seqs is None:
-            from .groups import GroupSeqTable
+            from ._columns import GroupSeqTable
 
             self._group_seqs = GroupSeqTable()
         return self._group_seqs.created(info) if created else self._group_seqs.of(info)
@@ -247,7 +247,7 @@ class RestProtocol:
 
     def create_group(self, model: ModelLike, n: object, agent: AgentKwargs) -> Op[Request, GroupInfo]:
         """``POST /v1/groups``; ``agent``'s ``seed`` is the group's."""
-        from . import groups
+        from . import _columns
 
         rest = agent.copy()
         seed = as_opt_int(rest.pop("seed", None), "seed")
@@ -259,17 +259,17 @@ class RestProtocol:
         if seed is not None:
             body["seed"] = seed
         reply = yield Request("POST", "/v1/groups", json=body)
-        info = groups.group_info_json(reply)
+        info = _columns.group_info_json(reply)
         self._groups.put(info.id, info)
         self.group_seqs(info, created=True)
         return info
 
     def get_group(self, group_id: str) -> Op[Request, GroupInfo]:
         """``GET /v1/groups/{id}``."""
-        from . import groups
+        from . import _columns
 
         reply = yield Request("GET", group_path(group_id))
-        info = groups.group_info_json(reply)
+        info = _columns.group_info_json(reply)
         self._groups.put(info.id, info)
         return info
 
@@ -299,14 +299,14 @@ class RestProtocol:
         """``POST /v1/groups/{id}/steps``, the columns checked against the
         group's shape first (read once when not known yet), numbered with
         ``exactly_once`` (:class:`mcapi_client.groups.GroupSeqs`)."""
-        from . import groups
+        from . import _columns
 
         info = yield from self.group(group_id)
-        columns = groups.check_columns(
+        columns = _columns.check_columns(
             info, states, stimuli, observations=observations, action_taken=action_taken, mask=mask
         )
         seqs = self.group_seqs(info)
-        body, members, sent = groups.numbered_body(info, columns, seqs)
+        body, members, sent = _columns.numbered_body(info, columns, seqs)
         path = group_path(group_id, "/steps")
         try:
             reply = yield Request("POST", path, json=body, resend=sent is not None)
@@ -314,7 +314,7 @@ class RestProtocol:
             if seqs is not None:
                 seqs.failed(members, sent)
             raise
-        step = groups.group_step_json(reply, info.stimuli)
+        step = _columns.group_step_json(reply, info.stimuli)
         if seqs is not None:
             seqs.answered(members, sent, step)
         return step

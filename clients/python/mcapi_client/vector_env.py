@@ -51,8 +51,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from ._columns import F64, GroupStep
 from .errors import error_for
-from .groups import F64, GroupAgents, GroupStep
+from .groups import GroupAgents
 
 if TYPE_CHECKING:
     import numpy.typing as npt
