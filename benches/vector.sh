@@ -21,7 +21,9 @@
 #   rest-group, async, memory  POST /v1/groups/{id}/steps with JSON columns,
 #                              2 connections, one step in flight on each
 #   Interact / InteractBatch   mcapi-loadgen's gRPC scenario: 64 sessions over
-#                              4 connections, one observation per message
+#                              4 connections, one observation per message;
+#                              over TCP, then over the server's Unix socket
+#                              (--grpc-socket)
 #   tick alone                 criterion: tick/hallway_indicator (the core's
 #                              step of one hallway agent; SKIP_TICK=1 skips it)
 #
@@ -121,6 +123,16 @@ taskset -c "$CLIENT_CORE" "$LOADGEN" --threads 1 --http "http://127.0.0.1:$HP" \
   --grpc-streams 64 --grpc-connections 4 --grpc-batch 16 --no-paced >"$OUT/loadgen.md"
 cleanup
 
+echo "== Interact / InteractBatch over a Unix socket (mcapi-loadgen)" >&2
+SOCKET_DIR=$(mktemp -d "${TMPDIR:-/tmp}/mcapi-sock.XXXXXX")
+start_server loadgen-socket --store memory --grpc-socket "$SOCKET_DIR/grpc.sock"
+taskset -c "$CLIENT_CORE" "$LOADGEN" --threads 1 --http "http://127.0.0.1:$HP" \
+  --grpc "unix:$SOCKET_DIR/grpc.sock" --server-pid "$SERVER_PID" --warmup-secs "$WARMUP" \
+  --duration-secs "$DURATION" --json "$OUT/loadgen-socket.json" --scenario grpc --modes async \
+  --grpc-streams 64 --grpc-connections 4 --grpc-batch 16 --no-paced >"$OUT/loadgen-socket.md"
+cleanup
+rmdir "$SOCKET_DIR" 2>/dev/null || true
+
 TICK="not measured (SKIP_TICK=1)"
 if [ "${SKIP_TICK:-0}" != 1 ]; then
   echo "== tick alone (criterion)" >&2
@@ -153,11 +165,13 @@ $(row rest-group-async "REST group steps (JSON), async, memory store, 2 in fligh
 - StepGroup over InteractBatch: **$(ratio "$(rate group-async)" "$(rate batch-async)")×**; over REST group steps: **$(ratio "$(rate group-async)" "$(rate rest-group-async)")×**
 - durable / memory: **$(ratio "$(rate group-durable)" "$(rate group-async)")**; lockstep / async: **$(ratio "$(rate group-lockstep)" "$(rate group-async)")**
 
-Single observations (mcapi-loadgen, 64 sessions over 4 connections):
+Single observations (mcapi-loadgen, 64 sessions over 4 connections, over
+TCP on loopback and over the server's Unix socket, \`--grpc-socket\`):
 
 | method | observations/s | server CPU µs/obs |
 |---|---|---|
 $(jq -r '.grpc[] | "| \(.method) (\(.streams) × \(.batch)) | \(.summary.rate | floor) | \(.server_cpu_us_per_observation * 100 | round / 100) |"' "$OUT/loadgen.json")
+$(jq -r '.grpc[] | "| \(.method) (\(.streams) × \(.batch)), Unix socket | \(.summary.rate | floor) | \(.server_cpu_us_per_observation * 100 | round / 100) |"' "$OUT/loadgen-socket.json")
 
 The core's hallway tick alone (criterion tick/hallway_indicator): $TICK
 EOF

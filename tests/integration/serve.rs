@@ -89,6 +89,10 @@ fn serve_answers_and_stops_on_sigterm() {
     assert!(!healthcheck(&url), "port closed after shutdown");
 }
 
+/// A `--grpc-socket` path of 4,097 bytes, past any socket's and any path's limit.
+static LONG_SOCKET_PATH: std::sync::LazyLock<String> =
+    std::sync::LazyLock::new(|| format!("/{}", "s".repeat(4096)));
+
 #[test]
 fn bad_configuration_is_refused_before_binding() {
     let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))
@@ -125,6 +129,14 @@ fn bad_configuration_is_refused_before_binding() {
         (
             &["--store-cache-mib", "0"][..],
             "--store-cache-mib must be between 1 and 65536, not 0",
+        ),
+        (
+            &["--grpc-socket", &LONG_SOCKET_PATH][..],
+            "--grpc-socket must be at most 107 bytes (the limit of a Unix socket's path), not 4097",
+        ),
+        (
+            &["--grpc-socket", "/tmp/mcapi/"][..],
+            "--grpc-socket /tmp/mcapi/ names a directory, not a file",
         ),
     ] {
         let out = Command::new(env!("CARGO_BIN_EXE_mcapi"))

@@ -99,8 +99,17 @@ DEFAULT_TARGET = "127.0.0.1:50051"
 """Where ``mcapi serve`` listens for gRPC by default."""
 
 
-def _channel_options(options: Sequence[tuple[str, Any]]) -> list[tuple[str, Any]]:
-    return [("grpc.max_receive_message_length", 64 << 20), *options]
+def _channel_options(target: str, options: Sequence[tuple[str, Any]]) -> list[tuple[str, Any]]:
+    """The channel's options: replies up to 64 MiB, and for a Unix socket
+    (``unix:PATH``, the server's ``--grpc-socket``) the ``:authority``
+    ``localhost``. gRPC would otherwise send the socket's path there,
+    escaped, which is not a valid authority, and the server's HTTP/2 layer
+    resets every call with ``PROTOCOL_ERROR``. Options given win."""
+    opts: list[tuple[str, Any]] = [("grpc.max_receive_message_length", 64 << 20)]
+    given = {name for name, _ in options}
+    if target.startswith("unix:") and "grpc.default_authority" not in given:
+        opts.append(("grpc.default_authority", "localhost"))
+    return [*opts, *options]
 
 
 def _stream_ended() -> Unavailable:
@@ -541,7 +550,8 @@ class GrpcClient:
     """A client of the mcapi gRPC API (service ``mcapi.v1.Agents``).
 
     Args:
-        target: ``host:port`` of the server's gRPC listener.
+        target: ``host:port`` of the server's gRPC listener, or
+            ``unix:PATH`` for its Unix socket (``mcapi serve --grpc-socket``).
         api_key: Sent as ``authorization: Bearer <key>`` metadata.
         timeout: Seconds per unary call (streams have none).
         credentials: TLS channel credentials; plaintext when ``None``.
@@ -576,7 +586,7 @@ class GrpcClient:
         self.target = target
         self.retry = retry
         self.retries = RetryCounter()
-        opts = _channel_options(options)
+        opts = _channel_options(target, options)
         self._channel = (
             grpc.secure_channel(target, credentials, options=opts)
             if credentials is not None
@@ -1027,7 +1037,8 @@ class AsyncGrpcClient:
     methods of :class:`GrpcClient` (awaited) and the same results and errors.
 
     Args:
-        target: ``host:port`` of the server's gRPC listener.
+        target: ``host:port`` of the server's gRPC listener, or
+            ``unix:PATH`` for its Unix socket (``mcapi serve --grpc-socket``).
         api_key: Sent as ``authorization: Bearer <key>`` metadata.
         timeout: Seconds per unary call (streams have none).
         credentials: TLS channel credentials; plaintext when ``None``.
@@ -1060,7 +1071,7 @@ class AsyncGrpcClient:
         self.target = target
         self.retry = retry
         self.retries = RetryCounter()
-        opts = _channel_options(options)
+        opts = _channel_options(target, options)
         self._channel = (
             grpc.aio.secure_channel(target, credentials, options=opts)
             if credentials is not None

@@ -12,7 +12,8 @@ pub struct LoadgenArgs {
     /// Base URL of the server's REST port.
     #[arg(long, default_value = "http://127.0.0.1:8080")]
     pub http: String,
-    /// Base URL of the server's gRPC port.
+    /// Base URL of the server's gRPC port, or `unix:PATH` for its Unix
+    /// socket (`mcapi serve --grpc-socket PATH`).
     #[arg(long, default_value = "http://127.0.0.1:50051")]
     pub grpc: String,
     /// What to measure.

@@ -145,13 +145,35 @@ struct GrpcRow {
     cpu: CpuUse,
 }
 
+/// One HTTP/2 connection to `target`: a URL (`http://host:port`), or
+/// `unix:PATH` for the server's Unix socket (`mcapi serve --grpc-socket`).
+async fn connect(target: &str) -> Result<Channel> {
+    let Some(path) = target.strip_prefix("unix:") else {
+        return Ok(Endpoint::from_shared(target.to_string())?
+            .tcp_nodelay(true)
+            .connect()
+            .await?);
+    };
+    let path = path.to_string();
+    // The URI is never dialled: the connector opens the socket. It gives
+    // the requests their `:authority`.
+    let channel = Endpoint::from_static("http://localhost")
+        .connect_with_connector(tower::service_fn(move |_: tonic::transport::Uri| {
+            let path = path.clone();
+            async move {
+                let stream = tokio::net::UnixStream::connect(path).await?;
+                Ok::<_, std::io::Error>(hyper_util::rt::TokioIo::new(stream))
+            }
+        }))
+        .await?;
+    Ok(channel)
+}
+
 pub(crate) async fn grpc_scenario(args: &LoadgenArgs, pid: Option<u32>) -> Result<Value> {
-    let endpoint = Endpoint::from_shared(args.grpc.clone())?.tcp_nodelay(true);
     let mut channels = Vec::with_capacity(args.grpc_connections);
     for _ in 0..args.grpc_connections {
         channels.push(
-            endpoint
-                .connect()
+            connect(&args.grpc)
                 .await
                 .with_context(|| format!("connecting to {}", args.grpc))?,
         );

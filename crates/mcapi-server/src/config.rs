@@ -42,6 +42,12 @@ pub struct ServeConfig {
         default_value = "127.0.0.1:50051"
     )]
     pub grpc: SocketAddr,
+    /// gRPC on a Unix domain socket at this path as well, for clients on
+    /// the same host (no TCP stack between them and the server). Created
+    /// at start (a stale socket left by a crash is replaced; anything else
+    /// at the path stops the start) and removed at stop.
+    #[arg(help_heading = "Network", long, env = "MCAPI_GRPC_SOCKET")]
+    pub grpc_socket: Option<PathBuf>,
     /// Data directory of the embedded store (created if missing).
     #[arg(
         help_heading = "Storage",
@@ -278,6 +284,30 @@ pub struct ServeConfig {
     pub admin_key: Option<String>,
 }
 
+/// Longest `--grpc-socket` path, in bytes: a Unix socket's address holds
+/// 108 bytes with the terminating NUL (Linux's `sun_path`).
+pub const MAX_SOCKET_PATH_BYTES: usize = 107;
+
+/// `--grpc-socket` names a path a socket can be bound at.
+fn check_socket_path(path: &std::path::Path) -> Result<(), String> {
+    let len = path.as_os_str().len();
+    if len == 0 {
+        return Err("--grpc-socket is empty".into());
+    }
+    if len > MAX_SOCKET_PATH_BYTES {
+        return Err(format!(
+            "--grpc-socket must be at most {MAX_SOCKET_PATH_BYTES} bytes (the limit of a Unix socket's path), not {len}; use a shorter path"
+        ));
+    }
+    if path.file_name().is_none() || path.as_os_str().as_encoded_bytes().ends_with(b"/") {
+        return Err(format!(
+            "--grpc-socket {} names a directory, not a file",
+            path.display()
+        ));
+    }
+    Ok(())
+}
+
 /// Default of `--evict-idle-secs` with the durable store.
 pub const DEFAULT_EVICT_IDLE_SECS: u64 = 300;
 /// Largest `--evict-idle-secs`.
@@ -405,6 +435,9 @@ impl ServeConfig {
         }
         if self.http == self.grpc && self.http.port() != 0 {
             return Err(format!("--http and --grpc both use {}", self.http));
+        }
+        if let Some(path) = &self.grpc_socket {
+            check_socket_path(path)?;
         }
         let workers = self.worker_count();
         if self.snapshot_every == 0 {

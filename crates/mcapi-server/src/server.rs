@@ -8,10 +8,11 @@
 //! one budget per caller ([`crate::api::streams`]).
 
 use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
 use anyhow::{Context, Result};
-use tokio::net::TcpListener;
+use tokio::net::{TcpListener, UnixListener};
 use tokio::sync::watch;
 use tokio::task::JoinHandle;
 
@@ -35,6 +36,46 @@ pub struct Running {
     pub manager: Arc<SessionManager>,
     stop: watch::Sender<bool>,
     tasks: Vec<JoinHandle<Result<()>>>,
+    /// The gRPC socket's file, removed when the server is dropped (after
+    /// [`Running::wait`], or on a failed start).
+    socket: Option<SocketFile>,
+}
+
+/// The path of a bound Unix socket, removed on drop.
+struct SocketFile(PathBuf);
+
+impl Drop for SocketFile {
+    fn drop(&mut self) {
+        if let Err(e) = std::fs::remove_file(&self.0)
+            && e.kind() != std::io::ErrorKind::NotFound
+        {
+            tracing::warn!(socket = %self.0.display(), error = %e, "could not remove the gRPC socket");
+        }
+    }
+}
+
+/// Binds the gRPC socket at `path`. A socket file nobody listens on (left
+/// by a server that was killed) is replaced; a live socket or anything
+/// that is not a socket stops the start instead of being removed.
+fn bind_socket(path: &Path) -> Result<(UnixListener, SocketFile)> {
+    use std::os::unix::fs::FileTypeExt;
+    let shown = path.display();
+    if let Ok(meta) = std::fs::symlink_metadata(path) {
+        if !meta.file_type().is_socket() {
+            anyhow::bail!(
+                "--grpc-socket {shown}: the path exists and is not a socket; not replacing it"
+            );
+        }
+        if std::os::unix::net::UnixStream::connect(path).is_ok() {
+            anyhow::bail!("--grpc-socket {shown}: another server is listening on it");
+        }
+        std::fs::remove_file(path)
+            .with_context(|| format!("--grpc-socket {shown}: removing a stale socket"))?;
+        tracing::info!(socket = %shown, "replaced a stale gRPC socket");
+    }
+    let listener =
+        UnixListener::bind(path).with_context(|| format!("binding the gRPC socket {shown}"))?;
+    Ok((listener, SocketFile(path.to_path_buf())))
 }
 
 async fn stopped(mut rx: watch::Receiver<bool>) {
@@ -67,10 +108,17 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
     let grpc = TcpListener::bind(cfg.grpc)
         .await
         .with_context(|| format!("binding the gRPC port {}", cfg.grpc))?;
+    let (socket, socket_file) = match &cfg.grpc_socket {
+        Some(path) => {
+            let (listener, file) = bind_socket(path)?;
+            (Some(listener), Some(file))
+        }
+        None => (None, None),
+    };
     let (http_addr, grpc_addr) = (http.local_addr()?, grpc.local_addr()?);
     let (stop, stop_rx) = watch::channel(false);
     let limits = cfg.conn_limits();
-    limits.warn_on_fd_limit();
+    limits.warn_on_fd_limit(2 + u64::from(socket.is_some()));
     // One budget of watch streams per caller for both transports.
     let streams = StreamLimiter::new(limits.max_streams_per_key);
     let app = router(AppState {
@@ -98,7 +146,7 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
             streams,
         };
         async move {
-            crate::api::grpc::serve_with(grpc, manager, opts, stopped(stop_rx))
+            crate::api::grpc::serve_with(grpc, socket, manager, opts, stopped(stop_rx))
                 .await
                 .context("gRPC server")
         }
@@ -110,6 +158,7 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
         manager,
         stop,
         tasks: vec![rest_task, grpc_task],
+        socket: socket_file,
     };
     // Health answers during recovery; readiness and the API wait for it.
     let recovering = Arc::clone(&running.manager);
@@ -133,9 +182,9 @@ impl Running {
     }
 
     /// Waits for both transports to finish, then drains and stops the tick loop.
-    pub async fn wait(self) -> Result<()> {
+    pub async fn wait(mut self) -> Result<()> {
         let mut result = Ok(());
-        for task in self.tasks {
+        for task in std::mem::take(&mut self.tasks) {
             match task.await {
                 Ok(Ok(())) => {}
                 Ok(Err(e)) => result = Err(e),
@@ -146,6 +195,7 @@ impl Running {
         tokio::task::spawn_blocking(move || manager.shutdown())
             .await
             .context("stopping the tick loop")?;
+        drop(self.socket.take());
         tracing::info!("mcapi stopped");
         result
     }

@@ -14,7 +14,9 @@
 //! connections (event streams end through [`crate::api::dashboard::Stopping`]).
 //!
 //! The gRPC port keeps tonic's server and gets its connections from the
-//! same kind of accept task ([`limited_incoming`]); each connection must
+//! same kind of accept task ([`limited_incoming`]), from its TCP port and,
+//! with `--grpc-socket`, from a Unix socket as well (each listener with a
+//! budget of its own); each connection must
 //! deliver the 24-byte HTTP/2 preface within the header-read timeout (h2
 //! itself waits for it forever), then HTTP/2 keep-alive pings find dead
 //! peers. Its writes are gathered ([`crate::api::coalesce`]).
@@ -34,7 +36,7 @@ use hyper_util::server::graceful::GracefulShutdown;
 use hyper_util::service::TowerToHyperService;
 use serde::Serialize;
 use tokio::io::{AsyncRead, AsyncWrite, ReadBuf};
-use tokio::net::{TcpListener, TcpStream};
+use tokio::net::{TcpListener, TcpStream, UnixListener, UnixStream};
 use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc};
 use tokio::time::Sleep;
 use tokio_stream::wrappers::ReceiverStream;
@@ -156,19 +158,22 @@ impl ConnLimits {
         Ok(())
     }
 
-    /// Logs a warning when both ports at their connection limit would need
+    /// Logs a warning when `listeners` listeners (the two ports, and the
+    /// gRPC socket if there is one) at their connection limit would need
     /// more file descriptors than the process may open.
-    pub fn warn_on_fd_limit(&self) {
+    pub fn warn_on_fd_limit(&self, listeners: u64) {
         let Some(limit) = open_files_limit() else {
             return;
         };
-        // Two ports, plus the store, the listeners and some headroom.
-        let need = (self.max_connections as u64).saturating_mul(2) + 256;
+        // The listeners' connections, plus the store, the listeners
+        // themselves and some headroom.
+        let need = (self.max_connections as u64).saturating_mul(listeners) + 256;
         if need > limit {
             tracing::warn!(
                 max_connections = self.max_connections,
+                listeners,
                 open_files_limit = limit,
-                "--max-connections on both ports may exceed the open-files limit (ulimit -n); \
+                "--max-connections on every listener may exceed the open-files limit (ulimit -n); \
                  accepting then pauses for a second at a time"
             );
         }
@@ -182,20 +187,62 @@ fn open_files_limit() -> Option<u64> {
     line.split_whitespace().nth(3)?.parse().ok()
 }
 
-/// One accepted connection with its slot of the port's budget.
-struct Accepted {
-    stream: TcpStream,
-    peer: SocketAddr,
+/// A listener the accept task can take connections from.
+trait Listener: Send + Sync + 'static {
+    type Stream: Send + 'static;
+    type Peer: Send + 'static;
+
+    fn poll_accept(
+        &self,
+        cx: &mut Context<'_>,
+    ) -> Poll<std::io::Result<(Self::Stream, Self::Peer)>>;
+
+    /// Socket options of an accepted connection.
+    fn tune(stream: &Self::Stream, limits: &ConnLimits);
+}
+
+impl Listener for TcpListener {
+    type Stream = TcpStream;
+    type Peer = SocketAddr;
+
+    fn poll_accept(&self, cx: &mut Context<'_>) -> Poll<std::io::Result<(TcpStream, SocketAddr)>> {
+        TcpListener::poll_accept(self, cx)
+    }
+
+    fn tune(stream: &TcpStream, limits: &ConnLimits) {
+        tune(stream, limits.tcp_keepalive());
+    }
+}
+
+impl Listener for UnixListener {
+    type Stream = UnixStream;
+    type Peer = tokio::net::unix::SocketAddr;
+
+    fn poll_accept(&self, cx: &mut Context<'_>) -> Poll<std::io::Result<(UnixStream, Self::Peer)>> {
+        UnixListener::poll_accept(self, cx)
+    }
+
+    /// Nothing to set: no Nagle, and a peer that goes away closes the socket.
+    fn tune(_: &UnixStream, _: &ConnLimits) {}
+}
+
+/// One accepted connection with its slot of the listener's budget.
+struct Accepted<S, P> {
+    stream: S,
+    peer: P,
     permit: OwnedSemaphorePermit,
 }
 
 /// Accepts connections on `listener`, each only once a slot of
 /// `max_connections` is free, and hands them over a one-slot channel. Ends
 /// (closing the listener) when the receiver is dropped.
-fn spawn_acceptor(listener: TcpListener, limits: &ConnLimits) -> mpsc::Receiver<Accepted> {
+fn spawn_acceptor<L: Listener>(
+    listener: L,
+    limits: &ConnLimits,
+) -> mpsc::Receiver<Accepted<L::Stream, L::Peer>> {
     let (tx, rx) = mpsc::channel(1);
     let slots = Arc::new(Semaphore::new(limits.max_connections));
-    let keepalive = limits.tcp_keepalive();
+    let limits = limits.clone();
     tokio::spawn(async move {
         loop {
             let permit = tokio::select! {
@@ -206,7 +253,7 @@ fn spawn_acceptor(listener: TcpListener, limits: &ConnLimits) -> mpsc::Receiver<
                 () = tx.closed() => return,
             };
             let accepted = tokio::select! {
-                accepted = listener.accept() => accepted,
+                accepted = std::future::poll_fn(|cx| listener.poll_accept(cx)) => accepted,
                 () = tx.closed() => return,
             };
             let (stream, peer) = match accepted {
@@ -220,7 +267,7 @@ fn spawn_acceptor(listener: TcpListener, limits: &ConnLimits) -> mpsc::Receiver<
                     continue;
                 }
             };
-            tune(&stream, keepalive);
+            L::tune(&stream, &limits);
             if tx
                 .send(Accepted {
                     stream,
@@ -309,24 +356,37 @@ pub async fn serve_http(
     graceful.shutdown().await;
 }
 
-/// The gRPC port's connections, for tonic's `serve_with_incoming_shutdown`:
-/// at most `max_connections` at once, each with TCP keep-alive and a
-/// deadline for the HTTP/2 preface.
+/// The gRPC connections, for tonic's `serve_with_incoming_shutdown`: from
+/// the TCP port and, if given, the Unix socket, at most `max_connections`
+/// at once from each, each with a deadline for the HTTP/2 preface (and TCP
+/// keep-alive on the port's).
 pub fn limited_incoming(
     listener: TcpListener,
+    socket: Option<UnixListener>,
     limits: &ConnLimits,
 ) -> impl tokio_stream::Stream<Item = std::io::Result<LimitedIo>> + use<> {
     let preface_within = limits.header_read_timeout();
     let (tx, rx) = mpsc::channel(1);
-    let mut accepted = spawn_acceptor(listener, limits);
+    let mut tcp = spawn_acceptor(listener, limits);
+    let mut unix = socket.map(|socket| spawn_acceptor(socket, limits));
     tokio::spawn(async move {
         loop {
-            let next = tokio::select! {
-                next = accepted.recv() => next,
-                () = tx.closed() => return,
+            let from_socket = async {
+                match &mut unix {
+                    Some(accepted) => accepted.recv().await,
+                    None => std::future::pending().await,
+                }
             };
-            let Some(Accepted { stream, permit, .. }) = next else {
-                return;
+            let (stream, permit) = tokio::select! {
+                next = tcp.recv() => match next {
+                    Some(a) => (GrpcStream::Tcp(a.stream), a.permit),
+                    None => return,
+                },
+                next = from_socket => match next {
+                    Some(a) => (GrpcStream::Unix(a.stream), a.permit),
+                    None => return,
+                },
+                () = tx.closed() => return,
             };
             let io = LimitedIo {
                 inner: Coalesced::new(stream),
@@ -345,10 +405,10 @@ pub fn limited_incoming(
 /// Bytes of the HTTP/2 client connection preface.
 const H2_PREFACE_LEN: usize = 24;
 
-/// A gRPC connection holding its slot of the port's budget; reads fail
+/// A gRPC connection holding its slot of its listener's budget; reads fail
 /// with `TimedOut` if the HTTP/2 preface has not arrived by its deadline.
 pub struct LimitedIo {
-    inner: Coalesced<TcpStream>,
+    inner: Coalesced<GrpcStream>,
     _permit: OwnedSemaphorePermit,
     preface: Option<Pin<Box<Sleep>>>,
     preface_left: usize,
@@ -357,8 +417,85 @@ pub struct LimitedIo {
 impl tonic::transport::server::Connected for LimitedIo {
     type ConnectInfo = tonic::transport::server::TcpConnectInfo;
 
+    /// A Unix socket's peer has no address: its calls have no
+    /// `remote_addr`, so without API keys its streams count against the
+    /// server's one budget ([`crate::api::streams`]).
     fn connect_info(&self) -> Self::ConnectInfo {
-        self.inner.get_ref().connect_info()
+        match self.inner.get_ref() {
+            GrpcStream::Tcp(stream) => stream.connect_info(),
+            GrpcStream::Unix(_) => tonic::transport::server::TcpConnectInfo {
+                local_addr: None,
+                remote_addr: None,
+            },
+        }
+    }
+}
+
+/// A gRPC connection: from the TCP port, or from the Unix socket
+/// (`--grpc-socket`), which spares a client on the same host the kernel's
+/// TCP path.
+pub enum GrpcStream {
+    /// From the TCP port.
+    Tcp(TcpStream),
+    /// From the Unix socket.
+    Unix(UnixStream),
+}
+
+impl AsyncRead for GrpcStream {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        match self.get_mut() {
+            Self::Tcp(s) => Pin::new(s).poll_read(cx, buf),
+            Self::Unix(s) => Pin::new(s).poll_read(cx, buf),
+        }
+    }
+}
+
+impl AsyncWrite for GrpcStream {
+    fn poll_write(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        match self.get_mut() {
+            Self::Tcp(s) => Pin::new(s).poll_write(cx, buf),
+            Self::Unix(s) => Pin::new(s).poll_write(cx, buf),
+        }
+    }
+
+    fn poll_flush(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        match self.get_mut() {
+            Self::Tcp(s) => Pin::new(s).poll_flush(cx),
+            Self::Unix(s) => Pin::new(s).poll_flush(cx),
+        }
+    }
+
+    fn poll_shutdown(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        match self.get_mut() {
+            Self::Tcp(s) => Pin::new(s).poll_shutdown(cx),
+            Self::Unix(s) => Pin::new(s).poll_shutdown(cx),
+        }
+    }
+
+    fn poll_write_vectored(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        bufs: &[std::io::IoSlice<'_>],
+    ) -> Poll<std::io::Result<usize>> {
+        match self.get_mut() {
+            Self::Tcp(s) => Pin::new(s).poll_write_vectored(cx, bufs),
+            Self::Unix(s) => Pin::new(s).poll_write_vectored(cx, bufs),
+        }
+    }
+
+    fn is_write_vectored(&self) -> bool {
+        match self {
+            Self::Tcp(s) => s.is_write_vectored(),
+            Self::Unix(s) => s.is_write_vectored(),
+        }
     }
 }
 

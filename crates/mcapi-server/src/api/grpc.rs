@@ -839,17 +839,26 @@ pub async fn serve_on(
     stream_buffer: usize,
     shutdown: impl Future<Output = ()>,
 ) -> Result<(), ServeError> {
-    serve_with(listener, manager, GrpcOptions::new(stream_buffer), shutdown).await
+    serve_with(
+        listener,
+        None,
+        manager,
+        GrpcOptions::new(stream_buffer),
+        shutdown,
+    )
+    .await
 }
 
-/// As [`serve_on`], with these options: at most `max_connections`
-/// connections, each with its HTTP/2 preface due within the header-read
+/// As [`serve_on`], on `listener` and, if given, the Unix socket `socket`
+/// too, with these options: at most `max_connections` connections on
+/// each, each with its HTTP/2 preface due within the header-read
 /// timeout, HTTP/2 and TCP keep-alive, `http2_max_streams` calls per
 /// connection, the request timeout (in [`guard`]); keys checked and
 /// `Observe` batches counted before decoding ([`guard`]); a panicking
 /// method answers INTERNAL.
 pub async fn serve_with(
     listener: TcpListener,
+    socket: Option<tokio::net::UnixListener>,
     manager: Arc<SessionManager>,
     opts: GrpcOptions,
     shutdown: impl Future<Output = ()>,
@@ -861,6 +870,13 @@ pub async fn serve_with(
     let routes = router_with(manager, &opts, stop_rx).await?;
     if let Ok(addr) = listener.local_addr() {
         tracing::info!(%addr, "gRPC listening");
+    }
+    if let Some(path) = socket
+        .as_ref()
+        .and_then(|s| s.local_addr().ok())
+        .and_then(|a| a.as_pathname().map(|p| p.display().to_string()))
+    {
+        tracing::info!(socket = %path, "gRPC listening on a Unix socket");
     }
     let signal = async move {
         shutdown.await;
@@ -890,7 +906,7 @@ pub async fn serve_with(
         )))
         .layer(layers)
         .add_routes(routes)
-        .serve_with_incoming_shutdown(limited_incoming(listener, limits), signal)
+        .serve_with_incoming_shutdown(limited_incoming(listener, socket, limits), signal)
         .await?;
     Ok(())
 }

@@ -24,6 +24,7 @@ mod rest;
 mod seq;
 mod shard_move;
 mod storage_failures;
+mod unix_socket;
 
 /// The REST router over a fresh manager with these limits, served on a free
 /// local port: the manager (for checks from inside) and the address.
