@@ -36,12 +36,15 @@ pub struct Running {
     pub manager: Arc<SessionManager>,
     stop: watch::Sender<bool>,
     tasks: Vec<JoinHandle<Result<()>>>,
-    /// The gRPC socket's file, removed when the server is dropped (after
-    /// [`Running::wait`], or on a failed start).
-    socket: Option<SocketFile>,
+    /// The gRPC socket's file: removed as soon as shutdown begins, before
+    /// the listener closes, so that a server started meanwhile (a rolling
+    /// restart) never finds it stale, replaces it, and then loses its own
+    /// socket to this one's cleanup; or when the server is dropped (a
+    /// failed start).
+    socket: parking_lot::Mutex<Option<SocketFile>>,
 }
 
-/// The path of a bound Unix socket, removed on drop.
+/// A bound Unix socket's path; the file is removed on drop.
 struct SocketFile(PathBuf);
 
 impl Drop for SocketFile {
@@ -158,7 +161,7 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
         manager,
         stop,
         tasks: vec![rest_task, grpc_task],
-        socket: socket_file,
+        socket: parking_lot::Mutex::new(socket_file),
     };
     // Health answers during recovery; readiness and the API wait for it.
     let recovering = Arc::clone(&running.manager);
@@ -178,13 +181,14 @@ pub async fn start(cfg: &ServeConfig) -> Result<Running> {
 impl Running {
     /// Asks both transports to stop accepting and finish in-flight requests.
     pub fn shutdown(&self) {
+        drop(self.socket.lock().take());
         let _ = self.stop.send(true);
     }
 
     /// Waits for both transports to finish, then drains and stops the tick loop.
-    pub async fn wait(mut self) -> Result<()> {
+    pub async fn wait(self) -> Result<()> {
         let mut result = Ok(());
-        for task in std::mem::take(&mut self.tasks) {
+        for task in self.tasks {
             match task.await {
                 Ok(Ok(())) => {}
                 Ok(Err(e)) => result = Err(e),
@@ -195,7 +199,7 @@ impl Running {
         tokio::task::spawn_blocking(move || manager.shutdown())
             .await
             .context("stopping the tick loop")?;
-        drop(self.socket.take());
+        drop(self.socket);
         tracing::info!("mcapi stopped");
         result
     }

@@ -197,6 +197,22 @@ async fn a_live_socket_and_a_regular_file_are_left_alone_and_a_stale_socket_is_r
     second.shutdown();
     second.wait().await.expect("stops");
 
+    // A stopping server removes its socket before it stops listening: a
+    // server started meanwhile (a rolling restart) binds the path afresh,
+    // and the first one's cleanup never takes that socket away.
+    let third = start(&dir.path().join("e"), &socket).await.expect("starts");
+    third.shutdown();
+    assert!(!socket.exists(), "the socket goes as shutdown begins");
+    let next = start(&dir.path().join("f"), &socket)
+        .await
+        .expect("the next server starts");
+    third.wait().await.expect("stops");
+    let mut client = over_socket(&socket).await;
+    hallway(&mut client).await;
+    drop(client);
+    next.shutdown();
+    next.wait().await.expect("stops");
+
     let file = dir.path().join("notes.txt");
     std::fs::write(&file, "keep me").expect("a file");
     let refused = start(&dir.path().join("d"), &file)
