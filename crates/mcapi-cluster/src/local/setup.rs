@@ -382,7 +382,61 @@ pub(super) fn hold_router_addresses(
 /// `n` distinct loopback ports free right now and not in `taken` (the
 /// ports of processes that may be down for a moment, restarting): all are
 /// held until all are known, so none is handed out twice.
+///
+/// They are chosen below the kernel's ephemeral range, from a place that
+/// differs from run to run. A port the kernel handed out for port 0 and
+/// got back would be handed out again, as a listener's port or as the
+/// source port of any outgoing connection on the machine (a test client's,
+/// a health check's), and the replica that then binds it would find it
+/// taken. Below the range only an explicit bind takes a port. Where that
+/// range leaves no room (it starts below 4096), ports come from port 0.
 pub(super) fn free_ports(n: usize, taken: &[u16]) -> Result<Vec<u16>> {
+    let low = ephemeral_start().unwrap_or(32_768);
+    if low < 4096 {
+        return kernel_ports(n, taken);
+    }
+    // Candidates: [low / 2, low), from a start that differs per process and
+    // call, so two clusters started together rarely meet.
+    let (first, span) = (low / 2, low - low / 2);
+    let seed = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.subsec_nanos())
+        ^ std::process::id().rotate_left(16);
+    let start = seed % u32::from(span);
+    let mut held = Vec::with_capacity(n);
+    let mut ports = Vec::with_capacity(n);
+    for i in 0..u32::from(span) {
+        if ports.len() == n {
+            break;
+        }
+        let port = first + ((start + i) % u32::from(span)) as u16;
+        if taken.contains(&port) {
+            continue;
+        }
+        // Taken by another process, or not ours to bind: the next one.
+        if let Ok(l) = TcpListener::bind(("127.0.0.1", port)) {
+            ports.push(port);
+            held.push(l);
+        }
+    }
+    if ports.len() < n {
+        bail!(
+            "finding free loopback ports: only {} of {n} free below {low}",
+            ports.len()
+        );
+    }
+    Ok(ports)
+}
+
+/// The first port of the kernel's ephemeral range (Linux:
+/// `/proc/sys/net/ipv4/ip_local_port_range`).
+pub(super) fn ephemeral_start() -> Option<u16> {
+    let range = std::fs::read_to_string("/proc/sys/net/ipv4/ip_local_port_range").ok()?;
+    range.split_whitespace().next()?.parse().ok()
+}
+
+/// [`free_ports`] from the kernel's port 0.
+fn kernel_ports(n: usize, taken: &[u16]) -> Result<Vec<u16>> {
     let mut held = Vec::with_capacity(n);
     let mut ports = Vec::with_capacity(n);
     // Each port `taken` can be handed out at most once while it is held.

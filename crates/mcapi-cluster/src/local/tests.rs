@@ -201,6 +201,24 @@ fn the_routers_ports_are_never_handed_to_a_replica() {
 }
 
 #[test]
+fn replica_ports_come_from_below_the_ephemeral_range() {
+    let _ports = ports_lock();
+    let Some(low) = setup::ephemeral_start().filter(|&low| low >= 4096) else {
+        return; // this machine's range leaves no room: ports come from port 0
+    };
+    let ports = setup::free_ports(64, &[]).expect("ports");
+    assert!(ports.iter().all(|&p| p >= low / 2 && p < low), "{ports:?}");
+    let (again, third) = (
+        setup::free_ports(64, &[]).expect("ports"),
+        setup::free_ports(64, &[]).expect("ports"),
+    );
+    assert!(
+        ports != again || again != third,
+        "every call starts somewhere else"
+    );
+}
+
+#[test]
 fn ports_of_replicas_down_for_a_moment_are_not_handed_out() {
     let _ports = ports_lock();
     // Ports the kernel is about to hand out again: found free and released.
