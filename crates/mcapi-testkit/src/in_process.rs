@@ -13,8 +13,20 @@ struct ServeCli {
 /// The full server in this process (`server::start`: both ports on
 /// loopback port 0, 2 tick workers, the durable store in `data`).
 pub async fn start_in_process(data: &Path) -> mcapi_server::server::Running {
+    try_start_in_process(data, &[])
+        .await
+        .expect("server starts")
+}
+
+/// [`start_in_process`] with `more` flags after its own (a later flag
+/// wins), for the tests that expect the start to fail: its error, with
+/// its causes.
+pub async fn try_start_in_process(
+    data: &Path,
+    more: &[&str],
+) -> Result<mcapi_server::server::Running, String> {
     use clap::Parser;
-    let cfg = ServeCli::parse_from([
+    let mut args = vec![
         "mcapi",
         "--http",
         "127.0.0.1:0",
@@ -24,9 +36,10 @@ pub async fn start_in_process(data: &Path) -> mcapi_server::server::Running {
         "2",
         "--data-dir",
         data.to_str().expect("utf-8 path"),
-    ])
-    .serve;
+    ];
+    args.extend_from_slice(more);
+    let cfg = ServeCli::parse_from(args).serve;
     mcapi_server::server::start(&cfg)
         .await
-        .expect("server starts")
+        .map_err(|e| format!("{e:#}"))
 }

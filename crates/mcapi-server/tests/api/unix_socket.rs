@@ -6,46 +6,24 @@ use std::io::{Read, Write};
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use clap::Parser;
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use mcapi_server::server::Running;
 use tokio_stream::StreamExt;
 use tonic::transport::{Channel, Endpoint, Uri};
 
-/// `mcapi serve`'s options, parsed as the binary parses them.
-#[derive(Parser)]
-struct ServeCli {
-    #[command(flatten)]
-    serve: mcapi_server::config::ServeConfig,
-}
-
 /// The full server on loopback port 0 and the memory store, with its gRPC
 /// socket at `socket`.
-async fn start(data: &Path, socket: &Path) -> anyhow::Result<Running> {
+async fn start(data: &Path, socket: &Path) -> Result<Running, String> {
     start_with(data, socket, &[]).await
 }
 
 /// [`start`] with more flags.
-async fn start_with(data: &Path, socket: &Path, more: &[&str]) -> anyhow::Result<Running> {
-    let mut args = vec![
-        "mcapi",
-        "--http",
-        "127.0.0.1:0",
-        "--grpc",
-        "127.0.0.1:0",
-        "--workers",
-        "2",
-        "--store",
-        "memory",
-        "--data-dir",
-        data.to_str().expect("utf-8 path"),
-        "--grpc-socket",
-        socket.to_str().expect("utf-8 path"),
-    ];
+async fn start_with(data: &Path, socket: &Path, more: &[&str]) -> Result<Running, String> {
+    let socket = socket.to_str().expect("utf-8 path");
+    let mut args = vec!["--store", "memory", "--grpc-socket", socket];
     args.extend_from_slice(more);
-    let cfg = ServeCli::parse_from(args).serve;
-    mcapi_server::server::start(&cfg).await
+    mcapi_testkit::try_start_in_process(data, &args).await
 }
 
 /// A gRPC client over the Unix socket at `path`.
@@ -176,7 +154,7 @@ async fn a_live_socket_and_a_regular_file_are_left_alone_and_a_stale_socket_is_r
         refused
             .to_string()
             .contains("another server is listening on it"),
-        "{refused:#}"
+        "{refused}"
     );
     // The first server still answers on its socket.
     let mut client = over_socket(&socket).await;
@@ -219,10 +197,7 @@ async fn a_live_socket_and_a_regular_file_are_left_alone_and_a_stale_socket_is_r
         .await
         .err()
         .expect("a regular file is not replaced");
-    assert!(
-        refused.to_string().contains("is not a socket"),
-        "{refused:#}"
-    );
+    assert!(refused.contains("is not a socket"), "{refused}");
     assert_eq!(
         std::fs::read_to_string(&file).expect("still there"),
         "keep me"
