@@ -18,6 +18,7 @@ use std::time::{Duration, Instant};
 
 use common::{Launch, Server, grpc_request, rest, rest_create};
 use mcapi_server::api::grpc::pb;
+use mcapi_testkit::time_to_close;
 use prost::bytes::{Buf, BufMut, Bytes};
 use serde_json::{Value, json};
 use tonic::Code;
@@ -34,29 +35,6 @@ async fn start(args: &[&str]) -> (Server, tempfile::TempDir) {
     let log = data.path().join("server.log");
     let server = Server::start(&Launch::new(data.path(), &all), log).await;
     (server, data)
-}
-
-/// Reads until the peer closes; the time it took, or `None` after `limit`.
-fn time_to_close(stream: &mut TcpStream, limit: Duration) -> Option<Duration> {
-    let started = Instant::now();
-    stream
-        .set_read_timeout(Some(Duration::from_millis(100)))
-        .expect("read timeout");
-    let mut buf = [0u8; 4096];
-    while started.elapsed() < limit {
-        match stream.read(&mut buf) {
-            Ok(0) => return Some(started.elapsed()),
-            Ok(_) => {}
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
-                ) => {}
-            // A reset is a close too.
-            Err(_) => return Some(started.elapsed()),
-        }
-    }
-    None
 }
 
 /// The bytes a raw HTTP/1.1 exchange got back until the server closed or

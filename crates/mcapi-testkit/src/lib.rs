@@ -5,6 +5,7 @@
 //! crate depends on it otherwise), one module per idea:
 //!
 //! - [`in_process`]: the full server in this process;
+//! - [`closing`]: how long a server takes to close a connection;
 //! - [`ports`]: free loopback ports;
 //! - [`process`]: signals to a child process, its JSON log;
 //! - [`rest`]: REST calls with an API key;
@@ -28,6 +29,7 @@
 //! test's own. mcapi-server's unit tests do not use it (there the crate
 //! under test is a second build of mcapi-server, whose types differ).
 
+pub mod closing;
 pub mod floats;
 pub mod grpc;
 pub mod hallway;
@@ -39,6 +41,7 @@ pub mod reply;
 pub mod rest;
 pub mod session_check;
 
+pub use closing::*;
 pub use floats::*;
 pub use grpc::*;
 pub use hallway::*;

@@ -2,13 +2,14 @@
 //! service as the TCP port, the socket file's life (made at start, removed
 //! at stop, a stale one replaced, a live one or a regular file left alone).
 
-use std::io::{Read, Write};
+use std::io::Write;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
 use mcapi_server::api::grpc::pb;
 use mcapi_server::api::grpc::pb::agents_client::AgentsClient;
 use mcapi_server::server::Running;
+use mcapi_testkit::time_to_close;
 use tokio_stream::StreamExt;
 use tonic::transport::{Channel, Endpoint, Uri};
 
@@ -202,29 +203,6 @@ async fn a_live_socket_and_a_regular_file_are_left_alone_and_a_stale_socket_is_r
         std::fs::read_to_string(&file).expect("still there"),
         "keep me"
     );
-}
-
-/// Reads until the peer closes; the time it took, or `None` after `limit`.
-fn time_to_close(stream: &mut std::os::unix::net::UnixStream, limit: Duration) -> Option<Duration> {
-    let started = Instant::now();
-    stream
-        .set_read_timeout(Some(Duration::from_millis(100)))
-        .expect("read timeout");
-    let mut buf = [0u8; 4096];
-    while started.elapsed() < limit {
-        match stream.read(&mut buf) {
-            Ok(0) => return Some(started.elapsed()),
-            Ok(_) => {}
-            Err(e)
-                if matches!(
-                    e.kind(),
-                    std::io::ErrorKind::WouldBlock | std::io::ErrorKind::TimedOut
-                ) => {}
-            // A reset is a close too.
-            Err(_) => return Some(started.elapsed()),
-        }
-    }
-    None
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
