@@ -501,7 +501,7 @@ impl Agent {
     /// tables come from DRAM while this one computes. Changes nothing.
     pub fn prefetch(&self) {
         self.drive.prefetch();
-        self.stimulus.prefetch();
+        self.stimulus.prefetch(self.advised);
         self.planner.prefetch();
         crate::prefetch::slice(&self.rewards);
         crate::prefetch::slice(&self.scaled_drive);

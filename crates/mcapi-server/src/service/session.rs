@@ -83,6 +83,9 @@ pub struct Observed {
     /// its writes there, durable once the batch's parts holding them are
     /// committed ([`Observed::durable_in`]).
     pub batched: Option<Range<usize>>,
+    /// How long the observations with their policy updates took, if they
+    /// planned and were timed ([`TIME_ONE_PLAN_IN`]).
+    pub timed: Option<Duration>,
 }
 
 impl Observed {
@@ -93,6 +96,7 @@ impl Observed {
             commit: None,
             replay_only: false,
             batched: None,
+            timed: None,
         }
     }
 
@@ -184,10 +188,19 @@ pub struct Session {
     pub(crate) panic_next: std::sync::atomic::AtomicU8,
 }
 
+/// One policy update in this many of a session's is timed, for the moving
+/// average of its cost ([`Session::plan_cost_ns`]) and for
+/// `mcapi_tick_seconds`: the two clock reads and the histogram's sample
+/// took about 8% of the server's CPU in a group step of hallway members,
+/// whose update costs about a microsecond (BENCHMARKS.md §14). A session's
+/// cost depends on its model and configuration, which do not change, so a
+/// sample follows it as well.
+pub const TIME_ONE_PLAN_IN: u64 = 16;
+
 /// Nanoseconds since the process's first call, plus one (never 0).
 ///
-/// This and the timing of policy updates read the clock three times per
-/// observation, so they read `quanta`'s (the CPU's time-stamp counter where
+/// This is read once per observation and the timing of policy updates
+/// twice per timed update, so they read `quanta`'s (the CPU's time-stamp counter where
 /// it is invariant, the system's monotonic clock otherwise): about 10 ns a
 /// read here against 25 for `std::time::Instant::now`.
 fn clock_ns() -> u64 {
@@ -434,11 +447,14 @@ impl Session {
                     .map(|d| st.submit(&d.store, Vec::new())),
                 replay_only: true,
                 batched: None,
+                timed: None,
             };
         }
         self.pristine.store(false, Ordering::Release);
-        // Timed only when it plans (the cost of a plan is what is learned).
-        let started = plan.then(quanta::Instant::now);
+        // Timed only when it plans (the cost of a plan is what is learned),
+        // and then only now and then.
+        let started =
+            (plan && self.times_plan(&st, batch.len() - start)).then(quanta::Instant::now);
         out.reserve(batch.len() - start);
         let mut log = Vec::new();
         let log_to = self.durability.as_ref().map(|_| &mut log);
@@ -459,14 +475,16 @@ impl Session {
             _ => (None, None),
         };
         drop(st);
-        if let Some(started) = started {
-            self.record_plan_cost(started.elapsed(), out.len() - start);
+        let timed = started.map(|started| started.elapsed());
+        if let Some(took) = timed {
+            self.record_plan_cost(took, out.len() - start);
         }
         Observed {
             result: result.map(|()| out),
             commit,
             replay_only: false,
             batched,
+            timed,
         }
     }
 
@@ -596,24 +614,36 @@ impl Session {
     }
 
     /// One policy update if the reward changed since the last one (the tick
-    /// loop's work for async sessions): how long it took, or `None` if
-    /// none was needed.
+    /// loop's work for async sessions): how long it took if it was timed
+    /// ([`TIME_ONE_PLAN_IN`]), `None` if it was not or none was needed.
     pub fn plan_if_needed(&self) -> Result<Option<Duration>, ServiceError> {
         let mut st = self.state.lock();
         if self.is_failed() || !st.learner.needs_plan() {
             return Ok(None);
         }
         self.pristine.store(false, Ordering::Release);
-        let started = quanta::Instant::now();
+        let started = self.times_plan(&st, 1).then(quanta::Instant::now);
         self.guarded(&mut st, Update::Plan, |st| {
             st.learner.plan()?;
             st.planned_since_log = true;
             Ok(())
         })?;
         drop(st);
-        let took = started.elapsed();
-        self.record_plan_cost(took, 1);
-        Ok(Some(took))
+        let took = started.map(|started| started.elapsed());
+        if let Some(took) = took {
+            self.record_plan_cost(took, 1);
+        }
+        Ok(took)
+    }
+
+    /// Whether the next `updates` policy updates are timed: always before
+    /// the first estimate of their cost and for several at once, else one
+    /// in [`TIME_ONE_PLAN_IN`] (by the policy version, so every session
+    /// keeps being measured).
+    fn times_plan(&self, st: &SessionState, updates: usize) -> bool {
+        updates > 1
+            || self.plan_cost_ns.load(Ordering::Relaxed) == u64::MAX
+            || st.learner.policy_version() % TIME_ONE_PLAN_IN == 0
     }
 
     /// Deleted, being deleted, rolled back or quarantined: its state is

@@ -169,11 +169,10 @@ impl SessionManager {
                 if session.plan_cost_ns().saturating_mul(n) > self.inline_plan_ns {
                     return None;
                 }
-                let started = Instant::now();
                 let observed = session.observe_into(batch, true, log_batch);
-                tick::meters()
-                    .tick_seconds
-                    .record(started.elapsed().as_secs_f64());
+                if let Some(took) = observed.timed {
+                    tick::meters().tick_seconds.record(took.as_secs_f64());
+                }
                 if let Err(e @ ServiceError::Algo(mcapi_core::AlgoError::Numerical(_))) =
                     &observed.result
                 {

@@ -211,3 +211,45 @@ fn an_eviction_drops_what_a_group_remembers_of_its_members() {
     assert_eq!(remembered(), 3, "found again once loaded back");
     m.shutdown();
 }
+
+#[test]
+fn one_policy_update_in_sixteen_is_timed_after_the_first() {
+    let m = manager();
+    let id = m.create(Caller::Anyone, hallway(5)).expect("create").id;
+    let session = m.session(&id).expect("session");
+    assert_eq!(
+        session.plan_cost_ns(),
+        u64::MAX,
+        "no estimate before an update"
+    );
+    let result = session.observe(&[obs(0, None)], false).result;
+    result.expect("placed");
+    let mut timed = Vec::new();
+    for tick in 0..40u64 {
+        let stimulus = Some(vec![(tick % 2) as f64, 0.0]);
+        let result = session.observe(&[obs(1, stimulus)], false).result;
+        result.expect("observed");
+        if session.plan_if_needed().expect("planned").is_some() {
+            timed.push(tick);
+        }
+    }
+    // Policy versions 0, 16 and 32: the first update, then one in sixteen.
+    assert_eq!(timed, vec![0, 16, 32]);
+    assert_ne!(
+        session.plan_cost_ns(),
+        u64::MAX,
+        "the first update was measured"
+    );
+    // Lockstep observations with their updates, timed alike.
+    let mut timed = 0;
+    for tick in 0..32u64 {
+        let stimulus = Some(vec![0.0, (tick % 2) as f64]);
+        let observed = session.observe(&[obs(1, stimulus)], true);
+        observed.result.expect("observed");
+        timed += usize::from(observed.timed.is_some());
+    }
+    assert_eq!(timed, 2);
+    // A batch of several is always timed.
+    let batch = vec![obs(1, Some(vec![1.0, 0.0])), obs(1, Some(vec![0.0, 1.0]))];
+    assert!(session.observe(&batch, true).timed.is_some());
+}
