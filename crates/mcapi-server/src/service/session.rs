@@ -110,6 +110,26 @@ impl Observed {
         self.durable().await
     }
 
+    /// Whether there is a commit of its own to wait for
+    /// ([`Self::durable`]); a group step's members have none (their writes
+    /// are in its batch), nor has anything on a store that keeps nothing.
+    pub fn waits(&self) -> bool {
+        self.commit.is_some()
+    }
+
+    /// [`Self::durable_in`] for one that does not [`Self::waits`], without
+    /// a future: the replies, or the error of their part of `outcome`.
+    pub fn settled_in(self, outcome: &Outcome) -> Result<Vec<StepOut>, ServiceError> {
+        debug_assert!(
+            !self.waits(),
+            "settled_in on a reply with a commit to wait for"
+        );
+        if let Some(positions) = &self.batched {
+            outcome.of(positions.clone())?;
+        }
+        self.result
+    }
+
     /// Waits for durability, then hands back the replies.
     pub async fn durable(self) -> Result<Vec<StepOut>, ServiceError> {
         if let Some(commit) = self.commit {
@@ -162,6 +182,9 @@ pub struct Session {
     /// Moving average of one policy update's cost in nanoseconds;
     /// `u64::MAX` until the first update is measured.
     plan_cost_ns: AtomicU64,
+    /// Policy updates applied since this session came into memory (the
+    /// first [`TIME_ALL_PLANS_UNTIL`] are all timed).
+    plans_here: AtomicU64,
     /// The estimated cost of one observation without its policy update
     /// ([`cost::observe_us`]), in nanoseconds: the model and configuration
     /// it depends on never change, so it is worked out once.
@@ -196,6 +219,11 @@ pub struct Session {
 /// cost depends on its model and configuration, which do not change, so a
 /// sample follows it as well.
 pub const TIME_ONE_PLAN_IN: u64 = 16;
+
+/// A session's first updates in memory are all timed: its first estimate
+/// comes from an update with nothing in cache, which the moving average
+/// forgets a quarter at a time.
+pub const TIME_ALL_PLANS_UNTIL: u64 = 32;
 
 /// Nanoseconds since the process's first call, plus one (never 0).
 ///
@@ -295,6 +323,7 @@ impl Session {
             queued: AtomicBool::new(false),
             stale: AtomicBool::new(false),
             plan_cost_ns: AtomicU64::new(u64::MAX),
+            plans_here: AtomicU64::new(0),
             observe_ns,
             last_observed_ns: AtomicU64::new(resumed.last_observed_ns),
             resident_since_ns: AtomicU64::new(clock_ns()),
@@ -636,13 +665,18 @@ impl Session {
         Ok(took)
     }
 
-    /// Whether the next `updates` policy updates are timed: always before
-    /// the first estimate of their cost and for several at once, else one
-    /// in [`TIME_ONE_PLAN_IN`] (by the policy version, so every session
-    /// keeps being measured).
+    /// Whether the next `updates` policy updates are timed: several at
+    /// once always; one alone always among the first
+    /// [`TIME_ALL_PLANS_UNTIL`] since the session came into memory (so
+    /// that an estimate from a cold first update is corrected as soon as
+    /// before), else one in [`TIME_ONE_PLAN_IN`] (by the policy version).
     fn times_plan(&self, st: &SessionState, updates: usize) -> bool {
+        // Under the state's lock (`st`): a plain read and write suffice.
+        let here = self.plans_here.load(Ordering::Relaxed);
+        self.plans_here
+            .store(here.saturating_add(updates as u64), Ordering::Relaxed);
         updates > 1
-            || self.plan_cost_ns.load(Ordering::Relaxed) == u64::MAX
+            || here < TIME_ALL_PLANS_UNTIL
             || st.learner.policy_version() % TIME_ONE_PLAN_IN == 0
     }
 

@@ -482,24 +482,54 @@ impl SessionManager {
                     })
                 })
                 .collect();
-            let mut applied = Vec::with_capacity(m);
+            // Each chunk's outcomes stay where the chunk left them, in member
+            // order, and are read once the commits are in: a member's reply
+            // (about 150 bytes with its session and commit) is moved once,
+            // into `results`.
+            let mut parts = Vec::with_capacity(chunks.len());
             let mut sent = Vec::with_capacity(chunks.len());
-            let mut elsewhere = Vec::new();
-            for (c, chunk) in join_all(chunks).await.into_iter().enumerate() {
-                let (chunk, batch) = chunk.map_err(|e| {
+            for chunk in join_all(chunks).await {
+                let (part, batch) = chunk.map_err(|e| {
                     ServiceError::Internal(format!("a group step task failed: {e}"))
                 })?;
                 sent.push(batch);
-                for (pos, outcome) in chunk {
-                    match outcome {
+                parts.push(part);
+            }
+            // The chunks' batches were sent one after the other and share
+            // group commits: the first wait is the only one that waits.
+            let mut outcomes = Vec::with_capacity(sent.len());
+            for batch in sent {
+                outcomes.push(batch.wait().await);
+            }
+            let mut applied = 0u64;
+            let mut elsewhere = Vec::new();
+            for (part, outcome) in parts.into_iter().zip(&outcomes) {
+                for (pos, applying) in part {
+                    let result = match applying {
                         Applied::Done(session, observed) => {
-                            applied.push((c, pos, session, observed));
+                            applied += 1;
+                            let result = if observed.waits() {
+                                observed.durable_in(outcome).await
+                            } else {
+                                observed.settled_in(outcome)
+                            };
+                            let result = result.and_then(|out| {
+                                super::observe::replays_stand(&session, &out)?;
+                                only_step(out)
+                            });
+                            self.roll_back_if_uncommitted(&session, &result);
+                            result
                         }
-                        Applied::Refused(e) => results[pos] = Some(Err(e)),
-                        Applied::Elsewhere => elsewhere.push(pos),
-                    }
+                        Applied::Refused(e) => Err(e),
+                        Applied::Elsewhere => {
+                            elsewhere.push(pos);
+                            continue;
+                        }
+                    };
+                    results[pos] = Some(result);
                 }
             }
+            tick::meters().observations.increment(applied);
             if !elsewhere.is_empty() {
                 // Every chunk's task has ended and dropped its share.
                 let mut stepped = Arc::try_unwrap(stepped).map_err(|_| {
@@ -512,21 +542,6 @@ impl SessionManager {
                         (pos, index, obs)
                     })
                     .collect();
-            }
-            tick::meters().observations.increment(applied.len() as u64);
-            // The chunks' batches were sent one after the other and share
-            // group commits: the first wait is the only one that waits.
-            let mut outcomes = Vec::with_capacity(sent.len());
-            for batch in sent {
-                outcomes.push(batch.wait().await);
-            }
-            for (c, pos, session, observed) in applied {
-                let result = observed.durable_in(&outcomes[c]).await.and_then(|out| {
-                    super::observe::replays_stand(&session, &out)?;
-                    only_step(out)
-                });
-                self.roll_back_if_uncommitted(&session, &result);
-                results[pos] = Some(result);
             }
         } else {
             slow = stepped
