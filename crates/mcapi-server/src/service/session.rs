@@ -214,8 +214,8 @@ pub struct Session {
 /// One policy update in this many of a session's is timed, for the moving
 /// average of its cost ([`Session::plan_cost_ns`]) and for
 /// `mcapi_tick_seconds`: the two clock reads and the histogram's sample
-/// took about 8% of the server's CPU in a group step of hallway members,
-/// whose update costs about a microsecond (BENCHMARKS.md §14). A session's
+/// were about 4% of the server's samples in a group step of hallway
+/// members, whose update costs about a microsecond (BENCHMARKS.md §14). A session's
 /// cost depends on its model and configuration, which do not change, so a
 /// sample follows it as well.
 pub const TIME_ONE_PLAN_IN: u64 = 16;
