@@ -215,9 +215,9 @@ pub struct Session {
 /// average of its cost ([`Session::plan_cost_ns`]) and for
 /// `mcapi_tick_seconds`: the two clock reads and the histogram's sample
 /// were about 4% of the server's samples in a group step of hallway
-/// members, whose update costs about a microsecond (BENCHMARKS.md §14). A session's
-/// cost depends on its model and configuration, which do not change, so a
-/// sample follows it as well.
+/// members, whose update costs about a microsecond (BENCHMARKS.md §14).
+/// A session's cost depends on its model and configuration, which do not
+/// change, so a sample follows it as well.
 pub const TIME_ONE_PLAN_IN: u64 = 16;
 
 /// A session's first updates in memory are all timed: its first estimate
@@ -228,9 +228,9 @@ pub const TIME_ALL_PLANS_UNTIL: u64 = 32;
 /// Nanoseconds since the process's first call, plus one (never 0).
 ///
 /// This is read once per observation and the timing of policy updates
-/// twice per timed update, so they read `quanta`'s (the CPU's time-stamp counter where
-/// it is invariant, the system's monotonic clock otherwise): about 10 ns a
-/// read here against 25 for `std::time::Instant::now`.
+/// twice per timed update, so they read `quanta`'s (the CPU's time-stamp
+/// counter where it is invariant, the system's monotonic clock otherwise):
+/// about 10 ns a read here against 25 for `std::time::Instant::now`.
 fn clock_ns() -> u64 {
     static EPOCH: std::sync::OnceLock<quanta::Instant> = std::sync::OnceLock::new();
     let epoch = EPOCH.get_or_init(quanta::Instant::now);
